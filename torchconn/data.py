@@ -1,0 +1,202 @@
+"""The one data container that flows through every stage.
+
+simulate → observe → phase → smooth → regress → evaluate all read and return a
+:class:`Trajectory`. Arrays carry leading batch dimensions ``...`` (typically
+``(noise_levels, trials)``), then time, then coordinates: ``pose (..., T, 3)``,
+``r (..., T, d)``. Stages add fields with :meth:`Trajectory.with_fields` rather than
+re-shaping anything, so the batch layout chosen at simulation time survives to evaluation.
+
+Missing samples (marker drop-outs) are NaN. Trials of different lengths are padded with NaN
+at the end, on a shared sampling grid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+__all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS"]
+
+#: axis of time in ``(..., T, C)`` arrays, and of coordinates
+TIME_AXIS = -2
+COORD_AXIS = -1
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Hidden values a simulation knows and a motion-capture rig does not.
+
+    Attributes:
+        phase: ``(..., T)`` true phase φ(t) of the SDE (unwrapped, rad).
+        pose: ``(..., T, 3)`` noise-free recorded pose.
+        r: ``(..., T, d)`` noise-free recorded shape.
+        xi: ``(..., T, 3)`` true body velocity: the mean of ``g⁻¹ ġ`` over the recording interval
+            centred on each sample (``∫ A(r)∘dr / Δt`` on the fine path).
+        r_dot: ``(..., T, d)`` the mean shape velocity over the same interval.
+        power: ``(..., T)`` noise-free power channel (see :mod:`torchconn.rollout`), or None.
+        delta: ``(..., T, d)`` the SDE's shape offset δ(t) from ``γ_REF(φ(t))``.
+    """
+
+    phase: Tensor
+    pose: Tensor
+    r: Tensor
+    xi: Tensor
+    r_dot: Tensor
+    power: Tensor | None = None
+    delta: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class SmoothedState:
+    """Smoothed values and time derivatives (the Kalman smoother's output).
+
+    Attributes:
+        pose: ``(..., T, 3)`` with the heading unwrapped; ``pose_dot`` its time derivative.
+        r: ``(..., T, d)``; ``r_dot`` its time derivative.
+        xi: ``(..., T, 3)`` body velocity ``g⁻¹ġ`` from the smoothed pose.
+    """
+
+    pose: Tensor
+    pose_dot: Tensor
+    r: Tensor
+    r_dot: Tensor
+    xi: Tensor
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Recorded trials of one swimmer on one shared, uniform time grid.
+
+    Attributes:
+        t: ``(T,)`` sample times, uniform spacing ``dt``.
+        pose: ``(..., T, 3)`` body-frame origin ``(x, y)`` in body lengths and heading θ (rad).
+        r: ``(..., T, d)`` joint angles (rad).
+        power: ``(..., T)`` measured dissipated power, or None.
+        truth: hidden ground truth of simulated data, or None.
+        meta: free-form metadata (system, seeds, noise levels, source files, ...).
+        phase: ``(..., T)`` phase (unwrapped, rad) -- added by the phase stage or supplied.
+        smoothed: smoothed state and derivatives -- added by the smoothing stage.
+    """
+
+    t: Tensor
+    pose: Tensor
+    r: Tensor
+    power: Tensor | None = None
+    truth: GroundTruth | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+    phase: Tensor | None = None
+    smoothed: SmoothedState | None = None
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def dt(self) -> float:
+        """Sampling interval."""
+        return float(self.t[1] - self.t[0])
+
+    @property
+    def n_samples(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def shape_dim(self) -> int:
+        """``d``, the number of joint angles."""
+        return self.r.shape[-1]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Leading batch dimensions ``...`` shared by every array."""
+        return self.r.shape[:-2]
+
+    # ------------------------------------------------------------------ updates
+    def with_fields(self, **changes: Any) -> "Trajectory":
+        """A copy with some fields set (validated); the way stages add what they computed."""
+        return dataclasses.replace(self, **changes)
+
+    def __getitem__(self, index) -> "Trajectory":
+        """Index the batch dimensions only, e.g. ``traj[level, trial]`` or ``traj[:, :3]``."""
+        if not isinstance(index, tuple):
+            index = (index,)
+        if len(index) > len(self.batch_shape):
+            raise IndexError(
+                f"trajectory has {len(self.batch_shape)} batch dims {tuple(self.batch_shape)}, "
+                f"got an index with {len(index)} entries"
+            )
+        return _map_arrays(self, lambda x, k: x[index + (slice(None),) * k])
+
+    def to(self, *args, **kwargs) -> "Trajectory":
+        """Move/cast every array (``torch.Tensor.to`` semantics; ``t`` keeps float64)."""
+        return _map_arrays(self, lambda x, k: x.to(*args, **kwargs))
+
+
+# arrays and how many trailing (non-batch) dims each has
+_TRAILING = {"pose": 2, "r": 2, "power": 1, "phase": 1, "xi": 2, "r_dot": 2, "pose_dot": 2, "delta": 2}
+
+
+def _map_arrays(traj: Trajectory, fn) -> Trajectory:
+    def apply(obj):
+        changes = {}
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if isinstance(v, Tensor) and f.name in _TRAILING:
+                changes[f.name] = fn(v, _TRAILING[f.name] - 1)
+            elif isinstance(v, (GroundTruth, SmoothedState)):
+                changes[f.name] = apply(v)
+        return dataclasses.replace(obj, **changes)
+
+    return apply(traj)
+
+
+def _validate(tr: Trajectory) -> None:
+    if not isinstance(tr.t, Tensor) or tr.t.ndim != 1:
+        raise ValueError(f"t must be a 1-D tensor of sample times (T,), got {_describe(tr.t)}")
+    T = tr.t.shape[0]
+    if T < 2:
+        raise ValueError(f"a trajectory needs at least 2 samples, got T={T}")
+    steps = torch.diff(tr.t)
+    if not torch.isfinite(tr.t).all() or (steps <= 0).any():
+        raise ValueError("t must be finite and strictly increasing")
+    if (steps - steps.mean()).abs().max() > 1e-6 * steps.mean().abs() + 1e-12:
+        raise ValueError(
+            "t must be uniformly sampled; resample the recording onto a uniform grid first "
+            f"(spacing ranges from {float(steps.min()):g} to {float(steps.max()):g})"
+        )
+    if not isinstance(tr.r, Tensor) or tr.r.ndim < 2 or tr.r.shape[-2] != T or tr.r.shape[-1] < 1:
+        raise ValueError(f"r must have shape (..., T={T}, d), got {_describe(tr.r)}")
+    batch, d = tr.r.shape[:-2], tr.r.shape[-1]
+    _expect(tr.pose, "pose", batch + (T, 3))
+    if tr.power is not None:
+        _expect(tr.power, "power", batch + (T,))
+    if tr.phase is not None:
+        _expect(tr.phase, "phase", batch + (T,))
+    if tr.truth is not None:
+        g = tr.truth
+        _expect(g.phase, "truth.phase", batch + (T,))
+        _expect(g.pose, "truth.pose", batch + (T, 3))
+        _expect(g.r, "truth.r", batch + (T, d))
+        _expect(g.xi, "truth.xi", batch + (T, 3))
+        _expect(g.r_dot, "truth.r_dot", batch + (T, d))
+        if g.power is not None:
+            _expect(g.power, "truth.power", batch + (T,))
+        if g.delta is not None:
+            _expect(g.delta, "truth.delta", batch + (T, d))
+    if tr.smoothed is not None:
+        s = tr.smoothed
+        for name, shape in (("pose", (T, 3)), ("pose_dot", (T, 3)), ("r", (T, d)),
+                            ("r_dot", (T, d)), ("xi", (T, 3))):
+            _expect(getattr(s, name), f"smoothed.{name}", batch + shape)
+
+
+def _expect(x, name: str, shape: tuple[int, ...]) -> None:
+    if not isinstance(x, Tensor) or tuple(x.shape) != tuple(shape):
+        raise ValueError(f"{name} must have shape {tuple(shape)}, got {_describe(x)}")
+
+
+def _describe(x) -> str:
+    return f"shape {tuple(x.shape)}" if isinstance(x, Tensor) else type(x).__name__
