@@ -14,6 +14,8 @@ from typing import Callable, Protocol
 import torch
 from torch import Tensor
 
+from ..fourier import FourierSeries
+
 __all__ = ["Gait", "FourierGait", "ModalGait", "PolarGait", "CallableGait", "as_gait"]
 
 
@@ -25,12 +27,6 @@ class Gait(Protocol):
     def velocity(self, phi: Tensor) -> Tensor: ...
 
 
-def _harmonics(phi: Tensor, order: int) -> tuple[Tensor, Tensor]:
-    k = torch.arange(1, order + 1, dtype=phi.dtype, device=phi.device)
-    kphi = phi.unsqueeze(-1) * k
-    return torch.cos(kphi), torch.sin(kphi)
-
-
 class FourierGait:
     """``r(φ) = a0 + Σ_k a_k cos kφ + b_k sin kφ`` per joint.
 
@@ -40,30 +36,22 @@ class FourierGait:
     """
 
     def __init__(self, coeffs):
-        coeffs = torch.as_tensor(coeffs, dtype=torch.float64) if not isinstance(coeffs, Tensor) else coeffs
+        if not isinstance(coeffs, Tensor):
+            coeffs = torch.as_tensor(coeffs, dtype=torch.float64)
         if coeffs.ndim != 2 or coeffs.shape[0] % 2 != 1:
             raise ValueError(f"coeffs must have shape (2K+1, d), got {tuple(coeffs.shape)}")
+        self.series = FourierSeries(coeffs, value_ndim=1)
         self.coeffs = coeffs
-        self.order = (coeffs.shape[0] - 1) // 2
+        self.order = self.series.order
         self.shape_dim = coeffs.shape[1]
 
-    def _parts(self, phi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        c = self.coeffs.to(phi.dtype).to(phi.device) if phi.is_floating_point() else self.coeffs
-        return c[0], c[1::2], c[2::2]
-
     def __call__(self, phi: Tensor) -> Tensor:
-        phi = torch.as_tensor(phi, dtype=self.coeffs.dtype)
-        a0, a, b = self._parts(phi)
-        cos, sin = _harmonics(phi, self.order)
-        return a0 + cos @ a + sin @ b
+        """``(...,) -> (..., d)``."""
+        return self.series(torch.as_tensor(phi, dtype=self.coeffs.dtype))
 
     def velocity(self, phi: Tensor) -> Tensor:
         """``dr/dφ``: ``(...,) -> (..., d)``."""
-        phi = torch.as_tensor(phi, dtype=self.coeffs.dtype)
-        _, a, b = self._parts(phi)
-        cos, sin = _harmonics(phi, self.order)
-        k = torch.arange(1, self.order + 1, dtype=phi.dtype, device=phi.device)[:, None]
-        return cos @ (k * b) - sin @ (k * a)
+        return self.series.derivative()(torch.as_tensor(phi, dtype=self.coeffs.dtype))
 
     def reversed(self) -> "FourierGait":
         """The same loop run backwards, ``r(-φ)``."""

@@ -1,0 +1,418 @@
+"""Reading and writing trajectories: the CONVENTIONS CSV format and a lossless NPZ form.
+
+CSV (CONVENTIONS, "Trajectory data"): a header row, then one row per sample on a uniform grid,
+columns ``t, x, y, theta, r1, …, rd`` and optionally ``power``; several trials may share a file
+with an integer ``trial`` column. Empty cells and ``nan`` are missing samples. Column names are
+matched case-insensitively after stripping blanks; any other column is ignored with a warning.
+
+:func:`read_csv` returns one :class:`~torchconn.data.Trajectory` with batch shape
+``(n_trials,)`` (trials ordered by file, then trial id); trials of different lengths are padded
+with NaN at the end. :func:`write_csv` flattens any batch shape into trials and writes every
+value with ``%.17g``, so reading it back is exact. :func:`save_npz` / :func:`load_npz` keep
+everything -- batch shape, dtype, ``truth``, ``phase``, ``smoothed`` and ``meta`` (as JSON).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import re
+import warnings
+from collections.abc import Sequence
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .data import GroundTruth, SmoothedState, Trajectory
+
+__all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles"]
+
+_POSE_COLUMNS = ("t", "x", "y", "theta")
+_JOINT = re.compile(r"^r(\d+)$")
+#: a trial needs this many samples
+MIN_SAMPLES = 2
+#: tolerated jitter of the sample spacing (fraction of dt), e.g. from rounded time stamps
+_DT_JITTER = 1e-2
+_NPZ_FORMAT = "torchconn.Trajectory/1"
+
+
+# ============================================================================ cycles
+def count_cycles(r: Tensor) -> Tensor:
+    """Rough number of gait cycles in each trial, from the dominant frequency of ``r``.
+
+    ``r`` is centred, projected onto its first principal component, and the peak of the
+    (zero-padded) spectrum of that signal, in cycles per sample, is multiplied by the span of
+    the trial's valid samples. NaN samples (drop-outs, padding) count as the mean.
+
+    Args:
+        r: ``(..., T, d)`` joint angles.
+    Returns:
+        ``(...,)`` cycle counts (float, 0 for trials with fewer than 2 valid samples).
+    """
+    if not isinstance(r, Tensor) or r.ndim < 2:
+        raise ValueError(f"r must be a tensor of shape (..., T, d), got {getattr(r, 'shape', r)}")
+    r = r.to(torch.float64) if not r.is_floating_point() else r
+    T = r.shape[-2]
+    valid = torch.isfinite(r).all(-1)  # (..., T)
+    n_valid = valid.sum(-1)
+    x = torch.where(valid[..., None], r, torch.zeros((), dtype=r.dtype, device=r.device))
+    mean = x.sum(-2, keepdim=True) / n_valid.clamp_min(1)[..., None, None]
+    x = torch.where(valid[..., None], x - mean, torch.zeros((), dtype=r.dtype, device=r.device))
+    cov = x.transpose(-1, -2) @ x
+    pc = torch.linalg.eigh(cov)[1][..., -1]  # (..., d) leading eigenvector
+    s = (x @ pc[..., None])[..., 0]  # (..., T)
+    n_fft = 1 << max(4, math.ceil(math.log2(8 * T)))
+    power = torch.fft.rfft(s, n=n_fft).abs()
+    power[..., 0] = 0.0
+    k = power.argmax(-1).to(r.dtype)
+    idx = torch.arange(T, device=r.device)
+    first = torch.where(valid, idx, T).amin(-1)
+    last = torch.where(valid, idx, -1).amax(-1)
+    span = (last - first + 1).clamp_min(0).to(r.dtype)
+    return torch.where(n_valid >= 2, k / n_fft * span, torch.zeros_like(span))
+
+
+# ============================================================================ CSV reading
+@dataclasses.dataclass
+class _Trial:
+    file: str
+    trial: int | None
+    t: np.ndarray
+    pose: np.ndarray
+    r: np.ndarray
+    power: np.ndarray | None
+
+    @property
+    def label(self) -> str:
+        return self.file if self.trial is None else f"trial {self.trial} of {self.file}"
+
+
+def _parse_column(values: list[str], name: str, lines: list[int], file: str) -> np.ndarray:
+    col = np.char.strip(np.asarray(values, dtype=str))
+    col = np.where(col == "", "nan", col)
+    try:
+        out = col.astype(np.float64)
+    except ValueError:
+        for v, line in zip(col, lines, strict=True):
+            try:
+                float(v)
+            except ValueError:
+                raise ValueError(
+                    f"{file}, line {line}, column {name!r}: non-numeric value {str(v)!r} "
+                    "(missing samples must be empty or 'nan')"
+                ) from None
+        raise  # pragma: no cover - astype and float disagree
+    bad = np.isinf(out)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"{file}, line {lines[i]}, column {name!r}: infinite value {str(col[i])!r}"
+        )
+    return out
+
+
+def _read_rows(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
+    try:
+        fh = path.open(newline="", encoding="utf-8-sig")
+    except OSError as err:
+        raise FileNotFoundError(f"cannot open trajectory file {path}: {err}") from err
+    with fh:
+        reader = csv.reader(fh)
+        header, rows, lines = None, [], []
+        for row in reader:
+            if not row or all(not c.strip() for c in row):
+                continue  # blank line
+            if header is None:
+                header = [c.strip().lower() for c in row]
+                continue
+            rows.append(row)
+            lines.append(reader.line_num)
+    if header is None:
+        raise ValueError(f"{path}: the file is empty; expected a header row "
+                         "'t, x, y, theta, r1, ..., rd[, power]' and one row per sample")
+    for row, line in zip(rows, lines, strict=True):
+        if len(row) != len(header):
+            raise ValueError(f"{path}, line {line}: {len(row)} fields, but the header has "
+                             f"{len(header)} ({', '.join(header)})")
+    return header, rows, lines
+
+
+def _read_file(path: Path, n_joints: int | None) -> list[_Trial]:
+    file = str(path)
+    header, rows, lines = _read_rows(path)
+    seen = set()
+    for name in header:
+        if name in seen:
+            raise ValueError(f"{file}: column {name!r} appears more than once in the header")
+        seen.add(name)
+    joints = sorted(int(m.group(1)) for n in header if (m := _JOINT.match(n)))
+    d = max(joints, default=0)
+    expected = list(_POSE_COLUMNS) + [f"r{i}" for i in range(1, max(d, 1) + 1)]
+    missing = [c for c in expected if c not in header]
+    if missing:
+        raise ValueError(
+            f"{file}: missing required column(s) {', '.join(repr(c) for c in missing)}; the "
+            f"header is {', '.join(header)}, expected t, x, y, theta, r1, ..., rd[, power]"
+            "[, trial]"
+        )
+    if n_joints is not None and d != n_joints:
+        raise ValueError(f"{file}: has {d} joint column(s) r1..r{d}, expected n_joints={n_joints}")
+    known = set(expected) | {"power", "trial"}
+    unknown = [c for c in header if c not in known]
+    if unknown:
+        warnings.warn(f"{file}: ignoring unknown column(s) {', '.join(repr(c) for c in unknown)}",
+                      stacklevel=3)
+    if len(rows) == 0:
+        raise ValueError(f"{file}: no data rows; a trial needs at least {MIN_SAMPLES} samples")
+
+    cols = list(zip(*rows, strict=True))
+    data = {
+        name: _parse_column(list(cols[header.index(name)]), name, lines, file)
+        for name in expected + [c for c in ("power", "trial") if c in header]
+    }
+    lines_arr = np.asarray(lines)
+    if "trial" in data:
+        ids = data["trial"]
+        bad = ~np.isfinite(ids) | (ids != np.round(ids))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"{file}, line {lines[i]}, column 'trial': trial ids must be "
+                             f"integers, got {rows[i][header.index('trial')]!r}")
+        groups = [(int(k), np.flatnonzero(ids == k)) for k in np.unique(ids)]
+    else:
+        groups = [(None, np.arange(len(rows)))]
+
+    trials = []
+    for trial_id, idx in groups:
+        label = file if trial_id is None else f"trial {trial_id} of {file}"
+        if len(idx) < MIN_SAMPLES:
+            raise ValueError(f"{label}: {len(idx)} sample(s); at least {MIN_SAMPLES} are needed")
+        for name, col in data.items():
+            if name != "trial" and np.isnan(col[idx]).all():
+                raise ValueError(f"{label}: column {name!r} has no values (all empty or NaN)")
+        t = data["t"][idx]
+        _check_time(t, lines_arr[idx], label)
+        trials.append(_Trial(
+            file=file, trial=trial_id, t=t,
+            pose=np.stack([data[c][idx] for c in ("x", "y", "theta")], -1),
+            r=np.stack([data[f"r{i}"][idx] for i in range(1, d + 1)], -1),
+            power=data["power"][idx] if "power" in data else None,
+        ))
+    return trials
+
+
+def _check_time(t: np.ndarray, lines: np.ndarray, label: str) -> None:
+    if np.isnan(t).any():
+        i = int(np.argmax(np.isnan(t)))
+        raise ValueError(f"{label}, line {lines[i]}: column 't' is empty; every row needs its "
+                         "sample time (write missing samples as empty pose/shape cells)")
+    steps = np.diff(t)
+    if (steps <= 0).any():
+        i = int(np.argmax(steps <= 0))
+        raise ValueError(f"{label}, line {lines[i + 1]}: t must be strictly increasing, got "
+                         f"t={t[i + 1]!r} after t={t[i]!r}")
+    dt = (t[-1] - t[0]) / (len(t) - 1)
+    jitter = np.abs(steps - dt)
+    if (jitter > _DT_JITTER * dt).any():
+        i = int(np.argmax(jitter))
+        raise ValueError(
+            f"{label}, line {lines[i + 1]}: t is not uniformly sampled (step {steps[i]:g} where "
+            f"the mean step is {dt:g}); resample onto a uniform grid and write lost samples as "
+            "rows with empty cells"
+        )
+
+
+def read_csv(
+    paths: str | PathLike | Sequence[str | PathLike],
+    *,
+    n_joints: int | None = None,
+    min_cycles: float | None = None,
+) -> Trajectory:
+    """Read trials from one or several CSV files (CONVENTIONS format).
+
+    Args:
+        paths: a file or a sequence of files; a file may hold several trials (``trial`` column).
+        n_joints: expected number of joint columns ``d`` (checked when given).
+        min_cycles: when given, every trial must hold at least this many gait cycles
+            (estimated by :func:`count_cycles`).
+
+    Returns:
+        A :class:`~torchconn.data.Trajectory` (float64, CPU) with ``pose (n_trials, T, 3)``,
+        ``r (n_trials, T, d)``, ``power (n_trials, T)`` when any file has a power column (NaN
+        for files without one), ``T`` the longest trial (shorter ones NaN-padded at the end),
+        and ``meta["trials"]`` listing each trial's file, id, length and start time.
+
+    Raises:
+        ValueError: naming the file (and line / column) for missing columns, non-numeric
+            values, non-increasing or non-uniform ``t``, a wrong number of joints, all-empty
+            columns, too few samples, different sampling intervals or too few cycles.
+    """
+    if isinstance(paths, (str, PathLike)):
+        paths = [paths]
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise ValueError("paths is empty; pass a CSV file or a list of them")
+    if n_joints is not None and (not isinstance(n_joints, int) or n_joints < 1):
+        raise ValueError(f"n_joints must be a positive integer, got {n_joints!r}")
+
+    trials: list[_Trial] = []
+    for p in paths:
+        trials.extend(_read_file(p, n_joints))
+
+    d = trials[0].r.shape[1]
+    for tr in trials[1:]:
+        if tr.r.shape[1] != d:
+            raise ValueError(f"{tr.label} has {tr.r.shape[1]} joints but {trials[0].label} has "
+                             f"{d}; all trials must come from the same swimmer")
+    dts = [(tr.t[-1] - tr.t[0]) / (len(tr.t) - 1) for tr in trials]
+    dt = dts[0]
+    for tr, dti in zip(trials, dts, strict=True):
+        if abs(dti - dt) > 1e-3 * dt:
+            raise ValueError(
+                f"{tr.label} is sampled every {dti:g} but {trials[0].label} every {dt:g}; "
+                "trials read together must share one sampling interval (resample first)"
+            )
+
+    n_max = max(len(tr.t) for tr in trials)
+    longest = max(trials, key=lambda tr: len(tr.t))
+    t0s = [float(tr.t[0]) for tr in trials]
+    t = torch.as_tensor(longest.t)
+    steps = torch.diff(t)
+    same_start = all(abs(t0 - t0s[0]) <= 1e-9 * max(1.0, abs(t0s[0])) for t0 in t0s)
+    if not same_start or (steps - steps.mean()).abs().max() > 1e-6 * steps.mean().abs():
+        # rounded time stamps, or trials starting at different times: one exact uniform grid
+        t = t0s[0] + torch.arange(n_max, dtype=torch.float64) * dt
+
+    def pad(a: np.ndarray) -> np.ndarray:
+        width = [(0, n_max - a.shape[0])] + [(0, 0)] * (a.ndim - 1)
+        return np.pad(a, width, constant_values=np.nan)
+
+    pose = torch.as_tensor(np.stack([pad(tr.pose) for tr in trials]))
+    r = torch.as_tensor(np.stack([pad(tr.r) for tr in trials]))
+    power = None
+    if any(tr.power is not None for tr in trials):
+        lacking = sorted({tr.file for tr in trials if tr.power is None})
+        if lacking:
+            warnings.warn(f"no 'power' column in {', '.join(lacking)}; their power is NaN",
+                          stacklevel=2)
+        power = torch.as_tensor(np.stack([
+            pad(tr.power if tr.power is not None else np.full(len(tr.t), np.nan))
+            for tr in trials
+        ]))
+
+    if min_cycles is not None:
+        cycles = count_cycles(r)
+        for tr, c in zip(trials, cycles.tolist(), strict=True):
+            if c < min_cycles:
+                raise ValueError(
+                    f"{tr.label}: too few cycles -- found about {c:.1f} gait cycle(s), "
+                    f"{min_cycles:g} are needed (min_cycles={min_cycles:g})"
+                )
+
+    meta = {
+        "source": [str(p) for p in paths],
+        "trials": [{"file": tr.file, "trial": tr.trial, "n_samples": len(tr.t),
+                    "t0": float(tr.t[0])} for tr in trials],
+        "dt": float(dt),
+    }
+    return Trajectory(t=t, pose=pose, r=r, power=power, meta=meta)
+
+
+# ============================================================================ CSV writing
+def write_csv(traj: Trajectory, path: str | PathLike) -> Path:
+    """Write a trajectory in the CONVENTIONS CSV format.
+
+    Columns ``t, x, y, theta, r1, …, rd`` (+ ``power`` when present); the batch dims are
+    flattened (C order) into trials, and a leading integer ``trial`` column ``0 … n−1`` is
+    written when there is more than one. Values use ``%.17g`` (exact round trip), missing ones
+    ``nan``. ``truth``, ``phase``, ``smoothed``, ``meta`` and the batch shape are not written:
+    use :func:`save_npz` for those.
+
+    Returns:
+        the path written.
+    """
+    if not isinstance(traj, Trajectory):
+        raise TypeError(f"traj must be a Trajectory, got {type(traj).__name__}")
+    path = Path(path)
+    T, d = traj.n_samples, traj.shape_dim
+    t = traj.t.detach().cpu().to(torch.float64).numpy()
+    pose = traj.pose.detach().cpu().to(torch.float64).reshape(-1, T, 3).numpy()
+    r = traj.r.detach().cpu().to(torch.float64).reshape(-1, T, d).numpy()
+    n = pose.shape[0]
+    parts = [np.broadcast_to(t, (n, T))[..., None], pose, r]
+    names = ["t", "x", "y", "theta"] + [f"r{i}" for i in range(1, d + 1)]
+    if traj.power is not None:
+        parts.append(traj.power.detach().cpu().to(torch.float64).reshape(n, T, 1).numpy())
+        names.append("power")
+    fmt = ["%.17g"] * len(names)
+    if n > 1:
+        trial = np.broadcast_to(np.arange(n, dtype=np.float64)[:, None, None], (n, T, 1))
+        parts.insert(0, trial)
+        names.insert(0, "trial")
+        fmt.insert(0, "%d")
+    table = np.concatenate(parts, -1).reshape(n * T, len(names))
+    np.savetxt(path, table, fmt=fmt, delimiter=",", header=",".join(names), comments="")
+    return path
+
+
+# ============================================================================ NPZ
+def _json_default(obj):
+    if isinstance(obj, Tensor):
+        return obj.detach().cpu().tolist()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, PathLike):
+        return str(obj)
+    raise TypeError(f"meta holds a {type(obj).__name__}, which cannot be stored as JSON; "
+                    "convert it to a number, string or list before saving")
+
+
+def save_npz(traj: Trajectory, path: str | PathLike) -> Path:
+    """Save a trajectory losslessly (arrays with their dtype and batch shape, meta as JSON).
+
+    Tuples in ``meta`` come back as lists, tensors and arrays inside ``meta`` as lists.
+    NumPy appends ``.npz`` to a path without it; the path written is returned.
+    """
+    if not isinstance(traj, Trajectory):
+        raise TypeError(f"traj must be a Trajectory, got {type(traj).__name__}")
+    arrays = {"format": np.array(_NPZ_FORMAT),
+              "meta": np.array(json.dumps(traj.meta, default=_json_default))}
+    for prefix, obj in (("", traj), ("truth.", traj.truth), ("smoothed.", traj.smoothed)):
+        if obj is None:
+            continue
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if isinstance(v, Tensor):
+                arrays[prefix + f.name] = v.detach().cpu().numpy()
+    path = Path(path)
+    np.savez(path, **arrays)
+    return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+
+
+def load_npz(path: str | PathLike) -> Trajectory:
+    """Load a trajectory written by :func:`save_npz` (tensors on the CPU)."""
+    path = Path(path)
+    with np.load(path, allow_pickle=False) as z:
+        if "format" not in z.files or str(z["format"]) != _NPZ_FORMAT:
+            raise ValueError(f"{path} is not a torchconn trajectory file (no '{_NPZ_FORMAT}' "
+                             "format tag); write it with torchconn.io.save_npz")
+        arrays = {k: torch.from_numpy(z[k].copy()) for k in z.files if k not in ("format", "meta")}
+        meta = json.loads(str(z["meta"]))
+
+    def part(prefix: str, cls):
+        names = {f.name for f in dataclasses.fields(cls)}
+        got = {k[len(prefix):]: v for k, v in arrays.items()
+               if k.startswith(prefix) and k[len(prefix):] in names}
+        return cls(**got) if got else None
+
+    truth = part("truth.", GroundTruth)
+    smoothed = part("smoothed.", SmoothedState)
+    top = {k: v for k, v in arrays.items() if "." not in k}
+    return Trajectory(**top, truth=truth, smoothed=smoothed, meta=meta)
