@@ -1,0 +1,159 @@
+"""The gait as executed: a self-consistent limit cycle fitted to phased shape data.
+
+Data-Driven Floquet Analysis (the paper's Sec. 3) fits two Fourier series in phase: ``γ₀(φ)``
+to the shapes ``r`` and ``ω(φ)`` to the shape velocities ``ṙ``. They come from different noisy
+data, so ``dγ₀/dφ ≠ ω`` in general. A matched filter combines them into one cycle ``γ``: for
+each harmonic ``k >= 1`` and shape coordinate, ``γ``'s coefficients are the inverse-variance
+weighted mean of ``γ₀``'s and of ``∫ω dφ``'s (``(a_k, b_k) -> (-b_k, a_k) / k``), with
+variances ``σ_r²`` and ``σ_ṙ² / k²`` from the two fits' residuals (integration divides
+harmonic ``k``'s noise by ``k``, so high harmonics lean on ``ω``). The mean comes from ``γ₀``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .fourier import FourierSeries, fit_fourier
+
+__all__ = ["LimitCycle", "fit_limit_cycle", "phase_rate"]
+
+
+@dataclass(frozen=True, eq=False)
+class LimitCycle:
+    """A fitted limit cycle, batched over leading dims ``...``.
+
+    Attributes:
+        gamma: self-consistent cycle ``γ(φ)``, values ``(d,)``.
+        gamma0: direct fit to the shapes, ``γ₀(φ) ≈ r``.
+        omega: fit to the shape velocities per unit phase, ``ω(φ) ≈ ṙ / φ̇``.
+        phase_rate: ``(...)`` mean phase velocity ``φ̇`` used to turn ``dγ/dφ`` into a time
+            derivative (1 by the conventions, one cycle per 2π time units).
+        gamma0_weight: ``(..., K, d)`` the matched filter's weight on ``γ₀`` for harmonic
+            ``k = 1..K`` of each coordinate (``1 - weight`` is on ``∫ω``).
+    """
+
+    gamma: FourierSeries
+    gamma0: FourierSeries
+    omega: FourierSeries
+    phase_rate: Tensor
+    gamma0_weight: Tensor
+
+    def gamma_at(self, phi: Tensor) -> Tensor:
+        """``γ(φ)``: ``phi (..., P)`` -> ``(..., P, d)``."""
+        return self.gamma(phi)
+
+    def gamma_dot_at(self, phi: Tensor) -> Tensor:
+        """``dγ/dφ``: ``phi (..., P)`` -> ``(..., P, d)``; on the cycle ``ṙ = φ̇ dγ/dφ``."""
+        return self.gamma.derivative()(phi)
+
+    def offsets(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> tuple[Tensor, Tensor]:
+        """Offsets from the cycle at the same phase.
+
+        Args:
+            phase: ``(..., T)``; r, r_dot: ``(..., T, d)``.
+
+        Returns:
+            ``(delta, delta_dot)``, both ``(..., T, d)``: ``δ = r - γ(φ)`` and
+            ``δ̇ = ṙ - φ̇ dγ/dφ(φ)`` (``φ̇`` = :attr:`phase_rate`, 1 by convention).
+        """
+        _check(phase, r, r_dot, "LimitCycle.offsets")
+        delta = r - self.gamma_at(phase)
+        delta_dot = r_dot - self.phase_rate[..., None, None] * self.gamma_dot_at(phase)
+        return delta, delta_dot
+
+
+def fit_limit_cycle(
+    phase: Tensor,
+    r: Tensor,
+    r_dot: Tensor,
+    *,
+    order: int = 5,
+    dt: float | None = None,
+) -> LimitCycle:
+    """Fit ``γ₀``, ``ω`` and the self-consistent cycle ``γ`` to phased shape data.
+
+    Args:
+        phase: ``(..., T)`` phase of every sample (e.g. from
+            :func:`torchconn.phase.estimate_phase`; wrapped or not).
+        r: ``(..., T, d)`` shapes; r_dot: ``(..., T, d)`` shape velocities (``d/dt``).
+            Samples with NaN in ``phase``, ``r`` or ``r_dot`` are ignored by both fits.
+        order: harmonics of every series (the reference gaits use odd harmonics up to 5).
+        dt: sampling interval. If given, the phase velocity ``φ̇`` is the least-squares slope
+            of ``phase`` (which must then be unwrapped) against time per batch element
+            (:func:`phase_rate`), and ``ω`` is fitted to ``ṙ / φ̇``; if None, ``φ̇ = 1`` (the
+            conventions' one cycle per 2π time units).
+
+    Returns:
+        :class:`LimitCycle`; each batch element gets its own cycle.
+    """
+    _check(phase, r, r_dot, "fit_limit_cycle")
+    dtype = torch.promote_types(torch.promote_types(phase.dtype, r.dtype), r_dot.dtype)
+    phase, r, r_dot = phase.to(dtype), r.to(dtype), r_dot.to(dtype)
+    if dt is None:
+        rate = torch.ones(phase.shape[:-1], dtype=dtype, device=phase.device)
+    else:
+        rate = phase_rate(phase, float(dt))
+    v = r_dot / rate[..., None, None]
+
+    gamma0 = fit_fourier(phase, r, order)
+    omega = fit_fourier(phase, v, order)
+    var_r = _residual_variance(gamma0, phase, r)  # (..., d)
+    var_v = _residual_variance(omega, phase, v)
+
+    # matched filter, per harmonic k and coordinate: weight on γ₀ = var(∫ω)/(var(γ₀)+var(∫ω))
+    k = torch.arange(1, order + 1, dtype=dtype, device=phase.device)[:, None]  # (K, 1)
+    var_int = var_v[..., None, :] / k**2  # (..., K, d)
+    total = var_r[..., None, :] + var_int
+    w0 = torch.where(total > 0, var_int / total.clamp_min(1e-300), torch.full_like(total, 0.5))
+    w = torch.repeat_interleave(w0, 2, dim=-2)  # (..., 2K, d): same weight for a_k and b_k
+    integ = omega.integral(drop_mean=True).coeffs
+    c0 = gamma0.coeffs
+    harmonics = w * c0[..., 1:, :] + (1 - w) * integ[..., 1:, :]
+    gamma = FourierSeries(torch.cat([c0[..., :1, :], harmonics], dim=-2), 1)
+    return LimitCycle(gamma=gamma, gamma0=gamma0, omega=omega, phase_rate=rate, gamma0_weight=w0)
+
+
+def _residual_variance(series: FourierSeries, phase: Tensor, y: Tensor) -> Tensor:
+    """Per-coordinate residual variance ``(..., d)`` of a fit, ignoring NaN samples,
+    corrected for the ``2K+1`` fitted coefficients."""
+    res = y - series(phase)
+    ok = torch.isfinite(res).all(-1, keepdim=True)
+    n = ok.sum(-2).to(y.dtype)  # (..., 1)
+    ss = torch.where(ok, res, torch.zeros_like(res)).pow(2).sum(-2)
+    return ss / (n - (2 * series.order + 1)).clamp_min(1.0)
+
+
+def phase_rate(phase: Tensor, dt: float) -> Tensor:
+    """Mean phase velocity ``φ̇``: least-squares slope of an unwrapped ``phase (..., T)``
+    against time ``t = n dt``, ignoring NaN samples -> ``(...)``."""
+    if not isinstance(phase, Tensor) or phase.ndim < 1 or phase.shape[-1] < 2:
+        shape = tuple(phase.shape) if isinstance(phase, Tensor) else type(phase).__name__
+        raise ValueError(f"phase_rate: phase must have shape (..., T) with T >= 2, got {shape}")
+    ok = torch.isfinite(phase)
+    t = torch.arange(phase.shape[-1], dtype=phase.dtype, device=phase.device) * dt
+    m = ok.to(phase.dtype)
+    n = m.sum(-1, keepdim=True)
+    p = torch.where(ok, phase, torch.zeros_like(phase))
+    tc = (t - (m * t).sum(-1, keepdim=True) / n) * m
+    return (tc * p).sum(-1) / (tc * tc).sum(-1)
+
+
+def _check(phase: Tensor, r: Tensor, r_dot: Tensor, fn: str) -> None:
+    for name, x in (("phase", phase), ("r", r), ("r_dot", r_dot)):
+        if not isinstance(x, Tensor):
+            raise TypeError(f"{fn}: {name} must be a torch.Tensor, got {type(x).__name__}")
+    if phase.ndim < 1:
+        raise ValueError(f"{fn}: phase must have shape (..., T), got {tuple(phase.shape)}")
+    T = phase.shape[-1]
+    if r.ndim < 2 or r.shape[-2] != T:
+        raise ValueError(
+            f"{fn}: r must have shape (..., T={T}, d) matching phase {tuple(phase.shape)}, "
+            f"got {tuple(r.shape)}"
+        )
+    if r_dot.shape != r.shape:
+        raise ValueError(
+            f"{fn}: r_dot must have the same shape as r {tuple(r.shape)}, got {tuple(r_dot.shape)}"
+        )

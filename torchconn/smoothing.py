@@ -1,0 +1,381 @@
+"""Batched Rauch–Tung–Striebel (Kalman) smoothing of sampled trajectories.
+
+Each channel of ``y (..., T, C)`` is smoothed on its own with a linear Gaussian model: a
+2-state (position, velocity) constant-velocity model driven by white acceleration
+(``order=2``), or a 3-state (position, velocity, acceleration) model driven by white jerk
+(``order=3``), observed in position with white noise. All batch elements and channels run
+through one vectorised filter; only the time loop is in Python.
+
+Noise parameters, when not given, are estimated per channel (see :func:`rts_smooth`).
+Missing samples (NaN) are predicted through, so outputs are finite everywhere.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .data import SmoothedState
+
+__all__ = ["rts_smooth", "unwrap", "body_velocity", "smooth_trajectory"]
+
+# log10 grid of the dimensionless noise ratio q dt^(2 order - 1) / R searched by GCV
+_MU_GRID = torch.linspace(-10.0, 6.0, 65).tolist()
+# with DIFF_ORDER-th differences white noise of variance R has variance binom(2k, k) R,
+# while a smooth signal sampled at >= ~30 samples per cycle is suppressed to (w dt)^k
+_DIFF_ORDER = 4
+_PRIOR_SCALE = 1e4
+
+
+def unwrap(angle: Tensor, dim: int = -1) -> Tensor:
+    """Unwrap angles (radians) along ``dim``, skipping NaNs.
+
+    Each finite sample is shifted by a multiple of 2π so that it differs from the previous
+    *finite* sample by less than π. NaNs stay NaN and do not break the unwrapping.
+    """
+    if not isinstance(angle, Tensor):
+        raise TypeError(f"angle must be a torch.Tensor, got {type(angle).__name__}")
+    x = angle.movedim(dim, -1)
+    n = x.shape[-1]
+    if n == 0:
+        return angle
+    finite = torch.isfinite(x)
+    idx = torch.arange(n, device=x.device).expand(x.shape)
+    # forward-fill: index of the last finite sample at or before each position
+    last = torch.cummax(torch.where(finite, idx, torch.zeros_like(idx)), dim=-1).values
+    filled = torch.gather(x, -1, last)
+    d = torch.diff(filled, dim=-1)
+    step = torch.remainder(d + math.pi, 2 * math.pi) - math.pi - d  # multiple of 2π
+    step = torch.nan_to_num(step, nan=0.0)
+    shift = torch.cat([torch.zeros_like(step[..., :1]), torch.cumsum(step, dim=-1)], dim=-1)
+    return (x + shift).movedim(-1, dim)
+
+
+def _model(order: int, dt: float, dtype, device) -> tuple[Tensor, Tensor]:
+    """Transition matrix ``F`` and unit-intensity process covariance ``Q1`` for one step."""
+    if order == 2:
+        F = [[1.0, dt], [0.0, 1.0]]
+        Q = [[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]
+    else:
+        F = [[1.0, dt, dt**2 / 2], [0.0, 1.0, dt], [0.0, 0.0, 1.0]]
+        Q = [
+            [dt**5 / 20, dt**4 / 8, dt**3 / 6],
+            [dt**4 / 8, dt**3 / 3, dt**2 / 2],
+            [dt**3 / 6, dt**2 / 2, dt],
+        ]
+    return (
+        torch.tensor(F, dtype=dtype, device=device),
+        torch.tensor(Q, dtype=dtype, device=device),
+    )
+
+
+def _nanvar(x: Tensor) -> Tensor:
+    m = torch.nanmean(x, dim=-1, keepdim=True)
+    return torch.nanmean((x - m) ** 2, dim=-1)
+
+
+def _measurement_variance(y: Tensor) -> Tensor:
+    """Robust white-noise variance from the spread of ``_DIFF_ORDER``-th differences.
+
+    ``y (B, T)`` -> ``(B,)``. The median absolute deviation makes it insensitive to the odd
+    outlier and to the few large differences a dropped sample's neighbours produce.
+    """
+    d = torch.diff(y, n=_DIFF_ORDER, dim=-1)
+    med = torch.nanmedian(d, dim=-1, keepdim=True).values
+    mad = torch.nanmedian((d - med).abs(), dim=-1).values
+    return (1.4826 * mad) ** 2 / math.comb(2 * _DIFF_ORDER, _DIFF_ORDER)
+
+
+def _prior(y: Tensor, finite: Tensor, order: int, dt: float) -> tuple[Tensor, Tensor]:
+    """Vague initial state: first finite sample, zero rates, variances from the data's spread."""
+    B, T = y.shape
+    first = torch.argmax(finite.to(torch.int8), dim=-1)
+    x0 = torch.zeros(B, order, dtype=y.dtype, device=y.device)
+    x0[:, 0] = y.gather(-1, first[:, None])[:, 0]
+    scales = [_nanvar(y)]
+    for k in range(1, order):
+        # mean square, not variance, of the differences: a steady drift must fit in the prior
+        scales.append(torch.nanmean(torch.diff(y, n=k, dim=-1) ** 2, dim=-1) / dt ** (2 * k))
+    var = torch.nan_to_num(torch.stack(scales, -1), nan=1.0) + torch.finfo(y.dtype).tiny
+    # vague: 1e4 times the data's own scale, so the prior's pull on the start is ~1e-4 of it
+    return x0, torch.diag_embed(_PRIOR_SCALE * var)
+
+
+def _filter(y, finite, F, Q, R, x0, P0) -> tuple[Tensor, Tensor]:
+    """Kalman filter over time. ``y, finite (B, T)``, ``Q (B, n, n)``, ``R (B,)``.
+
+    Returns the filtered means ``(B, T, n)`` and covariances ``(B, T, n, n)``.
+    """
+    T = y.shape[1]
+    y = torch.where(finite, y, torch.zeros_like(y))
+    m = finite.to(y.dtype)
+    x, P = x0, P0
+    xf, Pf = [], []
+    for t in range(T):
+        if t > 0:
+            x = _mv(F, x)
+            P = _mm(_mm(F, P), F.mT) + Q
+        S = P[:, 0, 0] + R
+        K = P[:, :, 0] * (m[:, t] / S)[:, None]  # zero gain at a drop-out: predict only
+        x = x + K * (y[:, t] - x[:, 0])[:, None]
+        P = P - K[:, :, None] * P[:, None, 0, :]
+        xf.append(x)
+        Pf.append(P)
+    return torch.stack(xf, 1), torch.stack(Pf, 1)
+
+
+def _smooth(F, Q, xf, Pf) -> Tensor:
+    """RTS backward pass for the means (their covariances are not needed)."""
+    # the predictions and all gains at once: G_t = Pf_t Fᵀ Pp_{t+1}⁻¹, so Gᵀ = Pp⁻¹ F Pf_t
+    Pp = F @ Pf[:, :-1] @ F.mT + Q[:, None]
+    G = torch.linalg.solve(Pp, F @ Pf[:, :-1]).mT
+    xp = xf[:, :-1] @ F.mT
+    xs = [xf[:, -1]]
+    for t in range(xf.shape[1] - 2, -1, -1):
+        xs.append(xf[:, t] + _mv(G[:, t], xs[-1] - xp[:, t]))
+    return torch.stack(xs[::-1], 1)
+
+
+# Tiny batched products written as broadcast-and-sum: inside the time loops these run on a
+# few thousand numbers, where ATen's batched matmul spreads work over threads and, on a busy
+# machine, spends far longer waiting for them than computing (25x slower measured).
+def _mv(A: Tensor, x: Tensor) -> Tensor:
+    """``A (..., n, n) @ x (..., n)``."""
+    return (A * x[..., None, :]).sum(-1)
+
+
+def _mm(A: Tensor, B: Tensor) -> Tensor:
+    """``A (..., n, k) @ B (..., k, m)``."""
+    return (A[..., :, :, None] * B[..., None, :, :]).sum(-2)
+
+
+def _fill_gaps(y: Tensor, finite: Tensor) -> Tensor:
+    """Linear interpolation across NaNs (constant beyond the first/last finite sample)."""
+    T = y.shape[-1]
+    idx = torch.arange(T, device=y.device).expand(y.shape)
+    prev = torch.cummax(torch.where(finite, idx, torch.zeros_like(idx)), -1).values
+    big = torch.full_like(idx, T - 1)
+    nxt = torch.cummin(torch.where(finite, idx, big).flip(-1), -1).values.flip(-1)
+    # before the first finite sample `prev` points at a NaN: use `nxt` there (and vice versa)
+    prev = torch.where(finite.gather(-1, prev), prev, nxt)
+    nxt = torch.where(finite.gather(-1, nxt), nxt, prev)
+    y0, y1 = y.gather(-1, prev), y.gather(-1, nxt)
+    span = (nxt - prev).clamp_min(1).to(y.dtype)
+    return y0 + (y1 - y0) * (idx - prev).to(y.dtype) / span
+
+
+def _unit_spectrum(F: Tensor, Q1: Tensor, N: int) -> Tensor:
+    """Power spectrum of the sampled position for unit process noise at ``2πk/N`` -> ``(N,)``.
+
+    ``S(w) = e0ᵀ (e^{iw} I - F)^{-1} Q1 (e^{iw} I - F)^{-H} e0``; infinite at ``w = 0``.
+    """
+    n = F.shape[0]
+    cdt = torch.complex128 if F.dtype == torch.float64 else torch.complex64
+    w = 2 * math.pi * torch.arange(1, N, dtype=F.dtype, device=F.device) / N
+    A = torch.exp(1j * w.to(cdt))[:, None, None] * torch.eye(n, dtype=cdt, device=F.device)
+    Ainv_e0 = torch.linalg.inv(A - F.to(cdt))[:, 0, :]  # row e0ᵀ (zI - F)^{-1}
+    s = torch.einsum("fi,ij,fj->f", Ainv_e0, Q1.to(cdt), Ainv_e0.conj()).real
+    return torch.cat([torch.full_like(s[:1], math.inf), s])
+
+
+def _gcv_noise_ratio(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float) -> Tensor:
+    """Noise ratio ``q / R`` per row of ``y (B, T)`` by generalised cross-validation.
+
+    The steady-state RTS smoother is the Wiener filter ``H = λS/(λS + 1)`` with ``S`` the
+    model's unit spectrum, so ``GCV(λ) = mean|(1 - H) Y|² / (1 - mean H)²`` is evaluated in
+    the frequency domain for a whole log grid at once. Drop-outs are bridged linearly, and the
+    signal is detrended and mirrored so that its periodic extension has no jump. The best grid
+    point is refined by a parabola in log λ.
+    """
+    order, T = F.shape[0], y.shape[-1]
+    z = _fill_gaps(y, finite)
+    # remove the least-squares line first: a drift (a swimmer's x, y, heading) would otherwise
+    # leave a kink at the mirror point whose spectrum looks like signal to GCV
+    t = torch.linspace(-1.0, 1.0, T, dtype=y.dtype, device=y.device)
+    z = z - z.mean(-1, keepdim=True)
+    z = z - (z @ t / (t @ t))[:, None] * t
+    z = torch.cat([z, z.flip(-1)], -1)
+    power = torch.fft.fft(z).abs() ** 2  # (B, 2T)
+    S = _unit_spectrum(F, Q1, 2 * T)
+    g = torch.tensor(_MU_GRID, dtype=y.dtype, device=y.device)  # log10 of q dt^(2n-1) / R
+    lam = 10.0**g / dt ** (2 * order - 1)
+    H = torch.where(torch.isinf(S), torch.ones_like(S), lam[:, None] * S / (lam[:, None] * S + 1))
+    rss = power @ ((1 - H) ** 2).mT  # (B, G)
+    gcv = torch.log(rss) - 2 * torch.log1p(-H.mean(-1))
+    G = g.numel()
+    i = gcv.argmin(-1).clamp(1, G - 2)
+    l0, l1, l2 = (gcv.gather(-1, (i + o)[:, None])[:, 0] for o in (-1, 0, 1))
+    curv = l0 - 2 * l1 + l2
+    off = torch.where(curv > 0, 0.5 * (l0 - l2) / curv, torch.zeros_like(curv)).clamp(-1, 1)
+    return 10.0 ** (g[i] + off * (g[1] - g[0])) / dt ** (2 * order - 1)
+
+
+def rts_smooth(
+    y: Tensor,
+    dt: float,
+    *,
+    order: int = 2,
+    process_noise: float | Tensor | None = None,
+    measurement_noise: float | Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Smooth each channel with a Kalman filter and Rauch–Tung–Striebel smoother.
+
+    Args:
+        y: samples ``(..., T, C)``; NaN marks a missing sample (the filter predicts through it).
+        dt: sampling interval (> 0).
+        order: 2 -- state (position, velocity), white-acceleration process noise;
+            3 -- state (position, velocity, acceleration), white-jerk process noise.
+        process_noise: spectral density ``q`` of the white acceleration (jerk), in units of
+            ``y² / time³`` (``y² / time⁵``), scalar or broadcastable to ``(..., C)``. Default:
+            per channel, ``q = λ R`` with the ratio ``λ`` minimising the generalised
+            cross-validation score of the steady-state smoother (evaluated in the frequency
+            domain over a 65-point log grid, refined by a parabola). GCV is used rather than
+            the innovation likelihood because on smooth periodic signals -- which are not
+            white-acceleration processes -- the likelihood prefers a 10-30x larger ``q`` and
+            doubles the derivative error.
+        measurement_noise: observation-noise *variance* ``R`` (units ``y²``), scalar or
+            broadcastable to ``(..., C)``. Default: per channel, from the median absolute
+            deviation of 4th differences, which for white noise have variance ``70 R`` while a
+            smooth signal sampled at >= ~30 samples per cycle contributes little.
+
+    Returns:
+        ``(values, derivatives)``, both ``(..., T, C)``: smoothed positions and their time
+        derivatives, finite everywhere.
+
+    Raises:
+        ValueError: bad shapes/arguments, or a channel that is NaN at every sample.
+    """
+    if not isinstance(y, Tensor):
+        raise TypeError(f"rts_smooth: y must be a torch.Tensor, got {type(y).__name__}")
+    if y.ndim < 2 or y.shape[-2] < 2 or y.shape[-1] < 1:
+        raise ValueError(
+            f"rts_smooth: y must have shape (..., T, C) with T >= 2 samples and C >= 1 "
+            f"channels, got {tuple(y.shape)}"
+        )
+    if order not in (2, 3):
+        raise ValueError(f"rts_smooth: order must be 2 or 3, got {order!r}")
+    dt = float(dt)
+    if not math.isfinite(dt) or dt <= 0:
+        raise ValueError(f"rts_smooth: dt must be a positive sampling interval, got {dt}")
+    if not y.is_floating_point():
+        y = y.to(torch.get_default_dtype())
+    T, C = y.shape[-2:]
+    batch = y.shape[:-2]
+    finite = torch.isfinite(y)
+    empty = ~finite.any(-2)  # (..., C)
+    if bool(empty.any()):
+        where = torch.nonzero(empty)[0].tolist()
+        raise ValueError(
+            f"rts_smooth: channel {where[-1]} of y (batch index {tuple(where[:-1])}) has no "
+            "finite sample; drop that channel or trial before smoothing"
+        )
+    if int(finite.sum(-2).min()) < 2 + _DIFF_ORDER and measurement_noise is None:
+        raise ValueError(
+            f"rts_smooth: a channel has fewer than {2 + _DIFF_ORDER} finite samples, too few to "
+            "estimate measurement_noise; pass measurement_noise explicitly"
+        )
+
+    # channels become batch rows: (B, T) with B = prod(batch) * C
+    yb = y.movedim(-1, -2).reshape(-1, T)
+    fb = finite.movedim(-1, -2).reshape(-1, T)
+
+    def per_row(v, name):
+        v = torch.as_tensor(v, dtype=y.dtype, device=y.device)
+        try:
+            v = v.expand(batch + (C,))
+        except RuntimeError as e:
+            raise ValueError(
+                f"rts_smooth: {name} must be a scalar or broadcast to (..., C) = "
+                f"{tuple(batch) + (C,)}, got shape {tuple(v.shape)}"
+            ) from e
+        if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
+            raise ValueError(f"rts_smooth: {name} must be finite and non-negative")
+        return v.reshape(-1)
+
+    F, Q1 = _model(order, dt, y.dtype, y.device)
+    tiny = 1e-12 * _nanvar(yb) + torch.finfo(y.dtype).tiny  # keeps S > 0 for noise-free data
+    if measurement_noise is None:
+        R = _measurement_variance(yb)
+        R = torch.where(torch.isfinite(R), R, torch.zeros_like(R))
+    else:
+        R = per_row(measurement_noise, "measurement_noise")
+    R = torch.maximum(R, tiny)
+    x0, P0 = _prior(yb, fb, order, dt)
+    if process_noise is None:
+        # the smoothed means depend on q / R only, so R's scale does not bias them
+        q = _gcv_noise_ratio(yb, fb, F, Q1, dt) * R
+    else:
+        q = per_row(process_noise, "process_noise")
+    q = q.clamp_min(torch.finfo(y.dtype).tiny)
+
+    Q = q[:, None, None] * Q1
+    xf, Pf = _filter(yb, fb, F, Q, R, x0, P0)
+    xs = _smooth(F, Q, xf, Pf)  # (B, T, n)
+    out = xs[..., :2].reshape(batch + (C, T, 2)).movedim(-3, -2)  # (..., T, C, 2)
+    return out[..., 0], out[..., 1]
+
+
+def body_velocity(pose: Tensor, pose_dot: Tensor) -> Tensor:
+    """Body velocity ``xi = g⁻¹ ġ = (Rᵀ(θ) (ẋ, ẏ), θ̇)``.
+
+    Args:
+        pose: ``(..., T, 3)`` world poses ``(x, y, θ)``.
+        pose_dot: ``(..., T, 3)`` their time derivatives.
+
+    Returns:
+        ``(..., T, 3)`` body velocities ``(v_x, v_y, ω)`` (conventions: ``ξ = g⁻¹ġ``).
+    """
+    for name, t in (("pose", pose), ("pose_dot", pose_dot)):
+        if not isinstance(t, Tensor) or t.ndim < 1 or t.shape[-1] != 3:
+            shape = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(f"body_velocity: {name} must have shape (..., T, 3), got {shape}")
+    th = pose[..., 2]
+    c, s = torch.cos(th), torch.sin(th)
+    xd, yd, thd = pose_dot.unbind(-1)
+    return torch.stack([c * xd + s * yd, -s * xd + c * yd, thd], -1)
+
+
+def smooth_trajectory(
+    pose: Tensor,
+    r: Tensor,
+    dt: float,
+    *,
+    order: int = 2,
+    process_noise: float | Tensor | None = None,
+    measurement_noise: float | Tensor | None = None,
+) -> SmoothedState:
+    """Smooth a recorded trajectory and derive its velocities.
+
+    The heading is unwrapped (NaN-tolerant) before smoothing, so wrapped input is fine. The
+    ``3 + d`` channels ``(x, y, θ, r_1..r_d)`` are smoothed independently by
+    :func:`rts_smooth` (noise arguments broadcast to ``(..., 3 + d)``).
+
+    Args:
+        pose: ``(..., T, 3)`` world poses ``(x, y, θ)``; NaN for drop-outs.
+        r: ``(..., T, d)`` shapes; NaN for drop-outs.
+        dt: sampling interval.
+
+    Returns:
+        :class:`~torchconn.data.SmoothedState` with ``pose`` (heading unwrapped), ``pose_dot``,
+        ``r``, ``r_dot`` and the body velocity ``xi = g⁻¹ġ``.
+    """
+    if not isinstance(pose, Tensor) or pose.ndim < 2 or pose.shape[-1] != 3:
+        shape = tuple(pose.shape) if isinstance(pose, Tensor) else type(pose).__name__
+        raise ValueError(f"smooth_trajectory: pose must have shape (..., T, 3), got {shape}")
+    if not isinstance(r, Tensor) or r.ndim < 2 or r.shape[:-1] != pose.shape[:-1]:
+        shape = tuple(r.shape) if isinstance(r, Tensor) else type(r).__name__
+        raise ValueError(
+            f"smooth_trajectory: r must have shape (..., T, d) with the same (..., T) as pose "
+            f"{tuple(pose.shape[:-1])}, got {shape}"
+        )
+    pose = torch.cat([pose[..., :2], unwrap(pose[..., 2], dim=-1)[..., None]], -1)
+    y = torch.cat([pose, r.to(pose.dtype)], -1)
+    val, der = rts_smooth(
+        y, dt, order=order, process_noise=process_noise, measurement_noise=measurement_noise
+    )
+    p, pd = val[..., :3], der[..., :3]
+    return SmoothedState(
+        pose=p, pose_dot=pd, r=val[..., 3:], r_dot=der[..., 3:], xi=body_velocity(p, pd)
+    )
