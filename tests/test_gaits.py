@@ -8,8 +8,14 @@ import torch
 
 from torchconn import NLinkSwimmer
 from torchconn.gaits import (
-    CallableGait, ModalGait, evaluate, displacement, nine_link_modes, optimised_gait,
-    reference_gait, three_link_gait,
+    CallableGait,
+    ModalGait,
+    displacement,
+    evaluate,
+    nine_link_modes,
+    optimised_gait,
+    reference_gait,
+    three_link_gait,
 )
 from torchconn.gaits.optimize import optimise_gait
 from torchconn.gaits.reference import load_gaits

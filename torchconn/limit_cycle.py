@@ -11,6 +11,7 @@ harmonic ``k``'s noise by ``k``, so high harmonics lean on ``ω``). The mean com
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -100,13 +101,20 @@ def fit_limit_cycle(
 
     gamma0 = fit_fourier(phase, r, order)
     omega = fit_fourier(phase, v, order)
-    var_r = _residual_variance(gamma0, phase, r)  # (..., d)
-    var_v = _residual_variance(omega, phase, v)
+    k = torch.arange(1, order + 1, dtype=dtype, device=phase.device)[:, None]  # (K, 1)
+    if dt is None:
+        # white-residual model: a coefficient's variance is the residual variance
+        var_r = _residual_variance(gamma0, phase, r)[..., None, :]  # (..., 1, d)
+        var_v = _residual_variance(omega, phase, v)[..., None, :]
+    else:
+        # the residuals are coloured (the shape offset δ is an OU process, δ̇ its derivative):
+        # a harmonic's coefficient is only disturbed by residual power near its frequency
+        var_r = _residual_spectrum(gamma0, phase, r, rate, float(dt), order)  # (..., K, d)
+        var_v = _residual_spectrum(omega, phase, v, rate, float(dt), order)
 
     # matched filter, per harmonic k and coordinate: weight on γ₀ = var(∫ω)/(var(γ₀)+var(∫ω))
-    k = torch.arange(1, order + 1, dtype=dtype, device=phase.device)[:, None]  # (K, 1)
-    var_int = var_v[..., None, :] / k**2  # (..., K, d)
-    total = var_r[..., None, :] + var_int
+    var_int = var_v / k**2  # (..., K, d)
+    total = var_r + var_int
     w0 = torch.where(total > 0, var_int / total.clamp_min(1e-300), torch.full_like(total, 0.5))
     w = torch.repeat_interleave(w0, 2, dim=-2)  # (..., 2K, d): same weight for a_k and b_k
     integ = omega.integral(drop_mean=True).coeffs
@@ -124,6 +132,27 @@ def _residual_variance(series: FourierSeries, phase: Tensor, y: Tensor) -> Tenso
     n = ok.sum(-2).to(y.dtype)  # (..., 1)
     ss = torch.where(ok, res, torch.zeros_like(res)).pow(2).sum(-2)
     return ss / (n - (2 * series.order + 1)).clamp_min(1.0)
+
+
+def _residual_spectrum(
+    series: FourierSeries, phase: Tensor, y: Tensor, rate: Tensor, dt: float, order: int
+) -> Tensor:
+    """Residual power spectral density ``(..., K, d)`` near each harmonic's frequency.
+
+    The periodogram of the residual time series (NaNs as zeros, rescaled by the count kept)
+    is averaged over a band of ±0.3 harmonic spacings around ``k φ̇ / 2π`` cycles per time unit.
+    """
+    res = y - series(phase)
+    ok = torch.isfinite(res)
+    res = torch.where(ok, res, torch.zeros_like(res))
+    T = res.shape[-2]
+    power = torch.fft.rfft(res, dim=-2).abs().pow(2) / ok.sum(-2, keepdim=True).clamp_min(1)
+    freq = torch.fft.rfftfreq(T, d=dt, dtype=res.dtype, device=res.device)  # cycles / time
+    spacing = rate / (2 * math.pi)  # (...) harmonic spacing in cycles / time
+    k = torch.arange(1, order + 1, dtype=res.dtype, device=res.device)
+    centre = k * spacing[..., None]  # (..., K)
+    band = ((freq - centre[..., None]).abs() <= 0.3 * spacing[..., None, None]).to(res.dtype)
+    return (band @ power) / band.sum(-1, keepdim=True).clamp_min(1)
 
 
 def phase_rate(phase: Tensor, dt: float) -> Tensor:

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from .data import SmoothedState
 
-__all__ = ["rts_smooth", "unwrap", "body_velocity", "smooth_trajectory"]
+__all__ = ["rts_smooth", "unwrap", "body_velocity", "smooth_trajectory", "noise_parameters"]
 
 # log10 grid of the dimensionless noise ratio q dt^(2 order - 1) / R searched by GCV
 _MU_GRID = torch.linspace(-10.0, 6.0, 65).tolist()
@@ -212,6 +212,49 @@ def _gcv_noise_ratio(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float
     return 10.0 ** (g[i] + off * (g[1] - g[0])) / dt ** (2 * order - 1)
 
 
+def _default_noise(yb, fb, F, Q1, dt, q, R) -> tuple[Tensor, Tensor]:
+    """Fill in the noise parameters ``q, R (B,)`` that were not given (None) for rows ``yb``."""
+    tiny = 1e-12 * _nanvar(yb) + torch.finfo(yb.dtype).tiny  # keeps S > 0 for noise-free data
+    if R is None:
+        R = _measurement_variance(yb)
+        R = torch.where(torch.isfinite(R), R, torch.zeros_like(R))
+    R = torch.maximum(R, tiny)
+    if q is None:
+        # the smoothed means depend on q / R only, so R's scale does not bias them
+        q = _gcv_noise_ratio(yb, fb, F, Q1, dt) * R
+    return q.clamp_min(torch.finfo(yb.dtype).tiny), R
+
+
+def noise_parameters(y: Tensor, dt: float, *, order: int = 2) -> tuple[Tensor, Tensor]:
+    """The noise parameters :func:`rts_smooth` chooses by default, per channel.
+
+    Passing them back as ``process_noise`` / ``measurement_noise`` reproduces the default
+    smoothing exactly, so the same smoother can be applied to other signals (e.g. a model's
+    prediction that must be compared with the smoothed measurement like with like).
+
+    Args:
+        y: samples ``(..., T, C)`` (NaN for missing samples); dt: sampling interval.
+        order: smoother model order (2 or 3), as in :func:`rts_smooth`.
+
+    Returns:
+        ``(process_noise q, measurement_noise R)``, each ``(..., C)``.
+    """
+    if not isinstance(y, Tensor) or y.ndim < 2 or y.shape[-2] < 2 + _DIFF_ORDER:
+        shape = tuple(y.shape) if isinstance(y, Tensor) else type(y).__name__
+        raise ValueError(f"noise_parameters: y must have shape (..., T, C) with T >= "
+                         f"{2 + _DIFF_ORDER}, got {shape}")
+    if order not in (2, 3):
+        raise ValueError(f"noise_parameters: order must be 2 or 3, got {order!r}")
+    if not y.is_floating_point():
+        y = y.to(torch.get_default_dtype())
+    T, C = y.shape[-2:]
+    yb = y.movedim(-1, -2).reshape(-1, T)
+    fb = torch.isfinite(yb)
+    F, Q1 = _model(order, float(dt), y.dtype, y.device)
+    q, R = _default_noise(yb, fb, F, Q1, float(dt), None, None)
+    return q.reshape(y.shape[:-2] + (C,)), R.reshape(y.shape[:-2] + (C,))
+
+
 def rts_smooth(
     y: Tensor,
     dt: float,
@@ -295,20 +338,10 @@ def rts_smooth(
         return v.reshape(-1)
 
     F, Q1 = _model(order, dt, y.dtype, y.device)
-    tiny = 1e-12 * _nanvar(yb) + torch.finfo(y.dtype).tiny  # keeps S > 0 for noise-free data
-    if measurement_noise is None:
-        R = _measurement_variance(yb)
-        R = torch.where(torch.isfinite(R), R, torch.zeros_like(R))
-    else:
-        R = per_row(measurement_noise, "measurement_noise")
-    R = torch.maximum(R, tiny)
+    R = None if measurement_noise is None else per_row(measurement_noise, "measurement_noise")
+    q = None if process_noise is None else per_row(process_noise, "process_noise")
+    q, R = _default_noise(yb, fb, F, Q1, dt, q, R)
     x0, P0 = _prior(yb, fb, order, dt)
-    if process_noise is None:
-        # the smoothed means depend on q / R only, so R's scale does not bias them
-        q = _gcv_noise_ratio(yb, fb, F, Q1, dt) * R
-    else:
-        q = per_row(process_noise, "process_noise")
-    q = q.clamp_min(torch.finfo(y.dtype).tiny)
 
     Q = q[:, None, None] * Q1
     xf, Pf = _filter(yb, fb, F, Q, R, x0, P0)

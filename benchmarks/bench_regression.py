@@ -1,0 +1,177 @@
+"""Benchmark: batched phase-bin connection regression vs a per-trial, per-bin lstsq loop.
+
+The paper's 9-link scale: d = 8 joints (P = 81 regressors), 160 trials × 30 cycles × 64 samples
+per cycle, M = 16 (and 32) phase bins. Prints both times, their ratio, the achieved GFLOP/s of
+the batched solver and this machine's float64 matmul peak.
+
+    python benchmarks/bench_regression.py [--trials 160] [--bins 16 32] [--loop-trials 20]
+                                          [--threads 2]
+
+One trial holds 30 × 64 = 1920 samples, so at M = 32 a half-spacing window leaves 60 samples per
+bin for 81 regressors; the bins are widened to ``window = 0.5 · M / 16`` (overlapping, ~120
+samples each, every sample in M/16 bins) unless ``--window`` is given. The loop is timed on
+``--loop-trials`` trials and scaled to all trials (it is linear in them).
+OpenBLAS runs single-threaded for the loop: on small lstsq problems its threading is much slower
+(measured ~40x here), so this is the loop's best case.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads OpenBLAS
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from torchconn.regression import assign_bins, connection_regression  # noqa: E402
+from torchconn.systems import AffineConnectionSystem  # noqa: E402
+
+
+def make_data(n_trials: int, n_cycles: int, per_cycle: int, d: int, seed: int = 0):
+    """Noisy samples around a two-mode 9-link-like cycle; xi from an affine toy connection."""
+    gen = torch.Generator().manual_seed(seed)
+    n = n_cycles * per_cycle
+    t = torch.arange(n, dtype=torch.float64) * (2 * math.pi / per_cycle)
+    phase = t + 0.05 * torch.randn(n_trials, n, generator=gen, dtype=torch.float64).cumsum(-1) / 8
+    k = torch.arange(1, d + 1, dtype=torch.float64) * (2 * math.pi / d)
+    modes = torch.stack([torch.sin(k), torch.cos(k)], -1)  # (d, 2)
+
+    def gamma(p):
+        return torch.stack([torch.cos(p), torch.sin(p)], -1) @ modes.T
+
+    def gamma_dot(p):
+        return torch.stack([-torch.sin(p), torch.cos(p)], -1) @ modes.T
+
+    r = gamma(phase) + 0.1 * torch.randn(n_trials, n, d, generator=gen, dtype=torch.float64)
+    r_dot = gamma_dot(phase) + 0.1 * torch.randn(n_trials, n, d, generator=gen,
+                                                 dtype=torch.float64)
+    system = AffineConnectionSystem.random(d, seed=seed)
+    xi = system.body_velocity(r, r_dot) + 1e-3 * torch.randn(n_trials, n, 3, generator=gen,
+                                                             dtype=torch.float64)
+    return phase, r, r_dot, xi, gamma, gamma_dot
+
+
+def loop_reference(phase, r, r_dot, xi, gm, gdm, n_bins, window):
+    """The plain way: for each trial, for each bin, select rows, build X, ``np.linalg.lstsq``."""
+    phase, r, r_dot, xi = (x.numpy() for x in (phase, r, r_dot, xi))
+    gm, gdm = gm.numpy(), gdm.numpy()
+    h = 2 * math.pi / n_bins
+    out = []
+    for trial in range(r.shape[0]):
+        for m in range(n_bins):
+            off = np.remainder(phase[trial] - m * h + math.pi, 2 * math.pi) - math.pi
+            sel = (off >= -window * h) & (off < window * h)
+            delta = r[trial, sel] - gm[m]
+            delta_dot = r_dot[trial, sel] - gdm[m]
+            cross = (delta_dot[:, :, None] * delta[:, None, :]).reshape(len(delta), -1)
+            x = np.concatenate([np.ones((len(delta), 1)), delta, delta_dot, cross], 1)
+            out.append(np.linalg.lstsq(x, xi[trial, sel], rcond=None)[0])
+    return out
+
+
+def flops(n_rows_padded: int, p: int, k: int, n_systems: int) -> float:
+    """Useful flops of the batched solver per the algorithm: ``[X|y]ᵀW[X|y]`` on the padded rows,
+    Cholesky ``P³/3``, ``cholesky_solve`` ``2P²K``, triangular inverse ``P³/3``, residuals."""
+    n = n_rows_padded
+    per = 2 * n * (p + k) ** 2 + p**3 / 3 + 2 * p * p * k + p**3 / 3 + 2 * n * p * k
+    return per * n_systems
+
+
+def primitive_floor(n_systems: int, n_rows: int, p: int, k: int, repeat: int) -> dict:
+    """Per-bin time (µs) of the three dense kernels every bin needs, on the real shapes."""
+    b = min(n_systems, 256)  # one cache-sized chunk, as the solver runs them
+    xy = torch.randn(b, n_rows, p + k, dtype=torch.float64)
+    gram = (xy.mT @ xy)[:, :p, :p].contiguous()
+    chol = torch.linalg.cholesky(gram)
+    eye = torch.eye(p, dtype=torch.float64).expand(b, p, p)
+    kernels = {
+        "Gram [X|y]ᵀ[X|y]": lambda: xy.mT @ xy,
+        "Cholesky": lambda: torch.linalg.cholesky_ex(gram),
+        "triangular inverse": lambda: torch.linalg.solve_triangular(chol, eye, upper=False),
+    }
+    return {name: best_of(fn, repeat) / b * 1e6 for name, fn in kernels.items()}
+
+
+def best_of(fn, repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=160)
+    ap.add_argument("--cycles", type=int, default=30)
+    ap.add_argument("--per-cycle", type=int, default=64)
+    ap.add_argument("--d", type=int, default=8)
+    ap.add_argument("--bins", type=int, nargs="+", default=[16, 32])
+    ap.add_argument("--loop-trials", type=int, default=20)
+    ap.add_argument("--window", type=float, default=None)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+
+    a = torch.randn(2048, 2048, dtype=torch.float64)
+    a @ a
+    peak = 2 * 2048**3 / best_of(lambda: a @ a, 3) / 1e9
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; "
+          f"float64 matmul 2048² peak: {peak:.1f} GFLOP/s")
+
+    phase, r, r_dot, xi, gamma, gamma_dot = make_data(args.trials, args.cycles, args.per_cycle,
+                                                      args.d)
+    p = 1 + 2 * args.d + args.d**2
+    print(f"d = {args.d}, P = {p}, {args.trials} trials × {args.cycles} cycles × "
+          f"{args.per_cycle} samples = {r.shape[0] * r.shape[1]} samples")
+    for n_bins in args.bins:
+        window = args.window or 0.5 * max(1.0, n_bins / 16)
+        bins = assign_bins(phase, n_bins, window=window)
+        centres = bins.centres()
+        gm, gdm = gamma(centres), gamma_dot(centres)
+
+        def batched(n_bins=n_bins, gm=gm, gdm=gdm, window=window):
+            b = assign_bins(phase, n_bins, window=window)
+            return connection_regression(r, r_dot, xi, b, gm, gdm)
+
+        fit = batched()
+        t_batched = best_of(batched, args.repeat)
+        t_bin = best_of(lambda n_bins=n_bins, window=window: assign_bins(phase, n_bins,
+                                                                         window=window),
+                        args.repeat)
+
+        lt = min(args.loop_trials, args.trials)
+        sl = slice(0, lt)
+        t0 = time.perf_counter()
+        ref = loop_reference(phase[sl], r[sl], r_dot[sl], xi[sl], gm, gdm, n_bins, window)
+        t_loop = (time.perf_counter() - t0) * args.trials / lt
+        ref = torch.from_numpy(np.stack(ref)).reshape(lt, n_bins, p, 3)
+        err = ((fit.coef[sl] - ref).abs().max() / ref.abs().max()).item()
+
+        gflop = flops(bins.max_count, p, 3, args.trials * n_bins) / 1e9
+        print(f"\nM = {n_bins} bins, window {window:g}: Nmax = {bins.max_count}, "
+              f"mean bin count {bins.count.double().mean():.1f}")
+        print(f"  batched (binning + regression + SEs): {t_batched * 1e3:8.1f} ms "
+              f"(binning {t_bin * 1e3:.1f} ms)")
+        print(f"  lstsq loop (scaled from {lt} trials): {t_loop * 1e3:8.1f} ms")
+        print(f"  speed-up: {t_loop / t_batched:.1f}x;  max rel. diff vs lstsq: {err:.2e}")
+        print(f"  batched: {gflop:.2f} GFLOP -> {gflop / t_batched:.1f} GFLOP/s "
+              f"({100 * gflop / t_batched / peak:.0f}% of matmul peak)")
+        n_sys = args.trials * n_bins
+        floor = primitive_floor(n_sys, bins.max_count, p, 3, args.repeat)
+        per_bin = f"batched {t_batched / n_sys * 1e6:.0f} µs, loop {t_loop / n_sys * 1e6:.0f} µs"
+        print(f"  per bin: {per_bin}; dense kernels alone: "
+              + ", ".join(f"{k} {v:.0f} µs" for k, v in floor.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,159 @@
+"""The estimator end to end: exact on the toy, convergent on the swimmer, zero mean error."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchconn import AffineConnectionSystem, NLinkSwimmer, Trajectory
+from torchconn.data import SmoothedState
+from torchconn.estimator import ConnectionEstimator, EstimatorSettings
+from torchconn.evaluation import phase_bin_errors, reference_models
+from torchconn.gaits import FourierGait, reference_gait
+from torchconn.model import LocalConnectionModel
+from torchconn.rollout import simulate
+
+F64 = torch.float64
+
+
+def _exact_trajectory(system, gait, n_cycles=12, spc=64, amp=0.1, seed=0, batch=(2,)):
+    """Noise-free samples off the cycle with exact velocities: r = γ(φ) + δ(t), δ a sum of
+    sinusoids at frequencies incommensurate with the gait, ξ = A(r) ṙ exactly."""
+    g = torch.Generator().manual_seed(seed)
+    d = system.shape_dim
+    t = torch.arange(n_cycles * spc, dtype=F64) * (2 * math.pi / spc)
+    freqs = torch.tensor([0.13, 0.37, 0.71, 1.618, 2.33], dtype=F64)
+    a = amp * torch.randn(batch + (5, d), generator=g, dtype=F64) / math.sqrt(5)
+    ph = 2 * math.pi * torch.rand(batch + (5, d), generator=g, dtype=F64)
+    arg = freqs[:, None, None] * t + ph[..., None]  # (..., 5, d, T)
+    delta = (a[..., None] * torch.sin(arg)).sum(-3).transpose(-1, -2)
+    delta_dot = (a[..., None] * freqs[:, None, None] * torch.cos(arg)).sum(-3).transpose(-1, -2)
+    phase = t.expand(batch + t.shape)
+    r = gait(phase) + delta
+    r_dot = gait.velocity(phase) + delta_dot
+    xi = system.body_velocity(r, r_dot)
+    pose = torch.zeros(batch + (t.shape[0], 3), dtype=F64)  # not used: smoothed state given
+    traj = Trajectory(t=t, pose=pose, r=r)
+    return traj.with_fields(
+        phase=phase,
+        smoothed=SmoothedState(pose=pose, pose_dot=pose, r=r, r_dot=r_dot, xi=xi),
+    )
+
+
+def test_toy_connection_is_recovered_exactly_from_noise_free_data():
+    toy = AffineConnectionSystem.random(d=2, seed=3)
+    coeffs = torch.zeros(5, 2, dtype=F64)
+    coeffs[1, 0], coeffs[2, 1], coeffs[3, 0] = 0.8, 0.6, 0.2  # order-2 gait
+    gait = FourierGait(coeffs)
+    traj = _exact_trajectory(toy, gait)
+    est = ConnectionEstimator(n_bins=16, fourier_order=6, window=1.0, cycle_order=2,
+                              metric=False).fit(traj)
+    phi = torch.linspace(0, 2 * math.pi, 50, dtype=F64)
+    gamma = est.model_.gamma_at(phi)
+    # the cycle comes from the data (mean of r at each phase); the connection at that cycle
+    # is exact because A is affine, so a first-order model in the tube has no remainder
+    assert torch.allclose(est.model_.connection(phi), toy.connection(gamma), atol=1e-8)
+    assert torch.allclose(est.model_.connection_jacobian(phi),
+                          toy.connection_jacobian(gamma), atol=1e-8)
+    xi_hat = est.model_.predict(traj.phase, traj.r, traj.smoothed.r_dot)
+    assert torch.allclose(xi_hat, traj.smoothed.xi, atol=1e-8)
+
+
+def _swimmer_truth_trajectory(n_cycles, seeds):
+    """Simulated 3-link trials whose 'smoothed' state is the simulation's truth (no filter)."""
+    s = NLinkSwimmer(3)
+    tr = simulate(s, reference_gait("3link"), eta=0.025, n_cycles=n_cycles, seeds=seeds)
+    g = tr.truth
+    sm = SmoothedState(pose=g.pose, pose_dot=g.pose, r=g.r, r_dot=g.r_dot, xi=g.xi)
+    return s, tr.with_fields(smoothed=sm, phase=g.phase)
+
+
+def test_estimates_converge_to_the_simulator_as_data_grows():
+    # narrow bins (96, tricube window of one spacing) keep the tube's bias below the
+    # statistical error over this range, so the error falls like N^-1/2
+    cycles = np.array([40, 80, 160])
+    errs = {"A": [], "dA": [], "M": []}
+    for n in cycles:
+        s, tr = _swimmer_truth_trajectory(int(n), seeds=np.arange(2) + 100)
+        est = ConnectionEstimator(n_bins=96, fourier_order=16, window=1.0).fit(tr)
+        b = est.model_.bins
+        for name, est_v, true_v in (("A", b.A, s.connection(b.gamma)),
+                                    ("dA", b.dA, s.connection_jacobian(b.gamma)),
+                                    ("M", b.M, s.metric(b.gamma))):
+            errs[name].append(float((est_v - true_v).pow(2).mean().sqrt()
+                                    / true_v.pow(2).mean().sqrt()))
+    for name, e in errs.items():
+        slope = np.polyfit(np.log(cycles), np.log(e), 1)[0]
+        print(f"{name}: relative RMS errors {np.round(e, 4)}, slope {slope:.2f}")
+        assert -0.8 < slope < -0.3, name
+    assert errs["A"][-1] < 0.02 and errs["M"][-1] < 0.08
+
+
+def test_data_driven_mean_error_per_phase_bin_is_zero_within_its_standard_error():
+    s, tr = _swimmer_truth_trajectory(30, seeds=np.arange(8) + 11)
+    M = 32
+    est = ConnectionEstimator(n_bins=M, fourier_order=10, window=0.5, kernel="box",
+                              metric=False).fit(tr)
+    b = est.model_.bins
+    # each sample predicted by its own bin's regression (eq. advanceddatadriven at γ_m)
+    m = torch.round(torch.remainder(tr.phase, 2 * math.pi) / (2 * math.pi / M)).long() % M
+
+    def at(x):  # (trials, M, ...) -> per sample (trials, T, ...)
+        idx = m.reshape(m.shape + (1,) * (x.ndim - 2)).expand(m.shape + x.shape[2:])
+        return torch.gather(x, 1, idx)
+
+    delta, delta_dot = tr.smoothed.r - at(b.gamma), tr.smoothed.r_dot - at(b.gamma_dot)
+    pred = (at(b.c) + (at(b.b) @ delta[..., None])[..., 0] + (at(b.A) @ delta_dot[..., None])[..., 0]
+            + torch.einsum("...kij,...i,...j->...k", at(b.dA), delta_dot, delta))
+    _, mean, _, se = phase_bin_errors(pred, tr.smoothed.xi, tr.phase, M)
+    z = (mean / se).abs()
+    print(f"binned model: max |z| {z.max():.2e}")
+    assert z.max() < 1e-6  # least squares with an intercept: zero mean residual in every bin
+
+    # the smooth (Fourier in phase) model: its per-bin bias is far below the analytic model's
+    p = reference_models(s, est.model_, est.trajectory_)
+    bias = {k: phase_bin_errors(p[k], tr.smoothed.xi, tr.phase, M)[1].mean(0).abs().mean(0)
+            for k in ("data_driven", "analytic")}
+    print(f"mean |bias| per bin: data-driven {bias['data_driven']}, analytic {bias['analytic']}")
+    assert bias["data_driven"][0] < 0.5 * bias["analytic"][0]
+
+
+def test_batched_fit_equals_one_trial_at_a_time():
+    s, tr = _swimmer_truth_trajectory(12, seeds=np.arange(2))
+    est = ConnectionEstimator(n_bins=24, fourier_order=6, metric=False)
+    both = est.fit(tr).model_
+    one = ConnectionEstimator(n_bins=24, fourier_order=6, metric=False).fit(tr[1]).model_
+    phi = torch.linspace(0, 6, 7, dtype=F64)
+    assert torch.allclose(both[1].connection(phi), one.connection(phi), atol=1e-10)
+
+
+def test_model_save_load_round_trip(tmp_path):
+    _, tr = _swimmer_truth_trajectory(12, seeds=np.arange(2))
+    model = ConnectionEstimator(n_bins=24, fourier_order=6).fit(
+        tr.with_fields(power=torch.ones(tr.batch_shape + (tr.n_samples,), dtype=F64))).model_
+    path = model.save(tmp_path / "m.npz")
+    back = LocalConnectionModel.load(path)
+    phi = torch.linspace(0, 6, 7, dtype=F64)
+    for name in ("gamma", "c", "b", "A", "dA", "M"):
+        assert torch.equal(getattr(model, name).coeffs, getattr(back, name).coeffs)
+    for name in ("connection", "connection_jacobian", "metric", "gamma_at", "gamma_dot_at"):
+        torch.testing.assert_close(getattr(model, name)(phi), getattr(back, name)(phi),
+                                   rtol=0, atol=1e-15)
+
+
+def test_bad_settings_and_inputs_raise():
+    with pytest.raises(ValueError, match="fourier_order must satisfy"):
+        EstimatorSettings(n_bins=8, fourier_order=4)
+    with pytest.raises(ValueError, match="n_bins must be an integer >= 3"):
+        EstimatorSettings(n_bins=2)
+    with pytest.raises(TypeError, match="torchconn.Trajectory"):
+        ConnectionEstimator().fit({"r": 1})
+    _, tr = _swimmer_truth_trajectory(4, seeds=np.arange(1))
+    with pytest.raises(ValueError, match="samples"):
+        ConnectionEstimator(n_bins=48, fourier_order=12, window=0.5, metric=False).fit(tr)
+    with pytest.raises(RuntimeError, match="not fitted"):
+        ConnectionEstimator().predict(tr)
+    model = ConnectionEstimator(n_bins=12, fourier_order=4, metric=False).fit(tr).model_
+    with pytest.raises(ValueError, match="r must have shape"):
+        model.predict(tr.phase, torch.zeros(tr.phase.shape + (3,), dtype=F64), tr.r)

@@ -1,0 +1,126 @@
+"""The paper's four body-velocity models (Sec. 5.1) and their errors.
+
+For every sample n, with phase φ_n, shape r_n, shape velocity ṙ_n, the fitted cycle
+γ_n = γ(φ_n), γ̇_n and offset δ_n = r_n − γ_n:
+
+- ``ground_truth``: ``A(r_n) ṙ_n`` from the simulator (eq. ``groundtruthbodyvel``), on the
+  noise-free shapes when the data carry them (a simulation with observation noise), else on
+  the recorded ones;
+- ``data_driven``: the fitted model's prediction (eq. ``advanceddatadriven``);
+- ``analytic``: ``A(γ_n) ṙ_n + ∂A/∂r(γ_n) δ_n ṙ_n`` -- the simulator's first-order Taylor
+  model at the same cycle point (eq. ``analyticalbodyvel``; ∂A/∂r by autograd);
+- ``template``: ``A(γ_n) γ̇_n`` (eq. ``templatebodyvel``).
+
+The three models use the same (smoothed) recorded ``r_n, ṙ_n`` and the same phase, so they
+differ only in the model. Errors are taken against ``ground_truth`` and against the observed
+body velocity (the smoothed ``g⁻¹ġ`` of the recording).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .data import Trajectory
+from .model import LocalConnectionModel
+from .systems.base import LocomotionSystem
+
+__all__ = [
+    "MODELS", "COMPONENTS", "reference_models", "clean_trajectory", "error_summary",
+    "phase_bin_errors",
+]
+
+MODELS = ("ground_truth", "data_driven", "analytic", "template")
+COMPONENTS = ("x", "y", "theta")
+
+
+def reference_models(
+    system: LocomotionSystem,
+    model: LocalConnectionModel,
+    traj: Trajectory,
+    clean: Trajectory | None = None,
+) -> dict[str, Tensor]:
+    """Body velocity ``(..., T, 3)`` of each of :data:`MODELS` on a prepared trajectory.
+
+    Args:
+        system: the simulator the data came from (the "truth").
+        model: a model fitted to ``traj`` (batch dims equal to the trajectory's, or none).
+        traj: a trajectory with ``phase`` and ``smoothed`` set.
+        clean: the same trials without observation noise, smoothed (``smoothed`` set); the
+            ground truth is then the simulator on these shapes.
+    """
+    if traj.phase is None or traj.smoothed is None:
+        raise ValueError("reference_models needs a prepared trajectory (phase and smoothed set)")
+    phase, r, r_dot = traj.phase, traj.smoothed.r, traj.smoothed.r_dot
+    if system.shape_dim != r.shape[-1]:
+        raise ValueError(
+            f"system has {system.shape_dim} joints but the trajectory has {r.shape[-1]}"
+        )
+    gamma, gamma_dot = model.gamma_at(phase), model.gamma_dot_at(phase)
+    delta = r - gamma
+    A_gamma = system.connection(gamma)
+    dA_gamma = system.connection_jacobian(gamma)
+
+    def apply(a: Tensor, v: Tensor) -> Tensor:
+        return (a @ v.unsqueeze(-1)).squeeze(-1)
+
+    truth_in = (r, r_dot) if clean is None else (clean.smoothed.r, clean.smoothed.r_dot)
+    return {
+        "ground_truth": system.body_velocity(*truth_in),
+        "data_driven": model.predict(phase, r, r_dot),
+        "analytic": apply(A_gamma, r_dot)
+        + torch.einsum("...kij,...j,...i->...k", dA_gamma, delta, r_dot),
+        "template": apply(A_gamma, gamma_dot),
+    }
+
+
+def clean_trajectory(traj: Trajectory) -> Trajectory:
+    """The noise-free recording of a simulated trajectory (its ``truth``), smoothed."""
+    from .smoothing import smooth_trajectory
+
+    if traj.truth is None:
+        raise ValueError("clean_trajectory needs a simulated trajectory (truth is None)")
+    clean = Trajectory(t=traj.t, pose=traj.truth.pose, r=traj.truth.r, meta=traj.meta)
+    return clean.with_fields(smoothed=smooth_trajectory(clean.pose, clean.r, clean.dt))
+
+
+def error_summary(prediction: Tensor, target: Tensor) -> Tensor:
+    """RMS over time of ``prediction − target`` per component: ``(..., T, 3) -> (..., 3)``.
+
+    Samples where either is NaN are left out.
+    """
+    err = prediction - target
+    ok = torch.isfinite(err)
+    sq = torch.where(ok, err * err, torch.zeros_like(err))
+    return (sq.sum(-2) / ok.sum(-2).clamp_min(1)).sqrt()
+
+
+def phase_bin_errors(
+    prediction: Tensor, target: Tensor, phase: Tensor, n_bins: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Error statistics per phase bin (the paper's Fig. 3C).
+
+    Bins are centred on ``2πm / n_bins`` like the estimator's regression bins, so with the same
+    count each error bin is one regression window.
+
+    Args:
+        prediction, target: ``(..., T, 3)``; phase: ``(..., T)``.
+    Returns:
+        ``(centres (n_bins,), mean (..., n_bins, 3), rms (..., n_bins, 3),
+        standard error of the mean (..., n_bins, 3))`` -- the standard error treats samples as
+        independent; compare means across independent trials for a test.
+    """
+    err = prediction - target
+    width = 2 * math.pi / n_bins
+    idx = torch.round(torch.remainder(phase, 2 * math.pi) / width).long() % n_bins
+    one_hot = torch.nn.functional.one_hot(idx, n_bins).to(err.dtype)  # (..., T, B)
+    ok = torch.isfinite(err).all(-1).to(err.dtype)[..., None] * one_hot
+    e0 = torch.nan_to_num(err)
+    count = ok.sum(-2)[..., None]  # (..., B, 1)
+    mean = (ok.transpose(-1, -2) @ e0) / count.clamp_min(1)
+    second = (ok.transpose(-1, -2) @ (e0 * e0)) / count.clamp_min(1)
+    var = (second - mean * mean).clamp_min(0) * count / (count - 1).clamp_min(1)
+    centres = torch.arange(n_bins, dtype=err.dtype) * width
+    return centres, mean, second.sqrt(), (var / count.clamp_min(1)).sqrt()

@@ -1,0 +1,213 @@
+"""The fitted local model: A, ∂A/∂r and M around a limit cycle, as Fourier series in phase.
+
+A :class:`LocalConnectionModel` is what :class:`~torchconn.estimator.ConnectionEstimator`
+produces. It holds the limit cycle ``γ(φ)`` and Fourier series in phase of every regression
+term of eq. ``advanceddatadriven`` -- ``c(φ) ≈ A γ̇``, ``b(φ) ≈ ∂A/∂r γ̇``, ``A(φ)``,
+``∂A/∂r(φ)`` -- and, when power was recorded, of the metric ``M(φ)``. It predicts the body
+velocity of any sample in the tube,
+
+    ξ ≈ c(φ) + b(φ) δ + A(φ) δ̇ + ∂A/∂r(φ) (δ̇ ⊗ δ),   δ = r − γ(φ),  δ̇ = ṙ − γ̇(φ),
+
+and keeps the per-bin estimates with their standard errors for confidence bands. Leading
+batch dims ``...`` (noise levels × trials) are those of the data it was fitted to.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .fourier import FourierSeries
+
+__all__ = ["LocalConnectionModel", "BinEstimates"]
+
+
+@dataclass(frozen=True)
+class BinEstimates:
+    """Per-bin regression estimates and standard errors.
+
+    Attributes:
+        phase: ``(M,)`` bin-centre phases.
+        gamma, gamma_dot: ``(..., M, d)`` limit cycle and its phase derivative at the centres.
+        c, b, A, dA: ``(..., M, 3)``, ``(..., M, 3, d)``, ``(..., M, 3, d)``, ``(..., M, 3, d, d)``.
+        c_se, b_se, A_se, dA_se: their standard errors (same shapes).
+        n_samples: ``(..., M)`` samples used per bin.
+        M, M_se: ``(..., M, d, d)`` metric estimates and standard errors, or None.
+    """
+
+    phase: Tensor
+    gamma: Tensor
+    gamma_dot: Tensor
+    c: Tensor
+    b: Tensor
+    A: Tensor
+    dA: Tensor
+    c_se: Tensor
+    b_se: Tensor
+    A_se: Tensor
+    dA_se: Tensor
+    n_samples: Tensor
+    M: Tensor | None = None
+    M_se: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class LocalConnectionModel:
+    """Fourier-in-phase local model of a connection (and metric) around a gait.
+
+    Attributes:
+        gamma: limit cycle ``γ(φ)``, value shape ``(d,)``.
+        phase_rate: ``(...)`` mean phase velocity ``φ̇`` (1 in CONVENTIONS units: one cycle per
+            2π time units); on the cycle ``ṙ = φ̇ dγ/dφ``.
+        c, b, A, dA: Fourier series of the regression terms, value shapes ``(3,)``,
+            ``(3, d)``, ``(3, d)``, ``(3, d, d)`` (``dA[..., k, i, j] = ∂A^k_i/∂r_j``).
+        M: Fourier series of the metric ``(d, d)``, or None when no power was recorded.
+        bins: the per-bin estimates the series were fitted to.
+        meta: settings and provenance (JSON-serialisable).
+    """
+
+    gamma: FourierSeries
+    phase_rate: Tensor
+    c: FourierSeries
+    b: FourierSeries
+    A: FourierSeries
+    dA: FourierSeries
+    bins: BinEstimates
+    M: FourierSeries | None = None
+    meta: dict | None = None
+
+    @property
+    def shape_dim(self) -> int:
+        return self.gamma.value_shape[-1]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.gamma.batch_shape
+
+    # ------------------------------------------------------------------ evaluation
+    def gamma_at(self, phase: Tensor) -> Tensor:
+        """``γ(φ)``: phase ``(..., P)`` -> ``(..., P, d)``."""
+        return self.gamma(phase)
+
+    def gamma_dot_at(self, phase: Tensor) -> Tensor:
+        """``γ̇ = φ̇ dγ/dφ``, the shape velocity on the cycle: ``(..., P)`` -> ``(..., P, d)``."""
+        return self.phase_rate[..., None, None] * self.gamma.derivative()(phase)
+
+    def offsets(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> tuple[Tensor, Tensor]:
+        """``δ = r − γ(φ)`` and ``δ̇ = ṙ − γ̇(φ)`` for samples ``(..., P, d)``."""
+        return r - self.gamma_at(phase), r_dot - self.gamma_dot_at(phase)
+
+    def connection(self, phase: Tensor) -> Tensor:
+        """``Â(γ(φ))``: ``(..., P)`` -> ``(..., P, 3, d)``."""
+        return self.A(phase)
+
+    def connection_jacobian(self, phase: Tensor) -> Tensor:
+        """``∂Â/∂r(γ(φ))``: ``(..., P)`` -> ``(..., P, 3, d, d)``."""
+        return self.dA(phase)
+
+    def metric(self, phase: Tensor) -> Tensor:
+        """``M̂(γ(φ))``: ``(..., P)`` -> ``(..., P, d, d)``."""
+        if self.M is None:
+            raise ValueError("this model has no metric: fit it to data with a power channel")
+        return self.M(phase)
+
+    def predict(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> Tensor:
+        """Body velocity of samples in the tube (eq. ``advanceddatadriven``).
+
+        Args:
+            phase: ``(..., P)``; r, r_dot: ``(..., P, d)``; batch dims broadcast with the model's.
+        Returns:
+            ``(..., P, 3)``.
+        """
+        self._check_samples(phase, r, r_dot)
+        delta, delta_dot = self.offsets(phase, r, r_dot)
+        return (
+            self.c(phase)
+            + _apply(self.b(phase), delta)
+            + _apply(self.A(phase), delta_dot)
+            + torch.einsum("...kij,...i,...j->...k", self.dA(phase), delta_dot, delta)
+        )
+
+    def predict_power(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> Tensor:
+        """Power ``ṙᵀ M̂(φ) ṙ``: ``(..., P)``."""
+        self._check_samples(phase, r, r_dot)
+        return torch.einsum("...i,...ij,...j->...", r_dot, self.metric(phase), r_dot)
+
+    def _check_samples(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> None:
+        d = self.shape_dim
+        for name, x in (("r", r), ("r_dot", r_dot)):
+            if x.shape[-1] != d or x.shape[:-1] != phase.shape:
+                raise ValueError(
+                    f"{name} must have shape phase.shape + ({d},) = {tuple(phase.shape) + (d,)} "
+                    f"for a model of a {d}-joint system, got {tuple(x.shape)}"
+                )
+
+    def __getitem__(self, index) -> "LocalConnectionModel":
+        """Select batch elements (e.g. one trial's model): ``model[level, trial]``."""
+        if not isinstance(index, tuple):
+            index = (index,)
+
+        def pick(x):
+            if isinstance(x, FourierSeries):
+                return FourierSeries(x.coeffs[index], x.value_ndim)
+            return x
+
+        bins = {f.name: getattr(self.bins, f.name) for f in fields(self.bins)}
+        bins = {k: (v if v is None or k == "phase" else v[index]) for k, v in bins.items()}
+        return LocalConnectionModel(
+            gamma=pick(self.gamma), phase_rate=self.phase_rate[index], c=pick(self.c), b=pick(self.b), A=pick(self.A),
+            dA=pick(self.dA), bins=BinEstimates(**bins), M=pick(self.M), meta=self.meta,
+        )
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | Path) -> Path:
+        """Write the model to a ``.npz`` file (lossless)."""
+        path = Path(path)
+        arrays = {}
+        for name in ("gamma", "c", "b", "A", "dA", "M"):
+            series = getattr(self, name)
+            if series is not None:
+                arrays[f"series_{name}"] = series.coeffs.detach().cpu().numpy()
+                arrays[f"ndim_{name}"] = np.array(series.value_ndim)
+        for f in fields(self.bins):
+            value = getattr(self.bins, f.name)
+            if value is not None:
+                arrays[f"bins_{f.name}"] = value.detach().cpu().numpy()
+        arrays["phase_rate"] = self.phase_rate.detach().cpu().numpy()
+        arrays["meta"] = np.array(json.dumps(self.meta or {}, default=str))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "LocalConnectionModel":
+        """Read a model written by :meth:`save`."""
+        with np.load(Path(path)) as data:
+            arrays = {k: data[k] for k in data.files}
+        series = {}
+        for name in ("gamma", "c", "b", "A", "dA", "M"):
+            if f"series_{name}" in arrays:
+                series[name] = FourierSeries(
+                    torch.from_numpy(arrays[f"series_{name}"]), int(arrays[f"ndim_{name}"])
+                )
+        bins = {
+            f.name: torch.from_numpy(arrays[f"bins_{f.name}"]) if f"bins_{f.name}" in arrays
+            else None
+            for f in fields(BinEstimates)
+        }
+        return cls(
+            gamma=series["gamma"], phase_rate=torch.from_numpy(arrays["phase_rate"]),
+            c=series["c"], b=series["b"], A=series["A"],
+            dA=series["dA"], M=series.get("M"), bins=BinEstimates(**bins),
+            meta=json.loads(str(arrays["meta"])),
+        )
+
+
+def _apply(matrix: Tensor, vector: Tensor) -> Tensor:
+    """``(..., k, i) @ (..., i) -> (..., k)``."""
+    return (matrix @ vector.unsqueeze(-1)).squeeze(-1)

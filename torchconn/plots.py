@@ -1,0 +1,94 @@
+"""Plots of a fitted local model: A, ∂A/∂r and M along the gait, with confidence bands."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+
+from .model import LocalConnectionModel  # noqa: E402
+
+__all__ = ["plot_connection", "plot_metric", "plot_limit_cycle", "ROWS"]
+
+ROWS = ("x", "y", "theta")
+_Z95 = 1.96
+
+
+def _grid(n: int = 200) -> torch.Tensor:
+    return torch.linspace(0, 2 * math.pi, n, dtype=torch.float64)
+
+
+def plot_connection(model: LocalConnectionModel, path: Path | str, truth=None) -> Path:
+    """Each entry ``A^k_i(φ)``: the Fourier fit, per-bin estimates with 95% intervals, and
+    optionally the true values ``truth(phi) -> (P, 3, d)`` (e.g. the simulator on the cycle)."""
+    phi = _grid()
+    d = model.shape_dim
+    fit = model.connection(phi)
+    bins = model.bins
+    fig, axes = plt.subplots(3, d, figsize=(2.6 * d + 1, 6.5), squeeze=False, sharex=True)
+    true = truth(phi) if truth is not None else None
+    for k in range(3):
+        for i in range(d):
+            ax = axes[k, i]
+            ax.plot(phi, fit[:, k, i], color="tab:green", label="data-driven (Fourier)")
+            ax.errorbar(bins.phase, bins.A[:, k, i], yerr=_Z95 * bins.A_se[:, k, i], fmt="o",
+                        ms=3, color="tab:green", alpha=0.7, label="per-bin ±95%")
+            if true is not None:
+                ax.plot(phi, true[:, k, i], "k--", lw=1, label="simulator")
+            ax.set_title(f"A_{ROWS[k]},{i + 1}", fontsize=9)
+            if k == 2:
+                ax.set_xlabel("phase (rad)")
+    axes[0, 0].legend(fontsize=7)
+    return _save(fig, path)
+
+
+def plot_metric(model: LocalConnectionModel, path: Path | str, truth=None) -> Path:
+    """Diagonal and first off-diagonal metric entries along the gait, with 95% intervals."""
+    phi = _grid()
+    d = model.shape_dim
+    fit = model.metric(phi)
+    bins = model.bins
+    pairs = [(i, i) for i in range(d)] + [(i, i + 1) for i in range(d - 1)]
+    cols = min(len(pairs), 4)
+    rows = math.ceil(len(pairs) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3 * cols, 2.4 * rows), squeeze=False)
+    true = truth(phi) if truth is not None else None
+    for ax, (i, j) in zip(axes.flat, pairs):
+        ax.plot(phi, fit[:, i, j], color="tab:blue")
+        ax.errorbar(bins.phase, bins.M[:, i, j], yerr=_Z95 * bins.M_se[:, i, j], fmt="o", ms=3,
+                    color="tab:blue", alpha=0.7)
+        if true is not None:
+            ax.plot(phi, true[:, i, j], "k--", lw=1)
+        ax.set_title(f"M_{i + 1}{j + 1}", fontsize=9)
+    for ax in list(axes.flat)[len(pairs):]:
+        ax.axis("off")
+    return _save(fig, path)
+
+
+def plot_limit_cycle(model: LocalConnectionModel, path: Path | str, r=None) -> Path:
+    """The fitted cycle in its first two coordinates over the recorded shapes ``r (T, d)``."""
+    phi = _grid()
+    gamma = model.gamma_at(phi)
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    if r is not None:
+        ax.plot(r[..., 0].reshape(-1), r[..., 1].reshape(-1), ".", ms=1, color="0.6",
+                label="samples")
+    ax.plot(gamma[:, 0], gamma[:, 1], color="tab:red", lw=2, label="limit cycle γ")
+    ax.set_xlabel("r1")
+    ax.set_ylabel("r2")
+    ax.legend(fontsize=8)
+    ax.set_aspect("equal", "datalim")
+    return _save(fig, path)
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

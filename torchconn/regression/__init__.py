@@ -1,0 +1,30 @@
+"""Regress: phase-centred local models of the connection and the metric (the paper's Sec. 4).
+
+The hot path of the estimator, batched over leading dims ``...`` (noise levels × trials):
+
+1. :func:`assign_bins` -- phase ``(..., N)`` to a padded gather ``(..., M, Nmax)`` of each bin's
+   samples with kernel weights.
+2. :func:`connection_regression` -- ``ξ ≈ c + b δ + A δ̇ + ∂A/∂r (δ̇ ⊗ δ)`` per bin
+   (eq. ``advancedregression``) → :class:`ConnectionFit`.
+3. :func:`metric_regression` -- ``P ≈ (γ̇+δ̇)ᵀ[M + ∂M/∂r δ](γ̇+δ̇)`` per bin
+   (eq. ``advancedmetricregression``) → :class:`MetricFit`.
+
+Both regressions share one batched weighted least-squares solver (equilibrated normal equations,
+Cholesky, calibrated standard errors) and one policy for bins that cannot be fitted: too few
+samples or a numerically rank-deficient design raise (or warn / regularise), never a silent
+garbage estimate. Missing samples are NaN and are excluded automatically.
+"""
+
+from __future__ import annotations
+
+from ._wls import IllConditionedBinWarning
+from .binning import KERNELS, BinIndex, assign_bins
+from .connection import ConnectionFit, connection_design, connection_regression
+from .metric import MetricFit, metric_design, metric_n_coef, metric_regression
+
+__all__ = [
+    "assign_bins", "BinIndex", "KERNELS",
+    "connection_regression", "ConnectionFit", "connection_design",
+    "metric_regression", "MetricFit", "metric_design", "metric_n_coef",
+    "IllConditionedBinWarning",
+]
