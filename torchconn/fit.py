@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from .estimator import ConnectionEstimator
+from .estimator import ConnectionEstimator, EstimatorSettings
 from .io import read_csv
 from .model import LocalConnectionModel
 from .plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
@@ -48,21 +48,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("data", nargs="+", type=Path, help="trajectory CSV files (CONVENTIONS format)")
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    p.add_argument("--n-bins", type=int, default=16, help="phase bins (default 16)")
-    p.add_argument("--fourier-order", type=int, default=4, help="Fourier order in phase")
-    p.add_argument("--window", type=float, default=0.5,
-                   help="bin half-width in bin spacings (default 0.5: no overlap)")
+    defaults = EstimatorSettings()
+    p.add_argument("--n-bins", type=int, default=defaults.n_bins,
+                   help=f"phase bins (default {defaults.n_bins})")
+    p.add_argument("--fourier-order", type=int, default=defaults.fourier_order,
+                   help=f"Fourier order in phase (default {defaults.fourier_order})")
+    p.add_argument("--window", type=float, default=None,
+                   help="bin half-width in bin spacings (default: sized from the data)")
     p.add_argument("--phase-order", type=int, default=3, help="Phaser correction order")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
     args = p.parse_args(argv)
     if args.links < 2:
         p.error(f"--links must be >= 2, got {args.links}")
 
-    traj = read_csv(args.data, n_joints=args.links - 1)
-    est = ConnectionEstimator(
-        n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
-        phase_order=args.phase_order, pool=True,
-    ).fit(traj)
+    try:
+        traj = read_csv(args.data, n_joints=args.links - 1)
+        est = ConnectionEstimator(
+            n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
+            phase_order=args.phase_order, pool=True,
+        ).fit(traj)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"python -m torchconn.fit: error: {err}", file=sys.stderr)
+        return 2
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     model = est.model_

@@ -160,8 +160,9 @@ class LocalConnectionModel:
         bins = {f.name: getattr(self.bins, f.name) for f in fields(self.bins)}
         bins = {k: (v if v is None or k == "phase" else v[index]) for k, v in bins.items()}
         return LocalConnectionModel(
-            gamma=pick(self.gamma), phase_rate=self.phase_rate[index], c=pick(self.c), b=pick(self.b), A=pick(self.A),
-            dA=pick(self.dA), bins=BinEstimates(**bins), M=pick(self.M), meta=self.meta,
+            gamma=pick(self.gamma), phase_rate=self.phase_rate[index], c=pick(self.c),
+            b=pick(self.b), A=pick(self.A), dA=pick(self.dA), bins=BinEstimates(**bins),
+            M=pick(self.M), meta=self.meta,
         )
 
     # ------------------------------------------------------------------ persistence

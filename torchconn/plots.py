@@ -58,7 +58,7 @@ def plot_metric(model: LocalConnectionModel, path: Path | str, truth=None) -> Pa
     rows = math.ceil(len(pairs) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3 * cols, 2.4 * rows), squeeze=False)
     true = truth(phi) if truth is not None else None
-    for ax, (i, j) in zip(axes.flat, pairs):
+    for ax, (i, j) in zip(axes.flat, pairs, strict=False):
         ax.plot(phi, fit[:, i, j], color="tab:blue")
         ax.errorbar(bins.phase, bins.M[:, i, j], yerr=_Z95 * bins.M_se[:, i, j], fmt="o", ms=3,
                     color="tab:blue", alpha=0.7)

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import torch
+
 from .config import load_config
 from .runner import run_sweep
 
@@ -26,6 +28,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=0,
                    help="run experiments on a local Dask cluster with N workers")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler, tcp://HOST:PORT")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads per process (default 1: the batched work is made of many "
+                   "small tensor ops, which extra threads slow down; use --workers for cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     args = p.parse_args(argv)
@@ -39,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
         config = load_config(args.config, overrides)
     except (ValueError, FileNotFoundError) as err:
         p.error(str(err))
+    if args.threads < 1:
+        p.error(f"--threads must be >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
     out = args.out or Path("runs") / config.name
     summary = run_sweep(config, out, workers=args.workers, scheduler=args.scheduler,
                         quiet=args.quiet, figures=not args.no_figures)

@@ -28,7 +28,7 @@ ALPHA = 0.01
 
 
 def _table(rows, columns):
-    return [dict(zip(columns, r)) for r in rows]
+    return [dict(zip(columns, r, strict=False)) for r in rows]
 
 
 def _rms(results, **where) -> dict[float, np.ndarray]:

@@ -29,7 +29,7 @@ def fig3b(traces, path: Path) -> Path | None:
     if not exps:
         return None
     fig, axes = plt.subplots(len(exps), 1, figsize=(9, 2.8 * len(exps)), squeeze=False)
-    for ax, exp in zip(axes[:, 0], exps):
+    for ax, exp in zip(axes[:, 0], exps, strict=False):
         series = _group([r for r in traces if r["experiment"] == exp and r["component"] == "x"],
                         lambda r: r["model"], lambda r: (r["t"], r["value"]))
         for model in ("ground_truth", "data_driven", "analytic", "template"):
@@ -49,7 +49,7 @@ def fig3c(phase_errors, experiments, path: Path) -> Path | None:
     if not exps:
         return None
     fig, axes = plt.subplots(1, len(exps), figsize=(5 * len(exps), 3.4), squeeze=False)
-    for ax, exp in zip(axes[0], exps):
+    for ax, exp in zip(axes[0], exps, strict=False):
         level = min(exp.levels, key=lambda v: abs(v - 1.0))
         for model in ("data_driven", "analytic"):
             rows = [r for r in phase_errors if r["experiment"] == exp.name and r["level"] == level
@@ -83,7 +83,7 @@ def fig4a(results, experiments, path: Path) -> Path | None:
     if not exps:
         return None
     fig, axes = plt.subplots(1, len(exps), figsize=(5 * len(exps), 3.4), squeeze=False)
-    for ax, exp in zip(axes[0], exps):
+    for ax, exp in zip(axes[0], exps, strict=False):
         for model in ("data_driven", "analytic"):
             _band(ax, results, exp, model, "rms_vs_ground_truth", COLORS[model],
                   model.replace("_", "-"))
@@ -101,7 +101,7 @@ def fig4b(results, experiments, path: Path) -> Path | None:
     if not exps:
         return None
     fig, axes = plt.subplots(1, len(exps), figsize=(5 * len(exps), 3.4), squeeze=False)
-    for ax, exp in zip(axes[0], exps):
+    for ax, exp in zip(axes[0], exps, strict=False):
         _band(ax, results, exp, "data_driven", "rms_vs_ground_truth", "tab:orange",
               "vs ground truth")
         _band(ax, results, exp, "data_driven", "rms_vs_observed", "tab:purple",

@@ -153,7 +153,7 @@ def _assemble(config, out, store, plan, wall, figures, log) -> dict:
     made = []
     if figures:
         as_dicts = [
-            [dict(zip(cols, r)) for r in rows]
+            [dict(zip(cols, r, strict=False)) for r in rows]
             for rows, cols in ((results, RESULT_COLUMNS), (phase_errors, PHASE_COLUMNS),
                                (traces, TRACE_COLUMNS))
         ]

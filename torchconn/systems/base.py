@@ -87,10 +87,18 @@ class LocomotionSystem(ABC):
         return self._jacobian(self._metric, check_shapes(r, self.shape_dim))
 
     def _jacobian(self, fn, r: Tensor) -> Tensor:
+        """``∂fn/∂r`` with the shape derivative as the last axis.
+
+        ``fn`` maps each shape to its own value (no coupling across the batch), so one
+        forward-mode JVP of the whole batch per shape direction gives every shape's Jacobian:
+        ``d`` batched JVPs (vectorised with ``vmap`` over the directions) instead of a
+        per-shape ``jacfwd``.
+        """
         d = self.shape_dim
-        flat = r.reshape(-1, d)
-        jac = torch.func.vmap(torch.func.jacfwd(fn))(flat)
-        return jac.reshape(r.shape[:-1] + jac.shape[1:])
+        eye = torch.eye(d, dtype=r.dtype, device=r.device)
+        tangents = eye.reshape((d,) + (1,) * (r.ndim - 1) + (d,)).expand((d,) + r.shape)
+        jac = torch.func.vmap(lambda v: torch.func.jvp(fn, (r,), (v,))[1])(tangents)
+        return jac.movedim(0, -1)
 
     def curvature(self, r: Tensor) -> Tensor:
         """Curvature ``DA = dA + Σ_{i<j} [A_i, A_j]`` at ``r``.

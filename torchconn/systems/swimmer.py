@@ -128,23 +128,28 @@ class NLinkSwimmer(LocomotionSystem):
     def connection_and_metric(self, r: Tensor) -> tuple[Tensor, Tensor]:
         return self._connection_and_metric(check_shapes(r, self.shape_dim))
 
-    def _connection_and_metric(self, r: Tensor) -> tuple[Tensor, Tensor]:
+    def _link_terms(self, r: Tensor):
+        """Per-link kinematics and the connection: ``(A, u_r, w_r, b, drag, Θ)``."""
         theta_mat, c_mat, drag = self._geometry(r)
-        th = r @ theta_mat.T  # (..., N) link angles in the body frame
+        th = _rows(r, theta_mat.T)  # (..., N) link angles in the body frame
         cs, sn = torch.cos(th), torch.sin(th)
         # Link i's twist in its own frame is (u, w, Ω) = J_g xi + J_r r_dot. With
         # p_i = Σ_j C_ij e(θ_j) every entry is a C-weighted sum of sin/cos(θ_i − θ_j); expanding
         # those differences keeps the work in matrix products with C instead of N×N tables.
-        pc, ps = cs @ c_mat.T, sn @ c_mat.T  # Σ_j C_ij cos θ_j, Σ_j C_ij sin θ_j
+        pc, ps = _rows(cs, c_mat.T), _rows(sn, c_mat.T)  # Σ_j C_ij cos θ_j, Σ_j C_ij sin θ_j
         u3, w3 = sn * pc - cs * ps, cs * pc + sn * ps  # J_g's rotation column (u and w rows)
-        qc = torch.matmul(c_mat, cs[..., :, None] * theta_mat)  # Σ_j C_ij cos θ_j Θ_j, (..., N, d)
-        qs = torch.matmul(c_mat, sn[..., :, None] * theta_mat)
+        # Σ_j C_ij cos θ_j Θ_j, (..., N, d)
+        qc = _rows((cs[..., :, None] * theta_mat).transpose(-1, -2), c_mat.T).transpose(-1, -2)
+        qs = _rows((sn[..., :, None] * theta_mat).transpose(-1, -2), c_mat.T).transpose(-1, -2)
         u_r = sn[..., None] * qc - cs[..., None] * qs  # J_r's u and w rows, (..., N, d)
         w_r = cs[..., None] * qc + sn[..., None] * qs
         k1, k2, k3 = drag.unbind(-1)  # longitudinal, lateral, rotational drag per link
 
         def total(x: Tensor) -> Tensor:  # Σ over links
             return x.sum(-1)
+
+        def link_sum(w: Tensor, x: Tensor) -> Tensor:  # Σ_n w_n x_n: (..., N), (..., N, d)
+            return (w[..., None] * x).sum(-2)
 
         # Body resistance H = Σ J_gᵀ K J_g (symmetric 3×3), columns of J_g: (c, −s, 0),
         # (s, c, 0), (u3, w3, 1) for v_x, v_y, ω.
@@ -154,31 +159,36 @@ class NLinkSwimmer(LocomotionSystem):
         h13 = total(k1 * cs * u3 - k2 * sn * w3)
         h23 = total(k1 * sn * u3 + k2 * cs * w3)
         h33 = total(k1 * u3 * u3 + k2 * w3 * w3) + k3.sum()
-        # Shape coupling B = Σ J_gᵀ K J_r, (..., 3, d)
+        # Shape coupling B = Σ J_gᵀ K J_r, (..., 3, d). Tiny products are written as
+        # broadcast-and-sum: batched matmuls of 3×3 blocks are slow, worst under forward AD.
         b = torch.stack(
             [
-                torch.einsum("...n,...nd->...d", k1 * cs, u_r)
-                - torch.einsum("...n,...nd->...d", k2 * sn, w_r),
-                torch.einsum("...n,...nd->...d", k1 * sn, u_r)
-                + torch.einsum("...n,...nd->...d", k2 * cs, w_r),
-                torch.einsum("...n,...nd->...d", k1 * u3, u_r)
-                + torch.einsum("...n,...nd->...d", k2 * w3, w_r)
-                + (k3 @ theta_mat),
+                link_sum(k1 * cs, u_r) - link_sum(k2 * sn, w_r),
+                link_sum(k1 * sn, u_r) + link_sum(k2 * cs, w_r),
+                link_sum(k1 * u3, u_r) + link_sum(k2 * w3, w_r) + (k3 @ theta_mat),
             ],
             -2,
         )
         a = -_solve_sym3(h11, h12, h13, h22, h23, h33, b)
-        # Power of the link twists (J_g A + J_r) r_dot; with H A = −B it reduces to this form.
-        m = (
-            (k1[:, None] * u_r).transpose(-1, -2) @ u_r
-            + (k2[:, None] * w_r).transpose(-1, -2) @ w_r
-            + theta_mat.T @ (k3[:, None] * theta_mat)
-            + b.transpose(-1, -2) @ a
-        )
-        return a, 0.5 * (m + m.transpose(-1, -2))
+        return a, u_r, w_r, b, drag, theta_mat
 
     def _connection(self, r: Tensor) -> Tensor:
-        return self._connection_and_metric(r)[0]
+        return self._link_terms(r)[0]
+
+    def _connection_and_metric(self, r: Tensor) -> tuple[Tensor, Tensor]:
+        a, u_r, w_r, b, drag, theta_mat = self._link_terms(r)
+        k1, k2, k3 = drag.unbind(-1)
+
+        def gram(k: Tensor, x: Tensor) -> Tensor:  # Σ_n k_n x_nᵀ x_n: (..., N, d) -> (..., d, d)
+            return (k[:, None, None] * x[..., :, :, None] * x[..., :, None, :]).sum(-3)
+
+        # Power of the link twists (J_g A + J_r) r_dot; with H A = −B it reduces to this form.
+        m = (
+            gram(k1, u_r) + gram(k2, w_r)
+            + theta_mat.T @ (k3[:, None] * theta_mat)
+            + (b[..., :, :, None] * a[..., :, None, :]).sum(-3)
+        )
+        return a, 0.5 * (m + m.transpose(-1, -2))
 
     def _metric(self, r: Tensor) -> Tensor:
         return self._connection_and_metric(r)[1]
@@ -202,6 +212,12 @@ class NLinkSwimmer(LocomotionSystem):
 
 
 
+def _rows(x: Tensor, m: Tensor) -> Tensor:
+    """``x (..., k) @ m (k, l)`` as one 2-D GEMM over the flattened batch (fast under autograd,
+    forward mode included, where broadcast matmuls become many tiny batched products)."""
+    return (x.reshape(-1, x.shape[-1]) @ m).reshape(x.shape[:-1] + (m.shape[-1],))
+
+
 def _solve_sym3(h11, h12, h13, h22, h23, h33, b: Tensor) -> Tensor:
     """Solve ``H x = b`` for symmetric 3×3 ``H`` given by its entries ``(...)`` and ``b (..., 3, d)``.
 
@@ -219,4 +235,4 @@ def _solve_sym3(h11, h12, h13, h22, h23, h33, b: Tensor) -> Tensor:
         [torch.stack([c11, c12, c13], -1), torch.stack([c12, c22, c23], -1),
          torch.stack([c13, c23, c33], -1)], -2,
     )
-    return (adj @ b) / det[..., None, None]
+    return (adj[..., :, :, None] * b[..., None, :, :]).sum(-2) / det[..., None, None]

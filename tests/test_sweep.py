@@ -1,0 +1,143 @@
+"""The sweep command: outputs, resuming, Dask backends."""
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from torchconn.sweep import __main__ as cli
+from torchconn.sweep import experiment as experiment_module
+from torchconn.sweep.config import load_config
+from torchconn.sweep.runner import run_sweep
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["--cycles", "8", "--trials", "2", "--quiet"]
+RESULT_COLUMNS = {"system", "noise_kind", "level", "trial", "model", "component", "metric",
+                  "value"}
+
+
+def _small_config(tmp_path: Path) -> Path:
+    path = tmp_path / "small.toml"
+    path.write_text("""
+name = "small"
+seed = 5
+error_bins = 12
+[simulation]
+n_cycles = 8
+[estimator]
+n_bins = 24
+fourier_order = 6
+[[experiment]]
+system = "3link"
+noise_kind = "system"
+levels = [1.0, 2.0]
+trials = 2
+[[experiment]]
+system = "3link"
+noise_kind = "observation"
+levels = [0.0, 0.01]
+trials = 2
+""")
+    return path
+
+
+def _rows(path: Path) -> list[dict]:
+    with path.open() as fh:
+        return list(csv.DictReader(fh))
+
+
+def _check_outputs(out: Path, n_experiments: int) -> None:
+    rows = _rows(out / "results.csv")
+    assert RESULT_COLUMNS <= set(rows[0])
+    assert {r["model"] for r in rows} == {"ground_truth", "data_driven", "analytic", "template"}
+    assert {r["component"] for r in rows} == {"x", "y", "theta"}
+    assert all(float(r["value"]) == float(r["value"]) for r in rows)  # no NaN
+    claims = _rows(out / "claims.csv")
+    assert [set(c) for c in claims][0] == {"claim", "holds", "evidence"} and len(claims) == 4
+    sidecar = json.loads((out / "run.json").read_text())
+    assert {"config", "seeds", "versions", "timings_s"} <= set(sidecar)
+    assert len(sidecar["timings_s"]) == n_experiments
+    assert list(out.glob("fig*.png"))
+
+
+def test_default_sweep_runs_small(tmp_path):
+    assert cli.main(["--out", str(tmp_path / "default"), *SMALL]) == 0
+    _check_outputs(tmp_path / "default", n_experiments=3)
+    assert (tmp_path / "default" / "fig4a_system_noise.png").stat().st_size > 1000
+
+
+def test_quick_config_runs(tmp_path):
+    out = tmp_path / "quick"
+    assert cli.main(["--config", str(ROOT / "configs" / "quick.toml"), "--out", str(out),
+                     "--cycles", "8", "--quiet"]) == 0
+    _check_outputs(out, n_experiments=2)
+
+
+def test_every_paper_config_parses():
+    for name in ("fig3", "fig4a", "fig4b", "quick"):
+        config = load_config(ROOT / "configs" / f"{name}.toml")
+        assert config.experiments
+
+
+def test_resume_after_interruption_gives_the_uninterrupted_table(tmp_path, monkeypatch):
+    config = load_config(_small_config(tmp_path))
+    run_sweep(config, tmp_path / "whole", quiet=True, figures=False)
+
+    calls = []
+    real = experiment_module.run_experiment
+
+    def dies_on_second(cfg, exp):
+        calls.append(exp.name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(cfg, exp)
+
+    monkeypatch.setattr("torchconn.sweep.runner.run_experiment", dies_on_second)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(config, tmp_path / "resumed", quiet=True, figures=False)
+    monkeypatch.setattr("torchconn.sweep.runner.run_experiment", real)
+    done = list((tmp_path / "resumed" / "cells").glob("*/done.json"))
+    assert len(done) == 1  # the first experiment was stored before the interruption
+
+    reran = []
+    monkeypatch.setattr("torchconn.sweep.runner.run_experiment",
+                        lambda cfg, exp: reran.append(exp.name) or real(cfg, exp))
+    run_sweep(config, tmp_path / "resumed", quiet=True, figures=False)
+    assert reran == [config.experiments[1].name]  # only the missing one ran
+    assert (tmp_path / "resumed" / "results.csv").read_text() == (
+        tmp_path / "whole" / "results.csv").read_text()
+
+
+def test_changed_config_never_reuses_stale_cells(tmp_path):
+    path = _small_config(tmp_path)
+    first = load_config(path)
+    second = load_config(path, ["estimator.fourier_order=5"])
+    assert all(first.fingerprint(a) != second.fingerprint(b)
+               for a, b in zip(first.experiments, second.experiments, strict=True))
+
+
+def test_dask_backends_match_the_serial_run(tmp_path):
+    pytest.importorskip("distributed")
+    from distributed import LocalCluster
+
+    config = load_config(_small_config(tmp_path))
+    run_sweep(config, tmp_path / "serial", quiet=True, figures=False)
+    run_sweep(config, tmp_path / "local", workers=2, quiet=True, figures=False)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None, host="127.0.0.1") as cluster:
+        assert cluster.scheduler_address.startswith("tcp://")
+        run_sweep(config, tmp_path / "remote", scheduler=cluster.scheduler_address, quiet=True,
+                  figures=False)
+    serial = (tmp_path / "serial" / "results.csv").read_text()
+    assert (tmp_path / "local" / "results.csv").read_text() == serial
+    assert (tmp_path / "remote" / "results.csv").read_text() == serial
+
+
+def test_bad_config_is_reported(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\n[[experiment]]\nsystem = "4link"\nnoise_kind = "system"\n'
+                   "levels = [1.0]\ntrials = 1\n")
+    with pytest.raises(SystemExit):
+        cli.main(["--config", str(bad), "--out", str(tmp_path / "o")])
+    assert "experiment system must be one of" in capsys.readouterr().err
