@@ -22,7 +22,7 @@ from .io import read_csv
 from .model import LocalConnectionModel
 from .plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 
-__all__ = ["connection_table", "main"]
+__all__ = ["connection_table", "write_connection_csv", "main"]
 
 
 def connection_table(model: LocalConnectionModel, n_points: int = 100):
@@ -41,6 +41,17 @@ def connection_table(model: LocalConnectionModel, n_points: int = 100):
         cols += [f"M_{i + 1}_{j + 1}" for i in range(d) for j in range(d)]
         blocks.append(model.metric(phi).reshape(n_points, -1))
     return cols, torch.cat(blocks, -1).tolist()
+
+
+def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = 100) -> Path:
+    """Write :func:`connection_table` to ``path`` (CSV with a header row)."""
+    path = Path(path)
+    cols, rows = connection_table(model, n_points)
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(cols)
+        writer.writerows(rows)
+    return path
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,11 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     model = est.model_
     model.save(out / "model.npz")
-    cols, rows = connection_table(model, args.grid)
-    with (out / "connection.csv").open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(cols)
-        writer.writerows(rows)
+    write_connection_csv(model, out / "connection.csv", args.grid)
     plot_connection(model, out / "connection.png")
     plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
     if model.M is not None:

@@ -5,13 +5,10 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import matplotlib
+import torch
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-
-from .model import LocalConnectionModel  # noqa: E402
+from .model import LocalConnectionModel
 
 __all__ = ["plot_connection", "plot_metric", "plot_limit_cycle", "ROWS"]
 
@@ -30,7 +27,8 @@ def plot_connection(model: LocalConnectionModel, path: Path | str, truth=None) -
     d = model.shape_dim
     fit = model.connection(phi)
     bins = model.bins
-    fig, axes = plt.subplots(3, d, figsize=(2.6 * d + 1, 6.5), squeeze=False, sharex=True)
+    fig = Figure(figsize=(2.6 * d + 1, 6.5))
+    axes = fig.subplots(3, d, squeeze=False, sharex=True)
     true = truth(phi) if truth is not None else None
     for k in range(3):
         for i in range(d):
@@ -56,7 +54,8 @@ def plot_metric(model: LocalConnectionModel, path: Path | str, truth=None) -> Pa
     pairs = [(i, i) for i in range(d)] + [(i, i + 1) for i in range(d - 1)]
     cols = min(len(pairs), 4)
     rows = math.ceil(len(pairs) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3 * cols, 2.4 * rows), squeeze=False)
+    fig = Figure(figsize=(3 * cols, 2.4 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False)
     true = truth(phi) if truth is not None else None
     for ax, (i, j) in zip(axes.flat, pairs, strict=False):
         ax.plot(phi, fit[:, i, j], color="tab:blue")
@@ -74,7 +73,8 @@ def plot_limit_cycle(model: LocalConnectionModel, path: Path | str, r=None) -> P
     """The fitted cycle in its first two coordinates over the recorded shapes ``r (T, d)``."""
     phi = _grid()
     gamma = model.gamma_at(phi)
-    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    fig = Figure(figsize=(4.5, 4.5))
+    ax = fig.subplots()
     if r is not None:
         ax.plot(r[..., 0].reshape(-1), r[..., 1].reshape(-1), ".", ms=1, color="0.6",
                 label="samples")
@@ -90,5 +90,4 @@ def _save(fig, path) -> Path:
     path = Path(path)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return path

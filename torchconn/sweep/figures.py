@@ -5,11 +5,8 @@ from __future__ import annotations
 from collections import defaultdict
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
+from matplotlib.figure import Figure
 
 __all__ = ["make_figures", "COLORS"]
 
@@ -28,7 +25,8 @@ def fig3b(traces, path: Path) -> Path | None:
     exps = sorted({r["experiment"] for r in traces})
     if not exps:
         return None
-    fig, axes = plt.subplots(len(exps), 1, figsize=(9, 2.8 * len(exps)), squeeze=False)
+    fig = Figure(figsize=(9, 2.8 * len(exps)))
+    axes = fig.subplots(len(exps), 1, squeeze=False)
     for ax, exp in zip(axes[:, 0], exps, strict=False):
         series = _group([r for r in traces if r["experiment"] == exp and r["component"] == "x"],
                         lambda r: r["model"], lambda r: (r["t"], r["value"]))
@@ -48,7 +46,8 @@ def fig3c(phase_errors, experiments, path: Path) -> Path | None:
     exps = [e for e in experiments if e.noise_kind == "system"]
     if not exps:
         return None
-    fig, axes = plt.subplots(1, len(exps), figsize=(5 * len(exps), 3.4), squeeze=False)
+    fig = Figure(figsize=(5 * len(exps), 3.4))
+    axes = fig.subplots(1, len(exps), squeeze=False)
     for ax, exp in zip(axes[0], exps, strict=False):
         level = min(exp.levels, key=lambda v: abs(v - 1.0))
         for model in ("data_driven", "analytic"):
@@ -82,7 +81,8 @@ def fig4a(results, experiments, path: Path) -> Path | None:
     exps = [e for e in experiments if e.noise_kind == "system"]
     if not exps:
         return None
-    fig, axes = plt.subplots(1, len(exps), figsize=(5 * len(exps), 3.4), squeeze=False)
+    fig = Figure(figsize=(5 * len(exps), 3.4))
+    axes = fig.subplots(1, len(exps), squeeze=False)
     for ax, exp in zip(axes[0], exps, strict=False):
         for model in ("data_driven", "analytic"):
             _band(ax, results, exp, model, "rms_vs_ground_truth", COLORS[model],
@@ -100,7 +100,8 @@ def fig4b(results, experiments, path: Path) -> Path | None:
     exps = [e for e in experiments if e.noise_kind == "observation"]
     if not exps:
         return None
-    fig, axes = plt.subplots(1, len(exps), figsize=(5 * len(exps), 3.4), squeeze=False)
+    fig = Figure(figsize=(5 * len(exps), 3.4))
+    axes = fig.subplots(1, len(exps), squeeze=False)
     for ax, exp in zip(axes[0], exps, strict=False):
         _band(ax, results, exp, "data_driven", "rms_vs_ground_truth", "tab:orange",
               "vs ground truth")
@@ -116,7 +117,6 @@ def fig4b(results, experiments, path: Path) -> Path | None:
 def _save(fig, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
