@@ -21,7 +21,7 @@ def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--shapes", type=int, default=1_000_000)
     p.add_argument("--loop-shapes", type=int, default=2000)
-    p.add_argument("--chunk", type=int, default=16_384)
+    p.add_argument("--chunk", type=int, default=8_192)
     args = p.parse_args()
 
     rng = np.random.default_rng(0)

@@ -51,7 +51,7 @@ def _claim_a(results, phase_errors, experiments):
         if exp.noise_kind != "system" or exp.trials < 3:
             continue
         level = _nearest(exp.levels, 1.0)
-        frac = {}
+        frac, net = {}, {}
         for model in ("data_driven", "analytic"):
             by_bin = defaultdict(list)
             for r in phase_errors:
@@ -64,11 +64,15 @@ def _claim_a(results, phase_errors, experiments):
                 se = m.std(ddof=1) / np.sqrt(len(m))
                 sig.append(abs(m.mean()) > z_crit * se)
             frac[model] = float(np.mean(sig)) if sig else float("nan")
+            x_means = [np.mean(v) for (c, _), v in by_bin.items() if c == "x"]
+            net[model] = (float(np.mean(x_means)), float(np.sqrt(np.mean(np.square(x_means)))))
         ok = frac["data_driven"] <= 0.1 and frac["analytic"] >= 0.25
         verdicts.append(ok)
         parts.append(f"{exp.name} at {level:g}x eta: bins with mean error != 0 (p<{ALPHA}, "
                      f"{exp.trials} trials): data-driven {frac['data_driven']:.0%}, "
-                     f"analytic {frac['analytic']:.0%}")
+                     f"analytic {frac['analytic']:.0%}; x mean error over phase (net, RMS over "
+                     f"bins): data-driven {net['data_driven'][0]:.2g}, {net['data_driven'][1]:.2g}; "
+                     f"analytic {net['analytic'][0]:.2g}, {net['analytic'][1]:.2g}")
     return verdicts, parts
 
 

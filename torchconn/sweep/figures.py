@@ -89,6 +89,8 @@ def fig4a(results, experiments, path: Path) -> Path | None:
                   model.replace("_", "-"))
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.set_xticks(exp.levels, [f"{v:g}" for v in exp.levels], minor=False)
+        ax.minorticks_off()
         ax.set_title(f"{exp.name}: x error vs system noise")
         ax.set_xlabel("system noise (multiples of eta)")
         ax.set_ylabel("RMS error vs ground truth")

@@ -180,13 +180,13 @@ class NLinkSwimmer(LocomotionSystem):
         k1, k2, k3 = drag.unbind(-1)
 
         def gram(k: Tensor, x: Tensor) -> Tensor:  # Σ_n k_n x_nᵀ x_n: (..., N, d) -> (..., d, d)
-            return (k[:, None, None] * x[..., :, :, None] * x[..., :, None, :]).sum(-3)
+            return (k[:, None] * x).transpose(-1, -2) @ x
 
         # Power of the link twists (J_g A + J_r) r_dot; with H A = −B it reduces to this form.
         m = (
             gram(k1, u_r) + gram(k2, w_r)
             + theta_mat.T @ (k3[:, None] * theta_mat)
-            + (b[..., :, :, None] * a[..., :, None, :]).sum(-3)
+            + b.transpose(-1, -2) @ a
         )
         return a, 0.5 * (m + m.transpose(-1, -2))
 
