@@ -49,50 +49,22 @@
 
 # %%
 import math
-import os
-import sys
 import time
-from pathlib import Path
 
-import matplotlib
+from _notebook import Notebook  # before pyplot: outside Jupyter it selects the Agg backend
 
-if "ipykernel" not in sys.modules:  # a script: draw off-screen; in Jupyter keep inline plots
-    matplotlib.use("Agg")
+# isort: split
 import matplotlib.pyplot as plt
 import numpy as np
 import torch
 from matplotlib.patches import Ellipse
 from matplotlib.path import Path as PolygonPath
 
-NAME = "01_quickstart"
-SMALL = os.environ.get("TORCHCONN_SMALL", "0").strip() not in ("", "0")
+from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
+from torchconn.evaluation import clean_trajectory, error_summary, reference_models
+from torchconn.gaits import evaluate, reference_gait
 
-
-def _notebook_dir() -> Path:
-    try:
-        return Path(__file__).resolve().parent
-    except NameError:  # running inside Jupyter
-        return Path.cwd()
-
-
-OUT = Path(os.environ.get("TORCHCONN_NB_OUT") or _notebook_dir() / "_output") / NAME
-OUT.mkdir(parents=True, exist_ok=True)
-FIGURES: list[Path] = []
-
-
-def save(fig, name: str) -> Path:
-    """Write a figure to OUT/name.png (and keep it open in Jupyter, where it is shown)."""
-    path = OUT / f"{name}.png"
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    FIGURES.append(path)
-    print(f"figure: {path}")
-    if "ipykernel" not in sys.modules:
-        plt.close(fig)
-    return path
-
-
-T_START = time.perf_counter()
-print(f"small-data mode: {SMALL}; output directory: {OUT}")
+nb = Notebook("01_quickstart")
 
 # %% [markdown]
 # ## 1. The swimmer
@@ -112,9 +84,6 @@ print(f"small-data mode: {SMALL}; output directory: {OUT}")
 # $A = [[0, 0], [-1/18, -1/18], [7/27, -7/27]]$ and $DA_x = -5/243$.
 
 # %%
-from torchconn import NLinkSwimmer
-from torchconn.gaits import evaluate, reference_gait
-
 swimmer = NLinkSwimmer(3)
 print(swimmer)
 straight = torch.zeros(2, dtype=torch.float64)
@@ -154,7 +123,7 @@ axes[1].plot(phi, gamma_ref[:, 1], label=r"$r_2$")
 axes[1].set(xlabel=r"phase $\varphi$ (rad)", ylabel="joint angle (rad)",
             title="joint angles over one cycle")
 axes[1].legend()
-save(fig, "gait")
+nb.save(fig, "gait")
 
 # %% [markdown]
 # ## 3. The connection, the metric and the curvature over the shape plane
@@ -163,7 +132,7 @@ save(fig, "gait")
 # `A` comes back `(n, n, 3, 2)` and `M` `(n, n, 2, 2)`.
 
 # %%
-n_grid = 31 if SMALL else 61
+n_grid = 31 if nb.small else 61
 lim = 2.8
 axis = torch.linspace(-lim, lim, n_grid, dtype=torch.float64)
 R1, R2 = torch.meshgrid(axis, axis, indexing="xy")
@@ -189,7 +158,7 @@ for ax in axes[-1]:
 for ax in axes[:, 0]:
     ax.set_ylabel(r"$r_2$")
 fig.suptitle("connection entries over the shape plane (black: reference gait)")
-save(fig, "connection_field")
+nb.save(fig, "connection_field")
 
 # %% [markdown]
 # **The metric as an ellipse field.** At each shape, the ellipse is the set of shape velocities
@@ -213,7 +182,7 @@ ax.plot(gamma_ref[:, 0], gamma_ref[:, 1], color="tab:red", lw=1.5, label="refere
 ax.set(xlim=(-lim, lim), ylim=(-lim, lim), aspect="equal", xlabel=r"$r_1$", ylabel=r"$r_2$",
        title=r"metric: unit-power ellipses $\dot r^\top M(r)\dot r = 1$ (scaled)")
 ax.legend(loc="upper right")
-save(fig, "metric_ellipses")
+nb.save(fig, "metric_ellipses")
 
 # %% [markdown]
 # **The curvature $DA$.** For a loop in the shape plane, the net displacement is, to leading
@@ -235,7 +204,7 @@ for k, ax in enumerate(axes):
     ax.plot(gamma_ref[:, 0], gamma_ref[:, 1], "k-", lw=2)
     ax.set(title=f"$DA_{{{ROWS[k]}}}$ with the reference gait", xlabel=r"$r_1$",
            ylabel=r"$r_2$", aspect="equal")
-save(fig, "curvature")
+nb.save(fig, "curvature")
 
 loop = gamma_ref.numpy()
 signed_area = 0.5 * float(np.sum(loop[:-1, 0] * loop[1:, 1] - loop[1:, 0] * loop[:-1, 1]))
@@ -267,10 +236,8 @@ print(f"x displacement: area rule {area_rule:.4f} vs exact {float(metrics.displa
 # noise-free data and the true phase), which a real experiment would not have.
 
 # %%
-from torchconn import observe, simulate
-
 ALPHA, ETA, OMEGA = 0.05, 0.025, 0.002
-N_TRIALS, N_CYCLES = (3, 10) if SMALL else (10, 30)
+N_TRIALS, N_CYCLES = (3, 10) if nb.small else (10, 30)
 seeds = np.random.SeedSequence(2019).generate_state(N_TRIALS)
 
 t0 = time.perf_counter()
@@ -304,7 +271,7 @@ ax.plot(traj.t[show], traj.truth.r[0, show, 0], "k--", lw=0.8, label=r"$r_1$ noi
 ax.plot(traj.t[show], traj.r[0, show, 1], label=r"$r_2$ recorded")
 ax.set(xlabel="t (2π per cycle)", ylabel="rad", title="trial 0, first three cycles")
 ax.legend(fontsize=8)
-save(fig, "trials")
+nb.save(fig, "trials")
 
 # %% [markdown]
 # ## 5. Fit the estimator
@@ -327,8 +294,6 @@ save(fig, "trials")
 # comparable); the default fits one model per trial.
 
 # %%
-from torchconn import ConnectionEstimator
-
 t0 = time.perf_counter()
 est = ConnectionEstimator(n_bins=48, fourier_order=12, pool=True).fit(traj)
 model = est.model_
@@ -356,7 +321,7 @@ ax.plot(*model.gamma_at(torch.zeros(1, dtype=torch.float64))[0], "o", color="tab
         label=r"model's $\varphi = 0$")
 ax.set(xlabel=r"$r_1$", ylabel=r"$r_2$", aspect="equal", title="limit cycle")
 ax.legend(fontsize=8)
-save(fig, "limit_cycle")
+nb.save(fig, "limit_cycle")
 
 # %% [markdown]
 # ## 6. The estimated connection against the truth
@@ -385,7 +350,7 @@ for k in range(3):
 axes[0, 0].legend(fontsize=7)
 for ax in axes[-1]:
     ax.set_xlabel(r"model phase $\varphi$ (rad)")
-save(fig, "connection_vs_truth")
+nb.save(fig, "connection_vs_truth")
 
 inside_A = ((b.A - bin_truth_A).abs() <= Z95 * b.A_se).double().mean()
 rel_A = (A_hat - A_true).norm() / A_true.norm()
@@ -424,7 +389,7 @@ for k in range(3):
 axes[0, 0].legend(fontsize=7)
 for ax in axes[-1]:
     ax.set_xlabel(r"model phase $\varphi$ (rad)")
-save(fig, "connection_jacobian_vs_truth")
+nb.save(fig, "connection_jacobian_vs_truth")
 
 inside_dA = ((b.dA - swimmer.connection_jacobian(b.gamma)).abs() <= Z95 * b.dA_se).double().mean()
 rel_dA = (dA_hat - dA_true).norm() / dA_true.norm()
@@ -443,8 +408,6 @@ print(f"fraction of per-bin 95% intervals that contain the truth: {float(inside_
 # (`clean_trajectory`).
 
 # %%
-from torchconn.evaluation import clean_trajectory, error_summary, reference_models
-
 preds = reference_models(swimmer, model, est.trajectory_, clean_trajectory(traj))
 truth_xi = preds["ground_truth"]
 print(f"{'model':>12}  RMS error vs ground truth (v_x, v_y, omega), mean over trials")
@@ -469,7 +432,7 @@ axes[1].set_ylabel(r"$v_x$ error vs ground truth")
 axes[0].legend(ncol=4, fontsize=8)
 axes[1].set_xlabel("cycle")
 axes[0].set_title("trial 0: forward body velocity of the four models, and their errors")
-save(fig, "body_velocity")
+nb.save(fig, "body_velocity")
 
 err = {name: (preds[name] - truth_xi)[..., 0] for name in ("data_driven", "analytic", "template")}
 fig, ax = plt.subplots(figsize=(6, 3.6))
@@ -481,7 +444,7 @@ for name, color in (("data_driven", "tab:green"), ("analytic", "tab:red"),
 ax.set(xlabel=r"$v_x$ error vs ground truth", ylabel="samples",
        title="error distribution, all samples")
 ax.legend(fontsize=8)
-save(fig, "error_histogram")
+nb.save(fig, "error_histogram")
 
 # %% [markdown]
 # ## What next
@@ -494,6 +457,4 @@ save(fig, "error_histogram")
 #   displacement of a gait you have not recorded.
 
 # %%
-(OUT / "figures.txt").write_text("".join(f"{p.name}\n" for p in FIGURES))
-print(f"{len(FIGURES)} figures in {OUT}: {', '.join(p.name for p in FIGURES)}")
-print(f"total run time {time.perf_counter() - T_START:.1f} s")
+nb.finish()

@@ -56,55 +56,29 @@
 # ```
 
 # %%
-import csv
 import dataclasses
 import json
 import math
 import os
-import sys
 import textwrap
 import time
 from collections import defaultdict
 from pathlib import Path
 
-import matplotlib
+from _notebook import Notebook  # before pyplot: outside Jupyter it selects the Agg backend
 
-if "ipykernel" not in sys.modules:  # a script: draw off-screen; in Jupyter keep inline plots
-    matplotlib.use("Agg")
+# isort: split
 import matplotlib.pyplot as plt
 import matplotlib.ticker
 import numpy as np
 import torch
 
-NAME = "02_paper_results"
-SMALL = os.environ.get("TORCHCONN_SMALL", "0").strip() not in ("", "0")
+from torchconn import ConnectionEstimator, NLinkSwimmer, simulate
+from torchconn.evaluation import error_summary, reference_models
+from torchconn.gaits import reference_gait
+from torchconn.sweep import load_config, read_table, run_sweep
 
-
-def _notebook_dir() -> Path:
-    try:
-        return Path(__file__).resolve().parent
-    except NameError:  # running inside Jupyter
-        return Path.cwd()
-
-
-OUT = Path(os.environ.get("TORCHCONN_NB_OUT") or _notebook_dir() / "_output") / NAME
-OUT.mkdir(parents=True, exist_ok=True)
-FIGURES: list[Path] = []
-
-
-def save(fig, name: str) -> Path:
-    """Write a figure to OUT/name.png (and keep it open in Jupyter, where it is shown)."""
-    path = OUT / f"{name}.png"
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    FIGURES.append(path)
-    print(f"figure: {path}")
-    if "ipykernel" not in sys.modules:
-        plt.close(fig)
-    return path
-
-
-T_START = time.perf_counter()
-print(f"small-data mode: {SMALL}; output directory: {OUT}")
+nb = Notebook("02_paper_results")
 
 # %% [markdown]
 # ## 1. Run (or load) a sweep
@@ -125,9 +99,6 @@ print(f"small-data mode: {SMALL}; output directory: {OUT}")
 # directory are skipped when their configuration has not changed.
 
 # %%
-from torchconn.sweep import load_config, run_sweep
-
-
 sweep_env = os.environ.get("TORCHCONN_SWEEP_DIR", "").strip()
 if sweep_env and (Path(sweep_env) / "results.csv").exists():
     SWEEP = Path(sweep_env)
@@ -135,14 +106,14 @@ if sweep_env and (Path(sweep_env) / "results.csv").exists():
 else:
     if sweep_env:
         print(f"TORCHCONN_SWEEP_DIR={sweep_env} holds no results.csv: running a sweep instead")
-    SWEEP = OUT / "sweep"
+    SWEEP = nb.out / "sweep"
     # paper-like sizes: 10 trials per level, the paper's noise ranges (Figs. 4A and 4B)
     overrides = [
         "experiment.trials=10",
         "experiment.1.levels=[0.25, 0.5, 1.0, 2.0, 4.0]",
         "experiment.2.levels=[0.0, 0.0025, 0.005, 0.01, 0.02, 0.04]",
     ]
-    if SMALL:
+    if nb.small:
         # 20 cycles still cover the cycles 13-18 that Fig. 3B shows
         overrides = [
             "simulation.n_cycles=20", "experiment.trials=3",
@@ -174,20 +145,6 @@ else:
 
 
 # %%
-def read_table(path: Path) -> list[dict]:
-    """Rows of a sweep CSV as dicts, numbers parsed."""
-    def parse(value: str):
-        for cast in (int, float):
-            try:
-                return cast(value)
-            except ValueError:
-                pass
-        return value
-
-    with path.open(newline="") as fh:
-        return [{k: parse(v) for k, v in row.items()} for row in csv.DictReader(fh)]
-
-
 def select(rows: list[dict], **where) -> list[dict]:
     return [r for r in rows if all(r[k] == v for k, v in where.items())]
 
@@ -255,7 +212,7 @@ if trace_exps:
         axes[1, col].axhline(0, color="0.5", lw=0.8)
     axes[0, 0].legend(ncol=2, fontsize=8)
     axes[1, 0].legend(ncol=3, fontsize=8)
-    save(fig, "fig3b_traces")
+    nb.save(fig, "fig3b_traces")
 else:
     print("this sweep stored no traces (set traces = true in an experiment)")
 
@@ -300,7 +257,7 @@ if phase_errors and sys_exps:
         ax.set(title=f"{exp} at {level:g}×η: $v_x$ error vs phase ({n} trials, 95% CI)",
                xlabel=r"phase $\varphi$ (rad)", ylabel="mean error vs ground truth")
     axes[0, 0].legend(fontsize=8)
-    save(fig, "fig3c_error_vs_phase")
+    nb.save(fig, "fig3c_error_vs_phase")
 
 
 # %% [markdown]
@@ -348,7 +305,7 @@ if sys_exps:
         ax.set_xticks(levels, [f"{v:g}" for v in levels])
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     axes[0, 0].legend(fontsize=8)
-    save(fig, "fig4a_system_noise")
+    nb.save(fig, "fig4a_system_noise")
 
 obs_exps = [n for n, s, k in experiments if k == "observation"]
 if obs_exps:
@@ -361,7 +318,7 @@ if obs_exps:
         ax.set(xlabel=r"observation noise $\omega$ (body lengths, rad)",
                ylabel="RMS $v_x$ error", title=f"{exp}: error vs observation noise")
     axes[0, 0].legend(fontsize=8)
-    save(fig, "fig4b_observation_noise")
+    nb.save(fig, "fig4b_observation_noise")
 
 # %% [markdown]
 # ## 6. The claims
@@ -408,13 +365,9 @@ if not claims:
 # model, evaluated on the same held-out samples, is the reference line.
 
 # %%
-from torchconn import ConnectionEstimator, NLinkSwimmer, simulate
-from torchconn.evaluation import error_summary, reference_models
-from torchconn.gaits import reference_gait
-
 SPC = 64  # samples per cycle
-STUDY_TRIALS, TEST_TRIALS, TEST_CYCLES = (3, 2, 8) if SMALL else (8, 4, 20)
-CYCLE_COUNTS = [4, 8, 16] if SMALL else [5, 10, 20, 40]
+STUDY_TRIALS, TEST_TRIALS, TEST_CYCLES = (3, 2, 8) if nb.small else (8, 4, 20)
+CYCLE_COUNTS = [4, 8, 16] if nb.small else [5, 10, 20, 40]
 BIN_COUNTS = [16, 24, 32, 48, 96]
 ORDERS = [2, 4, 8, 12, 16, 23]
 
@@ -505,7 +458,7 @@ axes[1].set_title(f"phase bins ({max(CYCLE_COUNTS)} cycles, order min(12, (M-1)/
 study_plot(axes[2], ORDERS, order_errs, "Fourier order K", log=False)
 axes[2].set_title(f"Fourier order ({max(CYCLE_COUNTS)} cycles, 48 bins)")
 axes[0].legend(fontsize=8)
-save(fig, "knob_study")
+nb.save(fig, "knob_study")
 
 for label, knob, errs in (("cycles", CYCLE_COUNTS, cycle_errs), ("bins", BIN_COUNTS, bin_errs),
                           ("order", ORDERS, order_errs)):
@@ -527,6 +480,4 @@ for label, knob, errs in (("cycles", CYCLE_COUNTS, cycle_errs), ("bins", BIN_COU
 # noisy; run the notebook without `TORCHCONN_SMALL` for the full picture.
 
 # %%
-(OUT / "figures.txt").write_text("".join(f"{p.name}\n" for p in FIGURES))
-print(f"{len(FIGURES)} figures in {OUT}: {', '.join(p.name for p in FIGURES)}")
-print(f"total run time {time.perf_counter() - T_START:.1f} s")
+nb.finish()

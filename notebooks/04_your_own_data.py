@@ -48,48 +48,22 @@
 # %%
 import csv
 import math
-import os
-import sys
 import time
-from pathlib import Path
 
-import matplotlib
+from _notebook import Notebook  # before pyplot: outside Jupyter it selects the Agg backend
 
-if "ipykernel" not in sys.modules:  # a script: draw off-screen; in Jupyter keep inline plots
-    matplotlib.use("Agg")
+# isort: split
 import matplotlib.pyplot as plt
 import numpy as np
 import torch
 
-NAME = "04_your_own_data"
-SMALL = os.environ.get("TORCHCONN_SMALL", "0").strip() not in ("", "0")
+from torchconn import ConnectionEstimator, NLinkSwimmer, observe, read_csv, se2, simulate, write_csv
+from torchconn.fit import connection_table
+from torchconn.gaits import FourierGait, evaluate, reference_gait
+from torchconn.model import LocalConnectionModel
+from torchconn.plots import plot_connection, plot_limit_cycle, plot_metric
 
-
-def _notebook_dir() -> Path:
-    try:
-        return Path(__file__).resolve().parent
-    except NameError:  # running inside Jupyter
-        return Path.cwd()
-
-
-OUT = Path(os.environ.get("TORCHCONN_NB_OUT") or _notebook_dir() / "_output") / NAME
-OUT.mkdir(parents=True, exist_ok=True)
-FIGURES: list[Path] = []
-
-
-def save(fig, name: str) -> Path:
-    """Write a figure to OUT/name.png (and keep it open in Jupyter, where it is shown)."""
-    path = OUT / f"{name}.png"
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    FIGURES.append(path)
-    print(f"figure: {path}")
-    if "ipykernel" not in sys.modules:
-        plt.close(fig)
-    return path
-
-
-T_START = time.perf_counter()
-print(f"small-data mode: {SMALL}; output directory: {OUT}")
+nb = Notebook("04_your_own_data")
 
 # %% [markdown]
 # ## 1. Make a data file
@@ -101,17 +75,14 @@ print(f"small-data mode: {SMALL}; output directory: {OUT}")
 # be estimated. **To use your own recordings, skip this cell and set `DATA` to your file(s).**
 
 # %%
-from torchconn import NLinkSwimmer, observe, simulate, write_csv
-from torchconn.gaits import reference_gait
-
 swimmer = NLinkSwimmer(3)  # the "real" swimmer we pretend not to know
 recorded_gait = reference_gait("3link")
-N_TRIALS, N_CYCLES = (3, 12) if SMALL else (8, 30)
+N_TRIALS, N_CYCLES = (3, 12) if nb.small else (8, 30)
 seeds = np.random.SeedSequence(404).generate_state(N_TRIALS)
 sim = simulate(swimmer, recorded_gait, eta=0.025, alpha=0.05, n_cycles=N_CYCLES,
                samples_per_cycle=64, seeds=seeds)
 recording = observe(sim, 0.002, dropout=0.01, seeds=seeds)
-DATA = write_csv(recording, OUT / "my_swimmer.csv")
+DATA = write_csv(recording, nb.out / "my_swimmer.csv")
 print(f"wrote {DATA} ({DATA.stat().st_size / 1e6:.2f} MB): {N_TRIALS} trials x "
       f"{recording.n_samples} samples")
 with DATA.open() as fh:
@@ -128,8 +99,6 @@ with DATA.open() as fh:
 # name the file, line and column at fault.
 
 # %%
-from torchconn import read_csv
-
 data = read_csv(DATA, n_joints=2, min_cycles=3)
 print(f"trials {tuple(data.batch_shape)}, T = {data.n_samples}, d = {data.shape_dim}, "
       f"dt = {data.dt:.4f}")
@@ -150,7 +119,7 @@ drops = show & lost[0]
 axes[1].plot(data.t[drops], np.zeros(int(drops.sum())), "kx", label="lost frames")
 axes[1].set(xlabel="t", ylabel="rad", title="trial 0: joint angles, first cycles")
 axes[1].legend(fontsize=8)
-save(fig, "raw_data")
+nb.save(fig, "raw_data")
 
 # %% [markdown]
 # ## 3. Smoothing and phase
@@ -168,8 +137,6 @@ save(fig, "raw_data")
 # collapse onto one curve.
 
 # %%
-from torchconn import ConnectionEstimator
-
 est = ConnectionEstimator(n_bins=48, fourier_order=12, pool=True)
 prepared = est.prepare(data)
 phase = prepared.phase  # (trials, T)
@@ -192,7 +159,7 @@ axes[1].set(xlabel=r"phase $\varphi$ (rad)", ylabel=r"$r_1$ (smoothed)",
             title="all cycles of all trials against phase")
 axes[2].plot(data.t / (2 * math.pi), phase_err.T, lw=0.6)
 axes[2].set(xlabel="cycle", ylabel="rad", title="Phaser minus true phase (simulation only)")
-save(fig, "phase")
+nb.save(fig, "phase")
 
 # %% [markdown]
 # ## 4. Limit cycle and model
@@ -207,9 +174,6 @@ save(fig, "phase")
 # leave out `truth=`; here we overlay the simulator's values at the same cycle points.
 
 # %%
-from torchconn.plots import plot_connection, plot_limit_cycle, plot_metric
-
-
 t0 = time.perf_counter()
 est.fit(prepared)
 model = est.model_
@@ -226,11 +190,9 @@ def truth_metric(phi):
     return swimmer.metric(model.gamma_at(phi))
 
 
-FIGURES.append(plot_connection(model, OUT / "connection.png", truth=truth_connection))
-FIGURES.append(plot_limit_cycle(model, OUT / "limit_cycle.png", prepared.smoothed.r))
-FIGURES.append(plot_metric(model, OUT / "metric.png", truth=truth_metric))
-for p in FIGURES[-3:]:
-    print(f"figure: {p}")
+nb.add(plot_connection(model, nb.out / "connection.png", truth=truth_connection))
+nb.add(plot_limit_cycle(model, nb.out / "limit_cycle.png", prepared.smoothed.r))
+nb.add(plot_metric(model, nb.out / "metric.png", truth=truth_metric))
 
 # %% [markdown]
 # **A word on the metric.** The metric is estimated from the power channel by a regression on
@@ -249,11 +211,8 @@ for p in FIGURES[-3:]:
 # (`LocalConnectionModel.load` reads it back).
 
 # %%
-from torchconn.fit import connection_table
-from torchconn.model import LocalConnectionModel
-
 columns, rows = connection_table(model, n_points=100)
-table_path = OUT / "connection.csv"
+table_path = nb.out / "connection.csv"
 with table_path.open("w", newline="") as fh:
     writer = csv.writer(fh)
     writer.writerow(columns)
@@ -263,7 +222,7 @@ print(", ".join(columns))
 for row in rows[:3]:
     print(", ".join(f"{v:.4g}" for v in row[:9]), ", ...")
 
-model_path = model.save(OUT / "model.npz")
+model_path = model.save(nb.out / "model.npz")
 reloaded = LocalConnectionModel.load(model_path)
 phi_check = torch.linspace(0, 2 * math.pi, 7, dtype=torch.float64)
 assert torch.allclose(reloaded.connection(phi_check), model.connection(phi_check))
@@ -296,9 +255,6 @@ print(f"saved and reloaded {model_path}")
 # alone would say: the recorded gait's displacement, whatever the change.
 
 # %%
-from torchconn import se2
-from torchconn.gaits import FourierGait, evaluate
-
 N_PHI = 512
 psi = torch.arange(N_PHI + 1, dtype=torch.float64) * (2 * math.pi / N_PHI)  # closed cycle
 
@@ -392,7 +348,7 @@ axes[0].legend(fontsize=8)
 axes[0].set_title("scaling the recorded gait")
 axes[1].set_title("shifting it: forward speed")
 axes[2].set_title("shifting it: turning")
-save(fig, "nearby_gaits")
+nb.save(fig, "nearby_gaits")
 
 # %% [markdown]
 # **Reading the predictions.** Shifting the gait along $r_1 = r_2$ makes the swimmer turn, at
@@ -409,6 +365,4 @@ save(fig, "nearby_gaits")
 # The cost column uses the estimated metric, so it inherits the metric's larger uncertainty.
 
 # %%
-(OUT / "figures.txt").write_text("".join(f"{p.name}\n" for p in FIGURES))
-print(f"{len(FIGURES)} figures in {OUT}: {', '.join(p.name for p in FIGURES)}")
-print(f"total run time {time.perf_counter() - T_START:.1f} s")
+nb.finish()

@@ -6,8 +6,9 @@
 from .config import DEFAULT_TOML, Experiment, SimulationSettings, SweepConfig, load_config
 from .experiment import ExperimentResult, run_experiment
 from .runner import run_sweep
+from .store import read_table
 
 __all__ = [
     "DEFAULT_TOML", "Experiment", "SimulationSettings", "SweepConfig", "load_config",
-    "ExperimentResult", "run_experiment", "run_sweep",
+    "ExperimentResult", "run_experiment", "run_sweep", "read_table",
 ]

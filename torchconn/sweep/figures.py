@@ -21,13 +21,27 @@ def _group(rows, key, value):
     return out
 
 
-def fig3b(traces, path: Path) -> Path | None:
-    exps = sorted({r["experiment"] for r in traces})
+def _panels(path: Path, exps, draw, *, column: bool = False, legend_ncol: int = 1) -> Path | None:
+    """One panel per experiment, side by side (or stacked, ``column=True``): ``draw(ax, exp)``
+    fills each, the first gets the legend, and the figure is saved to ``path``.
+    Returns ``None`` (and writes nothing) when there is no experiment to show."""
     if not exps:
         return None
-    fig = Figure(figsize=(9, 2.8 * len(exps)))
-    axes = fig.subplots(len(exps), 1, squeeze=False)
-    for ax, exp in zip(axes[:, 0], exps, strict=False):
+    n = len(exps)
+    fig = Figure(figsize=(9, 2.8 * n) if column else (5 * n, 3.4))
+    axes = fig.subplots(*((n, 1) if column else (1, n)), squeeze=False).ravel()
+    for ax, exp in zip(axes, exps, strict=False):
+        draw(ax, exp)
+    axes[0].legend(ncol=legend_ncol, fontsize=8)
+    return _save(fig, path)
+
+
+def _of_kind(experiments, noise_kind: str) -> list:
+    return [e for e in experiments if e.noise_kind == noise_kind]
+
+
+def fig3b(traces, path: Path) -> Path | None:
+    def draw(ax, exp):
         series = _group([r for r in traces if r["experiment"] == exp and r["component"] == "x"],
                         lambda r: r["model"], lambda r: (r["t"], r["value"]))
         for model in ("ground_truth", "data_driven", "analytic", "template"):
@@ -38,17 +52,13 @@ def fig3b(traces, path: Path) -> Path | None:
         ax.set_title(f"{exp}: forward body velocity, cycles 13-18 (trial 0)")
         ax.set_xlabel("cycle")
         ax.set_ylabel(r"$\xi_x$")
-    axes[0, 0].legend(ncol=4, fontsize=8)
-    return _save(fig, path)
+
+    return _panels(path, sorted({r["experiment"] for r in traces}), draw, column=True,
+                   legend_ncol=4)
 
 
 def fig3c(phase_errors, experiments, path: Path) -> Path | None:
-    exps = [e for e in experiments if e.noise_kind == "system"]
-    if not exps:
-        return None
-    fig = Figure(figsize=(5 * len(exps), 3.4))
-    axes = fig.subplots(1, len(exps), squeeze=False)
-    for ax, exp in zip(axes[0], exps, strict=False):
+    def draw(ax, exp):
         level = min(exp.levels, key=lambda v: abs(v - 1.0))
         for model in ("data_driven", "analytic"):
             rows = [r for r in phase_errors if r["experiment"] == exp.name and r["level"] == level
@@ -63,8 +73,8 @@ def fig3c(phase_errors, experiments, path: Path) -> Path | None:
         ax.set_title(f"{exp.name} at {level:g}x eta: x error vs phase")
         ax.set_xlabel("phase (rad)")
         ax.set_ylabel("error vs ground truth")
-    axes[0, 0].legend(fontsize=8)
-    return _save(fig, path)
+
+    return _panels(path, _of_kind(experiments, "system"), draw)
 
 
 def _band(ax, results, exp, model, metric, color, label):
@@ -78,12 +88,7 @@ def _band(ax, results, exp, model, metric, color, label):
 
 
 def fig4a(results, experiments, path: Path) -> Path | None:
-    exps = [e for e in experiments if e.noise_kind == "system"]
-    if not exps:
-        return None
-    fig = Figure(figsize=(5 * len(exps), 3.4))
-    axes = fig.subplots(1, len(exps), squeeze=False)
-    for ax, exp in zip(axes[0], exps, strict=False):
+    def draw(ax, exp):
         for model in ("data_driven", "analytic"):
             _band(ax, results, exp, model, "rms_vs_ground_truth", COLORS[model],
                   model.replace("_", "-"))
@@ -94,17 +99,12 @@ def fig4a(results, experiments, path: Path) -> Path | None:
         ax.set_title(f"{exp.name}: x error vs system noise")
         ax.set_xlabel("system noise (multiples of eta)")
         ax.set_ylabel("RMS error vs ground truth")
-    axes[0, 0].legend(fontsize=8)
-    return _save(fig, path)
+
+    return _panels(path, _of_kind(experiments, "system"), draw)
 
 
 def fig4b(results, experiments, path: Path) -> Path | None:
-    exps = [e for e in experiments if e.noise_kind == "observation"]
-    if not exps:
-        return None
-    fig = Figure(figsize=(5 * len(exps), 3.4))
-    axes = fig.subplots(1, len(exps), squeeze=False)
-    for ax, exp in zip(axes[0], exps, strict=False):
+    def draw(ax, exp):
         _band(ax, results, exp, "data_driven", "rms_vs_ground_truth", "tab:orange",
               "vs ground truth")
         _band(ax, results, exp, "data_driven", "rms_vs_observed", "tab:purple",
@@ -112,8 +112,8 @@ def fig4b(results, experiments, path: Path) -> Path | None:
         ax.set_title(f"{exp.name}: data-driven x error vs observation noise")
         ax.set_xlabel(r"observation noise $\omega$")
         ax.set_ylabel("RMS error")
-    axes[0, 0].legend(fontsize=8)
-    return _save(fig, path)
+
+    return _panels(path, _of_kind(experiments, "observation"), draw)
 
 
 def _save(fig, path: Path) -> Path:

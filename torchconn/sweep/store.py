@@ -15,7 +15,7 @@ from pathlib import Path
 
 from .experiment import PHASE_COLUMNS, RESULT_COLUMNS, TRACE_COLUMNS, ExperimentResult
 
-__all__ = ["ResultStore", "write_csv", "read_csv_rows"]
+__all__ = ["ResultStore", "write_csv", "read_csv_rows", "read_table"]
 
 _TABLES = {"results": RESULT_COLUMNS, "phase_errors": PHASE_COLUMNS, "traces": TRACE_COLUMNS}
 
@@ -30,20 +30,29 @@ def write_csv(path: Path, columns, rows) -> None:
     os.replace(tmp, path)
 
 
+def _parse(value: str):
+    """A CSV cell back as an int or a float where it is one, else the string itself."""
+    for cast in (int, float):
+        try:
+            return cast(value)
+        except ValueError:
+            pass
+    return value
+
+
 def read_csv_rows(path: Path) -> list[tuple]:
     """Rows of a table written by :func:`write_csv`, numbers parsed back."""
-    def parse(v: str):
-        for cast in (int, float):
-            try:
-                return cast(v)
-            except ValueError:
-                pass
-        return v
-
     with path.open(newline="") as fh:
         reader = csv.reader(fh)
         next(reader)
-        return [tuple(parse(v) for v in row) for row in reader]
+        return [tuple(_parse(v) for v in row) for row in reader]
+
+
+def read_table(path: Path | str) -> list[dict]:
+    """Rows of a sweep CSV (``results.csv``, ``claims.csv``, ...) as dicts keyed by the header,
+    numbers parsed back."""
+    with Path(path).open(newline="") as fh:
+        return [{k: _parse(v) for k, v in row.items()} for row in csv.DictReader(fh)]
 
 
 class ResultStore:
