@@ -1,0 +1,202 @@
+"""Simulate recordings with effects switched on (for tests, the power study and users).
+
+:func:`simulate_with_effects` wraps :func:`torchconn.rollout.simulate`: system effects change the
+swimmer, velocity effects enter through the rollout's ``drift`` hook (vectorised, heading-only),
+and the recording effects are applied to what is recorded -- the shape stream through each
+effect's ``recorded_shapes`` (on a recording ``upsample`` times finer than the output, so a time
+lag reads the true path between samples), the tracked point through ``observe`` -- before
+:func:`torchconn.observe.observe` adds the observation noise.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import torch
+from torch import Tensor
+
+from ..data import GroundTruth, Trajectory
+from ..observe import observe
+from ..rollout import simulate
+from ..systems.base import LocomotionSystem
+from ..systems.swimmer import NLinkSwimmer
+from .effects import Effect, get_effect
+from .forward import _swimmer_kwargs, cubic_interp
+
+__all__ = ["simulate_with_effects", "effect_parameters", "EffectDrift"]
+
+
+def effect_parameters(effects: Mapping | None, system: LocomotionSystem) -> dict[str, Tensor]:
+    """Normalise ``{name: values}`` to ``{name: (n_params,) float64 tensor}``.
+
+    ``values`` is a mapping from the effect's parameter names (see
+    :meth:`Effect.param_specs`) to numbers -- missing ones are 0 (absent) -- or a sequence /
+    tensor in that order.
+    """
+    out: dict[str, Tensor] = {}
+    for name, values in (effects or {}).items():
+        effect = get_effect(name)
+        specs = effect.param_specs(system)
+        if isinstance(values, Mapping):
+            names = [s.name for s in specs]
+            unknown = set(values) - set(names)
+            if unknown:
+                raise ValueError(f"effect {effect.name!r} has parameters {names}, got "
+                                 f"{sorted(unknown)}")
+            p = torch.tensor([float(values.get(n, 0.0)) for n in names], dtype=torch.float64)
+        else:
+            p = torch.as_tensor(values, dtype=torch.float64).reshape(-1)
+            if p.numel() != len(specs):
+                raise ValueError(f"effect {effect.name!r} takes {len(specs)} parameter(s) "
+                                 f"{[s.name for s in specs]}, got {p.numel()}")
+        out[effect.name] = p
+    return out
+
+
+class EffectDrift:
+    """The rollout ``drift`` hook of a set of velocity effects (heading-only, vectorised)."""
+
+    heading_only = True
+
+    def __init__(self, params: dict[str, Tensor]):
+        self.params = {n: p for n, p in params.items()
+                       if type(get_effect(n)).body_velocity is not Effect.body_velocity}
+
+    def __bool__(self) -> bool:
+        return bool(self.params)
+
+    def __call__(self, pose: Tensor, t) -> Tensor:
+        heading = pose[..., 2]
+        total = torch.zeros(heading.shape + (3,), dtype=heading.dtype, device=heading.device)
+        for name, p in self.params.items():
+            total = total + get_effect(name).body_velocity(p.to(heading.dtype), heading)
+        return total
+
+    def __repr__(self) -> str:
+        return f"EffectDrift({ {n: p.tolist() for n, p in self.params.items()} })"
+
+
+def augmented_system(system: LocomotionSystem, params: dict[str, Tensor]) -> LocomotionSystem:
+    """``system`` with the system effects of ``params`` applied."""
+    active = [n for n in params if type(get_effect(n)).system_kwargs is not Effect.system_kwargs]
+    if not active:
+        return system
+    if not isinstance(system, NLinkSwimmer):
+        raise ValueError(f"effects {active} change the swimmer and need an NLinkSwimmer")
+    kwargs = _swimmer_kwargs(system)
+    for n in active:
+        kwargs = get_effect(n).system_kwargs(params[n], kwargs)
+    return NLinkSwimmer(**{k: (v.detach() if isinstance(v, Tensor) else v)
+                           for k, v in kwargs.items()})
+
+
+def simulate_with_effects(
+    system: LocomotionSystem,
+    gait,
+    effects: Mapping | None = None,
+    *,
+    eta,
+    alpha=0.05,
+    n_cycles: int = 20,
+    samples_per_cycle: int = 64,
+    substeps: int = 8,
+    seeds,
+    omega: float = 0.0,
+    dropout: float = 0.0,
+    phase0=0.0,
+) -> Trajectory:
+    """Noisy gait-following trials of ``system`` with physical effects switched on.
+
+    Args:
+        system: the nominal swimmer.
+        gait: reference gait.
+        effects: ``{effect name: parameter values}`` (see :func:`effect_parameters`), e.g.
+            ``{"ambient_flow": {"u_x": 0.01}}``; None or ``{}`` for the nominal model.
+        eta, alpha, n_cycles, samples_per_cycle, substeps, seeds, phase0: as in
+            :func:`torchconn.rollout.simulate` (``substeps`` even; the rollout records every
+            other fine step so recording effects can read between samples).
+        omega: observation-noise standard deviation (:func:`torchconn.observe.observe`).
+        dropout: probability of a lost sample.
+
+    Returns:
+        A :class:`~torchconn.data.Trajectory` of the recorded data, with ``truth`` holding the
+        true (noise-free, effect-free recording) pose, shapes and body velocity, and
+        ``meta["effects"]`` the effects' parameters.
+    """
+    params = effect_parameters(effects, system)
+    if substeps % 2 or substeps < 2:
+        raise ValueError(f"substeps must be even and >= 2, got {substeps}")
+    U = substeps // 2  # recorded fine samples per output sample
+    sys_eff = augmented_system(system, params)
+    drift = EffectDrift(params)
+    shifts = any(type(get_effect(n)).recorded_shapes is not Effect.recorded_shapes
+                 for n in params)
+    pad = 1 if shifts else 0  # a cycle either side, for reading shapes at t - τ
+    fine = simulate(
+        sys_eff, gait, eta=eta, alpha=alpha, n_cycles=n_cycles + 2 * pad,
+        samples_per_cycle=samples_per_cycle * U, substeps=2, seeds=seeds, phase0=phase0,
+        drift=drift if drift else None,
+    )
+    batch = tuple(fine.batch_shape)
+    T = n_cycles * samples_per_cycle
+    start = pad * samples_per_cycle * U
+    rows = start + U * torch.arange(T)
+    dt = 2 * math.pi / samples_per_cycle
+
+    def fine_flat(x: Tensor) -> Tensor:
+        return x.reshape((-1,) + tuple(x.shape[len(batch):]))
+
+    r_true_fine = fine_flat(fine.r)
+    dtf = dt / U
+
+    def read_true(s: Tensor) -> Tensor:  # s: time from the fine record's first sample
+        return cubic_interp(r_true_fine, s / dtf)
+
+    read = read_true
+    for name in reversed(list(params)):
+        read = get_effect(name).recorded_shapes(params[name], read, dt)
+    r_rec = read(rows.to(torch.float64) * dtf).reshape(batch + (T, system.shape_dim))
+
+    pose_true = fine.pose[..., rows, :]
+    pose_rec = pose_true
+    for name, p in params.items():
+        effect = get_effect(name)
+        if type(effect).observe is not Effect.observe:
+            pose_rec = effect.observe(p, pose_rec)
+
+    # the truth per output sample: means over its recording interval (half fine cells at ends)
+    w = torch.ones(U + 1, dtype=torch.float64)
+    w[0] = w[-1] = 0.5
+    w = w / U
+    win = rows[:, None] + torch.arange(-(U // 2), U // 2 + 1)  # (T, U+1) for even U
+
+    def interval_mean(x: Tensor) -> Tensor:
+        if U == 1:
+            return x[..., rows, :] if x.ndim > len(batch) + 1 else x[..., rows]
+        if x.ndim == len(batch) + 1:
+            return (x[..., win] * w).sum(-1)
+        return (x[..., win, :] * w[:, None]).sum(-2)
+
+    if U % 2:
+        xi = fine.truth.xi[..., rows, :]
+        power = fine.power[..., rows]
+    else:
+        xi, power = interval_mean(fine.truth.xi), interval_mean(fine.power)
+    half = U // 2
+    r_dot = (fine.r[..., rows + half, :] - fine.r[..., rows - half, :]) / dt if U > 1 and \
+        not U % 2 else fine.truth.r_dot[..., rows, :]
+    t = rows.to(torch.float64) * dtf - start * dtf
+    truth = GroundTruth(phase=fine.truth.phase[..., rows], pose=pose_true, r=fine.r[..., rows, :],
+                        xi=xi, r_dot=r_dot, power=power, delta=fine.truth.delta[..., rows, :])
+    meta = dict(fine.meta)
+    meta.update(
+        source="torchconn.discrepancy.simulate_with_effects",
+        system=repr(system), effects={n: p.tolist() for n, p in params.items()},
+        n_cycles=int(n_cycles), samples_per_cycle=int(samples_per_cycle), substeps=int(substeps),
+        dt=dt,
+    )
+    traj = Trajectory(t=t, pose=pose_rec, r=r_rec, power=power, truth=truth, meta=meta)
+    if omega or dropout:
+        traj = observe(traj, omega, dropout=dropout, seeds=fine.meta["seeds"])
+    return traj
