@@ -49,26 +49,14 @@ from torchconn.discrepancy import (
     effect_parameters,
     simulate_with_effects,
 )
+from torchconn.discrepancy.simulate import LateralSlipSwimmer
 from torchconn.gaits import reference_gait
 from torchconn.systems import NLinkSwimmer
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "discrepancy_power.toml"
 
 
-class SlipSwimmer(NLinkSwimmer):
-    """An effect outside the registry: the 3-link swimmer with an unmodelled, shape-dependent
-    lateral slip ``ΔA_vy = ε (r2, r1)``. Naming any registered effect for it is wrong."""
 
-    def __init__(self, eps: float):
-        super().__init__(3)
-        self.eps = eps
-
-    def _connection_and_metric(self, r):
-        A, M = super()._connection_and_metric(r)
-        dA = torch.zeros_like(A)
-        dA[..., 1, 0] = self.eps * r[..., 1]
-        dA[..., 1, 1] = self.eps * r[..., 0]
-        return A + dA, M
 
 
 UNREGISTERED = "unregistered_slip"
@@ -165,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     for j, ((name, vals, factor, omega, rep_i), seq) in enumerate(zip(jobs, seqs, strict=True)):
         seeds = [int(s) for s in seq.generate_state(int(st["trials"]))]
         if name == UNREGISTERED:
-            hidden, truth_sys = {}, SlipSwimmer(factor * vals["eps"])
+            hidden, truth_sys = {}, LateralSlipSwimmer(factor * vals["eps"])
         else:
             hidden = {} if vals is None else {name: {k: factor * v for k, v in vals.items()}}
             truth_sys = sw

@@ -35,6 +35,7 @@ from torchconn.discrepancy import (
 from torchconn.discrepancy.__main__ import main
 from torchconn.discrepancy.fitting import Problem
 from torchconn.discrepancy.residuals import COMPONENTS, component_rms
+from torchconn.discrepancy.simulate import LateralSlipSwimmer
 from torchconn.gaits import FourierGait, reference_gait
 from torchconn.io import write_csv
 from torchconn.observe import observe
@@ -243,24 +244,11 @@ def test_rigid_world_transform_and_clock_shift_are_not_physics():
         assert report.gap_before[comp] == pytest.approx(base.gap_before[comp], rel=0.05)
 
 
-class SlipSwimmer(NLinkSwimmer):
-    """The 3-link swimmer with an unmodelled lateral slip ``ΔA_vy = ε (r2, r1)`` (not an effect
-    of the registry: a shape-dependent sideways force)."""
 
-    def __init__(self, eps: float):
-        super().__init__(3)
-        self.eps = eps
-
-    def _connection_and_metric(self, r):
-        A, M = super()._connection_and_metric(r)
-        dA = torch.zeros_like(A)
-        dA[..., 1, 0] = self.eps * r[..., 1]
-        dA[..., 1, 1] = self.eps * r[..., 0]
-        return A + dA, M
 
 
 def test_effect_outside_the_registry_is_unexplained():
-    traj = simulate_with_effects(SlipSwimmer(0.01), GAIT, {}, eta=ETA, n_cycles=N_CYCLES,
+    traj = simulate_with_effects(LateralSlipSwimmer(0.01), GAIT, {}, eta=ETA, n_cycles=N_CYCLES,
                                  seeds=[5, 6, 7], omega=OMEGA)
     report = diagnose(traj, SWIMMER, SETTINGS)
     print(report.summary())

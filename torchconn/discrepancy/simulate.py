@@ -24,7 +24,7 @@ from ..systems.swimmer import NLinkSwimmer
 from .effects import Effect, get_effect
 from .forward import _swimmer_kwargs, cubic_interp
 
-__all__ = ["simulate_with_effects", "effect_parameters", "EffectDrift"]
+__all__ = ["simulate_with_effects", "effect_parameters", "EffectDrift", "LateralSlipSwimmer"]
 
 
 def effect_parameters(effects: Mapping | None, system: LocomotionSystem) -> dict[str, Tensor]:
@@ -200,3 +200,27 @@ def simulate_with_effects(
     if omega or dropout:
         traj = observe(traj, omega, dropout=dropout, seeds=fine.meta["seeds"])
     return traj
+
+
+class LateralSlipSwimmer(NLinkSwimmer):
+    """A 3-link swimmer with a physical effect that is NOT in the registry, for validation.
+
+    An unmodelled, shape-dependent lateral slip ``ΔA_vy = ε (r2, r1)``: naming any registered
+    effect for data simulated with it is wrong (the workflow should say ``unexplained``).
+    """
+
+    def __init__(self, eps: float):
+        super().__init__(3)
+        self.eps = eps
+
+    def _slip(self, r: Tensor) -> Tensor:
+        z = torch.zeros_like(r[..., 0])
+        zeros = torch.stack([z, z], -1)
+        return torch.stack([zeros, self.eps * r.flip(-1), zeros], -2)  # (..., 3, 2)
+
+    def _connection(self, r: Tensor) -> Tensor:
+        return super()._connection(r) + self._slip(r)
+
+    def _connection_and_metric(self, r: Tensor) -> tuple[Tensor, Tensor]:
+        a, m = super()._connection_and_metric(r)
+        return a + self._slip(r), m
