@@ -16,7 +16,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m torchconn.sweep",
         description="Batched sweeps over system and observation noise (the paper's Sec. 5). "
-        "With no arguments, runs the embedded default sweep (about three minutes on 2 cores).",
+        "With no arguments, runs the embedded default sweep (about 80 s on 2 cores).",
     )
     p.add_argument("--config", type=Path, help="TOML config (see configs/); default: embedded")
     p.add_argument("--out", type=Path, help="output directory (default: runs/<config name>)")
