@@ -332,15 +332,17 @@ def test_bad_input_errors(tmp_path):
     # the command: missing columns and a wrong number of joints are clear errors, exit code 2
     path = tmp_path / "data.csv"
     write_csv(recording()[0], path)
-    rows = list(csv.reader(path.open()))
-    bad = tmp_path / "no_theta.csv"
-    with bad.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        for row in rows:
-            w.writerow(row[:3] + row[4:])
+    bad = _without_theta(path, tmp_path / "no_theta.csv")
     assert main([str(bad), "--links", "3", "--out", str(tmp_path / "o1")]) == 2
     assert main([str(path), "--links", "5", "--out", str(tmp_path / "o2")]) == 2
     assert not (tmp_path / "o2" / "report.json").exists()
+
+
+def _without_theta(path, out):
+    """A copy of a trajectory CSV with its ``theta`` column (the 4th) removed."""
+    with path.open() as src, out.open("w", newline="") as fh:
+        csv.writer(fh).writerows(row[:3] + row[4:] for row in csv.reader(src))
+    return out
 
 
 def test_bad_input_messages(tmp_path, capsys):
@@ -349,13 +351,8 @@ def test_bad_input_messages(tmp_path, capsys):
     main([str(path), "--links", "5", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert "expected n_joints=4" in err and "--links 5" in err
-    rows = list(csv.reader(path.open()))
-    bad = tmp_path / "no_theta.csv"
-    with bad.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        for row in rows:
-            w.writerow(row[:3] + row[4:])
-    main([str(bad), "--links", "3", "--out", str(tmp_path / "o")])
+    main([str(_without_theta(path, tmp_path / "no_theta.csv")), "--links", "3", "--out",
+          str(tmp_path / "o")])
     assert "missing required column(s) 'theta'" in capsys.readouterr().err
 
 

@@ -157,9 +157,8 @@ class AmbientFlow(Effect):
                 Param("u_y", "body lengths / time", 0.01))
 
     def body_velocity(self, p, heading):
-        c, s = torch.cos(heading), torch.sin(heading)
-        ux, uy = p[0].to(heading.dtype), p[1].to(heading.dtype)
-        return torch.stack([c * ux + s * uy, c * uy - s * ux, torch.zeros_like(heading)], -1)
+        u = p.to(heading.dtype).expand(heading.shape + (2,))
+        return torch.cat([_rot(heading, u, transpose=True), torch.zeros_like(u[..., :1])], -1)
 
 
 class BodyDrift(Effect):
