@@ -157,3 +157,27 @@ def test_bad_settings_and_inputs_raise():
     model = ConnectionEstimator(n_bins=12, fourier_order=4, metric=False).fit(tr).model_
     with pytest.raises(ValueError, match="r must have shape"):
         model.predict(tr.phase, torch.zeros(tr.phase.shape + (3,), dtype=F64), tr.r)
+
+
+def test_trials_of_different_lengths_are_not_extrapolated(tmp_path):
+    from torchconn.io import read_csv, write_csv
+    from torchconn.phase import estimate_phase
+    from torchconn.smoothing import smooth_trajectory
+
+    long = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=16, seeds=[1])
+    short = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=10, seeds=[2])
+    write_csv(long, tmp_path / "long.csv")
+    write_csv(short, tmp_path / "short.csv")
+    traj = read_csv([tmp_path / "long.csv", tmp_path / "short.csv"])  # short one NaN-padded
+    est = ConnectionEstimator(n_bins=24, fourier_order=6, pool=True, metric=False).fit(traj)
+    prepared = est.trajectory_
+    n_short = short.n_samples
+    assert torch.isnan(prepared.phase[1, n_short:]).all()
+    assert torch.isnan(prepared.smoothed.xi[1, n_short:]).all()
+    # the short trial's phase is what Phaser gives on its own recording (up to the smoother's
+    # noise estimate, which sees the padded batch: far below Phaser's own error of ~0.03 rad)
+    alone = estimate_phase(smooth_trajectory(short.pose[0], short.r[0], short.dt).r)
+    torch.testing.assert_close(prepared.phase[1, :n_short], alone, rtol=0, atol=1e-3)
+    b = est.model_.bins
+    s = NLinkSwimmer(3)
+    assert (b.A - s.connection(b.gamma)).abs().max() < 0.05

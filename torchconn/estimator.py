@@ -17,12 +17,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import torch
 from torch import Tensor
 
-from .data import Trajectory
+from .data import SmoothedState, Trajectory
 from .fourier import fit_fourier
 from .limit_cycle import LimitCycle, fit_limit_cycle, phase_rate
 from .model import BinEstimates, LocalConnectionModel
@@ -110,16 +110,57 @@ def prepare(
     Returns:
         the trajectory with ``smoothed`` and ``phase`` set.
     """
+    recorded = _recorded_span(traj)  # (..., T): False on the NaN padding after a trial's end
+    padded = not bool(recorded.all())
     if traj.smoothed is None:
         smoothed = smooth_trajectory(traj.pose, traj.r, traj.dt, order=smoother_order)
+        if padded:  # the smoother extrapolates into the padding: those values mean nothing
+            smoothed = SmoothedState(**{
+                f.name: _blank(getattr(smoothed, f.name), recorded) for f in fields(smoothed)
+            })
         traj = traj.with_fields(smoothed=smoothed)
     if phase is not None:
         traj = traj.with_fields(phase=phase)
     elif traj.phase is None:
-        traj = traj.with_fields(
-            phase=estimate_phase(traj.smoothed.r, order=phase_order, min_cycles=min_cycles)
-        )
+        r = traj.smoothed.r
+        if padded:
+            traj = traj.with_fields(phase=_phase_per_trial(r, recorded, phase_order, min_cycles))
+        else:
+            traj = traj.with_fields(phase=estimate_phase(r, order=phase_order,
+                                                         min_cycles=min_cycles))
     return traj
+
+
+def _recorded_span(traj: Trajectory) -> Tensor:
+    """``(..., T)`` True from the first to the last sample with any finite value per trial.
+
+    Trials of different lengths share one time grid, the shorter ones padded with NaN rows; the
+    padding is not a drop-out to smooth through but time that was never recorded.
+    """
+    finite = torch.isfinite(torch.cat([traj.pose, traj.r], -1)).any(-1)  # (..., T)
+    idx = torch.arange(finite.shape[-1], device=finite.device)
+    first = torch.where(finite, idx, finite.shape[-1]).min(-1, keepdim=True).values
+    last = torch.where(finite, idx, -1).max(-1, keepdim=True).values
+    return (idx >= first) & (idx <= last)
+
+
+def _blank(x: Tensor, keep: Tensor) -> Tensor:
+    """``x (..., T, C)`` with NaN where ``keep (..., T)`` is False."""
+    return torch.where(keep[..., None], x, torch.full_like(x, float("nan")))
+
+
+def _phase_per_trial(r: Tensor, recorded: Tensor, order: int, min_cycles: float) -> Tensor:
+    """Phaser on each trial's recorded span (unequal lengths: one call per trial), NaN outside.
+
+    Phase 0 is the same Poincaré section in every trial, so the phases are comparable.
+    """
+    flat_r, flat_ok = r.reshape(-1, *r.shape[-2:]), recorded.reshape(-1, recorded.shape[-1])
+    out = torch.full(flat_ok.shape, float("nan"), dtype=r.dtype, device=r.device)
+    for k in range(flat_r.shape[0]):
+        span = torch.nonzero(flat_ok[k]).flatten()
+        lo, hi = int(span[0]), int(span[-1]) + 1
+        out[k, lo:hi] = estimate_phase(flat_r[k, lo:hi], order=order, min_cycles=min_cycles)
+    return out.reshape(recorded.shape)
 
 
 def fit_local_model(
