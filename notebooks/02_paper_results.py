@@ -56,7 +56,6 @@
 # ```
 
 # %%
-import dataclasses
 import json
 import math
 import os
@@ -385,22 +384,6 @@ print(f"simulated {STUDY_TRIALS} training trials x {max(CYCLE_COUNTS)} cycles an
       f"{TEST_TRIALS} held-out trials x {TEST_CYCLES} cycles in {time.perf_counter() - t0:.1f} s")
 
 
-def first_samples(traj, n: int):
-    """The first ``n`` samples of every trial (a Trajectory has no time slicing of its own)."""
-    def cut(obj):
-        changes = {}
-        for f in dataclasses.fields(obj):
-            value = getattr(obj, f.name)
-            if isinstance(value, torch.Tensor) and f.name != "t":
-                one_dim = f.name in ("phase", "power")  # (..., T); the others are (..., T, C)
-                changes[f.name] = value[..., :n] if one_dim else value[..., :n, :]
-        return changes
-
-    # replace every field at once: a Trajectory validates its shapes on construction
-    return dataclasses.replace(traj, t=traj.t[:n], **cut(traj),
-                               truth=dataclasses.replace(traj.truth, **cut(traj.truth)))
-
-
 def x_errors(estimator) -> dict[str, np.ndarray]:
     """RMS v_x error vs ground truth of each training trial's model, shape (trials,):
     in-sample (the paper's measure) and on the held-out trials (mean over them)."""
@@ -433,7 +416,7 @@ def study_plot(ax, knob, errs, xlabel, log=True):
 t0 = time.perf_counter()
 cycle_errs = []
 for n_cyc in CYCLE_COUNTS:
-    part = first_samples(study, n_cyc * SPC)
+    part = study.slice_time(stop=n_cyc * SPC)  # the first n_cyc cycles of every trial
     cycle_errs.append(x_errors(ConnectionEstimator().fit(part)))
 
 prepared = ConnectionEstimator().prepare(study)  # smoothing and phase once, reused below

@@ -130,6 +130,12 @@ class Trajectory:
             )
         return _map_arrays(self, lambda x, k: x[index + (slice(None),) * k])
 
+    def slice_time(self, start: int | None = None, stop: int | None = None,
+                   step: int | None = None) -> "Trajectory":
+        """Samples ``start:stop:step`` of every trial (every array, truth and derived fields)."""
+        sl = slice(start, stop, step)
+        return _map_arrays(self, lambda x, k: x[(..., sl) + (slice(None),) * k], t=self.t[sl])
+
     def to(self, *args, **kwargs) -> "Trajectory":
         """Move/cast every array (``torch.Tensor.to`` semantics; ``t`` keeps float64)."""
         return _map_arrays(self, lambda x, k: x.to(*args, **kwargs))
@@ -139,9 +145,12 @@ class Trajectory:
 _TRAILING = {"pose": 2, "r": 2, "power": 1, "phase": 1, "xi": 2, "r_dot": 2, "pose_dot": 2, "delta": 2}
 
 
-def _map_arrays(traj: Trajectory, fn) -> Trajectory:
+def _map_arrays(traj: Trajectory, fn, t: Tensor | None = None) -> Trajectory:
+    """Apply ``fn(array, k)`` (``k`` = trailing non-time dims) to every array; ``t`` replaces the
+    time grid in the same step (a Trajectory validates its shapes on construction)."""
+
     def apply(obj):
-        changes = {}
+        changes = {"t": t} if (t is not None and isinstance(obj, Trajectory)) else {}
         for f in dataclasses.fields(obj):
             v = getattr(obj, f.name)
             if isinstance(v, Tensor) and f.name in _TRAILING:

@@ -1,0 +1,43 @@
+"""The Trajectory container: validation, batch indexing, time slicing."""
+
+import numpy as np
+import pytest
+import torch
+
+from torchconn import NLinkSwimmer, Trajectory, simulate
+from torchconn.gaits import reference_gait
+
+
+@pytest.fixture(scope="module")
+def traj():
+    return simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=4,
+                    seeds=np.arange(6).reshape(2, 3))
+
+
+def test_slice_time_cuts_every_array_consistently(traj):
+    part = traj.slice_time(10, 74)
+    assert part.batch_shape == traj.batch_shape and part.n_samples == 64
+    assert torch.equal(part.t, traj.t[10:74])
+    assert torch.equal(part.pose, traj.pose[..., 10:74, :])
+    assert torch.equal(part.power, traj.power[..., 10:74])
+    assert torch.equal(part.truth.phase, traj.truth.phase[..., 10:74])
+    assert torch.equal(part.truth.xi, traj.truth.xi[..., 10:74, :])
+    assert part.dt == pytest.approx(traj.dt, rel=1e-12)
+
+
+def test_batch_indexing_keeps_time(traj):
+    one = traj[1, 2]
+    assert one.batch_shape == () and torch.equal(one.r, traj.r[1, 2])
+    assert torch.equal(one.truth.delta, traj.truth.delta[1, 2])
+    with pytest.raises(IndexError, match="batch dims"):
+        traj[0, 0, 0]
+
+
+def test_validation_names_the_field():
+    t = torch.arange(10, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"pose must have shape \(10, 3\)"):
+        Trajectory(t=t, pose=torch.zeros(9, 3), r=torch.zeros(10, 2))
+    with pytest.raises(ValueError, match="uniformly sampled"):
+        Trajectory(t=t ** 1.1, pose=torch.zeros(10, 3), r=torch.zeros(10, 2))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        Trajectory(t=-t, pose=torch.zeros(10, 3), r=torch.zeros(10, 2))
