@@ -64,6 +64,7 @@ def plot_metric(model: LocalConnectionModel, path: Path | str, truth=None) -> Pa
         if true is not None:
             ax.plot(phi, true[:, i, j], "k--", lw=1)
         ax.set_title(f"M_{i + 1}{j + 1}", fontsize=9)
+        ax.set_xlabel("phase (rad)", fontsize=8)
     for ax in list(axes.flat)[len(pairs):]:
         ax.axis("off")
     return _save(fig, path)
