@@ -14,26 +14,11 @@ and the same seeds used for :func:`torchconn.rollout.simulate` still give indepe
 from __future__ import annotations
 
 import torch
-from torch import Tensor
 
 from .data import Trajectory
-from .rollout import _meta_value, _seed_array, cell_generators
+from .rollout import _meta_value, _per_cell, _seed_array, cell_generators
 
 __all__ = ["observe"]
-
-
-def _per_cell(value, name: str, batch: tuple[int, ...], like: Tensor) -> Tensor:
-    t = torch.as_tensor(value, dtype=like.dtype, device=like.device)
-    try:
-        t = torch.broadcast_to(t, batch)
-    except RuntimeError:
-        raise ValueError(
-            f"{name} must be a float or a tensor broadcastable to the trajectory's batch shape "
-            f"{batch}, got shape {tuple(t.shape)}"
-        ) from None
-    if not torch.isfinite(t).all() or (t < 0).any():
-        raise ValueError(f"{name} must be finite and >= 0")
-    return t.reshape(-1)
 
 
 def observe(traj: Trajectory, omega, *, dropout: float = 0.0, seeds) -> Trajectory:
@@ -67,7 +52,9 @@ def observe(traj: Trajectory, omega, *, dropout: float = 0.0, seeds) -> Trajecto
     pose, r = traj.pose, traj.r
     T, d = traj.n_samples, traj.shape_dim
     gens, _ = cell_generators(seed_arr, "observe", pose.device)
-    omega_c = _per_cell(omega, "omega", batch, pose)
+    omega_c = _per_cell(omega, "omega", batch, pose.dtype, pose.device)
+    if (omega_c < 0).any():
+        raise ValueError("omega must be finite and >= 0")
 
     kw = dict(dtype=pose.dtype, device=pose.device)
     z = torch.stack([torch.randn(T, 3 + d, generator=g, **kw) for g in gens])  # (B, T, 3 + d)
