@@ -24,7 +24,9 @@ import torch
 from torch import Tensor
 
 from .data import Trajectory
+from .fourier import fit_fourier
 from .model import LocalConnectionModel
+from .smoothing import smooth_trajectory
 from .systems.base import LocomotionSystem
 
 __all__ = [
@@ -83,8 +85,6 @@ def _simulator_on_cycle(system, model, phase: Tensor, n_grid: int = 256):
     ``n_grid/2 − 1``; their coefficients decay exponentially) -- far cheaper than an autograd
     Jacobian at every sample.
     """
-    from .fourier import fit_fourier
-
     grid = torch.arange(n_grid, dtype=phase.dtype, device=phase.device) * (2 * math.pi / n_grid)
     batch = model.batch_shape
     gamma = model.gamma_at(grid.expand(batch + (n_grid,)))
@@ -96,8 +96,6 @@ def _simulator_on_cycle(system, model, phase: Tensor, n_grid: int = 256):
 
 def clean_trajectory(traj: Trajectory) -> Trajectory:
     """The noise-free recording of a simulated trajectory (its ``truth``), smoothed."""
-    from .smoothing import smooth_trajectory
-
     if traj.truth is None:
         raise ValueError("clean_trajectory needs a simulated trajectory (truth is None)")
     clean = Trajectory(t=traj.t, pose=traj.truth.pose, r=traj.truth.r, meta=traj.meta)

@@ -41,6 +41,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from .. import se2
 from ..data import Trajectory
 from ..phase import estimate_phase
 from ..smoothing import noise_parameters, rts_smooth, smooth_trajectory, unwrap
@@ -470,8 +471,6 @@ class ForwardModel:
         heading included (unlike :meth:`predict_poses`, which borrows the measured heading).
         Velocity effects are evaluated at the integrated heading; observation effects are not
         applied. Returns ``(B, T, 3)``."""
-        from .. import se2
-
         params = {k: v.detach() for k, v in (params or {}).items()}
         m, U = self.m, self.upsample
         h = m.dt / U

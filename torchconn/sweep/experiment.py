@@ -124,9 +124,8 @@ def _collect(out, config, experiment, preds, observed, traj) -> None:
         stats = {
             "rms_vs_ground_truth": error_summary(p, truth),
             "rms_vs_observed": error_summary(p, observed),
+            "mean_vs_ground_truth": torch.nanmean(p - truth, dim=-2),
         }
-        _, mean, rms, se = phase_bin_errors(p, truth, traj.phase, config.error_bins)
-        stats["mean_vs_ground_truth"] = torch.nanmean(p - truth, dim=-2)
         for i in range(L):
             for j in range(n):
                 for c, comp in enumerate(COMPONENTS):
@@ -135,8 +134,7 @@ def _collect(out, config, experiment, preds, observed, traj) -> None:
                                                   float(values[i, j, c])))
         if model == "ground_truth":
             continue
-        centres = torch.arange(config.error_bins, dtype=torch.float64) * (
-            2 * math.pi / config.error_bins)
+        centres, mean, rms, se = phase_bin_errors(p, truth, traj.phase, config.error_bins)
         for i in range(L):
             for j in range(n):
                 for c, comp in enumerate(COMPONENTS):
