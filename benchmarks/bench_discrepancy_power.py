@@ -50,8 +50,8 @@ from torchconn.discrepancy import (
     simulate_with_effects,
 )
 from torchconn.discrepancy.simulate import LateralSlipSwimmer
-from torchconn.gaits import reference_gait
-from torchconn.systems import NLinkSwimmer
+from torchconn.physics.gaits import reference_gait
+from torchconn.physics.systems import NLinkSwimmer
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "discrepancy_power.toml"
 

@@ -28,8 +28,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from torchconn.physics.systems import AffineConnectionSystem  # noqa: E402
 from torchconn.regression import assign_bins, connection_regression  # noqa: E402
-from torchconn.systems import AffineConnectionSystem  # noqa: E402
 
 
 def make_data(n_trials: int, n_cycles: int, per_cycle: int, d: int, seed: int = 0):

@@ -4,7 +4,7 @@ Run by hand: ``python benchmarks/bench_rollout.py [--levels 8] [--trials 20] [--
 [--loop-trials 4] [--threads N]``.
 
 The batched run simulates ``levels × trials`` cells at once (η scaled by factors 0.25 … 4 of the
-paper's 0.025). The loop calls :func:`torchconn.rollout.simulate` once per trial on the same
+paper's 0.025). The loop calls :func:`torchconn.simulation.rollout.simulate` once per trial on the same
 seeds; it is timed on the first ``--loop-trials`` trials and extrapolated to all of them (said
 so in the output), and its results are compared with the batched cells. Peak memory is the
 process's ``ru_maxrss``.
@@ -21,8 +21,8 @@ import numpy as np
 import torch
 
 from torchconn import NLinkSwimmer
-from torchconn.gaits import ModalGait, nine_link_modes, reference_gait
-from torchconn.rollout import simulate
+from torchconn.physics.gaits import ModalGait, nine_link_modes, reference_gait
+from torchconn.simulation.rollout import simulate
 
 ETA, ALPHA = 0.025, 0.05
 

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from torchconn import NLinkSwimmer
-from torchconn.reference import connection_and_metric_numpy
+from torchconn.testing.numpy_swimmer import connection_and_metric_numpy
 
 
 def main() -> None:

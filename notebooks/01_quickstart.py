@@ -60,9 +60,10 @@ import torch
 from matplotlib.patches import Ellipse
 from matplotlib.path import Path as PolygonPath
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
-from torchconn.evaluation import clean_trajectory, error_summary, reference_models
-from torchconn.gaits import evaluate, reference_gait
+from torchconn import ConnectionEstimator, NLinkSwimmer, simulate
+from torchconn.evaluation.models import clean_trajectory, error_summary, reference_models
+from torchconn.physics.gaits import evaluate, reference_gait
+from torchconn.simulation import observe
 
 nb = Notebook("01_quickstart")
 
@@ -400,7 +401,7 @@ print(f"fraction of per-bin 95% intervals that contain the truth: {float(inside_
 # ## 7. Predicting body velocities
 #
 # The model predicts the body velocity of every recorded sample from its phase, shape and
-# shape velocity. `torchconn.evaluation.reference_models` puts it next to the paper's three
+# shape velocity. `torchconn.evaluation.models.reference_models` puts it next to the paper's three
 # other models (Sec. 5.1): the **ground truth** $A(r)\dot r$ from the simulator, the
 # **analytic** first-order Taylor model of the simulator at the same cycle point, and the
 # **template** $A(\gamma)\dot\gamma$, which ignores the offsets. Each is `(trials, T, 3)`.

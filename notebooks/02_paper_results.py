@@ -73,8 +73,8 @@ import numpy as np
 import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, simulate
-from torchconn.evaluation import error_summary, reference_models
-from torchconn.gaits import reference_gait
+from torchconn.evaluation.models import error_summary, reference_models
+from torchconn.physics.gaits import reference_gait
 from torchconn.sweep import load_config, read_table, run_sweep
 
 nb = Notebook("02_paper_results")

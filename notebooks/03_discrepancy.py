@@ -42,7 +42,7 @@ import torch
 from torchconn import NLinkSwimmer
 from torchconn.discrepancy import REGISTRY, diagnose, simulate_with_effects
 from torchconn.discrepancy.figures import plot_residual_profiles
-from torchconn.gaits import reference_gait
+from torchconn.physics.gaits import reference_gait
 
 nb = Notebook("03_discrepancy")
 torch.set_num_threads(1)  # many small tensor ops: one thread is fastest

@@ -57,11 +57,13 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, observe, read_csv, se2, simulate, write_csv
+from torchconn import ConnectionEstimator, NLinkSwimmer, read_csv, simulate, write_csv
 from torchconn.fit import connection_table
-from torchconn.gaits import FourierGait, evaluate, reference_gait
-from torchconn.model import LocalConnectionModel
-from torchconn.plots import plot_connection, plot_limit_cycle, plot_metric
+from torchconn.physics import se2
+from torchconn.physics.gaits import FourierGait, evaluate, reference_gait
+from torchconn.regression.model import LocalConnectionModel
+from torchconn.regression.plots import plot_connection, plot_limit_cycle, plot_metric
+from torchconn.simulation import observe
 
 nb = Notebook("04_your_own_data")
 
@@ -71,7 +73,7 @@ nb = Notebook("04_your_own_data")
 # We simulate a three-link swimmer following its reference gait with the paper's noise
 # ($\alpha = 0.05$, $\eta = 0.025$), add motion-capture noise ($\omega = 0.002$ body lengths /
 # rad) and let 1% of the frames drop out, and write all trials to one CSV with
-# `torchconn.io.write_csv`. The simulator's `power` channel is written too, so the metric can
+# `torchconn.io.trajectory_files.write_csv`. The simulator's `power` channel is written too, so the metric can
 # be estimated. **To use your own recordings, skip this cell and set `DATA` to your file(s).**
 
 # %%
@@ -169,7 +171,7 @@ nb.save(fig, "phase")
 # regression in every phase bin. `est.limit_cycle_` and `est.model_` are the fitted objects;
 # `model.bins` holds the per-bin estimates and their standard errors.
 #
-# `torchconn.plots` draws the standard figures: the connection entries along the cycle with
+# `torchconn.regression.plots` draws the standard figures: the connection entries along the cycle with
 # per-bin 95% intervals, the limit cycle over the data, and the metric. For a real swimmer,
 # leave out `truth=`; here we overlay the simulator's values at the same cycle points.
 
@@ -244,14 +246,14 @@ print(f"saved and reloaded {model_path}")
 # 1. **match phases**: the model's phase has its own zero, so find the offset $\varphi_0$ for
 #    which the model's cycle $\gamma(\psi + \varphi_0)$ is closest to the new gait;
 # 2. evaluate `model.predict(psi + phi0, r_new(psi), r_new'(psi))` over one cycle — shape
-#    `(P, 3)` — and integrate $\dot g = g\hat\xi$ on SE(2) (`torchconn.se2.integrate`) to get
+#    `(P, 3)` — and integrate $\dot g = g\hat\xi$ on SE(2) (`torchconn.physics.se2.integrate`) to get
 #    the net displacement $(x, y, \theta)$ per cycle;
 # 3. the same with `model.predict_power` gives the cost $\int\sqrt{P}\,dt$.
 #
 # We try two kinds of variation of the recorded gait: **scaling** it by $1 \pm$ a few percent,
 # and **shifting** its centre along the diagonal $r_1 = r_2$ (bending both joints the same
 # way, which makes the swimmer turn). The simulator's exact answer comes from
-# `torchconn.gaits.evaluate`. The baseline "cycle only" is what a model of $A$ on the cycle
+# `torchconn.physics.gaits.evaluate`. The baseline "cycle only" is what a model of $A$ on the cycle
 # alone would say: the recorded gait's displacement, whatever the change.
 
 # %%

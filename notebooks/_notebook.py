@@ -48,7 +48,7 @@ class Notebook:
         print(f"small-data mode: {self.small}; output directory: {self.out}")
 
     def add(self, path: Path) -> Path:
-        """List a figure written elsewhere (e.g. by :mod:`torchconn.plots`) in figures.txt."""
+        """List a figure written elsewhere (e.g. by :mod:`torchconn.regression.plots`) in figures.txt."""
         path = Path(path)
         self.figures.append(path)
         print(f"figure: {path}")

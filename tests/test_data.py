@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from torchconn import NLinkSwimmer, Trajectory, simulate
-from torchconn.gaits import reference_gait
+from torchconn.physics.gaits import reference_gait
 
 
 @pytest.fixture(scope="module")

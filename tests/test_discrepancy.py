@@ -16,8 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import NLinkSwimmer, se2
-from torchconn.data import Trajectory
+from torchconn import NLinkSwimmer
 from torchconn.discrepancy import (
     REGISTRY,
     DiscrepancySettings,
@@ -36,10 +35,12 @@ from torchconn.discrepancy.__main__ import main
 from torchconn.discrepancy.fitting import Problem
 from torchconn.discrepancy.residuals import COMPONENTS, component_rms
 from torchconn.discrepancy.simulate import LateralSlipSwimmer
-from torchconn.gaits import FourierGait, reference_gait
-from torchconn.io import write_csv
-from torchconn.observe import observe
-from torchconn.rollout import simulate
+from torchconn.io.trajectory_files import write_csv
+from torchconn.physics import se2
+from torchconn.physics.gaits import FourierGait, reference_gait
+from torchconn.simulation.observe import observe
+from torchconn.simulation.rollout import simulate
+from torchconn.trajectory import Trajectory
 
 ETA, ALPHA, OMEGA = 0.025, 0.05, 0.002
 N_CYCLES = 20

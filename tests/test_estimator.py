@@ -7,12 +7,12 @@ import pytest
 import torch
 
 from torchconn import AffineConnectionSystem, NLinkSwimmer, Trajectory
-from torchconn.data import SmoothedState
-from torchconn.estimator import ConnectionEstimator, EstimatorSettings
-from torchconn.evaluation import phase_bin_errors, reference_models
-from torchconn.gaits import FourierGait, reference_gait
-from torchconn.model import LocalConnectionModel
-from torchconn.rollout import simulate
+from torchconn.evaluation.models import phase_bin_errors, reference_models
+from torchconn.physics.gaits import FourierGait, reference_gait
+from torchconn.regression.estimator import ConnectionEstimator, EstimatorSettings
+from torchconn.regression.model import LocalConnectionModel
+from torchconn.simulation.rollout import simulate
+from torchconn.trajectory import SmoothedState
 
 F64 = torch.float64
 
@@ -160,9 +160,9 @@ def test_bad_settings_and_inputs_raise():
 
 
 def test_trials_of_different_lengths_are_not_extrapolated(tmp_path):
-    from torchconn.io import read_csv, write_csv
-    from torchconn.phase import estimate_phase
-    from torchconn.smoothing import smooth_trajectory
+    from torchconn.io.trajectory_files import read_csv, write_csv
+    from torchconn.phase.phaser import estimate_phase
+    from torchconn.phase.smoothing import smooth_trajectory
 
     long = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=16, seeds=[1])
     short = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=10, seeds=[2])

@@ -8,10 +8,10 @@ import torch
 
 from torchconn import NLinkSwimmer, simulate
 from torchconn.fit import main
-from torchconn.gaits import reference_gait
-from torchconn.io import write_csv
-from torchconn.model import LocalConnectionModel
-from torchconn.observe import observe
+from torchconn.io.trajectory_files import write_csv
+from torchconn.physics.gaits import reference_gait
+from torchconn.regression.model import LocalConnectionModel
+from torchconn.simulation.observe import observe
 
 
 @pytest.fixture(scope="module")

@@ -7,12 +7,12 @@ import pytest
 import torch
 
 from torchconn import NLinkSwimmer
-from torchconn.gaits import reference_gait
-from torchconn.limit_cycle import fit_limit_cycle
-from torchconn.observe import observe
-from torchconn.phase import circular_rms, estimate_phase, hilbert_phase_pc1
-from torchconn.rollout import simulate
-from torchconn.smoothing import smooth_trajectory
+from torchconn.phase.limit_cycle import fit_limit_cycle
+from torchconn.phase.phaser import circular_rms, estimate_phase, hilbert_phase_pc1
+from torchconn.phase.smoothing import smooth_trajectory
+from torchconn.physics.gaits import reference_gait
+from torchconn.simulation.observe import observe
+from torchconn.simulation.rollout import simulate
 
 
 def _trials(system: str, n_links: int, omega: float, seed: int, n_cycles: int = 20):

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from torchconn.fourier import FourierSeries, fit_fourier, fourier_design
+from torchconn.phase.fourier import FourierSeries, fit_fourier, fourier_design
 
 DT = torch.float64
 

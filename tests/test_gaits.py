@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchconn import NLinkSwimmer
-from torchconn.gaits import (
+from torchconn.physics.gaits import (
     CallableGait,
     ModalGait,
     displacement,
@@ -17,9 +17,9 @@ from torchconn.gaits import (
     reference_gait,
     three_link_gait,
 )
-from torchconn.gaits.optimize import optimise_gait
-from torchconn.gaits.reference import load_gaits
-from torchconn.reference import connection_and_metric_numpy
+from torchconn.physics.gaits.optimize import optimise_gait
+from torchconn.physics.gaits.reference import load_gaits
+from torchconn.testing.numpy_swimmer import connection_and_metric_numpy
 
 F64 = torch.float64
 
@@ -79,7 +79,7 @@ def test_time_reversal_reverses_the_displacement():
     fwd = displacement(s, three_link_gait("efficient"))
     back = displacement(s, three_link_gait("efficient").reversed())
     # running the loop backwards undoes it: g_back = g_fwd^{-1}
-    from torchconn import se2
+    from torchconn.physics import se2
 
     assert torch.allclose(back, se2.inverse(fwd), atol=1e-9)
     assert fwd[0] > 0 > back[0]
@@ -132,7 +132,7 @@ def test_optimiser_reaches_a_stationary_extremal_gait():
     # first-order optimality: the gradient of the x-displacement w.r.t. the loop vanishes
     plane = run.gait.plane_gait
     logit = plane.logit.coeffs[:, 0].clone().requires_grad_(True)
-    from torchconn.gaits import PolarGait
+    from torchconn.physics.gaits import PolarGait
 
     g = ModalGait(nine_link_modes(), PolarGait([0.0, 0.0], logit, plane.direction, plane.max_radius))
     displacement(s, g, 128)[0].backward()

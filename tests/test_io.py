@@ -11,10 +11,16 @@ import pytest
 import torch
 
 from torchconn import AffineConnectionSystem, SmoothedState, Trajectory
-from torchconn.gaits import FourierGait
-from torchconn.io import count_cycles, load_npz, read_csv, save_npz, write_csv
-from torchconn.observe import observe
-from torchconn.rollout import simulate
+from torchconn.io.trajectory_files import (
+    count_cycles,
+    load_npz,
+    read_csv,
+    save_npz,
+    write_csv,
+)
+from torchconn.physics.gaits import FourierGait
+from torchconn.simulation.observe import observe
+from torchconn.simulation.rollout import simulate
 
 EXACT = dict(rtol=0, atol=0, equal_nan=True)
 

@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from torchconn.fourier import FourierSeries
-from torchconn.limit_cycle import LimitCycle, fit_limit_cycle, phase_rate
-from torchconn.smoothing import rts_smooth
+from torchconn.phase.fourier import FourierSeries
+from torchconn.phase.limit_cycle import LimitCycle, fit_limit_cycle, phase_rate
+from torchconn.phase.smoothing import rts_smooth
 
 DT = torch.float64
 SPC = 60

@@ -10,9 +10,9 @@ import torch
 from scipy import stats
 
 from torchconn import AffineConnectionSystem, Trajectory
-from torchconn.gaits import FourierGait
-from torchconn.observe import observe
-from torchconn.rollout import cell_generators, simulate
+from torchconn.physics.gaits import FourierGait
+from torchconn.simulation.observe import observe
+from torchconn.simulation.rollout import cell_generators, simulate
 
 P_FAIL = 1e-4
 

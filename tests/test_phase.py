@@ -13,7 +13,7 @@ import math
 import pytest
 import torch
 
-from torchconn.phase import (
+from torchconn.phase.phaser import (
     circular_rms,
     correction_series,
     estimate_phase,

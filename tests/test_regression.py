@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+from torchconn.physics.systems import AffineConnectionSystem, NLinkSwimmer
 from torchconn.regression import (
     IllConditionedBinWarning,
     assign_bins,
     connection_regression,
     metric_regression,
 )
-from torchconn.systems import AffineConnectionSystem, NLinkSwimmer
 
 F64 = torch.float64
 

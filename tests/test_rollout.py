@@ -9,9 +9,10 @@ import pytest
 import torch
 from scipy import stats
 
-from torchconn import AffineConnectionSystem, NLinkSwimmer, se2
-from torchconn.gaits import FourierGait, displacement, three_link_gait
-from torchconn.rollout import _integrate, cell_generators, simulate
+from torchconn import AffineConnectionSystem, NLinkSwimmer
+from torchconn.physics import se2
+from torchconn.physics.gaits import FourierGait, displacement, three_link_gait
+from torchconn.simulation.rollout import _integrate, cell_generators, simulate
 
 # Two-sided acceptance probability of each statistical check; with fixed seeds the tests are
 # deterministic, this only sets how wide the sampling-distribution bands are.

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import se2
+from torchconn.physics import se2
 
 torch.manual_seed(0)
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import se2
-from torchconn.data import SmoothedState
-from torchconn.smoothing import body_velocity, rts_smooth, smooth_trajectory, unwrap
+from torchconn.phase.smoothing import body_velocity, rts_smooth, smooth_trajectory, unwrap
+from torchconn.physics import se2
+from torchconn.trajectory import SmoothedState
 
 DT = torch.float64
 SPC = 60  # samples per cycle

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import NLinkSwimmer, se2
-from torchconn.reference import connection_and_metric_numpy
+from torchconn import NLinkSwimmer
+from torchconn.physics import se2
+from torchconn.testing.numpy_swimmer import connection_and_metric_numpy
 
 F64 = torch.float64
 

@@ -1,23 +1,43 @@
 """torchconn: batched data-driven estimation of local connections around gaits.
 
-The pipeline's stages, one module each: ``systems`` (the swimmer), ``gaits``, ``rollout``
-(simulate), ``observe``, ``phase``, ``smoothing``, ``limit_cycle``, ``regression`` and
-``estimator`` (regress), ``evaluation``, ``sweep``, ``discrepancy``.
+The package's folders are the pipeline's stages:
+
+================  =====================================================================
+``physics``       SE(2), locomotion systems (N-link viscous swimmer, affine toy), gaits
+``simulation``    batched Stratonovich rollouts, the motion-capture observation model
+``phase``         RTS smoother, Phaser, the limit cycle, Fourier series in phase
+``regression``    phase binning, weighted least squares, connection and metric regressions,
+                  the local model and the :class:`ConnectionEstimator`
+``evaluation``    ground-truth / data-driven / analytic / template models and their errors
+``sweep``         the paper's experiments: configs, resumable store, claims, figures
+``discrepancy``   where simulator and data disagree, and which physical effect is missing
+``io``            trajectory files (CSV, NPZ)
+================  =====================================================================
+
+``trajectory`` holds the :class:`Trajectory` container that flows through every stage.
 """
 
-from . import gaits, se2
-from .data import GroundTruth, SmoothedState, Trajectory
-from .estimator import ConnectionEstimator, EstimatorSettings
+from importlib.metadata import PackageNotFoundError, version
+
+from . import _compat
 from .io import read_csv, write_csv
-from .model import LocalConnectionModel
-from .observe import observe
-from .rollout import simulate
-from .systems import AffineConnectionSystem, LocomotionSystem, NLinkSwimmer
+from .physics import gaits, se2
+from .physics.systems import AffineConnectionSystem, LocomotionSystem, NLinkSwimmer
+from .regression import ConnectionEstimator, EstimatorSettings, LocalConnectionModel
+from .simulation import observe, simulate
+from .trajectory import GroundTruth, SmoothedState, Trajectory
+
+try:
+    __version__ = version("torchconn")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "0+unknown"
+
+_compat.install()
 
 __all__ = [
+    "__version__",
     "NLinkSwimmer", "AffineConnectionSystem", "LocomotionSystem",
     "Trajectory", "GroundTruth", "SmoothedState", "gaits", "se2",
     "simulate", "observe", "read_csv", "write_csv",
     "ConnectionEstimator", "EstimatorSettings", "LocalConnectionModel",
 ]
-__version__ = "0.1.0"

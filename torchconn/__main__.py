@@ -11,7 +11,7 @@ import sys
 import torch
 
 from . import NLinkSwimmer
-from .gaits import evaluate, three_link_gait
+from .physics.gaits import evaluate, three_link_gait
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import torch
 
-from .estimator import ConnectionEstimator, EstimatorSettings
-from .io import read_csv
-from .model import LocalConnectionModel
-from .plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
+from .io.trajectory_files import read_csv
+from .regression.estimator import ConnectionEstimator, EstimatorSettings
+from .regression.model import LocalConnectionModel
+from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 

@@ -4,7 +4,7 @@ After a model is fitted, the simulator says one thing and the motion-capture dat
 subpackage finds where they disagree, names the missing physical effect, adds it to the model and
 shows the gap shrink::
 
-    from torchconn.discrepancy import diagnose
+    from . import diagnose
     report = diagnose(traj, NLinkSwimmer(3))
     print(report.summary())
     report.save("out/")            # report.json, augmented_model.json, figures
@@ -21,18 +21,18 @@ comparison), :mod:`.fitting` (autograd fits, cross-validation over cycles),
 
 from .confounding import principal_cosine, separating_experiments, signature_collinearity
 from .effects import (
-                      REGISTRY,
-                      AmbientFlow,
-                      BodyDrift,
-                      DragRatio,
-                      Effect,
-                      JointBias,
-                      LinkLength,
-                      MarkerOffset,
-                      Param,
-                      TimeLag,
-                      get_effect,
-                      register,
+    REGISTRY,
+    AmbientFlow,
+    BodyDrift,
+    DragRatio,
+    Effect,
+    JointBias,
+    LinkLength,
+    MarkerOffset,
+    Param,
+    TimeLag,
+    get_effect,
+    register,
 )
 from .forward import ForwardModel, Measurement, prepare_measurement
 from .model import AugmentedModel, load_augmented

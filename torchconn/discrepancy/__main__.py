@@ -17,8 +17,8 @@ from pathlib import Path
 
 import torch
 
-from ..io import read_csv
-from ..systems.swimmer import NLinkSwimmer
+from ..io.trajectory_files import read_csv
+from ..physics.systems.swimmer import NLinkSwimmer
 from .effects import REGISTRY
 from .workflow import DiscrepancySettings, diagnose
 

@@ -22,10 +22,10 @@ import math
 import torch
 from torch import Tensor
 
-from ..fourier import fit_fourier
-from ..gaits import FourierGait
-from ..rollout import simulate
-from ..systems.base import LocomotionSystem
+from ..phase.fourier import fit_fourier
+from ..physics.gaits import FourierGait
+from ..physics.systems.base import LocomotionSystem
+from ..simulation.rollout import simulate
 from .forward import ForwardModel, Measurement, measurement_from_clean
 
 __all__ = ["signature_collinearity", "principal_cosine", "separating_experiments",

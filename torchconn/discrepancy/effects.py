@@ -105,7 +105,7 @@ class Effect:
 
     # ------------------------------------------------------------------ hooks (no-ops)
     def system_kwargs(self, p: Tensor, kwargs: dict) -> dict:
-        """Changed :class:`~torchconn.systems.NLinkSwimmer` keyword arguments."""
+        """Changed :class:`~torchconn.physics.systems.NLinkSwimmer` keyword arguments."""
         return kwargs
 
     def true_shapes(self, p: Tensor, read: ShapeReader, dt: float) -> ShapeReader:

@@ -11,7 +11,7 @@ Comparing like with like
     harmonics) -- so filter bias is never named as physics.
 
 The smoother
-    ``S_d`` is the steady-state Rauch–Tung–Striebel smoother of :mod:`torchconn.smoothing`
+    ``S_d`` is the steady-state Rauch–Tung–Striebel smoother of :mod:`torchconn.phase.smoothing`
     (constant-velocity model) with the noise ratio its generalised cross-validation picks for
     the recorded channels; in the interior of a record it is a fixed convolution, which is how
     it is applied here (:func:`derivative_kernel`), and the samples within the kernel's reach
@@ -41,12 +41,12 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from .. import se2
-from ..data import Trajectory
-from ..phase import estimate_phase
-from ..smoothing import noise_parameters, rts_smooth, smooth_trajectory, unwrap
-from ..systems.base import LocomotionSystem
-from ..systems.swimmer import NLinkSwimmer
+from ..phase.phaser import estimate_phase
+from ..phase.smoothing import noise_parameters, rts_smooth, smooth_trajectory, unwrap
+from ..physics import se2
+from ..physics.systems.base import LocomotionSystem
+from ..physics.systems.swimmer import NLinkSwimmer
+from ..trajectory import Trajectory
 from .effects import Effect, get_effect
 
 __all__ = [
@@ -368,7 +368,7 @@ class ForwardModel:
 
     Args:
         measurement: a :class:`Measurement`.
-        system: the nominal simulator (an :class:`~torchconn.systems.NLinkSwimmer` for effects
+        system: the nominal simulator (an :class:`~torchconn.physics.systems.NLinkSwimmer` for effects
             that change the swimmer; any :class:`LocomotionSystem` otherwise).
         upsample: fine integration steps per recording interval.
 

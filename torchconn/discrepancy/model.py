@@ -17,8 +17,8 @@ from pathlib import Path
 
 from torch import Tensor
 
-from ..systems.base import LocomotionSystem
-from ..systems.swimmer import NLinkSwimmer
+from ..physics.systems.base import LocomotionSystem
+from ..physics.systems.swimmer import NLinkSwimmer
 from .effects import get_effect
 from .simulate import EffectDrift, augmented_system, effect_parameters, simulate_with_effects
 
@@ -32,7 +32,7 @@ class AugmentedModel:
     """A nominal swimmer and effects ``{name: (n_params,) tensor}`` (0 = absent).
 
     Attributes:
-        nominal: the nominal :class:`~torchconn.systems.NLinkSwimmer`.
+        nominal: the nominal :class:`~torchconn.physics.systems.NLinkSwimmer`.
         effects: fitted parameters per effect name.
         meta: provenance (verdict, data files, ...).
     """
@@ -48,7 +48,7 @@ class AugmentedModel:
 
     @property
     def drift(self) -> EffectDrift | None:
-        """The :func:`torchconn.rollout.simulate` drift hook of the velocity effects, or None."""
+        """The :func:`torchconn.simulation.rollout.simulate` drift hook of the velocity effects, or None."""
         d = EffectDrift(self.effects)
         return d if d else None
 

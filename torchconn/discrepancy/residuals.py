@@ -7,7 +7,7 @@
     not called disagreement: a bin disagrees when its band excludes zero.
 
 :func:`compare_terms`
-    The data-driven local model of Stage 4 (:class:`~torchconn.estimator.ConnectionEstimator`:
+    The data-driven local model of Stage 4 (:class:`~torchconn.regression.estimator.ConnectionEstimator`:
     ``ĉ, b̂, Â, ∂Â/∂r`` along the gait, with standard errors) against the simulator's own values
     on the same cycle -- ``c = A(γ) γ̇``, ``b = ∂A/∂r γ̇``, ``A(γ)``, ``∂A/∂r(γ)`` -- as z-scores per
     phase bin. It shows *which* terms disagree. Like with like: the simulator's terms are
@@ -24,9 +24,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..data import Trajectory
-from ..estimator import ConnectionEstimator
-from ..systems.base import LocomotionSystem
+from ..physics.systems.base import LocomotionSystem
+from ..regression.estimator import ConnectionEstimator
+from ..trajectory import Trajectory
 from .forward import Measurement
 
 __all__ = ["COMPONENTS", "phase_profile", "compare_terms", "component_rms"]

@@ -1,11 +1,11 @@
 """Simulate recordings with effects switched on (for tests, the power study and users).
 
-:func:`simulate_with_effects` wraps :func:`torchconn.rollout.simulate`: system effects change the
+:func:`simulate_with_effects` wraps :func:`torchconn.simulation.rollout.simulate`: system effects change the
 swimmer, velocity effects enter through the rollout's ``drift`` hook (vectorised, heading-only),
 and the recording effects are applied to what is recorded -- the shape stream through each
 effect's ``recorded_shapes`` (on a recording ``upsample`` times finer than the output, so a time
 lag reads the true path between samples), the tracked point through ``observe`` -- before
-:func:`torchconn.observe.observe` adds the observation noise.
+:func:`torchconn.simulation.observe.observe` adds the observation noise.
 """
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-from ..data import GroundTruth, Trajectory
-from ..observe import observe
-from ..rollout import simulate
-from ..systems.base import LocomotionSystem
-from ..systems.swimmer import NLinkSwimmer
+from ..physics.systems.base import LocomotionSystem
+from ..physics.systems.swimmer import NLinkSwimmer
+from ..simulation.observe import observe
+from ..simulation.rollout import simulate
+from ..trajectory import GroundTruth, Trajectory
 from .effects import Effect, get_effect
 from .forward import _swimmer_kwargs, cubic_interp
 
@@ -114,13 +114,13 @@ def simulate_with_effects(
         effects: ``{effect name: parameter values}`` (see :func:`effect_parameters`), e.g.
             ``{"ambient_flow": {"u_x": 0.01}}``; None or ``{}`` for the nominal model.
         eta, alpha, n_cycles, samples_per_cycle, substeps, seeds, phase0: as in
-            :func:`torchconn.rollout.simulate` (``substeps`` even; the rollout records every
+            :func:`torchconn.simulation.rollout.simulate` (``substeps`` even; the rollout records every
             other fine step so recording effects can read between samples).
-        omega: observation-noise standard deviation (:func:`torchconn.observe.observe`).
+        omega: observation-noise standard deviation (:func:`torchconn.simulation.observe.observe`).
         dropout: probability of a lost sample.
 
     Returns:
-        A :class:`~torchconn.data.Trajectory` of the recorded data, with ``truth`` holding the
+        A :class:`~torchconn.trajectory.Trajectory` of the recorded data, with ``truth`` holding the
         true (noise-free, effect-free recording) pose, shapes and body velocity, and
         ``meta["effects"]`` the effects' parameters.
     """

@@ -41,9 +41,9 @@ from scipy import stats
 from torch import Tensor
 
 from .. import __version__
-from ..data import Trajectory
-from ..systems.base import LocomotionSystem
-from ..systems.swimmer import NLinkSwimmer
+from ..physics.systems.base import LocomotionSystem
+from ..physics.systems.swimmer import NLinkSwimmer
+from ..trajectory import Trajectory
 from .confounding import principal_cosine, separating_experiments, signature_collinearity
 from .effects import REGISTRY, Effect, get_effect
 from .fitting import EffectFit, Problem, cycle_stats, fit_effects, fourier_columns, paired_gain
@@ -374,8 +374,8 @@ def diagnose(
     """Find, name and add the effect behind a disagreement between a simulator and a recording.
 
     Args:
-        traj: recorded trials (:func:`torchconn.io.read_csv` or simulated), any batch shape.
-        system: the nominal simulator (an :class:`~torchconn.systems.NLinkSwimmer`).
+        traj: recorded trials (:func:`torchconn.io.trajectory_files.read_csv` or simulated), any batch shape.
+        system: the nominal simulator (an :class:`~torchconn.physics.systems.NLinkSwimmer`).
         settings: :class:`DiscrepancySettings` (defaults if None).
         phase: optional ``(..., T)`` gait phase (else Phaser's estimate).
         log: optional callable receiving progress lines.

@@ -1,5 +1,11 @@
 """Regress: phase-centred local models of the connection and the metric (the paper's Sec. 4).
 
+- :mod:`~torchconn.regression.estimator` -- :class:`ConnectionEstimator`, the whole pipeline
+  (smooth → phase → limit cycle → tube regressions → Fourier in phase) in scikit-learn manners.
+- :mod:`~torchconn.regression.model` -- :class:`LocalConnectionModel`, the fitted ``Â``, ``∂Â/∂r``,
+  ``M̂`` as Fourier series in phase, with per-bin standard errors.
+- :mod:`~torchconn.regression.plots` -- figures of a fitted model with confidence bands.
+
 The hot path of the estimator, batched over leading dims ``...`` (noise levels × trials):
 
 1. :func:`assign_bins` -- phase ``(..., N)`` to a padded gather ``(..., M, Nmax)`` of each bin's
@@ -20,11 +26,15 @@ from __future__ import annotations
 from ._wls import IllConditionedBinWarning
 from .binning import KERNELS, BinIndex, assign_bins
 from .connection import ConnectionFit, connection_design, connection_regression
+from .estimator import ConnectionEstimator, EstimatorSettings, fit_local_model, prepare
 from .metric import MetricFit, metric_design, metric_n_coef, metric_regression
+from .model import BinEstimates, LocalConnectionModel
 
 __all__ = [
     "assign_bins", "BinIndex", "KERNELS",
     "connection_regression", "ConnectionFit", "connection_design",
     "metric_regression", "MetricFit", "metric_design", "metric_n_coef",
     "IllConditionedBinWarning",
+    "LocalConnectionModel", "BinEstimates",
+    "ConnectionEstimator", "EstimatorSettings", "prepare", "fit_local_model",
 ]

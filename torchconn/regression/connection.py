@@ -31,7 +31,7 @@ class ConnectionFit:
         b: ``(..., M, 3, d)`` ``b̂[k, j] = (∂A/∂r_j γ̇_m)ᵏ``.
         A: ``(..., M, 3, d)`` ``Â(γ_m)``.
         dA: ``(..., M, 3, d, d)`` ``∂Aᵏ_i/∂r_j`` at ``[..., k, i, j]`` (as
-            :meth:`~torchconn.systems.LocomotionSystem.connection_jacobian`).
+            :meth:`~torchconn.physics.systems.LocomotionSystem.connection_jacobian`).
         se_c, se_b, se_A, se_dA: standard errors, same shapes.
         n_samples: ``(..., M)`` samples with positive weight in each bin.
         residual_rms: ``(..., M, 3)`` weighted RMS residual per body-velocity component.

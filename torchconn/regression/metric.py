@@ -30,7 +30,7 @@ class MetricFit:
     Attributes:
         M: ``(..., M, d, d)`` symmetric ``M̂(γ_m)``.
         dM: ``(..., M, d, d, d)`` ``∂M_ij/∂r_k`` at ``[..., i, j, k]`` (as
-            :meth:`~torchconn.systems.LocomotionSystem.metric_jacobian`), symmetric in ``i, j``;
+            :meth:`~torchconn.physics.systems.LocomotionSystem.metric_jacobian`), symmetric in ``i, j``;
             None when the derivative block was not fitted.
         se_M, se_dM: standard errors, same shapes (``se_dM`` None with ``dM``).
         power_on_cycle: ``(..., M)`` the intercept, ``γ̇_mᵀ M γ̇_m``.

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..estimator import EstimatorSettings
+from ..regression.estimator import EstimatorSettings
 
 __all__ = [
     "SimulationSettings", "Experiment", "SweepConfig", "load_config", "apply_overrides",

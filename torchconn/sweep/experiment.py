@@ -14,8 +14,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from ..estimator import ConnectionEstimator
-from ..evaluation import (
+from ..evaluation.models import (
     COMPONENTS,
     MODELS,
     clean_trajectory,
@@ -23,10 +22,11 @@ from ..evaluation import (
     phase_bin_errors,
     reference_models,
 )
-from ..gaits import reference_gait
-from ..observe import observe
-from ..rollout import simulate
-from ..systems import NLinkSwimmer
+from ..physics.gaits import reference_gait
+from ..physics.systems import NLinkSwimmer
+from ..regression.estimator import ConnectionEstimator
+from ..simulation.observe import observe
+from ..simulation.rollout import simulate
 from .config import Experiment, SweepConfig
 
 __all__ = ["ExperimentResult", "run_experiment", "experiment_seeds", "make_system"]

@@ -28,7 +28,7 @@ THREE_LINK_EFFICIENT = (1.495398722861924, 1.326600886340017, 0.083253854456986,
                         0.089227148110158, -0.034695750579259, -0.044759551791058)
 
 #: where the optimised gaits live (the repository's ``configs/``)
-GAITS_FILE = Path(__file__).resolve().parents[2] / "configs" / "gaits.toml"
+GAITS_FILE = Path(__file__).resolve().parents[3] / "configs" / "gaits.toml"
 
 
 def three_link_gait(kind: str = "extremal") -> FourierGait:
@@ -60,7 +60,7 @@ def load_gaits(path: Path | str = GAITS_FILE) -> dict:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(
-            f"{path} not found; it is written by `python -m torchconn.gaits.optimize` and ships "
+            f"{path} not found; it is written by `python -m torchconn.physics.gaits.optimize` and ships "
             "in the repository's configs/ (install torchconn from a checkout: pip install -e .)"
         )
     with path.open("rb") as fh:

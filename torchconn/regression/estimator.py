@@ -4,8 +4,8 @@ Three pure, batched steps, each usable on its own, and a scikit-learn style wrap
 
 1. :func:`prepare` -- smooth poses and shapes (Kalman/RTS), derive body velocities, and
    estimate the phase (Phaser) unless one is supplied; adds ``smoothed`` and ``phase`` to the
-   :class:`~torchconn.data.Trajectory`.
-2. :func:`fit_limit_cycle` (:mod:`torchconn.limit_cycle`) -- the self-consistent cycle γ(φ).
+   :class:`~torchconn.trajectory.Trajectory`.
+2. :func:`fit_limit_cycle` (:mod:`torchconn.phase.limit_cycle`) -- the self-consistent cycle γ(φ).
 3. :func:`fit_local_model` -- the tube regressions in M phase bins (eq. ``advancedregression``
    and, with power, ``advancedmetricregression``) and their Fourier series in phase.
 
@@ -22,14 +22,15 @@ from dataclasses import asdict, dataclass, fields
 import torch
 from torch import Tensor
 
-from .data import SmoothedState, Trajectory
-from .fourier import fit_fourier
-from .limit_cycle import LimitCycle, fit_limit_cycle, phase_rate
+from ..phase.fourier import fit_fourier
+from ..phase.limit_cycle import LimitCycle, fit_limit_cycle, phase_rate
+from ..phase.phaser import estimate_phase
+from ..phase.smoothing import smooth_trajectory
+from ..trajectory import SmoothedState, Trajectory
+from .binning import assign_bins
+from .connection import connection_regression
+from .metric import metric_n_coef, metric_regression
 from .model import BinEstimates, LocalConnectionModel
-from .phase import estimate_phase
-from .regression import assign_bins, connection_regression, metric_regression
-from .regression.metric import metric_n_coef
-from .smoothing import smooth_trajectory
 
 __all__ = ["EstimatorSettings", "ConnectionEstimator", "prepare", "fit_local_model"]
 
@@ -253,9 +254,9 @@ class ConnectionEstimator:
     :class:`EstimatorSettings` for each), :meth:`fit` returns ``self``, fitted attributes end
     in ``_``:
 
-    - ``trajectory_``: the prepared :class:`~torchconn.data.Trajectory` (smoothed, phase);
-    - ``limit_cycle_``: the :class:`~torchconn.limit_cycle.LimitCycle`;
-    - ``model_``: the :class:`~torchconn.model.LocalConnectionModel`.
+    - ``trajectory_``: the prepared :class:`~torchconn.trajectory.Trajectory` (smoothed, phase);
+    - ``limit_cycle_``: the :class:`~torchconn.phase.limit_cycle.LimitCycle`;
+    - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`.
 
     Example::
 
@@ -271,8 +272,8 @@ class ConnectionEstimator:
         """Fit to recordings ``traj`` (batch dims ``...``: one model per trial unless pooled).
 
         Args:
-            traj: a :class:`~torchconn.data.Trajectory` (simulated, or read with
-                :func:`torchconn.io.read_csv`).
+            traj: a :class:`~torchconn.trajectory.Trajectory` (simulated, or read with
+                :func:`torchconn.io.trajectory_files.read_csv`).
             phase: optional ``(..., T)`` phase to use instead of Phaser's estimate.
         """
         s = self.settings

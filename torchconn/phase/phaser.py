@@ -80,7 +80,7 @@ def correction_series(theta: Tensor, order: int, weights: Tensor | None = None) 
             the ``O(1 / cycles)`` bias a trailing partial cycle puts into every ``S_k``.
 
     Returns:
-        scalar :class:`~torchconn.fourier.FourierSeries` of order ``K``, batch ``(...)``.
+        scalar :class:`~torchconn.phase.fourier.FourierSeries` of order ``K``, batch ``(...)``.
     """
     if weights is None:
         weights = torch.ones_like(theta)
@@ -160,7 +160,7 @@ def estimate_phase(
 
     Args:
         x: ``(..., T, C)`` samples, uniform in time, ``C >= 1`` channels (e.g. shapes ``r``),
-            no NaNs (smooth/fill drop-outs first, e.g. with :func:`torchconn.smoothing.rts_smooth`).
+            no NaNs (smooth/fill drop-outs first, e.g. with :func:`torchconn.phase.smoothing.rts_smooth`).
         order: harmonics in each series correction. 2-4 is robust; high orders fit the noise
             in the protophase (see tests).
         min_cycles: fewest cycles accepted; fewer make the correction unreliable.
@@ -323,7 +323,7 @@ def _check_values(x: Tensor) -> None:
             )
         raise ValueError(
             f"estimate_phase: x contains {int(nan.sum())} NaN samples; fill or smooth drop-outs "
-            "first (torchconn.smoothing.rts_smooth predicts through them)"
+            "first (torchconn.phase.smoothing.rts_smooth predicts through them)"
         )
     if not bool(torch.isfinite(x).all()):
         raise ValueError("estimate_phase: x contains inf")

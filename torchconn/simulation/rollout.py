@@ -55,10 +55,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import se2
-from .data import GroundTruth, Trajectory
-from .gaits import as_gait
-from .systems.base import LocomotionSystem
+from ..physics import se2
+from ..physics.gaits import as_gait
+from ..physics.systems.base import LocomotionSystem
+from ..trajectory import GroundTruth, Trajectory
 
 __all__ = ["simulate", "cell_generators", "POWER_DEFINITION"]
 
@@ -126,7 +126,7 @@ def cell_generators(
             or ``numpy.random.SeedSequence`` objects (e.g. ``SeedSequence(root).spawn(n)``).
         stream: ``"rollout"`` or ``"observe"``; the generator of a cell is seeded from
             ``SeedSequence(seed, spawn_key=(stream_id,))``, so the same seeds passed to
-            :func:`simulate` and :func:`torchconn.observe.observe` give independent noise.
+            :func:`simulate` and :func:`torchconn.simulation.observe.observe` give independent noise.
         device: device of the generators.
 
     Returns:
@@ -180,7 +180,7 @@ def simulate(
     """Simulate noisy gait-following trials, batched over cells (noise levels × trials).
 
     Args:
-        system: a :class:`~torchconn.systems.LocomotionSystem` with ``d`` joints.
+        system: a :class:`~torchconn.physics.systems.LocomotionSystem` with ``d`` joints.
         gait: the reference gait ``γ_REF`` (gait object or callable ``φ -> r``), ``d`` joints.
         eta: noise magnitude η ≥ 0, a float or a tensor broadcastable to the batch shape
             (e.g. ``(L, 1)`` for ``L`` noise levels × trials); its floating dtype and device are
@@ -201,7 +201,7 @@ def simulate(
             whose ``x, y`` are NaN and ``t`` a ``(K,)`` tensor, which is much faster.
 
     Returns:
-        A :class:`~torchconn.data.Trajectory` with ``t (T,)``, ``pose (..., T, 3)``,
+        A :class:`~torchconn.trajectory.Trajectory` with ``t (T,)``, ``pose (..., T, 3)``,
         ``r (..., T, d)``, ``power (..., T)`` and ``truth`` (phase, noise-free pose / r / power,
         ``xi``, ``r_dot``, ``delta``), ``T = n_cycles · samples_per_cycle``.
     """
@@ -263,7 +263,7 @@ def simulate(
         power=rec["power"], delta=rec["delta"],
     )
     meta = {
-        "source": "torchconn.rollout.simulate",
+        "source": "torchconn.simulation.rollout.simulate",
         "system": repr(system),
         "gait": repr(gait),
         "eta": _meta_value(eta),

@@ -1,6 +1,6 @@
 """The fitted local model: A, ∂A/∂r and M around a limit cycle, as Fourier series in phase.
 
-A :class:`LocalConnectionModel` is what :class:`~torchconn.estimator.ConnectionEstimator`
+A :class:`LocalConnectionModel` is what :class:`~torchconn.regression.estimator.ConnectionEstimator`
 produces. It holds the limit cycle ``γ(φ)`` and Fourier series in phase of every regression
 term of eq. ``advanceddatadriven`` -- ``c(φ) ≈ A γ̇``, ``b(φ) ≈ ∂A/∂r γ̇``, ``A(φ)``,
 ``∂A/∂r(φ)`` -- and, when power was recorded, of the metric ``M(φ)``. It predicts the body
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .fourier import FourierSeries
+from ..phase.fourier import FourierSeries
 
 __all__ = ["LocalConnectionModel", "BinEstimates"]
 

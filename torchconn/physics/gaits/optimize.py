@@ -1,8 +1,8 @@
 """Gait optimisation: maximise one cycle's x-displacement over Fourier coefficients.
 
 The objective is differentiated by autograd through the fourth-order Magnus integration of
-:mod:`torchconn.gaits.evaluate` and maximised with L-BFGS (strong-Wolfe line search). Run as
-``python -m torchconn.gaits.optimize`` to recompute the optimised gaits stored in
+:mod:`torchconn.physics.gaits.evaluate` and maximised with L-BFGS (strong-Wolfe line search). Run as
+``python -m torchconn.physics.gaits.optimize`` to recompute the optimised gaits stored in
 ``configs/gaits.toml``.
 """
 
@@ -122,7 +122,7 @@ def _toml_entry(name: str, comment: str, run: OptimisedGait, extra: str = "") ->
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m torchconn.gaits.optimize",
+        prog="python -m torchconn.physics.gaits.optimize",
         description="Optimise the x-extremal gaits and write configs/gaits.toml.",
     )
     parser.add_argument("--out", type=Path, default=GAITS_FILE)
@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     best9 = max(runs9, key=lambda run: run.x_displacement)
     text = (
-        "# Optimised x-extremal gaits, written by `python -m torchconn.gaits.optimize`.\n"
+        "# Optimised x-extremal gaits, written by `python -m torchconn.physics.gaits.optimize`.\n"
         "# Each is a PolarGait: r(phi) = max_radius * sigmoid(f(phi)) (cos s phi, sin s phi),\n"
         "# s = direction, f = radius_logit as Fourier rows [a0, a1, b1, a2, b2, ...].\n\n"
         + _toml_entry("three_link_x_extremal", "in the (r1, r2) shape plane", run=best3,

@@ -23,11 +23,11 @@ import math
 import torch
 from torch import Tensor
 
-from .data import Trajectory
-from .fourier import fit_fourier
-from .model import LocalConnectionModel
-from .smoothing import smooth_trajectory
-from .systems.base import LocomotionSystem
+from ..phase.fourier import fit_fourier
+from ..phase.smoothing import smooth_trajectory
+from ..physics.systems.base import LocomotionSystem
+from ..regression.model import LocalConnectionModel
+from ..trajectory import Trajectory
 
 __all__ = [
     "MODELS", "COMPONENTS", "reference_models", "clean_trajectory", "error_summary",

@@ -37,7 +37,7 @@ class GroundTruth:
         xi: ``(..., T, 3)`` true body velocity: the mean of ``g⁻¹ ġ`` over the recording interval
             centred on each sample (``∫ A(r)∘dr / Δt`` on the fine path).
         r_dot: ``(..., T, d)`` the mean shape velocity over the same interval.
-        power: ``(..., T)`` noise-free power channel (see :mod:`torchconn.rollout`), or None.
+        power: ``(..., T)`` noise-free power channel (see :mod:`torchconn.simulation.rollout`), or None.
         delta: ``(..., T, d)`` the SDE's shape offset δ(t) from ``γ_REF(φ(t))``.
     """
 

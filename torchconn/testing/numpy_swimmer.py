@@ -1,6 +1,6 @@
 """Plain per-shape NumPy reference for the N-link swimmer (tests and benchmarks only).
 
-Deliberately derived another way than :mod:`torchconn.systems.swimmer`: the chain is walked
+Deliberately derived another way than :mod:`torchconn.physics.systems.swimmer`: the chain is walked
 link by link, shape velocities are joint rotations about the joint positions, forces are
 balanced in link 1's frame, and the body frame is reached by the frame-change formula. It
 handles one shape at a time, the way a straightforward script would; the benchmarks time it

@@ -6,16 +6,16 @@ channel is left as recorded. Drop-outs blank whole samples -- pose, shape and po
 become NaN -- the way a lost marker loses the frame. The hidden ``truth`` is kept.
 
 Every batch cell draws from its own ``torch.Generator`` seeded from ``(seed, "observe")``
-(:func:`torchconn.rollout.cell_generators`): first ``(T, 3 + d)`` standard normals, then, only
+(:func:`torchconn.simulation.rollout.cell_generators`): first ``(T, 3 + d)`` standard normals, then, only
 when ``dropout > 0``, ``T`` uniforms. A cell's noise therefore does not depend on the batch,
-and the same seeds used for :func:`torchconn.rollout.simulate` still give independent noise.
+and the same seeds used for :func:`torchconn.simulation.rollout.simulate` still give independent noise.
 """
 
 from __future__ import annotations
 
 import torch
 
-from .data import Trajectory
+from ..trajectory import Trajectory
 from .rollout import _meta_value, _per_cell, _seed_array, cell_generators
 
 __all__ = ["observe"]
@@ -30,7 +30,7 @@ def observe(traj: Trajectory, omega, *, dropout: float = 0.0, seeds) -> Trajecto
             shape ``(...)`` (e.g. ``(L, 1)`` for ``L`` levels × trials).
         dropout: probability in ``[0, 1)`` that a sample (a whole row) is lost.
         seeds: non-negative integers of the batch shape (see
-            :func:`torchconn.rollout.cell_generators`).
+            :func:`torchconn.simulation.rollout.cell_generators`).
 
     Returns:
         A copy with noisy ``pose`` and ``r``, NaN rows where samples dropped out (``power``

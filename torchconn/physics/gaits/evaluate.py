@@ -64,7 +64,7 @@ def evaluate(system: LocomotionSystem, gait, n_steps: int = 256) -> GaitMetrics:
     """Displacement, cost ``∫√(ṙᵀMṙ)dφ`` and efficiency ``|(x, y)| / cost`` of one cycle.
 
     Args:
-        system: a :class:`~torchconn.systems.LocomotionSystem` (e.g. ``NLinkSwimmer(3)``).
+        system: a :class:`~torchconn.physics.systems.LocomotionSystem` (e.g. ``NLinkSwimmer(3)``).
         gait: a gait object or a callable ``phi -> r`` over ``[0, 2π)``.
         n_steps: integration steps per cycle (error ∝ n_steps⁻⁴).
     """

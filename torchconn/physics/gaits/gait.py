@@ -14,7 +14,7 @@ from typing import Callable, Protocol
 import torch
 from torch import Tensor
 
-from ..fourier import FourierSeries
+from ...phase.fourier import FourierSeries
 
 __all__ = ["Gait", "FourierGait", "ModalGait", "PolarGait", "CallableGait", "as_gait"]
 
@@ -32,7 +32,7 @@ class FourierGait:
 
     Args:
         coeffs: ``(2K+1, d)`` rows ordered ``[a0, a1, b1, a2, b2, ...]`` (the layout of
-            :class:`torchconn.fourier.FourierSeries`). May require grad (gait optimisation).
+            :class:`torchconn.phase.fourier.FourierSeries`). May require grad (gait optimisation).
     """
 
     def __init__(self, coeffs):

@@ -5,7 +5,7 @@ columns ``t, x, y, theta, r1, …, rd`` and optionally ``power``; several trials
 with an integer ``trial`` column. Empty cells and ``nan`` are missing samples. Column names are
 matched case-insensitively after stripping blanks; any other column is ignored with a warning.
 
-:func:`read_csv` returns one :class:`~torchconn.data.Trajectory` with batch shape
+:func:`read_csv` returns one :class:`~torchconn.trajectory.Trajectory` with batch shape
 ``(n_trials,)`` (trials ordered by file, then trial id); trials of different lengths are padded
 with NaN at the end. :func:`write_csv` flattens any batch shape into trials and writes every
 value with ``%.17g``, so reading it back is exact. :func:`save_npz` / :func:`load_npz` keep
@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .data import GroundTruth, SmoothedState, Trajectory
+from ..trajectory import GroundTruth, SmoothedState, Trajectory
 
 __all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles"]
 
@@ -242,7 +242,7 @@ def read_csv(
             (estimated by :func:`count_cycles`).
 
     Returns:
-        A :class:`~torchconn.data.Trajectory` (float64, CPU) with ``pose (n_trials, T, 3)``,
+        A :class:`~torchconn.trajectory.Trajectory` (float64, CPU) with ``pose (n_trials, T, 3)``,
         ``r (n_trials, T, d)``, ``power (n_trials, T)`` when any file has a power column (NaN
         for files without one), ``T`` the longest trial (shorter ones NaN-padded at the end),
         and ``meta["trials"]`` listing each trial's file, id, length and start time.
@@ -402,7 +402,7 @@ def load_npz(path: str | PathLike) -> Trajectory:
     with np.load(path, allow_pickle=False) as z:
         if "format" not in z.files or str(z["format"]) != _NPZ_FORMAT:
             raise ValueError(f"{path} is not a torchconn trajectory file (no '{_NPZ_FORMAT}' "
-                             "format tag); write it with torchconn.io.save_npz")
+                             "format tag); write it with torchconn.io.trajectory_files.save_npz")
         arrays = {k: torch.from_numpy(z[k].copy()) for k in z.files if k not in ("format", "meta")}
         meta = json.loads(str(z["meta"]))
 

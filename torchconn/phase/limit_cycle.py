@@ -78,7 +78,7 @@ def fit_limit_cycle(
 
     Args:
         phase: ``(..., T)`` phase of every sample (e.g. from
-            :func:`torchconn.phase.estimate_phase`; wrapped or not).
+            :func:`torchconn.phase.phaser.estimate_phase`; wrapped or not).
         r: ``(..., T, d)`` shapes; r_dot: ``(..., T, d)`` shape velocities (``d/dt``).
             Samples with NaN in ``phase``, ``r`` or ``r_dot`` are ignored by both fits.
         order: harmonics of every series (the reference gaits use odd harmonics up to 5).

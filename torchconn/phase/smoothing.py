@@ -17,7 +17,7 @@ import math
 import torch
 from torch import Tensor
 
-from .data import SmoothedState
+from ..trajectory import SmoothedState
 
 __all__ = ["rts_smooth", "unwrap", "body_velocity", "smooth_trajectory", "noise_parameters"]
 
@@ -398,7 +398,7 @@ def smooth_trajectory(
             ω = 0.01: 0.013 -> 0.023) and biases the shape velocities, so it is off by default.
 
     Returns:
-        :class:`~torchconn.data.SmoothedState` with ``pose`` (heading unwrapped), ``pose_dot``,
+        :class:`~torchconn.trajectory.SmoothedState` with ``pose`` (heading unwrapped), ``pose_dot``,
         ``r``, ``r_dot`` and the body velocity ``xi = g⁻¹ġ``.
     """
     if not isinstance(pose, Tensor) or pose.ndim < 2 or pose.shape[-1] != 3:

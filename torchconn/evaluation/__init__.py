@@ -1,0 +1,16 @@
+"""Evaluate: ground-truth, data-driven, analytic and template models of the body velocity, and errors.
+
+See :mod:`~torchconn.evaluation.models`.
+"""
+
+from .models import (
+    COMPONENTS,
+    MODELS,
+    clean_trajectory,
+    error_summary,
+    phase_bin_errors,
+    reference_models,
+)
+
+__all__ = ["MODELS", "COMPONENTS", "reference_models", "clean_trajectory", "error_summary",
+           "phase_bin_errors"]
