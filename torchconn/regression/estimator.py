@@ -31,8 +31,13 @@ from .binning import assign_bins
 from .connection import connection_regression
 from .metric import metric_n_coef, metric_regression
 from .model import BinEstimates, LocalConnectionModel
+from .noise_aware import estimate_noise, interval_samples, noise_aware_regression
 
-__all__ = ["EstimatorSettings", "ConnectionEstimator", "prepare", "fit_local_model"]
+__all__ = ["EstimatorSettings", "ConnectionEstimator", "prepare", "fit_local_model",
+           "REGRESSIONS"]
+
+#: the connection regressions :class:`EstimatorSettings` offers
+REGRESSIONS = ("noise_aware", "smoothed")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -63,6 +68,20 @@ class EstimatorSettings:
         metric: also estimate the metric when the data carry power.
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
+        regression: how the connection is regressed. ``"smoothed"`` (default): the Kalman
+            smoother's velocities; under motion-capture noise Â shrinks towards 0 (the
+            smoother treats the pose channels, the target, differently from the shapes).
+            ``"noise_aware"``: body and shape velocities from raw differences over
+            ``velocity_interval`` samples, the joint angles' measurement noise estimated from
+            the data and its contribution to the normal equations removed
+            (:mod:`torchconn.regression.noise_aware`); unbiased, and 3-7x more accurate at
+            ω ≥ 0.002 (``benchmarks/accuracy.py``).
+        velocity_interval: samples per difference of the ``"noise_aware"`` regression; None
+            chooses it from the data's noise (:func:`velocity_interval_for`). With
+            ``window=None`` that regression also widens its bins with the noise.
+        noise_band: frequency band ``(f_lo, 0.5)`` (cycles per sample) of the noise estimate;
+            None: from the 6th harmonic of the gait up (``f_lo = 6 / samples per cycle``,
+            within [0.1, 0.3]).
     """
 
     n_bins: int = 48
@@ -79,6 +98,9 @@ class EstimatorSettings:
     min_cycles: float = 3.0
     metric: bool = True
     pool: bool = False
+    regression: str = "smoothed"
+    velocity_interval: int | None = None
+    noise_band: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_bins, int) or self.n_bins < 3:
@@ -90,6 +112,12 @@ class EstimatorSettings:
             )
         if self.window is not None and self.window <= 0:
             raise ValueError(f"window must be positive or None (auto), got {self.window!r}")
+        if self.regression not in REGRESSIONS:
+            raise ValueError(f"regression must be one of {REGRESSIONS}, got {self.regression!r}")
+        h = self.velocity_interval
+        if h is not None and (isinstance(h, bool) or not isinstance(h, int) or h < 1):
+            raise ValueError(f"velocity_interval must be a positive integer (samples) or None "
+                             f"(chosen from the data), got {h!r}")
 
 
 def prepare(
@@ -200,8 +228,12 @@ def fit_local_model(
                                                  settings.samples_per_regressor)
         return assign_bins(phase, M, window=window, kernel=settings.kernel), window
 
-    bins, window = bins_for(1 + 2 * d + d * d)
-    fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
+    noise_meta = {}
+    if settings.regression == "noise_aware":
+        fit, window, noise_meta = _noise_aware_fit(traj, settings, M, gamma_m, gamma_dot_m, opts)
+    else:
+        bins, window = bins_for(1 + 2 * d + d * d)
+        fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
     metric_fit, metric_window = None, None
     if settings.metric and power is not None:
         mbins, metric_window = bins_for(metric_n_coef(d, False))
@@ -227,8 +259,68 @@ def fit_local_model(
         M=None if metric_fit is None else series(metric_fit.M, 2),
         bins=estimates,
         meta={"settings": asdict(settings), "dt": traj.dt, "batch_shape": list(batch),
-              "window": window, "metric_window": metric_window},
+              "window": window, "metric_window": metric_window, **noise_meta},
     )
+
+
+def _noise_aware_fit(traj: Trajectory, settings: EstimatorSettings, n_bins: int,
+                     gamma_m: Tensor, gamma_dot_m: Tensor, opts: dict):
+    """The ``"noise_aware"`` connection regression of :func:`fit_local_model`."""
+    d = traj.shape_dim
+    per_cycle = 2 * math.pi / float(phase_rate(traj.phase, traj.dt).mean() * traj.dt)
+    band = settings.noise_band or (min(max(6 / per_cycle, 0.1), 0.3), 0.5)
+    noise = estimate_noise(traj.r, band=band)  # (..., d)
+    var = noise.measurement.square()
+    ratio = noise_ratio(noise)
+    h = settings.velocity_interval or velocity_interval_for(ratio, per_cycle)
+    iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt, h)
+    if settings.pool:
+        iv = dataclasses.replace(iv, phase=_pool(iv.phase, 0), r=_pool(iv.r, 1),
+                                 r_dot=_pool(iv.r_dot, 1), xi=_pool(iv.xi, 1))
+        var = var.reshape(-1, d).mean(0)
+    window = settings.window
+    if window is None:
+        window = max(_auto_window(iv.phase, n_bins, 1 + 2 * d + d * d,
+                                  settings.samples_per_regressor),
+                     min(1 + _WINDOW_PER_NOISE_RATIO * ratio, _MAX_NOISE_WINDOW))
+    bins = assign_bins(iv.phase, n_bins, window=window, kernel=settings.kernel)
+    fit = noise_aware_regression(iv, bins, gamma_m, gamma_dot_m, var, **opts)
+    meta = {"velocity_interval": h, "noise_ratio": ratio,
+            "noise_r": noise.measurement.tolist()}
+    return fit, window, meta
+
+
+#: the velocity interval is the shortest at which the joint-angle noise adds at most this
+#: fraction of the process noise's variance to a shape-velocity difference
+_INTERVAL_NOISE_FRACTION = 0.05
+#: longest velocity interval, as a fraction of a cycle (the mid-point rule's bias grows with it)
+_MAX_INTERVAL_CYCLES = 1 / 10
+#: bin half-width grows by this many bin spacings per unit of the noise ratio (see noise_ratio),
+#: up to _MAX_NOISE_WINDOW spacings: wider windows lowered the error on a circle gait but
+#: biased the strongly curved 3-link reference gait (measured: 9 % at 3 spacings, 17 % at 6,
+#: ω = 0.005)
+_WINDOW_PER_NOISE_RATIO = 20.0
+_MAX_NOISE_WINDOW = 3.0
+
+
+def noise_ratio(noise) -> float:
+    """``2σ²/q²``: joint-angle measurement-noise variance of a one-sample difference over the
+    process noise's, pooled over trials and joints (0 on clean data; ~0.6 for ω = 0.005 in the
+    paper's SDE at Δt = 0.05)."""
+    sigma2 = float(noise.measurement.square().mean())
+    q2 = float(noise.process.square().mean())
+    return 2 * sigma2 / q2 if q2 > 0 else 0.0
+
+
+def velocity_interval_for(ratio: float, samples_per_cycle: float) -> int:
+    """Samples per difference of the noise-aware regression, from the data's noise ratio.
+
+    Over ``h`` samples the process noise's variance grows as ``h`` and the measurement noise's
+    stays, so ``h = ⌈ratio / _INTERVAL_NOISE_FRACTION⌉``, at least 2 and at most
+    :data:`_MAX_INTERVAL_CYCLES` of a cycle.
+    """
+    longest = max(2, int(samples_per_cycle * _MAX_INTERVAL_CYCLES))
+    return int(min(max(2, math.ceil(ratio / _INTERVAL_NOISE_FRACTION)), longest))
 
 
 def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
