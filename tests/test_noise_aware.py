@@ -84,11 +84,15 @@ def test_noise_estimate_separates_white_noise_from_a_random_walk():
 def test_noise_estimate_on_swimmer_recordings(omega, clean30):
     traj = _recording(omega, clean=clean30)
     for x in (traj.r, traj.pose):
-        sigma = estimate_noise(x).measurement.square().mean(0).sqrt()  # pooled over trials
+        est = estimate_noise(x)
+        sigma = est.measurement.square().mean(0).sqrt()  # pooled over trials
         if omega == 0:
             assert float(sigma.max()) < 0.001  # near 0 next to the smallest level that matters
+            # and not significantly above 0: what the regression corrects for is exactly 0
+            assert bool((est.pooled_variance(1) == 0).all())
         else:
             assert torch.allclose(sigma, torch.full_like(sigma, omega), rtol=0.2)
+            assert torch.allclose(est.pooled_variance(1).sqrt(), sigma)
 
 
 def test_eiv_correction_is_the_expected_noise_part_of_the_gram_matrix():

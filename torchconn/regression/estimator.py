@@ -270,14 +270,15 @@ def _noise_aware_fit(traj: Trajectory, settings: EstimatorSettings, n_bins: int,
     per_cycle = 2 * math.pi / float(phase_rate(traj.phase, traj.dt).mean() * traj.dt)
     band = settings.noise_band or (min(max(6 / per_cycle, 0.1), 0.3), 0.5)
     noise = estimate_noise(traj.r, band=band)  # (..., d)
-    var = noise.measurement.square()
-    ratio = noise_ratio(noise)
+    n_batch = traj.phase.ndim - 1
+    # one rig: when pooled, the trials share one noise level per joint
+    var = noise.pooled_variance(n_batch if settings.pool else 0)
+    ratio = noise_ratio(noise, n_batch)
     h = settings.velocity_interval or velocity_interval_for(ratio, per_cycle)
     iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt, h)
     if settings.pool:
         iv = dataclasses.replace(iv, phase=_pool(iv.phase, 0), r=_pool(iv.r, 1),
                                  r_dot=_pool(iv.r_dot, 1), xi=_pool(iv.xi, 1))
-        var = var.reshape(-1, d).mean(0)
     window = settings.window
     if window is None:
         window = max(_auto_window(iv.phase, n_bins, 1 + 2 * d + d * d,
@@ -286,7 +287,7 @@ def _noise_aware_fit(traj: Trajectory, settings: EstimatorSettings, n_bins: int,
     bins = assign_bins(iv.phase, n_bins, window=window, kernel=settings.kernel)
     fit = noise_aware_regression(iv, bins, gamma_m, gamma_dot_m, var, **opts)
     meta = {"velocity_interval": h, "noise_ratio": ratio,
-            "noise_r": noise.measurement.tolist()}
+            "noise_r": var.sqrt().tolist()}
     return fit, window, meta
 
 
@@ -303,11 +304,11 @@ _WINDOW_PER_NOISE_RATIO = 20.0
 _MAX_NOISE_WINDOW = 3.0
 
 
-def noise_ratio(noise) -> float:
+def noise_ratio(noise, n_batch_dims: int) -> float:
     """``2σ²/q²``: joint-angle measurement-noise variance of a one-sample difference over the
-    process noise's, pooled over trials and joints (0 on clean data; ~0.6 for ω = 0.005 in the
-    paper's SDE at Δt = 0.05)."""
-    sigma2 = float(noise.measurement.square().mean())
+    process noise's, pooled over the ``n_batch_dims`` leading (trial) dims and the joints (0 on
+    clean data; ~0.6 for ω = 0.005 in the paper's SDE at Δt = 0.05)."""
+    sigma2 = float(noise.pooled_variance(n_batch_dims).mean())
     q2 = float(noise.process.square().mean())
     return 2 * sigma2 / q2 if q2 > 0 else 0.0
 
@@ -316,11 +317,11 @@ def velocity_interval_for(ratio: float, samples_per_cycle: float) -> int:
     """Samples per difference of the noise-aware regression, from the data's noise ratio.
 
     Over ``h`` samples the process noise's variance grows as ``h`` and the measurement noise's
-    stays, so ``h = ⌈ratio / _INTERVAL_NOISE_FRACTION⌉``, at least 2 and at most
+    stays, so ``h = ⌈ratio / _INTERVAL_NOISE_FRACTION⌉``, at least 1 and at most
     :data:`_MAX_INTERVAL_CYCLES` of a cycle.
     """
     longest = max(2, int(samples_per_cycle * _MAX_INTERVAL_CYCLES))
-    return int(min(max(2, math.ceil(ratio / _INTERVAL_NOISE_FRACTION)), longest))
+    return int(min(max(1, math.ceil(ratio / _INTERVAL_NOISE_FRACTION)), longest))
 
 
 def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:

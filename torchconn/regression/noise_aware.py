@@ -53,10 +53,24 @@ class NoiseEstimate:
         process: ``(..., C)`` the increments' process-noise floor per sample (the standard
             deviation of a one-sample increment of the driving noise: ``η √Δt`` for the paper's
             SDE, more where phase noise moves the gait).
+        variance_se: ``(..., C)`` standard error of ``measurement²`` (from the spread of the
+            periodogram about its fitted line).
     """
 
     measurement: Tensor
     process: Tensor
+    variance_se: Tensor
+
+    def pooled_variance(self, n_batch_dims: int, *, min_z: float = 2.0) -> Tensor:
+        """Measurement variance ``(C,)``-shaped after averaging the leading ``n_batch_dims``
+        dims (trials of one rig), set to 0 where it is not ``min_z`` standard errors above 0
+        (clean data: the estimate is then only the periodogram's scatter)."""
+        dims = tuple(range(n_batch_dims))
+        var = self.measurement.square()
+        count = math.prod(var.shape[:n_batch_dims])
+        mean = var.mean(dims) if dims else var
+        se = (self.variance_se.square().sum(dims).sqrt() / count) if dims else self.variance_se
+        return torch.where(mean > min_z * se, mean, torch.zeros_like(mean))
 
 
 def estimate_noise(x: Tensor, *, band: tuple[float, float] = NOISE_BAND,
@@ -106,10 +120,13 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] = NOISE_BAND,
     z = 4 * torch.sin(math.pi * f[keep]).square()  # (F',)
     p = power[..., keep, :]
     zc = z - z.mean()
-    slope = (zc[:, None] * p).sum(-2) / zc.square().sum()
+    sxx = zc.square().sum()
+    slope = (zc[:, None] * p).sum(-2) / sxx
     intercept = p.mean(-2) - slope * z.mean()
+    resid = p - intercept.unsqueeze(-2) - slope.unsqueeze(-2) * z[:, None]
+    slope_se = (resid.square().sum(-2) / ((z.numel() - 2) * sxx)).sqrt()
     return NoiseEstimate(measurement=slope.clamp_min(0).sqrt(),
-                         process=intercept.clamp_min(0).sqrt())
+                         process=intercept.clamp_min(0).sqrt(), variance_se=slope_se)
 
 
 @dataclass(frozen=True)
