@@ -48,7 +48,7 @@ def test_toy_connection_is_recovered_exactly_from_noise_free_data():
     gait = FourierGait(coeffs)
     traj = _exact_trajectory(toy, gait)
     est = ConnectionEstimator(n_bins=16, fourier_order=6, window=1.0, cycle_order=2,
-                              metric=False).fit(traj)
+                              metric=False, regression="smoothed").fit(traj)
     phi = torch.linspace(0, 2 * math.pi, 50, dtype=F64)
     gamma = est.model_.gamma_at(phi)
     # the cycle comes from the data (mean of r at each phase); the connection at that cycle
@@ -61,7 +61,8 @@ def test_toy_connection_is_recovered_exactly_from_noise_free_data():
 
 
 def _swimmer_truth_trajectory(n_cycles, seeds):
-    """Simulated 3-link trials whose 'smoothed' state is the simulation's truth (no filter)."""
+    """Simulated 3-link trials whose 'smoothed' state is the simulation's truth (no filter),
+    for the ``regression="smoothed"`` method, which regresses on that state."""
     s = NLinkSwimmer(3)
     tr = simulate(s, reference_gait("3link"), eta=0.025, n_cycles=n_cycles, seeds=seeds)
     g = tr.truth
@@ -76,7 +77,8 @@ def test_estimates_converge_to_the_simulator_as_data_grows():
     errs = {"A": [], "dA": [], "M": []}
     for n in cycles:
         s, tr = _swimmer_truth_trajectory(int(n), seeds=np.arange(2) + 100)
-        est = ConnectionEstimator(n_bins=96, fourier_order=16, window=1.0).fit(tr)
+        est = ConnectionEstimator(n_bins=96, fourier_order=16, window=1.0,
+                                  regression="smoothed").fit(tr)
         b = est.model_.bins
         for name, est_v, true_v in (("A", b.A, s.connection(b.gamma)),
                                     ("dA", b.dA, s.connection_jacobian(b.gamma)),
@@ -94,7 +96,7 @@ def test_data_driven_mean_error_per_phase_bin_is_zero_within_its_standard_error(
     s, tr = _swimmer_truth_trajectory(30, seeds=np.arange(8) + 11)
     M = 32
     est = ConnectionEstimator(n_bins=M, fourier_order=10, window=0.5, kernel="box",
-                              metric=False).fit(tr)
+                              metric=False, regression="smoothed").fit(tr)
     b = est.model_.bins
     # each sample predicted by its own bin's regression (eq. advanceddatadriven at γ_m)
     m = torch.round(torch.remainder(tr.phase, 2 * math.pi) / (2 * math.pi / M)).long() % M

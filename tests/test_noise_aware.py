@@ -12,6 +12,7 @@ from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
 from torchconn.physics.gaits import FourierGait
 from torchconn.regression.binning import assign_bins
 from torchconn.regression.connection import connection_design
+from torchconn.regression.estimator import PoorHeldOutSkillWarning
 from torchconn.regression.noise_aware import (
     eiv_correction,
     estimate_noise,
@@ -171,3 +172,37 @@ def test_error_falls_with_data_at_omega_0p002():
             for c in cycles]
     slope = np.polyfit(np.log(cycles), np.log(errs), 1)[0]
     assert slope <= -0.35, (errs, slope)
+
+
+def test_held_out_skill_beats_the_baselines_on_a_long_recording(clean30):
+    traj = _recording(0.002, clean=clean30)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PoorHeldOutSkillWarning)
+        est = ConnectionEstimator(pool=True, metric=False).fit(traj)
+    skill = est.held_out_skill_
+    assert bool((skill.r2 > skill.r2_phase_average).all())
+    assert bool((skill.r2 > skill.r2_template).all())
+    # score() on a recording the fit never saw
+    new = _recording(0.002, n_cycles=8, n_trials=1, seed=5)
+    fresh = est.score(new)
+    assert bool((fresh.r2 > fresh.r2_phase_average).all())
+    # reproducible: the blocks are whole cycles in order, nothing random
+    again = est.cross_validate(3)
+    assert torch.equal(again.r2, skill.r2)
+
+
+def test_overfitting_a_short_recording_is_reported():
+    seeds = np.array([7])
+    five = simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=5,
+                    samples_per_cycle=DT_SAMPLES, seeds=seeds)
+    traj = observe(five, 0.005, seeds=seeds)
+    with pytest.warns(PoorHeldOutSkillWarning, match="worse than their phase-averaged"):
+        est = ConnectionEstimator(metric=False).fit(traj)
+    assert bool(est.held_out_skill_.worse_than_phase_average.any())
+
+
+def _wave(radius=0.7):
+    coeffs = torch.zeros(3, 4, dtype=F64)
+    lag = torch.arange(4, dtype=F64) * (math.pi / 2)
+    coeffs[1], coeffs[2] = radius * torch.cos(lag), radius * torch.sin(lag)
+    return FourierGait(coeffs)

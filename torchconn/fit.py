@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from .io.trajectory_files import read_csv
-from .regression.estimator import ConnectionEstimator, EstimatorSettings
+from .regression.estimator import REGRESSIONS, ConnectionEstimator, EstimatorSettings
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 
@@ -67,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--window", type=float, default=None,
                    help="bin half-width in bin spacings (default: sized from the data)")
     p.add_argument("--phase-order", type=int, default=3, help="Phaser correction order")
+    p.add_argument("--regression", choices=REGRESSIONS, default=defaults.regression,
+                   help=f"connection regression (default {defaults.regression})")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
     args = p.parse_args(argv)
     if args.links < 2:
@@ -76,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         traj = read_csv(args.data, n_joints=args.links - 1)
         est = ConnectionEstimator(
             n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
-            phase_order=args.phase_order, pool=True,
+            phase_order=args.phase_order, pool=True, regression=args.regression,
         ).fit(traj)
     except (ValueError, FileNotFoundError) as err:
         print(f"python -m torchconn.fit: error: {err}", file=sys.stderr)
@@ -93,6 +95,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
           f"samples (d = {traj.shape_dim})")
     print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
+    skill = getattr(est, "held_out_skill_", None)
+    if skill is not None:
+        print("held-out R² (v_x, v_y, omega), refitted on 2 of 3 blocks of whole cycles:")
+        for name, r2 in (("model", skill.r2), ("phase-averaged velocity", skill.r2_phase_average),
+                         ("template", skill.r2_template)):
+            print(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
+        if bool(skill.worse_than_phase_average.any()):
+            print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
+                  "velocity; it overfits this recording (try fewer --n-bins, a lower "
+                  "--fourier-order or a wider --window, or record more cycles)")
     return 0
 
 

@@ -27,6 +27,7 @@ from ..phase.limit_cycle import LimitCycle, fit_limit_cycle, phase_rate
 from ..phase.phaser import estimate_phase
 from ..phase.smoothing import smooth_trajectory
 from ..trajectory import SmoothedState, Trajectory
+from ._wls import IllConditionedBinWarning
 from .binning import assign_bins
 from .connection import connection_regression
 from .metric import metric_n_coef, metric_regression
@@ -34,7 +35,36 @@ from .model import BinEstimates, LocalConnectionModel
 from .noise_aware import estimate_noise, interval_samples, noise_aware_regression
 
 __all__ = ["EstimatorSettings", "ConnectionEstimator", "prepare", "fit_local_model",
-           "REGRESSIONS"]
+           "REGRESSIONS", "Skill", "PoorHeldOutSkillWarning"]
+
+
+class PoorHeldOutSkillWarning(UserWarning):
+    """The fitted model predicted held-out cycles worse than their phase-averaged velocity."""
+
+
+@dataclass(frozen=True)
+class Skill:
+    """Skill of predicted body velocities per component ``(v_x, v_y, ω)``: ``R² = 1 − SSE/SST``
+    against the observed velocity the regression sees (its target), beside two baselines.
+
+    Attributes:
+        r2: ``(..., 3)`` the fitted model ``ĉ + b̂δ + Âδ̇ + ∂Â/∂r (δ̇⊗δ)``.
+        r2_phase_average: ``(..., 3)`` the phase-averaged velocity of the training data (a
+            Fourier series in phase of the observed velocity, ignoring the shape).
+        r2_template: ``(..., 3)`` the template ``ĉ(φ) = Â(γ)γ̇`` (the model on the cycle).
+        n_samples: ``(...)`` samples scored.
+    """
+
+    r2: Tensor
+    r2_phase_average: Tensor
+    r2_template: Tensor
+    n_samples: Tensor
+
+    @property
+    def worse_than_phase_average(self) -> Tensor:
+        """``(..., 3)`` True where the model loses to a phase-averaged baseline that has skill
+        (``R² > 0``)."""
+        return (self.r2 < self.r2_phase_average) & (self.r2_phase_average > 0)
 
 #: the connection regressions :class:`EstimatorSettings` offers
 REGRESSIONS = ("noise_aware", "smoothed")
@@ -68,20 +98,25 @@ class EstimatorSettings:
         metric: also estimate the metric when the data carry power.
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
-        regression: how the connection is regressed. ``"smoothed"`` (default): the Kalman
-            smoother's velocities; under motion-capture noise Â shrinks towards 0 (the
-            smoother treats the pose channels, the target, differently from the shapes).
-            ``"noise_aware"``: body and shape velocities from raw differences over
-            ``velocity_interval`` samples, the joint angles' measurement noise estimated from
-            the data and its contribution to the normal equations removed
-            (:mod:`torchconn.regression.noise_aware`); unbiased, and 3-7x more accurate at
-            ω ≥ 0.002 (``benchmarks/accuracy.py``).
+        regression: how the connection is regressed. ``"noise_aware"`` (default): body and
+            shape velocities from raw differences of the recordings over ``velocity_interval``
+            samples, the joint angles' measurement noise estimated from the data and its
+            contribution to the normal equations removed
+            (:mod:`torchconn.regression.noise_aware`); the smoothed state serves only the
+            phase and the limit cycle. ``"smoothed"``: the Kalman smoother's velocities (the
+            method before issue 12); under motion-capture noise its Â shrinks towards 0,
+            because the smoother treats the pose channels, the target, differently from the
+            shapes (``benchmarks/accuracy.py`` compares the two).
         velocity_interval: samples per difference of the ``"noise_aware"`` regression; None
             chooses it from the data's noise (:func:`velocity_interval_for`). With
             ``window=None`` that regression also widens its bins with the noise.
         noise_band: frequency band ``(f_lo, 0.5)`` (cycles per sample) of the noise estimate;
             None: from the 6th harmonic of the gait up (``f_lo = 6 / samples per cycle``,
             within [0.1, 0.3]).
+        held_out_folds: after fitting, refit on all but one of this many blocks of whole
+            cycles and score the held-out block against the baselines of :class:`Skill`
+            (``held_out_skill_``); warn when the model loses to the phase-averaged velocity.
+            0 skips the check.
     """
 
     n_bins: int = 48
@@ -98,9 +133,10 @@ class EstimatorSettings:
     min_cycles: float = 3.0
     metric: bool = True
     pool: bool = False
-    regression: str = "smoothed"
+    regression: str = "noise_aware"
     velocity_interval: int | None = None
     noise_band: tuple[float, float] | None = None
+    held_out_folds: int = 3
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_bins, int) or self.n_bins < 3:
@@ -114,6 +150,10 @@ class EstimatorSettings:
             raise ValueError(f"window must be positive or None (auto), got {self.window!r}")
         if self.regression not in REGRESSIONS:
             raise ValueError(f"regression must be one of {REGRESSIONS}, got {self.regression!r}")
+        if (isinstance(self.held_out_folds, bool) or not isinstance(self.held_out_folds, int)
+                or self.held_out_folds == 1 or self.held_out_folds < 0):
+            raise ValueError(f"held_out_folds must be 0 (no check) or an integer >= 2, got "
+                             f"{self.held_out_folds!r}")
         h = self.velocity_interval
         if h is not None and (isinstance(h, bool) or not isinstance(h, int) or h < 1):
             raise ValueError(f"velocity_interval must be a positive integer (samples) or None "
@@ -324,6 +364,60 @@ def velocity_interval_for(ratio: float, samples_per_cycle: float) -> int:
     return int(min(max(1, math.ceil(ratio / _INTERVAL_NOISE_FRACTION)), longest))
 
 
+@dataclass(frozen=True)
+class RegressionView:
+    """Samples as a connection regression sees them: ``phase (..., N)``, ``r, r_dot (..., N, d)``,
+    ``xi (..., N, 3)``."""
+
+    phase: Tensor
+    r: Tensor
+    r_dot: Tensor
+    xi: Tensor
+
+
+def _cycle_blocks(phase: Tensor, n_folds: int) -> Tensor:
+    """``(..., N)`` block index in ``[0, n_folds)`` of contiguous whole cycles per trial
+    (-1 where the phase is NaN)."""
+    start = torch.nan_to_num(phase, nan=float("inf")).amin(-1, keepdim=True)
+    cyc = torch.floor((phase - start) / (2 * math.pi))
+    n_cyc = torch.nan_to_num(cyc, nan=-1.0).amax(-1, keepdim=True) + 1
+    fold = torch.floor(cyc * n_folds / n_cyc)
+    return torch.where(torch.isfinite(fold), fold, -1.0).long()
+
+
+def _skill_sums(model: LocalConnectionModel, phase_average, view: RegressionView,
+                mask: Tensor | None):
+    """Sums over the scored samples: SSE of model, phase average, template; Σy, Σy², count."""
+    ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
+    ok &= torch.isfinite(view.r).all(-1) & torch.isfinite(view.r_dot).all(-1)
+    if mask is not None:
+        ok &= mask
+    phase = torch.where(ok, view.phase, 0.0)
+    r = torch.where(ok[..., None], view.r, 0.0)
+    r_dot = torch.where(ok[..., None], view.r_dot, 0.0)
+    y = torch.where(ok[..., None], view.xi, 0.0)
+    w = ok.to(y.dtype)[..., None]
+    preds = (model.predict(phase, r, r_dot), phase_average(phase), model.c(phase))
+    sse = [((y - p).square() * w).sum(-2) for p in preds]
+    return (*sse, (y * w).sum(-2), (y.square() * w).sum(-2), w.sum(-2)[..., 0])
+
+
+def _skill_from_sums(sse_model, sse_pa, sse_template, sy, syy, n) -> Skill:
+    sst = syy - sy.square() / n[..., None]
+    return Skill(r2=1 - sse_model / sst, r2_phase_average=1 - sse_pa / sst,
+                 r2_template=1 - sse_template / sst, n_samples=n)
+
+
+def _skill(model, phase_average, view: RegressionView, mask) -> Skill:
+    return _skill_from_sums(*_skill_sums(model, phase_average, view, mask))
+
+
+def _fmt(x: Tensor) -> str:
+    flat = x.reshape(-1, 3)
+    return "[" + ", ".join(f"{float(v):.2f}" for v in flat.min(0).values) + "]" + (
+        " (worst trial)" if flat.shape[0] > 1 else "")
+
+
 def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
     """Half-width (in bin spacings) holding ``per_regressor`` samples per regressor on average
     in the batch element with the fewest finite samples; at least 1, at most a quarter cycle
@@ -393,7 +487,92 @@ class ConnectionEstimator:
         self.trajectory_ = traj
         self.limit_cycle_ = cycle
         self.model_ = fit_local_model(traj, cycle, s)
+        view = self._view(traj)
+        self.phase_average_ = fit_fourier(view.phase, view.xi, s.fourier_order, value_ndim=1)
+        if s.held_out_folds:
+            self._check_held_out(s.held_out_folds)
         return self
+
+    def _view(self, traj: Trajectory) -> RegressionView:
+        """The samples as the regression sees them (pooled when the fit pools trials)."""
+        s = self.settings
+        if s.regression == "noise_aware":
+            iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt,
+                                  self.model_.meta["velocity_interval"])
+            view = RegressionView(iv.phase, iv.r, iv.r_dot, iv.xi)
+        else:
+            sm = traj.smoothed
+            view = RegressionView(traj.phase, sm.r, sm.r_dot, sm.xi)
+        if s.pool:
+            view = RegressionView(_pool(view.phase, 0), _pool(view.r, 1), _pool(view.r_dot, 1),
+                                  _pool(view.xi, 1))
+        return view
+
+    def score(self, traj: Trajectory, phase: Tensor | None = None) -> Skill:
+        """Skill on recordings ``traj`` that the fit did not see (see :class:`Skill`).
+
+        The target is the observed body velocity the way the regression sees it (raw interval
+        differences for ``"noise_aware"``, the smoothed velocity for ``"smoothed"``). The phase
+        of ``traj`` is estimated afresh unless given.
+        """
+        self._fitted()
+        view = self._view(self.prepare(traj, phase))
+        return _skill(self.model_, self.phase_average_, view, None)
+
+    def cross_validate(self, n_folds: int = 3) -> Skill:
+        """Held-out skill on the training recordings: refit on all but one of ``n_folds``
+        contiguous blocks of whole cycles (per trial) and score the block left out, for every
+        block; the phase and limit cycle of the whole fit are kept (they carry little of the
+        model's complexity)."""
+        self._fitted()
+        traj, s = self.trajectory_, self.settings
+        view = self._view(traj)
+        fold = _cycle_blocks(self._view_unpooled_phase(), n_folds)
+        if s.pool:
+            fold = _pool(fold, 0)
+        sums = []
+        phase_fold = _cycle_blocks(traj.phase, n_folds)
+        for f in range(n_folds):
+            train = traj.with_fields(phase=torch.where(phase_fold == f, torch.nan, traj.phase))
+            model = fit_local_model(train, self.limit_cycle_,
+                                    dataclasses.replace(s, held_out_folds=0))
+            keep = fold != f
+            pa = fit_fourier(torch.where(keep, view.phase, torch.nan), view.xi,
+                             s.fourier_order, value_ndim=1)
+            sums.append(_skill_sums(model, pa, view, fold == f))
+        total = [sum(parts) for parts in zip(*sums, strict=True)]
+        return _skill_from_sums(*total)
+
+    def _view_unpooled_phase(self) -> Tensor:
+        """``(..., N)`` phase of the regression's samples, before pooling."""
+        if self.settings.regression == "noise_aware":
+            h = self.model_.meta["velocity_interval"]
+            traj = self.trajectory_
+            return interval_samples(traj.pose, traj.r, traj.phase, traj.dt, h).phase
+        return self.trajectory_.phase
+
+    def _check_held_out(self, n_folds: int) -> None:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", IllConditionedBinWarning)
+                skill = self.cross_validate(n_folds)
+        except ValueError as err:
+            self.held_out_skill_ = None
+            warnings.warn(f"held-out check skipped: refitting on {n_folds - 1} of {n_folds} "
+                          f"blocks of cycles failed ({err}); record more cycles or pass "
+                          f"held_out_folds=0", PoorHeldOutSkillWarning, stacklevel=3)
+            return
+        self.held_out_skill_ = skill
+        worse = skill.worse_than_phase_average
+        if bool(worse.any()):
+            names = [n for n, w in zip(("v_x", "v_y", "omega"), worse.reshape(-1, 3).any(0),
+                                       strict=True) if w]
+            warnings.warn(
+                f"the model predicts held-out cycles worse than their phase-averaged velocity "
+                f"for {', '.join(names)} (held-out R² {_fmt(skill.r2)} vs phase average "
+                f"{_fmt(skill.r2_phase_average)}): it overfits this recording; use fewer "
+                f"n_bins / a lower fourier_order / a wider window, or record more cycles",
+                PoorHeldOutSkillWarning, stacklevel=3)
 
     def prepare(self, traj: Trajectory, phase: Tensor | None = None) -> Trajectory:
         """:func:`prepare` with this estimator's settings (smoothing, phase)."""

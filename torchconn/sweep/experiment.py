@@ -96,7 +96,9 @@ def run_experiment(config: SweepConfig, experiment: Experiment) -> ExperimentRes
 
     # the sweep scores body-velocity models only, so the metric is not fitted (at low noise its
     # quadratic regressors can be too thin to fit, which should not stop a connection study)
-    estimator = ConnectionEstimator(**{**asdict(config.estimator), "metric": False})
+    # nor the held-out check: it is for users' recordings, the sweep scores against the truth
+    estimator = ConnectionEstimator(**{**asdict(config.estimator), "metric": False,
+                                       "held_out_folds": 0})
     phase = traj.truth.phase if config.phase == "true" else None
     t0 = clock()
     prepared = estimator.prepare(traj, phase=phase)
