@@ -196,8 +196,10 @@ def test_overfitting_a_short_recording_is_reported():
     five = simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=5,
                     samples_per_cycle=DT_SAMPLES, seeds=seeds)
     traj = observe(five, 0.005, seeds=seeds)
+    # the fixed default complexity (48 bins, order 12) overfits 5 cycles; complexity="cv"
+    # (the default) would choose a simpler model
     with pytest.warns(PoorHeldOutSkillWarning, match="worse than their phase-averaged"):
-        est = ConnectionEstimator(metric=False).fit(traj)
+        est = ConnectionEstimator(metric=False, complexity="fixed").fit(traj)
     assert bool(est.held_out_skill_.worse_than_phase_average.any())
 
 
@@ -206,3 +208,26 @@ def _wave(radius=0.7):
     lag = torch.arange(4, dtype=F64) * (math.pi / 2)
     coeffs[1], coeffs[2] = radius * torch.cos(lag), radius * torch.sin(lag)
     return FourierGait(coeffs)
+
+
+def test_complexity_from_cross_validation_is_reproducible_and_stops_overfitting():
+    # a short real-like recording: 5-link, 6 cycles, omega = 0.005; fit on 60 %, score the rest
+    seeds = np.array([11])
+    six = observe(simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=6,
+                           samples_per_cycle=DT_SAMPLES, seeds=seeds), 0.005, seeds=seeds)
+    cut = int(0.6 * six.n_samples)
+    train, test = six.slice_time(0, cut), six.slice_time(cut, six.n_samples)
+    kw = dict(metric=False, min_cycles=2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fixed = ConnectionEstimator(**kw).fit(train)
+        cv = ConnectionEstimator(complexity="cv", **kw).fit(train)
+        again = ConnectionEstimator(complexity="cv", **kw).fit(train)
+    assert cv.complexity_ == again.complexity_  # same blocks, no randomness
+    assert len(cv.complexity_.scores) == 12
+    s_fixed, s_cv = fixed.score(test), cv.score(test)
+    assert bool((s_cv.r2 > s_fixed.r2).all())
+    # the chosen model is no worse than the phase-averaged velocity on held-out cycles
+    assert bool((s_cv.r2 > s_cv.r2_phase_average - 0.01).all())
+    with pytest.raises(ValueError, match="complexity must be"):
+        ConnectionEstimator(complexity="auto")

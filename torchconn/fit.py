@@ -69,6 +69,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--phase-order", type=int, default=3, help="Phaser correction order")
     p.add_argument("--regression", choices=REGRESSIONS, default=defaults.regression,
                    help=f"connection regression (default {defaults.regression})")
+    p.add_argument("--complexity", choices=("cv", "fixed"), default=None,
+                   help="cv: bins, Fourier order and ridge by held-out error over blocks of "
+                   "whole cycles; fixed: --n-bins and --fourier-order as given (default: cv "
+                   "unless --n-bins or --fourier-order is given)")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
     args = p.parse_args(argv)
     if args.links < 2:
@@ -79,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         est = ConnectionEstimator(
             n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
             phase_order=args.phase_order, pool=True, regression=args.regression,
+            complexity=args.complexity,
         ).fit(traj)
     except (ValueError, FileNotFoundError) as err:
         print(f"python -m torchconn.fit: error: {err}", file=sys.stderr)
@@ -97,6 +102,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
     skill = getattr(est, "held_out_skill_", None)
     if skill is not None:
+        if est.settings.complexity_mode == "cv":
+            c = est.complexity_
+            print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
+                  f"{c.fourier_order}, ridge {c.ridge:g}")
         print("held-out R² (v_x, v_y, omega), refitted on 2 of 3 blocks of whole cycles:")
         for name, r2 in (("model", skill.r2), ("phase-averaged velocity", skill.r2_phase_average),
                          ("template", skill.r2_template)):

@@ -123,7 +123,8 @@ def compare_terms(
         # the comparison is like with like (data and twin through one pipeline) and its
         # thresholds were validated with the smoothed regression
         est = ConnectionEstimator(n_bins=n_bins, fourier_order=fourier_order, pool=True,
-                                  metric=False, regression="smoothed", held_out_folds=0)
+                                  metric=False, regression="smoothed", held_out_folds=0,
+                                  complexity="fixed")
         return est.fit(recording, phase=phase).model_.bins
 
     bins = fit(traj)

@@ -32,10 +32,32 @@ from .binning import assign_bins
 from .connection import connection_regression
 from .metric import metric_n_coef, metric_regression
 from .model import BinEstimates, LocalConnectionModel
-from .noise_aware import estimate_noise, interval_samples, noise_aware_regression
+from .noise_aware import (
+    IntervalSamples,
+    estimate_noise,
+    interval_samples,
+    noise_aware_regression,
+)
 
 __all__ = ["EstimatorSettings", "ConnectionEstimator", "prepare", "fit_local_model",
-           "REGRESSIONS", "Skill", "PoorHeldOutSkillWarning"]
+           "REGRESSIONS", "Skill", "PoorHeldOutSkillWarning", "ComplexityChoice",
+           "COMPLEXITY_GRID", "RIDGE_GRID"]
+
+
+#: (n_bins, fourier_order) candidates of complexity="cv", simplest first
+COMPLEXITY_GRID = ((12, 3), (24, 6), (48, 12))
+#: ridge candidates of complexity="cv" (relative to the standardised normal matrix)
+RIDGE_GRID = (0.0, 0.1, 1.0, 10.0)
+
+
+@dataclass(frozen=True)
+class ComplexityChoice:
+    """What ``complexity="cv"`` chose, and every candidate's mean held-out ``SSE/SST``."""
+
+    n_bins: int
+    fourier_order: int
+    ridge: float
+    scores: tuple[dict, ...]
 
 
 class PoorHeldOutSkillWarning(UserWarning):
@@ -113,6 +135,12 @@ class EstimatorSettings:
         noise_band: frequency band ``(f_lo, 0.5)`` (cycles per sample) of the noise estimate;
             None: from the 6th harmonic of the gait up (``f_lo = 6 / samples per cycle``,
             within [0.1, 0.3]).
+        complexity: ``"cv"``: ``n_bins``, ``fourier_order`` and ``ridge`` chosen among
+            :data:`COMPLEXITY_GRID` x :data:`RIDGE_GRID` by the held-out error over
+            ``held_out_folds`` (at least 2) blocks of whole cycles (``complexity_`` records the
+            choice and every candidate's score; ~3-7x the time of one fit). ``"fixed"``:
+            ``n_bins``, ``fourier_order`` and ``ridge`` as given. None (default): ``"cv"``
+            unless one of the three was set away from its default.
         held_out_folds: after fitting, refit on all but one of this many blocks of whole
             cycles and score the held-out block against the baselines of :class:`Skill`
             (``held_out_skill_``); warn when the model loses to the phase-averaged velocity.
@@ -136,7 +164,16 @@ class EstimatorSettings:
     regression: str = "noise_aware"
     velocity_interval: int | None = None
     noise_band: tuple[float, float] | None = None
+    complexity: str | None = None
     held_out_folds: int = 3
+
+    @property
+    def complexity_mode(self) -> str:
+        """``"cv"`` or ``"fixed"``: :attr:`complexity` with None resolved."""
+        if self.complexity is not None:
+            return self.complexity
+        given = (self.n_bins, self.fourier_order, self.ridge) != (48, 12, 0.0)
+        return "fixed" if given else "cv"
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_bins, int) or self.n_bins < 3:
@@ -154,6 +191,11 @@ class EstimatorSettings:
                 or self.held_out_folds == 1 or self.held_out_folds < 0):
             raise ValueError(f"held_out_folds must be 0 (no check) or an integer >= 2, got "
                              f"{self.held_out_folds!r}")
+        if self.complexity not in ("fixed", "cv", None):
+            raise ValueError(f"complexity must be 'fixed', 'cv' or None, got {self.complexity!r}")
+        if self.complexity_mode == "cv" and self.held_out_folds < 2:
+            raise ValueError("complexity='cv' needs held_out_folds >= 2 (the blocks of cycles "
+                             f"it validates on), got {self.held_out_folds!r}")
         h = self.velocity_interval
         if h is not None and (isinstance(h, bool) or not isinstance(h, int) or h < 1):
             raise ValueError(f"velocity_interval must be a positive integer (samples) or None "
@@ -305,30 +347,135 @@ def fit_local_model(
 
 def _noise_aware_fit(traj: Trajectory, settings: EstimatorSettings, n_bins: int,
                      gamma_m: Tensor, gamma_dot_m: Tensor, opts: dict):
-    """The ``"noise_aware"`` connection regression of :func:`fit_local_model`."""
+    """The ``"noise_aware"`` connection regression of :func:`fit_local_model`.
+
+    Unpooled batch elements may carry different noise (a sweep's noise levels), so each gets
+    its own interval and window; elements that share both are regressed together (one call
+    per distinct pair, not per trial).
+    """
     d = traj.shape_dim
-    per_cycle = 2 * math.pi / float(phase_rate(traj.phase, traj.dt).mean() * traj.dt)
+    var, ratio, h = _noise_setup(traj, settings)
+    if settings.pool:
+        view = _interval_view(traj, h, pool=True)
+        window = settings.window or _noise_window(view.phase, n_bins, d, settings, float(ratio))
+        bins = assign_bins(view.phase, n_bins, window=window, kernel=settings.kernel)
+        samples = IntervalSamples(phase=view.phase, r=view.r, r_dot=view.r_dot, xi=view.xi,
+                                  h=int(h), dt=float(traj.dt))
+        fit = noise_aware_regression(samples, bins, gamma_m, gamma_dot_m, var, **opts)
+        meta = {"velocity_interval": int(h), "noise_ratio": float(ratio),
+                "noise_r": var.sqrt().tolist()}
+        return fit, window, meta
+
+    batch = tuple(traj.batch_shape)
+    n, m = math.prod(batch), n_bins
+    flat = _flatten_batch(traj)
+    h_flat, ratio_flat = h.reshape(-1), ratio.reshape(-1)
+    windows = torch.tensor([settings.window or _noise_window(
+        flat.phase[b:b + 1], n_bins, d, settings, float(ratio_flat[b])) for b in range(n)],
+        dtype=torch.float64)
+    windows = torch.round(windows * 2) / 2  # half spacings: few distinct groups
+    groups, inverse = torch.unique(torch.stack([h_flat.to(windows), windows], -1), dim=0,
+                                   return_inverse=True)
+    g_m = gamma_m.expand(batch + (m, d)).reshape(n, m, d)
+    g_dot = gamma_dot_m.expand(batch + (m, d)).reshape(n, m, d)
+    var_flat = var.reshape(n, d)
+    parts = []
+    for g, (hg, wg) in enumerate(groups.tolist()):
+        idx = torch.nonzero(inverse == g).flatten()
+        sub = _take(flat, idx)
+        iv = interval_samples(sub.pose, sub.r, sub.phase, traj.dt, int(hg))
+        bins = assign_bins(iv.phase, n_bins, window=wg, kernel=settings.kernel)
+        parts.append((idx, noise_aware_regression(iv, bins, g_m[idx], g_dot[idx],
+                                                  var_flat[idx], **opts)))
+    meta = {"velocity_interval": h.tolist(), "noise_ratio": ratio.tolist(),
+            "noise_r": var.sqrt().tolist(), "windows": windows.reshape(batch).tolist()}
+    return _scatter_fits(parts, n, batch), float(windows.max()), meta
+
+
+def _noise_window(phase: Tensor, n_bins: int, d: int, settings: EstimatorSettings,
+                  ratio: float) -> float:
+    """Bin half-width of the noise-aware regression: the data-size rule, widened with noise."""
+    return max(_auto_window(phase, n_bins, 1 + 2 * d + d * d, settings.samples_per_regressor),
+               min(1 + _WINDOW_PER_NOISE_RATIO * ratio, _MAX_NOISE_WINDOW))
+
+
+def _flatten_batch(traj: Trajectory) -> Trajectory:
+    """``pose, r, phase`` with the batch dims flattened to one: ``(B, T, ·)``."""
+    T = traj.n_samples
+    return Trajectory(t=traj.t, pose=traj.pose.reshape(-1, T, 3),
+                      r=traj.r.reshape(-1, T, traj.shape_dim)).with_fields(
+        phase=traj.phase.reshape(-1, T))
+
+
+def _take(traj: Trajectory, idx: Tensor) -> Trajectory:
+    """Batch elements ``idx`` of a flattened trajectory (pose, r, phase)."""
+    return Trajectory(t=traj.t, pose=traj.pose[idx], r=traj.r[idx]).with_fields(
+        phase=traj.phase[idx])
+
+
+def _scatter_fits(parts, n: int, batch: tuple):
+    """One fit ``(*batch, M, ·)`` from fits of subsets ``(len(idx), M, ·)`` of ``n`` elements."""
+    first = parts[0][1]
+    out = {}
+    for f in fields(first):
+        ref = getattr(first, f.name)
+        if ref is None:
+            out[f.name] = None
+            continue
+        full = ref.new_zeros((n,) + ref.shape[1:])
+        for idx, fit in parts:
+            full[idx] = getattr(fit, f.name)
+        out[f.name] = full.reshape(batch + ref.shape[1:])
+    return type(first)(**out)
+
+
+def _interval_view(traj: Trajectory, h: Tensor, pool: bool = False) -> "RegressionView":
+    """Interval samples ``(..., T − min h, ·)`` with a per-element interval ``h`` (a ``(...)``
+    tensor, or a scalar); elements with a longer interval are padded with NaN at the end."""
+    h = torch.as_tensor(h)
+    if h.ndim == 0:
+        iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt, int(h))
+        view = RegressionView(iv.phase, iv.r, iv.r_dot, iv.xi)
+    else:
+        flat = _flatten_batch(traj)
+        h_flat = h.reshape(-1)
+        n = traj.n_samples - int(h_flat.min())
+        out = None
+        for hg in torch.unique(h_flat).tolist():
+            idx = torch.nonzero(h_flat == hg).flatten()
+            sub = _take(flat, idx)
+            iv = interval_samples(sub.pose, sub.r, sub.phase, traj.dt, int(hg))
+            vals = [iv.phase, iv.r, iv.r_dot, iv.xi]
+            if out is None:
+                out = [v.new_full((h_flat.numel(), n) + v.shape[2:], float("nan"))
+                       for v in vals]
+            for o, v in zip(out, vals, strict=True):
+                o[idx, :v.shape[1]] = v
+        batch = tuple(traj.batch_shape)
+        view = RegressionView(*(o.reshape(batch + o.shape[1:]) for o in out))
+    if pool:
+        view = RegressionView(_pool(view.phase, 0), _pool(view.r, 1), _pool(view.r_dot, 1),
+                              _pool(view.xi, 1))
+    return view
+
+
+def _noise_setup(traj: Trajectory, settings: EstimatorSettings):
+    """Joint-angle noise variance ``(..., d)``, noise ratio and velocity interval ``(...)`` of
+    the noise-aware regression (``(d,)`` and scalars when the fit pools the trials)."""
+    per_cycle = 2 * math.pi / float(phase_rate(traj.phase, traj.dt).nanmean() * traj.dt)
     band = settings.noise_band or (min(max(6 / per_cycle, 0.1), 0.3), 0.5)
     noise = estimate_noise(traj.r, band=band)  # (..., d)
-    n_batch = traj.phase.ndim - 1
+    n_pool = traj.phase.ndim - 1 if settings.pool else 0
     # one rig: when pooled, the trials share one noise level per joint
-    var = noise.pooled_variance(n_batch if settings.pool else 0)
-    ratio = noise_ratio(noise, n_batch)
-    h = settings.velocity_interval or velocity_interval_for(ratio, per_cycle)
-    iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt, h)
-    if settings.pool:
-        iv = dataclasses.replace(iv, phase=_pool(iv.phase, 0), r=_pool(iv.r, 1),
-                                 r_dot=_pool(iv.r_dot, 1), xi=_pool(iv.xi, 1))
-    window = settings.window
-    if window is None:
-        window = max(_auto_window(iv.phase, n_bins, 1 + 2 * d + d * d,
-                                  settings.samples_per_regressor),
-                     min(1 + _WINDOW_PER_NOISE_RATIO * ratio, _MAX_NOISE_WINDOW))
-    bins = assign_bins(iv.phase, n_bins, window=window, kernel=settings.kernel)
-    fit = noise_aware_regression(iv, bins, gamma_m, gamma_dot_m, var, **opts)
-    meta = {"velocity_interval": h, "noise_ratio": ratio,
-            "noise_r": var.sqrt().tolist()}
-    return fit, window, meta
+    var = noise.pooled_variance(n_pool)
+    q2 = noise.process.square()
+    q2 = q2.mean(tuple(range(n_pool))) if n_pool else q2
+    ratio = noise_ratio(var, q2)
+    if settings.velocity_interval:
+        h = torch.full(ratio.shape, settings.velocity_interval, dtype=torch.long)
+    else:
+        h = velocity_interval_for(ratio, per_cycle)
+    return var, ratio, h
 
 
 #: the velocity interval is the shortest at which the joint-angle noise adds at most this
@@ -344,24 +491,58 @@ _WINDOW_PER_NOISE_RATIO = 20.0
 _MAX_NOISE_WINDOW = 3.0
 
 
-def noise_ratio(noise, n_batch_dims: int) -> float:
-    """``2σ²/q²``: joint-angle measurement-noise variance of a one-sample difference over the
-    process noise's, pooled over the ``n_batch_dims`` leading (trial) dims and the joints (0 on
-    clean data; ~0.6 for ω = 0.005 in the paper's SDE at Δt = 0.05)."""
-    sigma2 = float(noise.pooled_variance(n_batch_dims).mean())
-    q2 = float(noise.process.square().mean())
-    return 2 * sigma2 / q2 if q2 > 0 else 0.0
+def noise_ratio(var: Tensor, process_var: Tensor) -> Tensor:
+    """``2σ²/q²`` ``(...)``: joint-angle measurement-noise variance of a one-sample difference
+    over the process noise's (``(..., d)`` each), averaged over the joints (0 on clean data;
+    ~0.6 for ω = 0.005 in the paper's SDE at Δt = 0.05)."""
+    q2 = process_var.mean(-1)
+    return torch.where(q2 > 0, 2 * var.mean(-1) / q2.clamp_min(1e-300), 0.0)
 
 
-def velocity_interval_for(ratio: float, samples_per_cycle: float) -> int:
-    """Samples per difference of the noise-aware regression, from the data's noise ratio.
+def velocity_interval_for(ratio: Tensor, samples_per_cycle: float) -> Tensor:
+    """Samples per difference ``(...)`` of the noise-aware regression, from the noise ratio.
 
     Over ``h`` samples the process noise's variance grows as ``h`` and the measurement noise's
     stays, so ``h = ⌈ratio / _INTERVAL_NOISE_FRACTION⌉``, at least 1 and at most
     :data:`_MAX_INTERVAL_CYCLES` of a cycle.
     """
     longest = max(2, int(samples_per_cycle * _MAX_INTERVAL_CYCLES))
-    return int(min(max(1, math.ceil(ratio / _INTERVAL_NOISE_FRACTION)), longest))
+    return torch.ceil(ratio / _INTERVAL_NOISE_FRACTION).clamp(1, longest).long()
+
+
+def _regression_view(traj: Trajectory, s: EstimatorSettings, h,
+                     pool: bool | None = None) -> RegressionView:
+    """Samples ``(..., N, ·)`` as the regression of ``s`` sees them (interval ``h``: an int or
+    nested list / tensor of the batch shape)."""
+    if s.regression == "noise_aware":
+        view = _interval_view(traj, torch.as_tensor(h))
+    else:
+        sm = traj.smoothed
+        view = RegressionView(traj.phase, sm.r, sm.r_dot, sm.xi)
+    if s.pool if pool is None else pool:
+        view = RegressionView(_pool(view.phase, 0), _pool(view.r, 1), _pool(view.r_dot, 1),
+                              _pool(view.xi, 1))
+    return view
+
+
+def _cross_validate(traj: Trajectory, cycle: LimitCycle, s: EstimatorSettings,
+                    h, n_folds: int) -> Skill:
+    """Held-out :class:`Skill` of settings ``s`` over ``n_folds`` blocks of whole cycles."""
+    s = dataclasses.replace(s, held_out_folds=0, complexity="fixed")
+    view = _regression_view(traj, s, h)
+    fold = _cycle_blocks(_regression_view(traj, s, h, pool=False).phase, n_folds)
+    if s.pool:
+        fold = _pool(fold, 0)
+    phase_fold = _cycle_blocks(traj.phase, n_folds)
+    sums = []
+    for f in range(n_folds):
+        # held-out samples leave the regression as drop-outs do: with a NaN phase
+        train = traj.with_fields(phase=torch.where(phase_fold == f, torch.nan, traj.phase))
+        model = fit_local_model(train, cycle, s)
+        pa = fit_fourier(torch.where(fold != f, view.phase, torch.nan), view.xi,
+                         s.fourier_order, value_ndim=1)
+        sums.append(_skill_sums(model, pa, view, fold == f))
+    return _skill_from_sums(*[sum(parts) for parts in zip(*sums, strict=True)])
 
 
 @dataclass(frozen=True)
@@ -443,7 +624,11 @@ class ConnectionEstimator:
 
     - ``trajectory_``: the prepared :class:`~torchconn.trajectory.Trajectory` (smoothed, phase);
     - ``limit_cycle_``: the :class:`~torchconn.phase.limit_cycle.LimitCycle`;
-    - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`.
+    - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`;
+    - ``settings_``: the settings it was fitted with (with ``complexity="cv"``, the chosen
+      ``n_bins``, ``fourier_order`` and ``ridge``), and ``complexity_`` the choice;
+    - ``phase_average_``: the training data's phase-averaged velocity (a baseline);
+    - ``held_out_skill_``: :class:`Skill` on held-out blocks of cycles (None if skipped).
 
     Example::
 
@@ -486,6 +671,10 @@ class ConnectionEstimator:
                                     dt=traj.dt)
         self.trajectory_ = traj
         self.limit_cycle_ = cycle
+        if s.complexity_mode == "cv":
+            s = self._select_complexity(traj, cycle, s)
+        self.settings_ = s  # the settings fitted with (complexity resolved)
+        self.held_out_skill_ = None
         self.model_ = fit_local_model(traj, cycle, s)
         view = self._view(traj)
         self.phase_average_ = fit_fourier(view.phase, view.xi, s.fourier_order, value_ndim=1)
@@ -493,20 +682,41 @@ class ConnectionEstimator:
             self._check_held_out(s.held_out_folds)
         return self
 
+    def _select_complexity(self, traj: Trajectory, cycle: LimitCycle,
+                           s: EstimatorSettings) -> EstimatorSettings:
+        """Settings with the bins, Fourier order and ridge of least held-out error."""
+        h = _noise_setup(traj, s)[2] if s.regression == "noise_aware" else None
+        scores, failed = [], []
+        for n_bins, order in COMPLEXITY_GRID:
+            for ridge in RIDGE_GRID:
+                cand = dataclasses.replace(s, n_bins=n_bins, fourier_order=order, ridge=ridge,
+                                           complexity="fixed")
+                try:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore", IllConditionedBinWarning)
+                        skill = _cross_validate(traj, cycle, cand, h, s.held_out_folds)
+                except ValueError as err:
+                    failed.append(f"{n_bins} bins: {err}")
+                    continue
+                # mean over components (and trials) of the held-out SSE / SST
+                loss = float((1 - skill.r2).mean())
+                scores.append({"n_bins": n_bins, "fourier_order": order, "ridge": ridge,
+                               "held_out_loss": loss})
+        if not scores:
+            raise ValueError("complexity='cv': no candidate could be fitted on "
+                             f"{s.held_out_folds - 1} of {s.held_out_folds} blocks of cycles "
+                             f"({failed[0]}); record more cycles or use complexity='fixed' "
+                             "with fewer n_bins")
+        best = min(scores, key=lambda row: row["held_out_loss"])
+        self.complexity_ = ComplexityChoice(
+            n_bins=best["n_bins"], fourier_order=best["fourier_order"], ridge=best["ridge"],
+            scores=tuple(scores))
+        return dataclasses.replace(s, n_bins=best["n_bins"], fourier_order=best["fourier_order"],
+                                   ridge=best["ridge"], complexity="fixed")
+
     def _view(self, traj: Trajectory) -> RegressionView:
         """The samples as the regression sees them (pooled when the fit pools trials)."""
-        s = self.settings
-        if s.regression == "noise_aware":
-            iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt,
-                                  self.model_.meta["velocity_interval"])
-            view = RegressionView(iv.phase, iv.r, iv.r_dot, iv.xi)
-        else:
-            sm = traj.smoothed
-            view = RegressionView(traj.phase, sm.r, sm.r_dot, sm.xi)
-        if s.pool:
-            view = RegressionView(_pool(view.phase, 0), _pool(view.r, 1), _pool(view.r_dot, 1),
-                                  _pool(view.xi, 1))
-        return view
+        return _regression_view(traj, self.settings_, self.model_.meta.get("velocity_interval"))
 
     def score(self, traj: Trajectory, phase: Tensor | None = None) -> Skill:
         """Skill on recordings ``traj`` that the fit did not see (see :class:`Skill`).
@@ -525,31 +735,8 @@ class ConnectionEstimator:
         block; the phase and limit cycle of the whole fit are kept (they carry little of the
         model's complexity)."""
         self._fitted()
-        traj, s = self.trajectory_, self.settings
-        view = self._view(traj)
-        fold = _cycle_blocks(self._view_unpooled_phase(), n_folds)
-        if s.pool:
-            fold = _pool(fold, 0)
-        sums = []
-        phase_fold = _cycle_blocks(traj.phase, n_folds)
-        for f in range(n_folds):
-            train = traj.with_fields(phase=torch.where(phase_fold == f, torch.nan, traj.phase))
-            model = fit_local_model(train, self.limit_cycle_,
-                                    dataclasses.replace(s, held_out_folds=0))
-            keep = fold != f
-            pa = fit_fourier(torch.where(keep, view.phase, torch.nan), view.xi,
-                             s.fourier_order, value_ndim=1)
-            sums.append(_skill_sums(model, pa, view, fold == f))
-        total = [sum(parts) for parts in zip(*sums, strict=True)]
-        return _skill_from_sums(*total)
-
-    def _view_unpooled_phase(self) -> Tensor:
-        """``(..., N)`` phase of the regression's samples, before pooling."""
-        if self.settings.regression == "noise_aware":
-            h = self.model_.meta["velocity_interval"]
-            traj = self.trajectory_
-            return interval_samples(traj.pose, traj.r, traj.phase, traj.dt, h).phase
-        return self.trajectory_.phase
+        return _cross_validate(self.trajectory_, self.limit_cycle_, self.settings_,
+                               self.model_.meta.get("velocity_interval"), n_folds)
 
     def _check_held_out(self, n_folds: int) -> None:
         try:
