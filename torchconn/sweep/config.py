@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .._provenance import source_hash
 from ..regression.estimator import EstimatorSettings
 
 __all__ = [
@@ -130,8 +131,10 @@ class SweepConfig:
             raise ValueError(f"experiment names must be unique, got {names}")
 
     def fingerprint(self, experiment: Experiment) -> str:
-        """Hash of everything that determines an experiment's results (for resuming safely)."""
+        """Hash of everything that determines an experiment's results (for resuming safely),
+        the package's source code included."""
         payload = {
+            "source": source_hash(),
             "experiment": dataclasses.asdict(experiment),
             "estimator": dataclasses.asdict(self.estimator),
             "seed": self.seed, "phase": self.phase, "error_bins": self.error_bins,
