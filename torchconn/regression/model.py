@@ -63,7 +63,7 @@ class LocalConnectionModel:
 
     Attributes:
         gamma: limit cycle ``γ(φ)``, value shape ``(d,)``.
-        phase_rate: ``(...)`` mean phase velocity ``φ̇`` (1 in CONVENTIONS units: one cycle per
+        phase_rate: ``(...)`` mean phase velocity ``φ̇`` (1 in the units of docs/conventions.md: one cycle per
             2π time units); on the cycle ``ṙ = φ̇ dγ/dφ``.
         c, b, A, dA: Fourier series of the regression terms, value shapes ``(3,)``,
             ``(3, d)``, ``(3, d)``, ``(3, d, d)`` (``dA[..., k, i, j] = ∂A^k_i/∂r_j``).

@@ -1,6 +1,7 @@
 """Batched stochastic rollouts of a swimmer following a noisy gait (the paper's eq. ``simsde``).
 
-The shape follows the Stratonovich SDE of the paper's Sec. 5.2 (CONVENTIONS, "Phase and noise")::
+The shape follows the Stratonovich SDE of the paper's Sec. 5.2 (docs/conventions.md,
+"Phase and noise")::
 
     dφ = dt + η∘dW_φ,    dδ = −αδ dt + η∘dW_δ,    r(t) = γ_REF(φ(t)) + δ(t),
 

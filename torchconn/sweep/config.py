@@ -46,7 +46,8 @@ DEFAULT_TOML = configs().joinpath("default.toml").read_text(encoding="utf-8")
 
 @dataclass(frozen=True, kw_only=True)
 class SimulationSettings:
-    """Rollout settings (CONVENTIONS defaults): α, η, cycles, sampling, fine steps."""
+    """Rollout settings (defaults: the paper's, docs/conventions.md): α, η, cycles, sampling,
+    fine steps."""
 
     alpha: float = 0.05
     eta: float = 0.025
