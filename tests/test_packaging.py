@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 
 from torchconn._resources import config_names, configs, read_config
+from torchconn.discrepancy.__main__ import main as discrepancy_main
+from torchconn.fit import main as fit_main
 from torchconn.physics.gaits import optimize
 from torchconn.sweep.config import load_config, sweep_config_names
 
@@ -87,6 +89,32 @@ def test_bad_toml_is_a_clear_error(tmp_path):
     bad.write_text("name = \n")
     with pytest.raises(ValueError, match=rf"config {re.escape(str(bad))} is not valid TOML"):
         load_config(bad)
+
+
+def test_no_file_points_outside_the_repository():
+    tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True,
+                             check=True).stdout.split()
+    outside = re.compile(r"\.\./shared|shared/|CONVENTIONS\.md|CONVENTIONS\b")
+    hits = []
+    for name in tracked:
+        path = ROOT / name
+        if path.suffix in (".png", ".npz") or not path.is_file():
+            continue
+        for i, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if outside.search(line) and name != "tests/test_packaging.py":
+                hits.append(f"{name}:{i}: {line.strip()}")
+    assert hits == []
+
+
+@pytest.mark.parametrize("main", [fit_main, discrepancy_main], ids=["fit", "discrepancy"])
+def test_cli_help_names_the_data_format_section_in_plain_text(main, capsys):
+    with pytest.raises(SystemExit) as err:
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert err.value.code == 0
+    assert 'docs/conventions.md, section "Trajectory file format"' in text
+    assert "`" not in text and "CONVENTIONS" not in text
+    assert "## Trajectory file format" in (ROOT / "docs" / "conventions.md").read_text()
 
 
 def test_gait_optimiser_needs_an_output_path(capsys):
