@@ -12,7 +12,6 @@ import json
 import platform
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -160,7 +159,7 @@ def _assemble(config, out, store, plan, wall, figures, log) -> dict:
         made = make_figures(out, *as_dicts, config.experiments)
     sidecar = {
         "config": config.raw,
-        "estimator": asdict(config.estimator),
+        "estimator": config.estimator,
         "root_seed": config.seed,
         "seeds": {e.name: experiment_seeds(config, e).tolist() for e, _ in plan},
         "fingerprints": {e.name: fp for e, fp in plan},
