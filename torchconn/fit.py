@@ -19,9 +19,11 @@ from pathlib import Path
 import torch
 
 from .io.trajectory_files import read_csv
-from .regression.estimator import ConnectionEstimator, EstimatorSettings
+from .phase.phaser import Phaser
+from .regression.estimator import ConnectionEstimator
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
+from .regression.tube import TubeRegression
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
@@ -69,14 +71,15 @@ def main(argv: list[str] | None = None) -> int:
                    'docs/conventions.md, section "Trajectory file format")')
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    defaults = EstimatorSettings()
+    defaults, phaser = TubeRegression(), Phaser()
     p.add_argument("--n-bins", type=int, default=defaults.n_bins,
                    help=f"phase bins (default {defaults.n_bins})")
     p.add_argument("--fourier-order", type=int, default=defaults.fourier_order,
                    help=f"Fourier order in phase (default {defaults.fourier_order})")
     p.add_argument("--window", type=float, default=None,
                    help="bin half-width in bin spacings (default: sized from the data)")
-    p.add_argument("--phase-order", type=int, default=3, help="Phaser correction order")
+    p.add_argument("--phase-order", type=int, default=phaser.order,
+                   help=f"Phaser correction order (default {phaser.order})")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
     args = p.parse_args(argv)
     if args.links < 2:
@@ -85,8 +88,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         traj = read_csv(args.data, n_joints=args.links - 1)
         est = ConnectionEstimator(
-            n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
-            phase_order=args.phase_order, pool=True,
+            phaser=Phaser(order=args.phase_order),
+            regression=TubeRegression(n_bins=args.n_bins, fourier_order=args.fourier_order,
+                                      window=args.window),
+            pool=True,
         ).fit(traj)
     except (ValueError, FileNotFoundError) as err:
         print(f"torchconn-fit: error: {err}", file=sys.stderr)

@@ -27,7 +27,7 @@ from typing import Any
 
 from .._provenance import source_hash
 from .._resources import config_names, configs, read_config
-from ..regression.estimator import EstimatorSettings
+from ..regression.estimator import ConnectionEstimator, estimator_from_settings, estimator_settings
 
 __all__ = [
     "SimulationSettings", "Experiment", "SweepConfig", "load_config", "resolve_config",
@@ -87,17 +87,27 @@ class Experiment:
 
 @dataclass(frozen=True, kw_only=True)
 class SweepConfig:
-    """A whole sweep: experiments, shared simulation and estimator settings, root seed."""
+    """A whole sweep: experiments, shared simulation and estimator settings, root seed.
+
+    ``estimator`` is the ``[estimator]`` table (see
+    :func:`~torchconn.regression.estimator.estimator_from_settings`), or a
+    :class:`ConnectionEstimator`; it is validated and stored in full, normalised form, so equal
+    estimators written differently (flat 0.1 keys, nested tables) hash alike.
+    """
 
     name: str
     seed: int
     experiments: tuple[Experiment, ...]
-    estimator: EstimatorSettings = EstimatorSettings()
+    estimator: dict = field(default_factory=dict)
     phase: str = "estimated"
     error_bins: int = 16
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
+        est = self.estimator
+        if not isinstance(est, ConnectionEstimator):
+            est = estimator_from_settings(est, where="[estimator]")
+        object.__setattr__(self, "estimator", estimator_settings(est))
         if self.phase not in ("estimated", "true"):
             raise ValueError(f"phase must be 'estimated' (Phaser) or 'true', got {self.phase!r}")
         names = [e.name for e in self.experiments]
@@ -110,12 +120,16 @@ class SweepConfig:
         payload = {
             "source": source_hash(),
             "experiment": dataclasses.asdict(experiment),
-            "estimator": dataclasses.asdict(self.estimator),
+            "estimator": self.estimator,
             "seed": self.seed, "phase": self.phase, "error_bins": self.error_bins,
             "index": [e.name for e in self.experiments].index(experiment.name),
         }
         text = json.dumps(payload, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def make_estimator(self) -> ConnectionEstimator:
+        """A fresh (unfitted) estimator with this sweep's settings."""
+        return estimator_from_settings(self.estimator, where="[estimator]")
 
 
 def _parse(raw: dict[str, Any]) -> SweepConfig:
@@ -140,7 +154,7 @@ def _parse(raw: dict[str, Any]) -> SweepConfig:
         raise ValueError("the config defines no [[experiment]]")
     return SweepConfig(
         name=raw.get("name", "sweep"), seed=int(raw.get("seed", 0)),
-        experiments=tuple(experiments), estimator=EstimatorSettings(**raw.get("estimator", {})),
+        experiments=tuple(experiments), estimator=raw.get("estimator", {}),
         phase=raw.get("phase", "estimated"), error_bins=int(raw.get("error_bins", 16)), raw=raw,
     )
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -148,7 +147,7 @@ def _assemble(config, out, store, plan, wall, figures, log) -> dict:
         made = make_figures(out, *as_dicts, config.experiments)
     sidecar = {
         "config": config.raw,
-        "estimator": asdict(config.estimator),
+        "estimator": config.estimator,
         "root_seed": config.seed,
         "seeds": {e.name: experiment_seeds(config, e).tolist() for e, _ in plan},
         "fingerprints": {e.name: fp for e, fp in plan},
