@@ -1,6 +1,7 @@
-"""``python -m torchconn.fit DATA.csv [MORE.csv …] --links N --out DIR``: fit your recordings.
+"""``torchconn-fit DATA.csv [MORE.csv …] --links N --out DIR``: fit your recordings.
 
-Reads trajectories in the CONVENTIONS CSV format, estimates phase and limit cycle, fits the
+Also runs as ``python -m torchconn.fit``. Reads trajectory CSV files (the format of
+docs/conventions.md, section "Trajectory file format"), estimates phase and limit cycle, fits the
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>]``) and PNG
@@ -57,8 +58,17 @@ def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m torchconn.fit", description=__doc__.split("\n")[0])
-    p.add_argument("data", nargs="+", type=Path, help="trajectory CSV files (CONVENTIONS format)")
+    p = argparse.ArgumentParser(
+        prog="torchconn-fit",
+        description="Fit one local connection model (and the metric, when the files have a "
+        "power column) to your recorded trials, pooled, and write DIR/model.npz, "
+        "DIR/connection.csv (one row per phase) and PNG plots with 95% bands. "
+        "Also runs as python -m torchconn.fit.",
+    )
+    p.add_argument("data", nargs="+", type=Path,
+                   help="trajectory CSV files: columns t, x, y, theta, r1..rd[, power][, trial], "
+                   'one trial per file or several with a trial column (format: '
+                   'docs/conventions.md, section "Trajectory file format")')
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     defaults, phaser = TubeRegression(), Phaser()
@@ -84,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             pool=True,
         ).fit(traj)
     except (ValueError, FileNotFoundError) as err:
-        print(f"python -m torchconn.fit: error: {err}", file=sys.stderr)
+        print(f"torchconn-fit: error: {err}", file=sys.stderr)
         return 2
     out = args.out
     out.mkdir(parents=True, exist_ok=True)

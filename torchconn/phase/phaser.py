@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .. import _checks
 from .._options import Options, option
 from .fourier import FourierSeries, fit_fourier, fourier_design
 from .smoothing import unwrap
@@ -368,8 +369,7 @@ def estimate_phase(
             first harmonic.
     """
     _check_x(x, "estimate_phase")
-    if isinstance(order, bool) or not isinstance(order, int) or order < 0:
-        raise ValueError(f"estimate_phase: order must be an int >= 0, got {order!r}")
+    order = _checks.integer(order, "order", fn="estimate_phase")
     if not x.is_floating_point():
         x = x.to(torch.get_default_dtype())
     options = _Options(order=order, min_cycles=min_cycles, section_channel=section_channel,
@@ -547,13 +547,10 @@ def _interp(z: Tensor, pos: Tensor) -> Tensor:
 
 
 def _check_x(x: Tensor, fn: str) -> None:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{fn}: x must be a torch.Tensor, got {type(x).__name__}")
-    if x.ndim < 2 or x.shape[-1] < 1 or x.shape[-2] < 4:
-        raise ValueError(
-            f"{fn}: x must have shape (..., T, C) with T samples along axis -2 and C >= 1 "
-            f"channels along axis -1, got {tuple(x.shape)}"
-        )
+    _checks.tensor(
+        x, "x", "(..., T, C) with T >= 4 samples along axis -2 and C >= 1 channels along axis -1",
+        fn=fn, valid=lambda t: t.ndim >= 2 and t.shape[-1] >= 1 and t.shape[-2] >= 4,
+    )
 
 
 def _check_values(x: Tensor, fn: str) -> None:
@@ -561,22 +558,21 @@ def _check_values(x: Tensor, fn: str) -> None:
     if bool(nan.any()):
         allnan = nan.all(-2)
         if bool(allnan.any()):
-            where = torch.nonzero(allnan)[0].tolist()
+            where = _checks.first_index(allnan)
             raise ValueError(
-                f"{fn}: channel {where[-1]} of x (batch index {tuple(where[:-1])}) is "
+                f"{fn}: channel {where[-1]} of x (batch index {where[:-1]}) is "
                 "NaN at every sample; drop that channel"
             )
         raise ValueError(
             f"{fn}: x contains {int(nan.sum())} NaN samples; fill or smooth drop-outs "
             "first (torchconn.phase.smoothing.rts_smooth predicts through them)"
         )
-    if not bool(torch.isfinite(x).all()):
-        raise ValueError(f"{fn}: x contains inf")
+    _checks.finite(x, "x", fn=fn)
     std = x.std(-2)
     flat = std <= _CONST_TOL * x.abs().amax(-2)
     if bool(flat.any()):
-        where = torch.nonzero(flat)[0].tolist()
+        where = _checks.first_index(flat)
         raise ValueError(
-            f"{fn}: channel {where[-1]} of x (batch index {tuple(where[:-1])}) is "
+            f"{fn}: channel {where[-1]} of x (batch index {where[:-1]}) is "
             "constant and carries no phase; drop it"
         )
