@@ -3,8 +3,9 @@
 CSV (CONVENTIONS, "Trajectory data"): a header row, then one row per sample on a uniform grid,
 columns ``t, x, y, theta, r1, …, rd`` and optionally ``power``; several trials may share a file
 with an integer ``trial`` column. Empty cells and ``nan`` are missing samples. ``power`` at row
-``k`` belongs to the interval ``[t_k, t_{k+1})``, so each trial's last ``power`` cell is empty. Column names are
-matched case-insensitively after stripping blanks; any other column is ignored with a warning.
+``k`` belongs to the interval ``[t_k, t_{k+1})``, so each trial's last ``power`` cell is empty.
+Column names are matched case-insensitively after stripping blanks; any other column is ignored
+with a warning.
 
 :func:`read_csv` returns one :class:`~torchconn.trajectory.Trajectory` with batch shape
 ``(n_trials,)`` (trials ordered by file, then trial id); trials of different lengths are padded
