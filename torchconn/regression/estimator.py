@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 from dataclasses import asdict, dataclass, fields
 
 import torch
@@ -29,10 +28,21 @@ from ..phase.smoothing import smooth_trajectory
 from ..trajectory import SmoothedState, Trajectory
 from .binning import assign_bins
 from .connection import connection_regression
-from .metric import metric_n_coef, metric_regression
+from .metric import (
+    interval_samples,
+    metric_n_coef,
+    metric_regression,
+    power_noise_variance,
+    tied_metric_predict,
+    tied_metric_regression,
+)
 from .model import BinEstimates, LocalConnectionModel
 
-__all__ = ["EstimatorSettings", "ConnectionEstimator", "prepare", "fit_local_model"]
+__all__ = ["EstimatorSettings", "ConnectionEstimator", "prepare", "fit_local_model",
+           "METRIC_METHODS"]
+
+#: the metric regressions :class:`EstimatorSettings` offers
+METRIC_METHODS = ("tied", "paper")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -60,7 +70,19 @@ class EstimatorSettings:
         cycle_order: Fourier order of the limit cycle γ(φ).
         smoother_order: Kalman smoother model order (2: white acceleration).
         min_cycles: fewest cycles a trial must cover.
-        metric: also estimate the metric when the data carry power.
+        metric: estimate the dissipation metric: None (default) when the data carry a power
+            channel, True to require it (an error names the missing ``power`` column), False
+            never.
+        metric_method: ``"tied"`` (default): one ``M`` (and ``∂M/∂r``) per bin explains the
+            power of each sample interval, ``P ≈ vᵀ[M + ∂M/∂r δ]v`` with ``v`` the raw sample
+            differences, noise-corrected (:func:`~torchconn.regression.metric.tied_metric_regression`);
+            ``"paper"``: the per-bin expansion of eq. ``advancedmetricregression`` in the
+            smoothed offsets, with separate linear and quadratic terms (torchconn's earlier
+            method, kept for comparison; it does not converge, see the README).
+        metric_noise_correction: estimate the shapes' observation noise from the data's
+            increments and remove its contribution to the tied model's normal equations.
+        metric_order, metric_derivative_order: Fourier orders in phase of the tied model's
+            ``M(φ)`` and ``∂M/∂r(φ)`` (None: no derivative term).
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
     """
@@ -77,7 +99,11 @@ class EstimatorSettings:
     cycle_order: int = 8
     smoother_order: int = 2
     min_cycles: float = 3.0
-    metric: bool = True
+    metric: bool | None = None
+    metric_method: str = "tied"
+    metric_noise_correction: bool = True
+    metric_order: int = 6
+    metric_derivative_order: int | None = 1
     pool: bool = False
 
     def __post_init__(self) -> None:
@@ -90,6 +116,12 @@ class EstimatorSettings:
             )
         if self.window is not None and self.window <= 0:
             raise ValueError(f"window must be positive or None (auto), got {self.window!r}")
+        if self.metric_method not in METRIC_METHODS:
+            raise ValueError(f"metric_method must be one of {METRIC_METHODS}, got "
+                             f"{self.metric_method!r}")
+        if self.metric not in (None, True, False):
+            raise ValueError(f"metric must be None (when the data carry power), True or False, "
+                             f"got {self.metric!r}")
 
 
 def prepare(
@@ -202,11 +234,14 @@ def fit_local_model(
 
     bins, window = bins_for(1 + 2 * d + d * d)
     fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
-    metric_fit, metric_window = None, None
-    if settings.metric and power is not None:
-        mbins, metric_window = bins_for(metric_n_coef(d, False))
-        metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
-                                       with_metric_derivative=False, **opts)
+    metric_fit, metric_window, noise = None, None, None
+    if settings.metric is not False and power is not None:
+        if settings.metric_method == "tied":
+            metric_fit, noise = _tied_metric(traj, cycle, settings, centres, gamma_dot_m)
+        else:
+            mbins, metric_window = bins_for(metric_n_coef(d, False))
+            metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
+                                           with_metric_derivative=False, **opts)
 
     estimates = BinEstimates(
         phase=centres, gamma=gamma_m, gamma_dot=gamma_dot_m,
@@ -215,6 +250,10 @@ def fit_local_model(
         n_samples=fit.n_samples,
         M=None if metric_fit is None else metric_fit.M,
         M_se=None if metric_fit is None else metric_fit.se_M,
+        M_gamma_dot=None if metric_fit is None else metric_fit.M_gamma_dot,
+        M_gamma_dot_se=None if metric_fit is None else metric_fit.se_M_gamma_dot,
+        power_on_cycle=None if metric_fit is None else metric_fit.power_on_cycle,
+        power_on_cycle_se=None if metric_fit is None else metric_fit.se_power_on_cycle,
     )
     K = settings.fourier_order
 
@@ -227,8 +266,53 @@ def fit_local_model(
         M=None if metric_fit is None else series(metric_fit.M, 2),
         bins=estimates,
         meta={"settings": asdict(settings), "dt": traj.dt, "batch_shape": list(batch),
-              "window": window, "metric_window": metric_window},
+              "window": window, "metric_window": metric_window,
+              "metric_noise_std": noise},
     )
+
+
+def _tied_metric(traj: Trajectory, cycle: LimitCycle, settings: EstimatorSettings,
+                 centres: Tensor, gamma_dot_m: Tensor):
+    """The tied metric regression on the sample intervals of the raw recorded shapes.
+
+    Returns the :class:`~torchconn.regression.metric.MetricFit` at the bin centres and the
+    estimated shape-noise standard deviations (a list, JSON-ready; None without correction).
+    """
+    if traj.power is not None and not bool(torch.isfinite(traj.power).any()):
+        raise ValueError("the power column has no values (all empty or NaN): the metric cannot "
+                         "be estimated; pass metric=False to fit the connection alone")
+    iv = interval_samples(traj.r, traj.power, traj.phase, traj.dt)
+    phase = _unwrapped(iv.phase)
+    offset = iv.r_mid - cycle.gamma_at(torch.nan_to_num(iv.phase)).to(iv.r_mid)
+    v, power = iv.velocity, iv.power
+    if settings.pool:
+        # distinct cycle numbers per trial, so that each trial's cycles are their own clusters
+        span = float(torch.nan_to_num(phase).abs().amax()) + 4 * math.pi
+        trial = torch.arange(math.prod(phase.shape[:-1]), dtype=phase.dtype, device=phase.device)
+        phase = phase + (2 * math.pi * math.ceil(span / (2 * math.pi)) * trial).reshape(
+            phase.shape[:-1] + (1,))
+        phase, offset, v, power = (_pool(x, k) for x, k in
+                                   ((phase, 0), (offset, 1), (v, 1), (power, 0)))
+    orders = dict(order=settings.metric_order, derivative_order=settings.metric_derivative_order)
+    fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders)
+    noise = None
+    if settings.metric_noise_correction:
+        # the noise from the uncorrected fit's residuals (the power channel is noise-free),
+        # then the corrected fit
+        predicted, m_v = tied_metric_predict(fit.coef, offset, v, phase, **orders)
+        omega2 = power_noise_variance(power - predicted, m_v, traj.dt)  # (..., d)
+        noise = omega2.sqrt().tolist()
+        fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders,
+                                     noise_variance=2 * omega2 / traj.dt**2)
+    return fit, noise
+
+
+def _unwrapped(phase: Tensor) -> Tensor:
+    """``(..., T)`` phase made continuous (NaN gaps bridged), starting at its first value."""
+    step = torch.remainder(phase.diff(dim=-1) + math.pi, 2 * math.pi) - math.pi
+    first = torch.nan_to_num(phase[..., :1])
+    out = first + torch.cat([torch.zeros_like(first), torch.nan_to_num(step).cumsum(-1)], -1)
+    return torch.where(torch.isnan(phase), torch.nan, out)
 
 
 def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
@@ -280,7 +364,11 @@ class ConnectionEstimator:
         if not isinstance(traj, Trajectory):
             raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
         if s.metric and traj.power is None:
-            warnings.warn("no power channel in the data: the metric is not estimated", stacklevel=2)
+            raise ValueError(
+                "metric=True but the data have no power channel (CSV column 'power', or "
+                "Trajectory.power): record the dissipated power to estimate the metric, or "
+                "pass metric=None / False to fit the connection alone"
+            )
         traj = self.prepare(traj, phase)
         # γ₀ from the recorded shapes (smoothing damps the gait's high harmonics), ω from the
         # smoothed velocities
