@@ -32,7 +32,7 @@ import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
 from torchconn.physics.gaits import FourierGait, reference_gait
-from torchconn.regression.estimator import EstimatorSettings
+from torchconn.regression.tube import TubeRegression
 
 
 def gait_for(links: int):
@@ -82,13 +82,11 @@ def run(links: int, omega: float, method: str, seed: int, n_trials: int, n_cycle
     traj = simulate(system, gait_for(links), eta=0.025, alpha=0.05, n_cycles=n_cycles,
                     samples_per_cycle=64, seeds=seeds)
     traj = observe(traj, omega, seeds=seeds)
-    kwargs = {"pool": True}
-    if "metric_method" in {f for f in EstimatorSettings.__dataclass_fields__}:
-        kwargs["metric_method"] = method
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        est = ConnectionEstimator(**kwargs).fit(traj)
+        est = ConnectionEstimator(regression=TubeRegression(metric_method=method),
+                                  pool=True).fit(traj)
     seconds = time.perf_counter() - start
     out = score(est.model_, system)
     out["seconds"] = seconds
