@@ -26,7 +26,14 @@ import warnings
 import numpy as np
 import torch
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
+from torchconn import (
+    ConnectionEstimator,
+    NLinkSwimmer,
+    NoiseAwareRegression,
+    TubeRegression,
+    observe,
+    simulate,
+)
 from torchconn.physics.gaits import FourierGait, reference_gait
 
 DT = 0.05
@@ -87,7 +94,7 @@ def metric_errors(model, n_links: int) -> dict:
 def run_one(n_links: int, gait: str, omega: float, method: str, *, n_cycles: int = 30,
             seed: int = 0) -> dict:
     traj = recording(n_links, gait, omega, n_cycles=n_cycles, seed=seed)
-    est = ConnectionEstimator(pool=True, metric=False, held_out_folds=3, **METHODS[method])
+    est = ConnectionEstimator(pool=True, regression=METHODS[method](metric=False))
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -97,13 +104,11 @@ def run_one(n_links: int, gait: str, omega: float, method: str, *, n_cycles: int
             "seconds": seconds}
 
 
-#: estimator settings of each method in the table: "smoothed" is the method before issue 12
-#: (Kalman-smoothed velocities, fixed 48 bins / order 12), "default" today's default
-#: (noise-aware regression, complexity by cross-validation)
+#: the regression stage of each method in the table: "smoothed" is the default TubeRegression
+#: (Kalman-smoothed velocities, 48 bins / order 12), "noise_aware" the NoiseAwareRegression
 METHODS = {
-    "smoothed": {"regression": "smoothed", "complexity": "fixed"},
-    "noise_aware": {"regression": "noise_aware", "complexity": "fixed"},
-    "default": {},
+    "smoothed": TubeRegression,
+    "noise_aware": NoiseAwareRegression,
 }
 
 

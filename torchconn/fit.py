@@ -1,10 +1,13 @@
-"""``python -m torchconn.fit DATA.csv [MORE.csv …] --links N --out DIR``: fit your recordings.
+"""``torchconn-fit DATA.csv [MORE.csv …] --links N --out DIR``: fit your recordings.
 
-Reads trajectories in the CONVENTIONS CSV format, estimates phase and limit cycle, fits the
+Also runs as ``python -m torchconn.fit``. Reads trajectory CSV files (the format of
+docs/conventions.md, section "Trajectory file format"), estimates phase and limit cycle, fits the
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
-uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>]``) and PNG
-plots with 95% confidence bands.
+uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>,
+M_gamma_dot_<i>, power_on_cycle]``) and PNG plots with 95% confidence bands. ``M_gamma_dot``
+(``M̂γ̇``) and ``power_on_cycle`` (``γ̇ᵀM̂γ̇``) are what the gait itself identifies; the full
+``M̂`` is only as good as the recording's off-cycle excitation (see the bands in ``metric.png``).
 """
 
 from __future__ import annotations
@@ -18,9 +21,11 @@ from pathlib import Path
 import torch
 
 from .io.trajectory_files import read_csv
-from .regression.estimator import REGRESSIONS, ConnectionEstimator, EstimatorSettings
+from .phase.phaser import Phaser
+from .regression.estimator import ConnectionEstimator
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
+from .regression.tube import TubeRegression
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
@@ -40,6 +45,9 @@ def connection_table(model: LocalConnectionModel, n_points: int = 100):
     if model.M is not None:
         cols += [f"M_{i + 1}_{j + 1}" for i in range(d) for j in range(d)]
         blocks.append(model.metric(phi).reshape(n_points, -1))
+        # the parts of M̂ the gait itself identifies, beside the full M̂
+        cols += [f"M_gamma_dot_{i + 1}" for i in range(d)] + ["power_on_cycle"]
+        blocks += [model.metric_gamma_dot(phi), model.power_on_cycle(phi)[:, None]]
     return cols, torch.cat(blocks, -1).tolist()
 
 
@@ -55,24 +63,28 @@ def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m torchconn.fit", description=__doc__.split("\n")[0])
-    p.add_argument("data", nargs="+", type=Path, help="trajectory CSV files (CONVENTIONS format)")
+    p = argparse.ArgumentParser(
+        prog="torchconn-fit",
+        description="Fit one local connection model (and the metric, when the files have a "
+        "power column) to your recorded trials, pooled, and write DIR/model.npz, "
+        "DIR/connection.csv (one row per phase) and PNG plots with 95% bands. "
+        "Also runs as python -m torchconn.fit.",
+    )
+    p.add_argument("data", nargs="+", type=Path,
+                   help="trajectory CSV files: columns t, x, y, theta, r1..rd[, power][, trial], "
+                   'one trial per file or several with a trial column (format: '
+                   'docs/conventions.md, section "Trajectory file format")')
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    defaults = EstimatorSettings()
+    defaults, phaser = TubeRegression(), Phaser()
     p.add_argument("--n-bins", type=int, default=defaults.n_bins,
                    help=f"phase bins (default {defaults.n_bins})")
     p.add_argument("--fourier-order", type=int, default=defaults.fourier_order,
                    help=f"Fourier order in phase (default {defaults.fourier_order})")
     p.add_argument("--window", type=float, default=None,
                    help="bin half-width in bin spacings (default: sized from the data)")
-    p.add_argument("--phase-order", type=int, default=3, help="Phaser correction order")
-    p.add_argument("--regression", choices=REGRESSIONS, default=defaults.regression,
-                   help=f"connection regression (default {defaults.regression})")
-    p.add_argument("--complexity", choices=("cv", "fixed"), default=None,
-                   help="cv: bins, Fourier order and ridge by held-out error over blocks of "
-                   "whole cycles; fixed: --n-bins and --fourier-order as given (default: cv "
-                   "unless --n-bins or --fourier-order is given)")
+    p.add_argument("--phase-order", type=int, default=phaser.order,
+                   help=f"Phaser correction order (default {phaser.order})")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
     args = p.parse_args(argv)
     if args.links < 2:
@@ -81,12 +93,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         traj = read_csv(args.data, n_joints=args.links - 1)
         est = ConnectionEstimator(
-            n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
-            phase_order=args.phase_order, pool=True, regression=args.regression,
-            complexity=args.complexity,
+            phaser=Phaser(order=args.phase_order),
+            regression=TubeRegression(n_bins=args.n_bins, fourier_order=args.fourier_order,
+                                      window=args.window),
+            pool=True,
         ).fit(traj)
     except (ValueError, FileNotFoundError) as err:
-        print(f"python -m torchconn.fit: error: {err}", file=sys.stderr)
+        print(f"torchconn-fit: error: {err}", file=sys.stderr)
         return 2
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -99,21 +112,14 @@ def main(argv: list[str] | None = None) -> int:
         plot_metric(model, out / "metric.png")
     print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
           f"samples (d = {traj.shape_dim})")
+    if model.M is not None:
+        noise = (model.meta or {}).get("metric_noise_std")
+        if noise is not None:
+            print("shape noise estimated for the metric (rad): "
+                  + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
+        print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; the "
+              "full M only as far as the data leave the cycle (see the bands in metric.png)")
     print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
-    skill = getattr(est, "held_out_skill_", None)
-    if skill is not None:
-        if est.settings.complexity_mode == "cv":
-            c = est.complexity_
-            print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
-                  f"{c.fourier_order}, ridge {c.ridge:g}")
-        print("held-out R² (v_x, v_y, omega), refitted on 2 of 3 blocks of whole cycles:")
-        for name, r2 in (("model", skill.r2), ("phase-averaged velocity", skill.r2_phase_average),
-                         ("template", skill.r2_template)):
-            print(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
-        if bool(skill.worse_than_phase_average.any()):
-            print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
-                  "velocity; it overfits this recording (try fewer --n-bins, a lower "
-                  "--fourier-order or a wider --window, or record more cycles)")
     return 0
 
 

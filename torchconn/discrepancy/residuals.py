@@ -26,6 +26,7 @@ from torch import Tensor
 
 from ..physics.systems.base import LocomotionSystem
 from ..regression.estimator import ConnectionEstimator
+from ..regression.tube import TubeRegression
 from ..trajectory import Trajectory
 from .forward import Measurement
 
@@ -120,11 +121,10 @@ def compare_terms(
         ``max_abs_z``, ``rms_z`` and ``frac_abs_z_gt_3`` per body-velocity component.
     """
     def fit(recording):
-        # the comparison is like with like (data and twin through one pipeline) and its
-        # thresholds were validated with the smoothed regression
-        est = ConnectionEstimator(n_bins=n_bins, fourier_order=fourier_order, pool=True,
-                                  metric=False, regression="smoothed", held_out_folds=0,
-                                  complexity="fixed")
+        est = ConnectionEstimator(
+            regression=TubeRegression(n_bins=n_bins, fourier_order=fourier_order, metric=False),
+            pool=True,
+        )
         return est.fit(recording, phase=phase).model_.bins
 
     bins = fit(traj)

@@ -1,0 +1,251 @@
+"""The estimator's regression stage: tube regressions in phase bins, then Fourier in phase.
+
+:class:`TubeRegression` fits, in each of M phase bins, the first-order model of the body
+velocity around the cycle (eq. ``advancedregression``, :func:`connection_regression`) and, when
+the data carry power, the metric -- by default the tied, noise-corrected model of
+:func:`~torchconn.regression.metric.tied_metric_regression` on the sample intervals of the raw
+shapes, or the paper's per-bin expansion (eq. ``advancedmetricregression``,
+:func:`metric_regression`) -- and interpolates the per-bin estimates by Fourier series in phase into a
+:class:`~torchconn.regression.model.LocalConnectionModel`. Other regression methods derive from
+:class:`Regression` and slot into ``ConnectionEstimator(regression=…)``.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from .._options import Options, option
+from ..phase.fourier import fit_fourier
+from ..phase.limit_cycle import LimitCycle
+from ..trajectory import Trajectory, pool_batch
+from .binning import assign_bins
+from .connection import connection_regression
+from .metric import (
+    interval_samples,
+    metric_n_coef,
+    metric_regression,
+    power_noise_variance,
+    tied_metric_predict,
+    tied_metric_regression,
+)
+from .model import BinEstimates, LocalConnectionModel
+
+__all__ = ["Regression", "TubeRegression"]
+
+
+class Regression(Options, abc.ABC):
+    """Base of the estimator's regression stage: ``fit(traj, cycle, pool=...) -> model``."""
+
+    @abc.abstractmethod
+    def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False
+            ) -> LocalConnectionModel:
+        """The local model of a prepared trajectory (``smoothed`` and ``phase`` set) around
+        ``cycle``: batch dims ``...`` of ``traj``, or none when ``pool``."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class TubeRegression(Regression):
+    """Tube regressions in phase bins and their Fourier series in phase (the paper's Sec. 4).
+
+    Attributes:
+        n_bins: phase bins M (regression centres φ_m = 2πm/M).
+        fourier_order: order of the Fourier series interpolating the per-bin estimates
+            (at most (M−1)/2). ``A(γ(φ))`` is nonlinear in the gait, so it carries harmonics
+            well above the gait's own; a low order biases the model.
+        window: half-width of a bin's phase window in units of the bin spacing (0.5: each
+            sample in exactly one bin; larger: overlapping windows, more samples per bin).
+            None (default) sizes it from the data: wide enough that a window holds about
+            ``samples_per_regressor`` samples per regressor, and at least 1.
+        samples_per_regressor: the data-size rule behind ``window=None``.
+        kernel: sample weights within a window (``"tricube"`` falls smoothly to zero at the
+            window's edge, which lowers the bias from the gait's curvature within a window).
+        delta_max: only samples with ``|δ| < delta_max`` enter a bin's regression (None: all).
+        ridge: Tikhonov penalty on the scaled regressors (0: ordinary least squares).
+        on_ill_conditioned: what to do with bins with too few samples or a rank-deficient
+            design: raise, warn, or regularise (``"ridge"``).
+        metric: estimate the dissipation metric: None (default) when the data carry a power
+            channel, True to require one (fitting data without it is an error that names the
+            missing ``power`` column), False never.
+        metric_method: ``"tied"`` (default): one ``M(φ)`` (and ``∂M/∂r(φ)``), Fourier in phase,
+            explains the power of each sample interval, ``P ≈ vᵀ[M + ∂M/∂r δ]v`` with ``v`` the
+            raw sample differences, noise-corrected
+            (:func:`~torchconn.regression.metric.tied_metric_regression`); ``"paper"``: the
+            per-bin expansion of eq. ``advancedmetricregression`` in the smoothed offsets, with
+            separate linear and quadratic terms (torchconn 0.1's method, kept for comparison;
+            it does not converge, see the README).
+        metric_order, metric_derivative_order: Fourier orders in phase of the tied model's
+            ``M(φ)`` and ``∂M/∂r(φ)`` (None: no derivative term). Chosen by measurement on
+            3- and 5-link gaits other than the benchmark's (README, "Known limits").
+        metric_noise_correction: estimate the shapes' observation noise (from the uncorrected
+            fit's power residuals) and remove its contribution to the tied model's normal
+            equations.
+    """
+
+    n_bins: int = option(48, ge=3)
+    fourier_order: int = option(12, ge=0)
+    window: float | None = option(None, gt=0)
+    samples_per_regressor: float = option(2.5, gt=0)
+    kernel: Literal["box", "tricube", "epanechnikov"] = "tricube"
+    delta_max: float | None = option(None, gt=0)
+    ridge: float = option(0.0, ge=0)
+    on_ill_conditioned: Literal["raise", "warn", "ridge"] = "raise"
+    metric: bool | None = None
+    metric_method: Literal["tied", "paper"] = "tied"
+    metric_order: int = option(6, ge=0)
+    metric_derivative_order: int | None = option(1, ge=0)
+    metric_noise_correction: bool = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not 2 * self.fourier_order < self.n_bins:
+            raise ValueError(
+                f"TubeRegression.fourier_order must satisfy 2*fourier_order < n_bins="
+                f"{self.n_bins} (the series is fitted to one value per bin), got "
+                f"{self.fourier_order!r}"
+            )
+
+    def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False
+            ) -> LocalConnectionModel:
+        """Regressions in every phase bin and their Fourier series in phase.
+
+        Args:
+            traj: a prepared trajectory (``smoothed`` and ``phase`` set), batch dims ``...``.
+            cycle: its limit cycle (batch dims ``...``, or none when ``pool``).
+            pool: fit one model to all trials together.
+
+        Returns:
+            a :class:`LocalConnectionModel` with batch dims ``...`` (none when pooled).
+        """
+        if traj.smoothed is None or traj.phase is None:
+            raise ValueError("TubeRegression.fit needs a prepared trajectory: call "
+                             "ConnectionEstimator.prepare(traj) first")
+        s = traj.smoothed
+        phase, r, r_dot, xi, power = traj.phase, s.r, s.r_dot, s.xi, traj.power
+        if pool:
+            phase, r, r_dot, xi = (pool_batch(x, k)
+                                   for x, k in ((phase, 0), (r, 1), (r_dot, 1), (xi, 1)))
+            power = None if power is None else pool_batch(power, 0)
+        M = self.n_bins
+        centres = torch.arange(M, dtype=r.dtype, device=r.device) * (2 * math.pi / M)
+        batch = phase.shape[:-1]
+        gamma_m = cycle.gamma_at(centres.expand(batch + (M,)))
+        gamma_dot_m = (cycle.phase_rate[..., None, None]
+                       * cycle.gamma_dot_at(centres.expand(batch + (M,))))
+        opts = dict(delta_max=self.delta_max, ridge=self.ridge,
+                    on_ill_conditioned=self.on_ill_conditioned)
+        d = r.shape[-1]
+
+        def bins_for(n_regressors: int):
+            window = self.window or _auto_window(phase, M, n_regressors,
+                                                 self.samples_per_regressor)
+            return assign_bins(phase, M, window=window, kernel=self.kernel), window
+
+        fit, window, connection_meta = self._connection_fit(
+            traj, pool, (phase, r, r_dot, xi), gamma_m, gamma_dot_m, opts, bins_for)
+        metric_fit, metric_window, noise = None, None, None
+        if self.metric is not False and power is not None:
+            if self.metric_method == "tied":
+                metric_fit, noise = self._tied_metric(traj, cycle, centres, gamma_dot_m, pool)
+            else:
+                mbins, metric_window = bins_for(metric_n_coef(d, False))
+                metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
+                                               with_metric_derivative=False, **opts)
+
+        estimates = BinEstimates(
+            phase=centres, gamma=gamma_m, gamma_dot=gamma_dot_m,
+            c=fit.c, b=fit.b, A=fit.A, dA=fit.dA,
+            c_se=fit.se_c, b_se=fit.se_b, A_se=fit.se_A, dA_se=fit.se_dA,
+            n_samples=fit.n_samples,
+            M=None if metric_fit is None else metric_fit.M,
+            M_se=None if metric_fit is None else metric_fit.se_M,
+            M_gamma_dot=None if metric_fit is None else metric_fit.M_gamma_dot,
+            M_gamma_dot_se=None if metric_fit is None else metric_fit.se_M_gamma_dot,
+            power_on_cycle=None if metric_fit is None else metric_fit.power_on_cycle,
+            power_on_cycle_se=None if metric_fit is None else metric_fit.se_power_on_cycle,
+        )
+
+        def series(values: Tensor, ndim: int):
+            return fit_fourier(centres, values, self.fourier_order, value_ndim=ndim)
+
+        return LocalConnectionModel(
+            gamma=cycle.gamma, phase_rate=cycle.phase_rate,
+            c=series(fit.c, 1), b=series(fit.b, 2), A=series(fit.A, 2), dA=series(fit.dA, 3),
+            M=None if metric_fit is None else series(metric_fit.M, 2),
+            bins=estimates,
+            meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
+                  "batch_shape": list(batch), "window": window, "metric_window": metric_window,
+                  "metric_noise_std": noise, **connection_meta},
+        )
+
+    def _connection_fit(self, traj: Trajectory, pool: bool, samples, gamma_m: Tensor,
+                        gamma_dot_m: Tensor, opts: dict, bins_for):
+        """The connection's per-bin regression on the smoothed ``samples`` (phase, r, ṙ, ξ,
+        pooled when ``pool``): returns the :class:`ConnectionFit`, the window and extra meta.
+        Subclasses regress differently (:class:`~torchconn.regression.NoiseAwareRegression`)."""
+        phase, r, r_dot, xi = samples
+        d = r.shape[-1]
+        bins, window = bins_for(1 + 2 * d + d * d)
+        fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
+        return fit, window, {}
+
+    def _tied_metric(self, traj: Trajectory, cycle: LimitCycle, centres: Tensor,
+                     gamma_dot_m: Tensor, pool: bool):
+        """The tied metric regression on the sample intervals of the raw recorded shapes.
+
+        Returns the :class:`~torchconn.regression.metric.MetricFit` at the bin centres and the
+        estimated shape-noise standard deviations (a list, JSON-ready; None without correction).
+        """
+        if not bool(torch.isfinite(traj.power).any()):
+            raise ValueError("the power column has no values (all empty or NaN): the metric "
+                             "cannot be estimated; pass TubeRegression(metric=False) to fit the "
+                             "connection alone")
+        iv = interval_samples(traj.r, traj.power, traj.phase, traj.dt)
+        phase = _unwrapped(iv.phase)
+        offset = iv.r_mid - cycle.gamma_at(torch.nan_to_num(iv.phase)).to(iv.r_mid)
+        v, power = iv.velocity, iv.power
+        if pool:
+            # distinct cycle numbers per trial, so that each trial's cycles are their own clusters
+            span = float(torch.nan_to_num(phase).abs().amax()) + 4 * math.pi
+            trial = torch.arange(math.prod(phase.shape[:-1]), dtype=phase.dtype,
+                                 device=phase.device)
+            phase = phase + (2 * math.pi * math.ceil(span / (2 * math.pi)) * trial).reshape(
+                phase.shape[:-1] + (1,))
+            phase, offset, v, power = (pool_batch(x, k) for x, k in
+                                       ((phase, 0), (offset, 1), (v, 1), (power, 0)))
+        orders = dict(order=self.metric_order, derivative_order=self.metric_derivative_order)
+        fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders)
+        noise = None
+        if self.metric_noise_correction:
+            # the noise from the uncorrected fit's residuals (the power channel is noise-free),
+            # then the corrected fit
+            predicted, m_v = tied_metric_predict(fit.coef, offset, v, phase, **orders)
+            omega2 = power_noise_variance(power - predicted, m_v, traj.dt)  # (..., d)
+            noise = omega2.sqrt().tolist()
+            fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m,
+                                         **orders, noise_variance=2 * omega2 / traj.dt**2)
+        return fit, noise
+
+
+def _unwrapped(phase: Tensor) -> Tensor:
+    """``(..., T)`` phase made continuous (NaN gaps bridged), starting at its first value."""
+    step = torch.remainder(phase.diff(dim=-1) + math.pi, 2 * math.pi) - math.pi
+    first = torch.nan_to_num(phase[..., :1])
+    out = first + torch.cat([torch.zeros_like(first), torch.nan_to_num(step).cumsum(-1)], -1)
+    return torch.where(torch.isnan(phase), torch.nan, out)
+
+
+def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
+    """Half-width (in bin spacings) holding ``per_regressor`` samples per regressor on average
+    in the batch element with the fewest finite samples; at least 1, at most a quarter cycle
+    (a window must stay local for the first-order model to hold)."""
+    fewest = float(torch.isfinite(phase).sum(-1).min())
+    per_spacing = fewest / n_bins
+    # a tricube window of half-width w spacings carries the weight of ~1.2 w spacings
+    window = per_regressor * n_regressors / (1.2 * per_spacing)
+    return float(min(max(window, 1.0), n_bins / 4))
