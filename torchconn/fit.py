@@ -16,6 +16,7 @@ import argparse
 import csv
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import torch
@@ -24,6 +25,7 @@ from .io.trajectory_files import read_csv
 from .phase.phaser import Phaser
 from .regression.estimator import ConnectionEstimator
 from .regression.model import LocalConnectionModel
+from .regression.noise_aware import NoiseAwareRegression
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 from .regression.tube import TubeRegression
 
@@ -85,6 +87,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="bin half-width in bin spacings (default: sized from the data)")
     p.add_argument("--phase-order", type=int, default=phaser.order,
                    help=f"Phaser correction order (default {phaser.order})")
+    p.add_argument("--regression", choices=("tube", "noise_aware"), default="tube",
+                   help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
+                   "raw differences with the motion-capture noise removed (unbiased under noise)")
+    p.add_argument("--complexity", choices=("fixed", "cv"), default="fixed",
+                   help="fixed: --n-bins and --fourier-order as given (default); cv: bins, "
+                   "Fourier order and ridge chosen by held-out error over blocks of whole cycles")
+    p.add_argument("--folds", type=int, default=3,
+                   help="blocks of whole cycles for the held-out check and --complexity cv "
+                   "(default 3; 0 skips the check)")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
     args = p.parse_args(argv)
     if args.links < 2:
@@ -92,12 +103,22 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         traj = read_csv(args.data, n_joints=args.links - 1)
+        method = NoiseAwareRegression if args.regression == "noise_aware" else TubeRegression
         est = ConnectionEstimator(
             phaser=Phaser(order=args.phase_order),
-            regression=TubeRegression(n_bins=args.n_bins, fourier_order=args.fourier_order,
-                                      window=args.window),
+            regression=method(n_bins=args.n_bins, fourier_order=args.fourier_order,
+                              window=args.window),
             pool=True,
-        ).fit(traj)
+        )
+        if args.complexity == "cv":
+            est.select_complexity(traj, n_folds=max(args.folds, 2))
+        else:
+            est.fit(traj)
+        held_out = None
+        if args.folds:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # reported below
+                held_out = est.cross_validate(args.folds)
     except (ValueError, FileNotFoundError) as err:
         print(f"torchconn-fit: error: {err}", file=sys.stderr)
         return 2
@@ -119,6 +140,21 @@ def main(argv: list[str] | None = None) -> int:
                   + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
         print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; the "
               "full M only as far as the data leave the cycle (see the bands in metric.png)")
+    if args.complexity == "cv":
+        c = est.complexity_
+        print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
+              f"{c.fourier_order}, ridge {c.ridge:g}")
+    if held_out is not None:
+        print(f"held-out R² (v_x, v_y, omega), each of {args.folds} blocks of whole cycles "
+              "left out in turn:")
+        for name, r2 in (("model", held_out.r2), ("phase-averaged velocity",
+                                                  held_out.r2_phase_average),
+                         ("template", held_out.r2_template)):
+            print(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
+        if bool(held_out.worse_than_phase_average.any()):
+            print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
+                  "velocity: it overfits this recording (try --complexity cv, fewer --n-bins, "
+                  "a lower --fourier-order or a wider --window, or record more cycles)")
     print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
     return 0
 
