@@ -98,7 +98,10 @@ def run_one(n_links: int, gait: str, omega: float, method: str, *, n_cycles: int
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        est.fit(traj)
+        if method.endswith("_cv"):
+            est.select_complexity(traj)
+        else:
+            est.fit(traj)
     seconds = time.perf_counter() - start
     return {**connection_errors(est.model_, n_links), **metric_errors(est.model_, n_links),
             "seconds": seconds}
@@ -106,9 +109,11 @@ def run_one(n_links: int, gait: str, omega: float, method: str, *, n_cycles: int
 
 #: the regression stage of each method in the table: "smoothed" is the default TubeRegression
 #: (Kalman-smoothed velocities, 48 bins / order 12), "noise_aware" the NoiseAwareRegression
+#: (same bins and order), "noise_aware_cv" with ConnectionEstimator.select_complexity
 METHODS = {
     "smoothed": TubeRegression,
     "noise_aware": NoiseAwareRegression,
+    "noise_aware_cv": NoiseAwareRegression,  # bins, order, ridge by select_complexity
 }
 
 

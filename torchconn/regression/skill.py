@@ -124,12 +124,18 @@ def skill(model: LocalConnectionModel, baseline, view: _View) -> Skill:
 
 
 def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
-                   pool: bool, n_folds: int = 3) -> Skill:
+                   pool: bool, n_folds: int = 3, noise_corrected: bool = False) -> Skill:
     """Held-out skill over ``n_folds`` contiguous blocks of whole cycles of every trial.
 
     Each block in turn is left out of the regression (its samples get a NaN phase, as
     drop-outs do) and scored; the phase and the limit cycle of the whole recording are kept
     (they carry little of the model's complexity). The metric is not refitted.
+
+    ``noise_corrected`` (noise-aware regressions): subtract from the model's squared error the
+    part the joint-angle noise of the held-out *inputs* adds (:func:`_input_noise_variance`),
+    so that the score ranks models by how well they predict from the true shapes. Without it,
+    held-out error on noisy inputs favours models shrunk towards 0 (the attenuation the
+    noise-aware regression removes).
     """
     if isinstance(n_folds, bool) or not isinstance(n_folds, int) or n_folds < 2:
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
@@ -147,8 +153,23 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
         fold_model = reg.fit(train, cycle, pool=pool)
         base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
                                    view.r_dot, view.xi), reg.fourier_order)
-        sums.append(_sums(fold_model, base, view, fold == f))
+        noise = None
+        if noise_corrected and isinstance(reg, NoiseAwareRegression):
+            noise = _noise_of(fold_model, traj.dt, pool)
+        sums.append(_sums(fold_model, base, view, fold == f, noise))
     return _from_sums(*[sum(parts) for parts in zip(*sums, strict=True)])
+
+
+def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):
+    """Noise variances of the view's ``δ`` and ``δ̇`` from a noise-aware model's ``meta``,
+    shaped to broadcast against the view's ``(..., N, d)``."""
+    sigma2 = torch.as_tensor(model.meta["noise_r"], dtype=torch.float64).square()
+    h = torch.as_tensor(model.meta["velocity_interval"], dtype=torch.float64)
+    var_rate = 2 * sigma2 / (h[..., None] * dt) ** 2
+    var_delta = sigma2 / 2
+    if not pool:
+        var_rate, var_delta = var_rate.unsqueeze(-2), var_delta.unsqueeze(-2)
+    return var_delta, var_rate
 
 
 def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
@@ -169,7 +190,8 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", IllConditionedBinWarning)
-                    s = cross_validate(traj, cycle, cand, pool=pool, n_folds=n_folds)
+                    s = cross_validate(traj, cycle, cand, pool=pool, n_folds=n_folds,
+                                       noise_corrected=True)
             except ValueError as err:
                 failed.append(f"{n_bins} bins: {err}")
                 continue
@@ -193,8 +215,12 @@ def _cycle_blocks(phase: Tensor, n_folds: int) -> Tensor:
     return torch.where(torch.isfinite(fold), fold, -1.0).long()
 
 
-def _sums(model: LocalConnectionModel, baseline, view: _View, mask: Tensor | None):
-    """SSE of model, baseline and template over the scored samples; Σy, Σy², count."""
+def _sums(model: LocalConnectionModel, baseline, view: _View, mask: Tensor | None,
+          noise=None):
+    """SSE of model, baseline and template over the scored samples; Σy, Σy², count.
+
+    ``noise``: ``(var_delta, var_rate)`` of the inputs; the model's SSE is then corrected by
+    :func:`_input_noise_variance`."""
     ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
     ok &= torch.isfinite(view.r).all(-1) & torch.isfinite(view.r_dot).all(-1)
     if mask is not None:
@@ -206,7 +232,28 @@ def _sums(model: LocalConnectionModel, baseline, view: _View, mask: Tensor | Non
     w = ok.to(y.dtype)[..., None]
     preds = (model.predict(phase, r, r_dot), baseline(phase), model.c(phase))
     sse = [((y - p).square() * w).sum(-2) for p in preds]
+    if noise is not None:
+        sse[0] = sse[0] - (_input_noise_variance(model, phase, r, r_dot, *noise) * w).sum(-2)
     return (*sse, (y * w).sum(-2), (y.square() * w).sum(-2), w.sum(-2)[..., 0])
+
+
+def _input_noise_variance(model: LocalConnectionModel, phase: Tensor, r: Tensor,
+                          r_dot: Tensor, var_delta: Tensor, var_rate: Tensor) -> Tensor:
+    """``(..., N, 3)`` variance the inputs' noise adds to the model's prediction.
+
+    ``f = c + bδ + Aδ̇ + ∂A(δ̇⊗δ)`` with independent noise of variances ``v_δ``, ``v_δ̇`` on
+    ``δ`` and ``δ̇``: ``Var f_k = Σ_j g_kj² v_δj + Σ_i a_ki² v_δ̇i + Σ_ij ∂A_kij² v_δ̇i v_δj``
+    with ``g = b + ∂A·δ̇`` and ``a = A + ∂A·δ``; evaluated at the noisy inputs, the squares
+    exceed their noise-free values by the last sum each, hence its minus sign below.
+    """
+    delta, delta_dot = model.offsets(phase, r, r_dot)
+    da = model.dA(phase)  # (..., N, 3, d_i (δ̇), d_j (δ))
+    g = model.b(phase) + torch.einsum("...kij,...i->...kj", da, delta_dot)
+    a = model.A(phase) + torch.einsum("...kij,...j->...ki", da, delta)
+    cross = torch.einsum("...kij,...i,...j->...k", da.square(), var_rate.expand_as(delta_dot),
+                         var_delta.expand_as(delta))
+    return ((g.square() * var_delta.unsqueeze(-2)).sum(-1)
+            + (a.square() * var_rate.unsqueeze(-2)).sum(-1) - cross)
 
 
 def _from_sums(sse_model, sse_base, sse_template, sy, syy, n) -> Skill:
