@@ -12,8 +12,8 @@ Run by hand (minutes on 2 cores)::
     python benchmarks/accuracy.py                 # the full table
     python benchmarks/accuracy.py --links 3 --omega 0 0.005 --methods smoothed
 
-Metric rows: the metric regression is owned by another branch; once it reports ``M̂γ̇`` and the
-on-cycle power, add them in :func:`metric_errors` (the hook below returns nothing today).
+Metric rows (``--metric``): the metric is fitted too and scored by
+``benchmarks/metric_accuracy.py``'s own function (M̂γ̇, on-cycle power, full M̂, band coverage).
 """
 
 from __future__ import annotations
@@ -87,14 +87,18 @@ def connection_errors(model, n_links: int, n_phase: int = 200) -> dict:
 
 
 def metric_errors(model, n_links: int) -> dict:
-    """Hook for the metric rows (M̂γ̇, on-cycle power, full M̂): filled in by the metric branch."""
-    return {}
+    """The metric rows (M̂γ̇, on-cycle power, full M̂, band coverage) with the metric
+    benchmark's own scoring (``benchmarks/metric_accuracy.py``), when the model has a metric."""
+    if model.M is None:
+        return {}
+    from metric_accuracy import score  # beside this file
+    return score(model, NLinkSwimmer(n_links))
 
 
 def run_one(n_links: int, gait: str, omega: float, method: str, *, n_cycles: int = 30,
-            seed: int = 0) -> dict:
+            seed: int = 0, metric: bool = False) -> dict:
     traj = recording(n_links, gait, omega, n_cycles=n_cycles, seed=seed)
-    est = ConnectionEstimator(pool=True, regression=METHODS[method](metric=False))
+    est = ConnectionEstimator(pool=True, regression=METHODS[method](metric=metric or False))
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -125,6 +129,8 @@ def main(argv=None) -> int:
     p.add_argument("--methods", nargs="+", default=list(METHODS))
     p.add_argument("--cycles", type=int, default=30)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--metric", action="store_true",
+                   help="also fit the metric and print its rows (M̂γ̇, power, M̂, coverage)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     print(f"{'links':>5} {'gait':>9} {'method':>12} {'omega':>7} {'A err':>8} {'dA err':>8} "
@@ -133,10 +139,13 @@ def main(argv=None) -> int:
         for gait in args.gaits:
             for omega in args.omega:
                 for method in args.methods:
-                    r = run_one(n, gait, omega, method, n_cycles=args.cycles, seed=args.seed)
+                    r = run_one(n, gait, omega, method, n_cycles=args.cycles, seed=args.seed,
+                                metric=args.metric)
+                    extra = "".join(f" {k} {100 * r[k]:.1f}%" for k in ("Mgd", "power", "M",
+                                                                        "coverage") if k in r)
                     print(f"{n:>5} {gait:>9} {method:>12} {omega:>7.3f} {100 * r['A']:>7.2f}% "
-                          f"{100 * r['dA']:>7.1f}% {r['scale']:>6.3f} {r['seconds']:>6.2f}",
-                          flush=True)
+                          f"{100 * r['dA']:>7.1f}% {r['scale']:>6.3f} {r['seconds']:>6.2f}"
+                          + extra, flush=True)
     return 0
 
 
