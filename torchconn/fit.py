@@ -4,7 +4,8 @@ Reads trajectories in the CONVENTIONS CSV format, estimates phase and limit cycl
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>]``) and PNG
-plots with 95% confidence bands.
+plots with 95% confidence bands. Exit codes: 0 done, 2 bad input or an unusable output
+folder (one line says what to fix), 1 an internal error.
 """
 
 from __future__ import annotations
@@ -17,12 +18,15 @@ from pathlib import Path
 
 import torch
 
+from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
 from .io.trajectory_files import read_csv
 from .regression.estimator import ConnectionEstimator, EstimatorSettings
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
+
+PROG = "python -m torchconn.fit"
 
 
 def connection_table(model: LocalConnectionModel, n_points: int = 100):
@@ -46,16 +50,19 @@ def connection_table(model: LocalConnectionModel, n_points: int = 100):
 def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = 100) -> Path:
     """Write :func:`connection_table` to ``path`` (CSV with a header row)."""
     path = Path(path)
-    cols, rows = connection_table(model, n_points)
+    _write_table(path, *connection_table(model, n_points))
+    return path
+
+
+def _write_table(path: Path, cols, rows) -> None:
     with path.open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(cols)
         writer.writerows(rows)
-    return path
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m torchconn.fit", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
     p.add_argument("data", nargs="+", type=Path, help="trajectory CSV files (CONVENTIONS format)")
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
@@ -67,33 +74,42 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--window", type=float, default=None,
                    help="bin half-width in bin spacings (default: sized from the data)")
     p.add_argument("--phase-order", type=int, default=3, help="Phaser correction order")
-    p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
+    p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
+    add_threads(p)
     args = p.parse_args(argv)
-    if args.links < 2:
-        p.error(f"--links must be >= 2, got {args.links}")
 
-    try:
+    def body() -> int:
+        set_threads(args.threads)
+        if args.links < 2:
+            raise InputError(f"--links must be >= 2, got {args.links}")
+        if args.grid < 2:
+            raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
+        if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
+            raise InputError(f"--window must be a positive number, got {args.window}")
+        settings = dict(n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
+                        phase_order=args.phase_order, pool=True)
+        try:
+            EstimatorSettings(**settings)
+        except ValueError as err:
+            raise InputError(f"estimator options: {err}") from None
+        out = prepare_output(args.out)
         traj = read_csv(args.data, n_joints=args.links - 1)
-        est = ConnectionEstimator(
-            n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
-            phase_order=args.phase_order, pool=True,
-        ).fit(traj)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"python -m torchconn.fit: error: {err}", file=sys.stderr)
-        return 2
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    model = est.model_
-    model.save(out / "model.npz")
-    write_connection_csv(model, out / "connection.csv", args.grid)
-    plot_connection(model, out / "connection.png")
-    plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
-    if model.M is not None:
-        plot_metric(model, out / "metric.png")
-    print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
-          f"samples (d = {traj.shape_dim})")
-    print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
-    return 0
+        est = ConnectionEstimator(**settings).fit(traj)
+        model = est.model_
+        # everything is computed before the first file is written: no partial outputs
+        cols, rows = connection_table(model, args.grid)
+        model.save(out / "model.npz")
+        _write_table(out / "connection.csv", cols, rows)
+        plot_connection(model, out / "connection.png")
+        plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
+        if model.M is not None:
+            plot_metric(model, out / "metric.png")
+        print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
+              f"samples (d = {traj.shape_dim})")
+        print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
+        return 0
+
+    return run_command(PROG, body)
 
 
 if __name__ == "__main__":
