@@ -252,7 +252,7 @@ def _check_time(t: np.ndarray, lines: np.ndarray, label: str) -> None:
     if (steps <= 0).any():
         i = int(np.argmax(steps <= 0))
         raise ValueError(f"{label}, line {lines[i + 1]}: t must be strictly increasing, got "
-                         f"t={t[i + 1]!r} after t={t[i]!r}")
+                         f"t={float(t[i + 1])!r} after t={float(t[i])!r}")
     dt = (t[-1] - t[0]) / (len(t) - 1)
     jitter = np.abs(steps - dt)
     if (jitter > _DT_JITTER * dt).any():

@@ -278,6 +278,7 @@ def _parse(raw: dict[str, Any]) -> SweepConfig:
             raise InputError(f"{where} simulation must be a table, got {own!r}")
         sim_exp = build_settings(SimulationSettings, {**dataclasses.asdict(sim), **own},
                                  f"{where} [simulation]")
+        check_keys(exp, [f.name for f in dataclasses.fields(Experiment)], where)
         for key in ("system", "noise_kind", "levels", "trials"):
             if key not in exp:
                 raise InputError(f"{where}: missing required key {key!r}")
