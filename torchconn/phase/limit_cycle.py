@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .. import _checks
 from .fourier import FourierSeries, fit_fourier
 
 __all__ = ["LimitCycle", "fit_limit_cycle", "phase_rate"]
@@ -60,7 +61,7 @@ class LimitCycle:
             ``(delta, delta_dot)``, both ``(..., T, d)``: ``δ = r - γ(φ)`` and
             ``δ̇ = ṙ - φ̇ dγ/dφ(φ)`` (``φ̇`` = :attr:`phase_rate`, 1 by convention).
         """
-        _check(phase, r, r_dot, "LimitCycle.offsets")
+        _checks.phase_samples(phase, r, r_dot, fn="LimitCycle.offsets")
         delta = r - self.gamma_at(phase)
         delta_dot = r_dot - self.phase_rate[..., None, None] * self.gamma_dot_at(phase)
         return delta, delta_dot
@@ -90,7 +91,7 @@ def fit_limit_cycle(
     Returns:
         :class:`LimitCycle`; each batch element gets its own cycle.
     """
-    _check(phase, r, r_dot, "fit_limit_cycle")
+    _checks.phase_samples(phase, r, r_dot, fn="fit_limit_cycle")
     dtype = torch.promote_types(torch.promote_types(phase.dtype, r.dtype), r_dot.dtype)
     phase, r, r_dot = phase.to(dtype), r.to(dtype), r_dot.to(dtype)
     if dt is None:
@@ -158,9 +159,8 @@ def _residual_spectrum(
 def phase_rate(phase: Tensor, dt: float) -> Tensor:
     """Mean phase velocity ``φ̇``: least-squares slope of an unwrapped ``phase (..., T)``
     against time ``t = n dt``, ignoring NaN samples -> ``(...)``."""
-    if not isinstance(phase, Tensor) or phase.ndim < 1 or phase.shape[-1] < 2:
-        shape = tuple(phase.shape) if isinstance(phase, Tensor) else type(phase).__name__
-        raise ValueError(f"phase_rate: phase must have shape (..., T) with T >= 2, got {shape}")
+    _checks.tensor(phase, "phase", "(..., T) with T >= 2", fn="phase_rate",
+                   valid=lambda t: t.ndim >= 1 and t.shape[-1] >= 2)
     ok = torch.isfinite(phase)
     t = torch.arange(phase.shape[-1], dtype=phase.dtype, device=phase.device) * dt
     m = ok.to(phase.dtype)
@@ -168,21 +168,3 @@ def phase_rate(phase: Tensor, dt: float) -> Tensor:
     p = torch.where(ok, phase, torch.zeros_like(phase))
     tc = (t - (m * t).sum(-1, keepdim=True) / n) * m
     return (tc * p).sum(-1) / (tc * tc).sum(-1)
-
-
-def _check(phase: Tensor, r: Tensor, r_dot: Tensor, fn: str) -> None:
-    for name, x in (("phase", phase), ("r", r), ("r_dot", r_dot)):
-        if not isinstance(x, Tensor):
-            raise TypeError(f"{fn}: {name} must be a torch.Tensor, got {type(x).__name__}")
-    if phase.ndim < 1:
-        raise ValueError(f"{fn}: phase must have shape (..., T), got {tuple(phase.shape)}")
-    T = phase.shape[-1]
-    if r.ndim < 2 or r.shape[-2] != T:
-        raise ValueError(
-            f"{fn}: r must have shape (..., T={T}, d) matching phase {tuple(phase.shape)}, "
-            f"got {tuple(r.shape)}"
-        )
-    if r_dot.shape != r.shape:
-        raise ValueError(
-            f"{fn}: r_dot must have the same shape as r {tuple(r.shape)}, got {tuple(r_dot.shape)}"
-        )

@@ -33,6 +33,7 @@ import math
 import torch
 from torch import Tensor
 
+from .. import _checks
 from .fourier import FourierSeries, fit_fourier, fourier_design
 from .smoothing import unwrap
 
@@ -182,8 +183,7 @@ def estimate_phase(
             first harmonic.
     """
     _check_x(x, "estimate_phase")
-    if isinstance(order, bool) or not isinstance(order, int) or order < 0:
-        raise ValueError(f"estimate_phase: order must be an int >= 0, got {order!r}")
+    _checks.integer(order, "order", fn="estimate_phase")
     C = x.shape[-1]
     if not -C <= section_channel < C:
         raise ValueError(
@@ -302,13 +302,10 @@ def _interp(z: Tensor, pos: Tensor) -> Tensor:
 
 
 def _check_x(x: Tensor, fn: str) -> None:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{fn}: x must be a torch.Tensor, got {type(x).__name__}")
-    if x.ndim < 2 or x.shape[-1] < 1 or x.shape[-2] < 4:
-        raise ValueError(
-            f"{fn}: x must have shape (..., T, C) with T samples along axis -2 and C >= 1 "
-            f"channels along axis -1, got {tuple(x.shape)}"
-        )
+    _checks.tensor(
+        x, "x", "(..., T, C) with T >= 4 samples along axis -2 and C >= 1 channels along axis -1",
+        fn=fn, valid=lambda t: t.ndim >= 2 and t.shape[-1] >= 1 and t.shape[-2] >= 4,
+    )
 
 
 def _check_values(x: Tensor) -> None:
@@ -316,22 +313,21 @@ def _check_values(x: Tensor) -> None:
     if bool(nan.any()):
         allnan = nan.all(-2)
         if bool(allnan.any()):
-            where = torch.nonzero(allnan)[0].tolist()
+            where = _checks.first_index(allnan)
             raise ValueError(
-                f"estimate_phase: channel {where[-1]} of x (batch index {tuple(where[:-1])}) is "
+                f"estimate_phase: channel {where[-1]} of x (batch index {where[:-1]}) is "
                 "NaN at every sample; drop that channel"
             )
         raise ValueError(
             f"estimate_phase: x contains {int(nan.sum())} NaN samples; fill or smooth drop-outs "
             "first (torchconn.phase.smoothing.rts_smooth predicts through them)"
         )
-    if not bool(torch.isfinite(x).all()):
-        raise ValueError("estimate_phase: x contains inf")
+    _checks.finite(x, "x", fn="estimate_phase")
     std = x.std(-2)
     flat = std <= _CONST_TOL * x.abs().amax(-2)
     if bool(flat.any()):
-        where = torch.nonzero(flat)[0].tolist()
+        where = _checks.first_index(flat)
         raise ValueError(
-            f"estimate_phase: channel {where[-1]} of x (batch index {tuple(where[:-1])}) is "
+            f"estimate_phase: channel {where[-1]} of x (batch index {where[:-1]}) is "
             "constant and carries no phase; drop it"
         )

@@ -26,7 +26,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .. import __version__
 from .._cli import InputError, check_keys, did_you_mean
+from .._provenance import source_hash
 from ..regression.estimator import EstimatorSettings
 
 __all__ = [
@@ -201,8 +203,10 @@ class SweepConfig:
                                  "bins would be empty")
 
     def fingerprint(self, experiment: Experiment) -> dict:
-        """Everything that determines an experiment's results (for resuming safely)."""
+        """Everything that determines an experiment's results (for resuming safely),
+        torchconn's version and source code included."""
         return {
+            "torchconn": __version__, "source": source_hash(),
             "experiment": dataclasses.asdict(experiment),
             "estimator": dataclasses.asdict(self.estimator),
             "seed": self.seed, "phase": self.phase, "error_bins": self.error_bins,

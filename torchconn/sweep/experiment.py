@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
+from .._provenance import spawn_seeds
 from ..evaluation.models import (
     COMPONENTS,
     MODELS,
@@ -93,19 +94,14 @@ def make_system(name: str) -> NLinkSwimmer:
 
 
 def experiment_seeds(config: SweepConfig, experiment: Experiment) -> np.ndarray:
-    """Seeds ``(levels, trials)``: cell (i, j) gets ``SeedSequence(root, spawn_key=(e, i, j))``.
+    """Seeds ``(levels, trials)``: cell (i, j) of experiment e gets
+    ``SeedSequence(root, spawn_key=(e, i, j))`` (:func:`torchconn._provenance.spawn_seeds`).
 
     Keyed by position, so a trial's seed does not depend on which other trials run, in which
     order, in which cell, or on which backend.
     """
     e = [x.name for x in config.experiments].index(experiment.name)
-    L, n = len(experiment.levels), experiment.trials
-    seeds = np.empty((L, n), dtype=object)
-    for i in range(L):
-        for j in range(n):
-            ss = np.random.SeedSequence(config.seed, spawn_key=(e, i, j))
-            seeds[i, j] = int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
-    return seeds
+    return spawn_seeds(config.seed, (len(experiment.levels), experiment.trials), key=(e,))
 
 
 def run_experiment(config: SweepConfig, experiment: Experiment,

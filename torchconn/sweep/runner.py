@@ -17,17 +17,15 @@ from __future__ import annotations
 
 import hashlib
 import json
-import platform
 import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from .. import __version__
 from .._cli import InputError, prepare_output
+from .._provenance import write_sidecar
 from .claims import check_claims
 from .config import SweepConfig
 from .experiment import (
@@ -42,7 +40,7 @@ from .experiment import (
 )
 from .figures import make_figures
 from .lock import FolderLock
-from .store import ResultStore, code_identity, write_csv, write_json
+from .store import ResultStore, write_csv
 
 __all__ = ["run_sweep", "SweepSummary", "Progress", "cell_fingerprint"]
 
@@ -85,8 +83,7 @@ class Progress:
 
 def cell_fingerprint(config: SweepConfig, cell: Cell) -> str:
     """Hash of everything that determines a cell's rows, torchconn's code included."""
-    payload = {**config.fingerprint(cell.experiment), "cell": [cell.level, cell.start, cell.stop],
-               "code": code_identity()}
+    payload = {**config.fingerprint(cell.experiment), "cell": [cell.level, cell.start, cell.stop]}
     text = json.dumps(payload, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -193,15 +190,6 @@ def _run_dask(dask, config, pending, store, done, progress, workers, scheduler) 
             cluster.close()
 
 
-def _versions() -> dict:
-    import matplotlib
-    import scipy
-
-    return {"torchconn": __version__, "torch": torch.__version__, "numpy": np.__version__,
-            "scipy": scipy.__version__, "matplotlib": matplotlib.__version__,
-            "python": platform.python_version()}
-
-
 def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged) -> SweepSummary:
     per_experiment = {e.name: ExperimentResult() for e in config.experiments}
     for cell, _ in plan:  # plan order: experiment, level, trials -- independent of block size
@@ -235,13 +223,11 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged)
         "cells": {cell.name: fp for cell, fp in plan},
         "cells_computed_this_run": list(computed),
         "cells_damaged_and_recomputed": [{"cell": c, "reason": r} for c, r in damaged],
-        "code": code_identity(),
-        "versions": _versions(),
         "timings_s": timings,
         "wall_time_s_this_run": wall,
         "torch_threads": torch.get_num_threads(),
     }
-    write_json(out / "run.json", sidecar)
+    write_sidecar(out / "run.json", sidecar)
     for claim, holds, evidence in claims:
         log(f"{'HOLDS' if holds is True else 'FAILS' if holds is False else 'n/a  '}  {claim}\n"
             f"       {evidence}")

@@ -17,31 +17,15 @@ import hashlib
 import io
 import json
 import os
-from functools import lru_cache
 from pathlib import Path
 
-from .. import __version__
 from .experiment import PHASE_COLUMNS, RESULT_COLUMNS, TRACE_COLUMNS, Cell, ExperimentResult
 
-__all__ = [
-    "ResultStore", "write_csv", "write_json", "read_csv_rows", "read_table", "code_identity",
-]
+__all__ = ["ResultStore", "write_csv", "read_csv_rows", "read_table"]
 
 _TABLES = {"results": RESULT_COLUMNS, "phase_errors": PHASE_COLUMNS, "traces": TRACE_COLUMNS}
 _MANIFEST = "cell.json"
 _FORMAT = "torchconn.sweep.cell/1"
-
-
-@lru_cache(maxsize=1)
-def code_identity() -> dict:
-    """torchconn's version and a SHA-256 of its Python source (every ``.py`` file of the
-    package, by relative path), so results of other code are never reused."""
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
-        h.update(path.relative_to(root).as_posix().encode() + b"\0")
-        h.update(path.read_bytes() + b"\0")
-    return {"torchconn": __version__, "source_sha256": h.hexdigest()}
 
 
 def _csv_bytes(columns, rows) -> bytes:
@@ -65,11 +49,6 @@ def _write_atomic(path: Path, data: bytes) -> None:
 def write_csv(path: Path, columns, rows) -> None:
     """Write rows atomically (a temporary file renamed into place)."""
     _write_atomic(Path(path), _csv_bytes(columns, rows))
-
-
-def write_json(path: Path, payload: dict) -> None:
-    """Write a JSON sidecar atomically."""
-    _write_atomic(Path(path), json.dumps(payload, indent=2, default=str).encode())
 
 
 def _parse(value: str):
