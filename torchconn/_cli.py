@@ -41,12 +41,14 @@ def did_you_mean(word: str, choices: Iterable[str]) -> str:
 
 
 def check_keys(table: dict, known: Iterable[str], where: str) -> None:
-    """Raise :class:`InputError` listing ``table``'s keys that are not in ``known``."""
-    known = sorted(known)
+    """Raise :class:`InputError` listing ``table``'s keys that are not in ``known``, with the
+    closest valid key and all of them."""
+    from ._options import unknown_keys_message
+
+    known = [str(k) for k in known]
     unknown = [k for k in table if k not in known]
     if unknown:
-        hints = "; ".join(f"{k!r}{did_you_mean(k, known)}" for k in unknown)
-        raise InputError(f"{where}: unknown key(s) {hints}; valid keys: {', '.join(known)}")
+        raise InputError(unknown_keys_message(where, unknown, known))
 
 
 def add_threads(parser: argparse.ArgumentParser) -> None:

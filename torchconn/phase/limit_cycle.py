@@ -11,6 +11,8 @@ harmonic ``k``'s noise by ``k``, so high harmonics lean on ``ω``). The mean com
 
 from __future__ import annotations
 
+import abc
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -18,9 +20,11 @@ import torch
 from torch import Tensor
 
 from .. import _checks
+from .._options import Options, option
+from ..trajectory import Trajectory, pool_batch
 from .fourier import FourierSeries, fit_fourier
 
-__all__ = ["LimitCycle", "fit_limit_cycle", "phase_rate"]
+__all__ = ["CycleEstimator", "SelfConsistentCycle", "LimitCycle", "fit_limit_cycle", "phase_rate"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,6 +69,45 @@ class LimitCycle:
         delta = r - self.gamma_at(phase)
         delta_dot = r_dot - self.phase_rate[..., None, None] * self.gamma_dot_at(phase)
         return delta, delta_dot
+
+
+class CycleEstimator(Options, abc.ABC):
+    """Base of the estimator's cycle stage: ``fit(traj, pool=...) -> LimitCycle``."""
+
+    @abc.abstractmethod
+    def fit(self, traj: Trajectory, *, pool: bool = False) -> LimitCycle:
+        """The cycle of a prepared trajectory (``phase`` and ``smoothed`` set).
+
+        One cycle per batch element, or with ``pool`` one for all trials together.
+        """
+
+
+@dataclass(frozen=True, kw_only=True)
+class SelfConsistentCycle(CycleEstimator):
+    """The matched-filter cycle of :func:`fit_limit_cycle` as the estimator's cycle stage.
+
+    ``γ₀`` is fitted to the recorded shapes (smoothing damps the gait's high harmonics), ``ω``
+    to the smoothed shape velocities per unit phase.
+
+    Attributes:
+        order: harmonics of the cycle's Fourier series.
+    """
+
+    order: int = option(8, ge=1)
+
+    def fit(self, traj: Trajectory, *, pool: bool = False) -> LimitCycle:
+        if not isinstance(traj, Trajectory) or traj.phase is None or traj.smoothed is None:
+            raise ValueError("SelfConsistentCycle.fit needs a trajectory with phase and smoothed "
+                             "state (ConnectionEstimator.prepare adds them)")
+        r_dot = traj.smoothed.r_dot
+        if not pool:
+            return fit_limit_cycle(traj.phase, traj.r, r_dot, order=self.order, dt=traj.dt)
+        # one cycle for all trials: fit dr/dφ (each trial's ṙ over its own phase rate) and keep
+        # the trials' mean rate
+        rate = phase_rate(traj.phase, traj.dt)
+        cycle = fit_limit_cycle(pool_batch(traj.phase, 0), pool_batch(traj.r, 1),
+                                pool_batch(r_dot / rate[..., None, None], 1), order=self.order)
+        return dataclasses.replace(cycle, phase_rate=rate.mean())
 
 
 def fit_limit_cycle(

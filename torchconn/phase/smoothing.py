@@ -8,19 +8,30 @@ through one vectorised filter; only the time loop is in Python.
 
 Noise parameters, when not given, are estimated per channel (see :func:`rts_smooth`).
 Missing samples (NaN) are predicted through, so outputs are finite everywhere.
+
+The estimator's smoothing stage is an option object with one job, ``smoother.smooth(traj)``
+(or ``smoother(traj)``): :class:`RTSSmoother` here; any :class:`Smoother` subclass slots in.
 """
 
 from __future__ import annotations
 
+import abc
 import math
+from dataclasses import dataclass, fields
+from typing import Literal
 
 import torch
 from torch import Tensor
 
 from .. import _checks
-from ..trajectory import SmoothedState
+from .._options import Options
+from ..trajectory import SmoothedState, Trajectory
 
-__all__ = ["rts_smooth", "unwrap", "body_velocity", "smooth_trajectory", "noise_parameters"]
+__all__ = [
+    "Smoother", "RTSSmoother",
+    "rts_smooth", "unwrap", "body_velocity", "smooth_trajectory", "noise_parameters",
+    "recorded_span",
+]
 
 # log10 grid of the dimensionless noise ratio q dt^(2 order - 1) / R searched by GCV
 _MU_GRID = torch.linspace(-10.0, 6.0, 65).tolist()
@@ -411,3 +422,67 @@ def smooth_trajectory(
     return SmoothedState(
         pose=p, pose_dot=pd, r=val[..., 3:], r_dot=der[..., 3:], xi=body_velocity(p, pd)
     )
+
+
+class Smoother(Options, abc.ABC):
+    """Base of the estimator's smoothing stage: ``smooth(traj) -> traj`` with ``smoothed`` set.
+
+    A smoother fills :attr:`Trajectory.smoothed <torchconn.trajectory.Trajectory.smoothed>`
+    (poses and shapes, their time derivatives, the body velocity) for every batch element,
+    finite over each trial's recorded span and NaN on the padding after a shorter trial's end.
+    """
+
+    @abc.abstractmethod
+    def smooth(self, traj: Trajectory) -> Trajectory:
+        """``traj`` with ``smoothed`` set (every other field unchanged)."""
+
+    def __call__(self, traj: Trajectory) -> Trajectory:
+        return self.smooth(traj)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RTSSmoother(Smoother):
+    """Kalman/Rauch–Tung–Striebel smoothing of every channel (:func:`smooth_trajectory`).
+
+    Attributes:
+        order: 2 -- white-acceleration model (position, velocity); 3 -- white jerk.
+        shared_bandwidth: give all channels of a trial one noise ratio (see
+            :func:`smooth_trajectory`; measured worse under observation noise, so off).
+    """
+
+    order: Literal[2, 3] = 2
+    shared_bandwidth: bool = False
+
+    def smooth(self, traj: Trajectory) -> Trajectory:
+        """Smooth ``traj``'s poses ``(..., T, 3)`` and shapes ``(..., T, d)`` into ``smoothed``.
+
+        Trials padded with NaN rows after their end (unequal lengths on one grid) are smoothed
+        over their recorded span only: the smoother's extrapolation into the padding means
+        nothing, so it is blanked to NaN there.
+        """
+        if not isinstance(traj, Trajectory):
+            raise TypeError(f"RTSSmoother.smooth: traj must be a torchconn.Trajectory, "
+                            f"got {type(traj).__name__}")
+        smoothed = smooth_trajectory(traj.pose, traj.r, traj.dt, order=self.order,
+                                     shared_bandwidth=self.shared_bandwidth)
+        recorded = recorded_span(traj)
+        if not bool(recorded.all()):
+            keep = recorded[..., None]
+            smoothed = SmoothedState(**{
+                f.name: torch.where(keep, getattr(smoothed, f.name), float("nan"))
+                for f in fields(smoothed)
+            })
+        return traj.with_fields(smoothed=smoothed)
+
+
+def recorded_span(traj: Trajectory) -> Tensor:
+    """``(..., T)`` True from the first to the last sample with any finite value per trial.
+
+    Trials of different lengths share one time grid, the shorter ones padded with NaN rows; the
+    padding is not a drop-out to smooth through but time that was never recorded.
+    """
+    finite = torch.isfinite(torch.cat([traj.pose, traj.r], -1)).any(-1)  # (..., T)
+    idx = torch.arange(finite.shape[-1], device=finite.device)
+    first = torch.where(finite, idx, finite.shape[-1]).min(-1, keepdim=True).values
+    last = torch.where(finite, idx, -1).max(-1, keepdim=True).values
+    return (idx >= first) & (idx <= last)

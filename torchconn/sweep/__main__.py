@@ -11,19 +11,22 @@ import sys
 from pathlib import Path
 
 from .._cli import InputError, add_threads, prepare_output, run_command, set_threads
-from .config import load_config
+from .config import load_config, sweep_config_names
 from .runner import run_sweep
 
-PROG = "python -m torchconn.sweep"
+PROG = "torchconn-sweep"
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Batched sweeps over system and observation noise (the paper's Sec. 5). "
-        "With no arguments, runs the embedded default sweep (about 80 s on 2 cores).",
+        "With no arguments, runs the packaged default sweep (about 80 s on 2 cores). "
+        "Also runs as python -m torchconn.sweep.",
     )
-    p.add_argument("--config", type=Path, help="TOML config (see configs/); default: embedded")
+    p.add_argument("--config", metavar="NAME|FILE",
+                   help="sweep config: the name of a packaged config (%s) or a path to a TOML "
+                   "file; default: default" % ", ".join(sweep_config_names()))
     p.add_argument("--out", type=Path, help="output directory (default: runs/<config name>)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set experiment.trials=2 "

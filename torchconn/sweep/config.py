@@ -1,4 +1,4 @@
-"""Sweep configuration: TOML files in ``configs/`` (or the embedded default), with overrides.
+"""Sweep configuration: TOML files (packaged by name, or any path), with overrides.
 
 A sweep is a list of experiments; each runs one system under one kind of noise at several
 levels, several trials per level:
@@ -8,19 +8,22 @@ levels, several trials per level:
 - ``noise_kind = "observation"``: levels are values of ω (motion-capture noise std), η fixed
   at ``eta_factor · η``.
 
-Every field is documented in ``configs/quick.toml``. :func:`load_config` validates the whole
-config before any work: unknown keys (listed with the valid ones and the closest match),
-types and ranges of every field, ``--set`` paths and indices, and TOML syntax (with file and
-line); every problem is an :class:`~torchconn._cli.InputError` naming the key.
+Every field is documented in the packaged ``default.toml`` (the repository's
+``configs/default.toml``, the sweep run with no config). The configs that ship with torchconn
+(``default``, ``quick``, ``fig3``, ``fig4a``, ``fig4b``) are named by their stem; a path names
+any other TOML file.
+
+:func:`load_config` validates the whole config before any work: unknown keys (listed with the
+valid ones and the closest match), types and ranges of every field, ``--set`` paths and
+indices, and TOML syntax (with file and line); every problem is an
+:class:`~torchconn._cli.InputError` naming the file and the key.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 import tomllib
-import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,80 +31,41 @@ from typing import Any
 
 from .. import __version__
 from .._cli import InputError, check_keys, did_you_mean
+from .._options import check_value
 from .._provenance import source_hash
-from ..regression.estimator import EstimatorSettings
+from .._resources import config_names, configs, read_config
+from ..regression.estimator import ConnectionEstimator, estimator_from_settings, estimator_settings
 
 __all__ = [
-    "SimulationSettings", "Experiment", "SweepConfig", "load_config", "apply_overrides",
-    "DEFAULT_TOML", "SYSTEMS", "NOISE_KINDS", "TRIAL_TILE",
+    "SimulationSettings", "Experiment", "SweepConfig", "load_config", "resolve_config",
+    "sweep_config_names", "apply_overrides", "DEFAULT_TOML", "SYSTEMS", "NOISE_KINDS",
+    "TRIAL_TILE",
 ]
 
 SYSTEMS = ("3link", "9link")
+NOISE_KINDS = ("system", "observation")
+PHASES = ("estimated", "true")
 #: block sizes are multiples of this: MKL's GEMM computes rows in tiles of 4, and a trial's
 #: numbers are bit-identical between blocks only when every block starts on a tile boundary
 TRIAL_TILE = 4
-NOISE_KINDS = ("system", "observation")
 
-#: the sweep `python -m torchconn.sweep` runs with no arguments (about 80 s on 2 cores)
-DEFAULT_TOML = """
-name = "default"
-seed = 20190101
-phase = "estimated"
-error_bins = 24
+#: the sweep ``torchconn-sweep`` runs with no ``--config`` (the packaged ``default.toml``,
+#: which documents every field; about 80 s on 2 cores)
+DEFAULT_TOML = configs().joinpath("default.toml").read_text(encoding="utf-8")
 
-[simulation]
-alpha = 0.05
-eta = 0.025
-n_cycles = 30
-samples_per_cycle = 64
-substeps = 8
-
-[estimator]
-
-[[experiment]]
-system = "3link"
-noise_kind = "system"
-levels = [0.25, 0.5, 1.0, 2.0, 4.0]
-trials = 12
-traces = true
-
-[[experiment]]
-system = "9link"
-noise_kind = "system"
-levels = [0.25, 0.5, 1.0, 2.0, 4.0]
-trials = 12
-traces = true
-
-[[experiment]]
-system = "9link"
-noise_kind = "observation"
-levels = [0.0, 0.005, 0.01, 0.02, 0.04]
-trials = 12
-"""
-
-
-PHASES = ("estimated", "true")
 _TOP = {"name": str, "seed": int, "phase": str, "error_bins": int, "block_trials": int,
         "simulation": dict, "estimator": dict, "experiment": list}
 
 
-def _at_least(key: str, value, low, high=None) -> None:
-    kind = "an integer" if isinstance(low, int) else "a number"
-    if high is None:
-        high = math.inf
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or (
-            isinstance(low, int) and not isinstance(value, int)):
-        raise InputError(f"{key} must be {kind}, got {value!r} ({type(value).__name__})")
-    if not low <= value <= high or (isinstance(value, float) and not math.isfinite(value)):
-        rng = f">= {low}" if high == math.inf else f"in [{low}, {high}]"
-        raise InputError(f"{key} must be {kind} {rng}, got {value!r}")
+def _in_range(key: str, value, tp, low, high=None) -> None:
+    """``value`` is a ``tp`` (int or float) in ``[low, high]``, else a ``ValueError``."""
+    check_value(key, value, tp, {"ge": low, **({"le": high} if high is not None else {})})
 
 
 def _folder_name(key: str, value: str) -> None:
     if not value or any(c in value for c in '/\\:*?"<>|\0') or value in (".", ".."):
         raise InputError(f"{key} must be a non-empty name usable as a folder name (no / \\ : * ? "
                          f'" < > |), got {value!r}')
-
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -115,11 +79,11 @@ class SimulationSettings:
     substeps: int = 8
 
     def __post_init__(self) -> None:
-        _at_least("alpha", self.alpha, 0.0)
-        _at_least("eta", self.eta, 0.0)
-        _at_least("n_cycles", self.n_cycles, 2, 100_000)
-        _at_least("samples_per_cycle", self.samples_per_cycle, 8, 100_000)
-        _at_least("substeps", self.substeps, 1, 1000)
+        _in_range("alpha", self.alpha, float, 0.0)
+        _in_range("eta", self.eta, float, 0.0)
+        _in_range("n_cycles", self.n_cycles, int, 2, 100_000)
+        _in_range("samples_per_cycle", self.samples_per_cycle, int, 8, 100_000)
+        _in_range("substeps", self.substeps, int, 1, 1000)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -146,12 +110,12 @@ class Experiment:
         if not self.levels:
             raise InputError("levels must be a non-empty list of numbers >= 0")
         for v in self.levels:
-            _at_least("levels", v, 0.0)
+            _in_range("levels", v, float, 0.0)
         if len(set(self.levels)) != len(self.levels):
             raise InputError(f"levels must be distinct, got {list(self.levels)}")
-        _at_least("trials", self.trials, 1, 100_000)
-        _at_least("omega", self.omega, 0.0)
-        _at_least("eta_factor", self.eta_factor, 0.0)
+        _in_range("trials", self.trials, int, 1, 100_000)
+        _in_range("omega", self.omega, float, 0.0)
+        _in_range("eta_factor", self.eta_factor, float, 0.0)
         if not self.name:
             object.__setattr__(self, "name", f"{self.system}-{self.noise_kind}")
         _folder_name("name", self.name)
@@ -161,6 +125,10 @@ class Experiment:
 class SweepConfig:
     """A whole sweep: experiments, shared simulation and estimator settings, root seed.
 
+    ``estimator`` is the ``[estimator]`` table (see
+    :func:`~torchconn.regression.estimator.estimator_from_settings`), or a
+    :class:`ConnectionEstimator`; it is validated and stored in full, normalised form, so equal
+    estimators written differently (flat 0.1 keys, nested tables) hash alike.
     ``block_trials`` is the number of trials per stored cell (a multiple of
     :data:`TRIAL_TILE`); the results do not depend on it.
     """
@@ -168,20 +136,24 @@ class SweepConfig:
     name: str
     seed: int
     experiments: tuple[Experiment, ...]
-    estimator: EstimatorSettings = EstimatorSettings()
+    estimator: dict = field(default_factory=dict)
     phase: str = "estimated"
     error_bins: int = 16
     block_trials: int = 8
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
+        est = self.estimator
+        if not isinstance(est, ConnectionEstimator):
+            est = estimator_from_settings(est, where="[estimator]")
+        object.__setattr__(self, "estimator", estimator_settings(est))
         _folder_name("name", self.name)
-        _at_least("seed", self.seed, 0, 2**63 - 1)
+        _in_range("seed", self.seed, int, 0, 2**63 - 1)
         if self.phase not in PHASES:
             raise InputError(f"phase must be one of {PHASES}, got {self.phase!r}"
                              + did_you_mean(self.phase, PHASES))
-        _at_least("error_bins", self.error_bins, 2, 10_000)
-        _at_least("block_trials", self.block_trials, TRIAL_TILE, 100_000)
+        _in_range("error_bins", self.error_bins, int, 2, 10_000)
+        _in_range("block_trials", self.block_trials, int, TRIAL_TILE, 100_000)
         if self.block_trials % TRIAL_TILE:
             raise InputError(f"block_trials must be a multiple of {TRIAL_TILE} (so that results "
                              f"do not depend on it), got {self.block_trials}")
@@ -191,12 +163,13 @@ class SweepConfig:
         if len(set(names)) != len(names):
             raise InputError(f"experiment names must be unique, got {names}; give repeated "
                              "systems a distinct name = \"...\"")
+        min_cycles = self.estimator["phaser"].get("min_cycles", 0.0)
         for i, e in enumerate(self.experiments):
             sim = e.simulation
-            if sim.n_cycles < self.estimator.min_cycles + 1:
+            if sim.n_cycles < min_cycles + 1:
                 raise InputError(
                     f"experiment {i} ({e.name}): n_cycles = {sim.n_cycles} is too few; the "
-                    f"estimator needs at least min_cycles + 1 = {self.estimator.min_cycles + 1:g}")
+                    f"estimator needs at least min_cycles + 1 = {min_cycles + 1:g}")
             if self.error_bins > sim.samples_per_cycle:
                 raise InputError(f"error_bins = {self.error_bins} exceeds samples_per_cycle = "
                                  f"{sim.samples_per_cycle} of experiment {i} ({e.name}); some "
@@ -208,41 +181,28 @@ class SweepConfig:
         return {
             "torchconn": __version__, "source": source_hash(),
             "experiment": dataclasses.asdict(experiment),
-            "estimator": dataclasses.asdict(self.estimator),
+            "estimator": self.estimator,
             "seed": self.seed, "phase": self.phase, "error_bins": self.error_bins,
             "index": [e.name for e in self.experiments].index(experiment.name),
         }
 
+    def make_estimator(self) -> ConnectionEstimator:
+        """A fresh (unfitted) estimator with this sweep's settings."""
+        return estimator_from_settings(self.estimator, where="[estimator]")
+
 
 def _check_type(value, tp, key: str):
-    """``value`` converted to the annotation ``tp`` (int, float, bool, str, tuple[float, ...],
-    ``X | None``), or an :class:`InputError` naming ``key``."""
-    args = typing.get_args(tp)
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        return _check_type(value, next(a for a in args if a is not type(None)), key)
-    if tp is bool:
-        ok = isinstance(value, bool)
-    elif tp is int:
-        ok = isinstance(value, int) and not isinstance(value, bool)
-    elif tp is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        value = float(value) if ok else value
-        if ok and not math.isfinite(value):
-            raise InputError(f"{key} must be a finite number, got {value!r}")
-    elif tp is str:
-        ok = isinstance(value, str)
-    elif typing.get_origin(tp) is tuple:
+    """``value`` checked against the annotation ``tp`` (``tuple[float, ...]`` element-wise),
+    floats returned as ``float``."""
+    if typing.get_origin(tp) is tuple:
         if not isinstance(value, (list, tuple)):
             raise InputError(f"{key} must be a list, got {value!r} ({type(value).__name__})")
-        return tuple(_check_type(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
-    else:  # pragma: no cover - a field type this validator does not know
-        raise TypeError(f"no validation for {key}: {tp}")
-    if not ok:
-        name = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}[tp]
-        raise InputError(f"{key} must be {name}, got {value!r} ({type(value).__name__})")
-    return value
+        return tuple(_check_type(v, typing.get_args(tp)[0], f"{key}[{i}]")
+                     for i, v in enumerate(value))
+    check_value(key, value, tp)
+    floats = tp is float or float in typing.get_args(tp)
+    return float(value) if floats and isinstance(value, int) and not isinstance(value, bool) \
+        else value
 
 
 def build_settings(cls, table, where: str, skip: tuple[str, ...] = ()):
@@ -253,13 +213,11 @@ def build_settings(cls, table, where: str, skip: tuple[str, ...] = ()):
     hints = typing.get_type_hints(cls)
     names = [f.name for f in dataclasses.fields(cls) if f.init and f.name not in skip]
     check_keys(table, names, where)
-    values = {k: _check_type(v, hints[k], f"{where} {k}") for k, v in table.items()}
     try:
+        values = {k: _check_type(v, hints[k], k) for k, v in table.items()}
         return cls(**values)
-    except InputError as err:
-        raise InputError(f"{where} {err}") from None
     except ValueError as err:
-        raise InputError(f"{where}: {err}") from None
+        raise InputError(f"{where} {err}") from None
 
 
 def _parse(raw: dict[str, Any]) -> SweepConfig:
@@ -270,19 +228,18 @@ def _parse(raw: dict[str, Any]) -> SweepConfig:
             what = "a [section] table" if tp is dict else "an array of [[experiment]] tables"
             raise InputError(f"{key} must be {what}, got {raw[key]!r}")
     sim = build_settings(SimulationSettings, raw.get("simulation", {}), "[simulation]")
-    estimator = build_settings(EstimatorSettings, raw.get("estimator", {}), "[estimator]")
     experiments = []
     for i, exp in enumerate(raw.get("experiment", [])):
         where = f"[[experiment]] {i}"
         if not isinstance(exp, dict):
             raise InputError(f"{where} must be a table, got {exp!r}")
         exp = dict(exp)
+        check_keys(exp, [f.name for f in dataclasses.fields(Experiment)], where)
         own = exp.pop("simulation", {})
         if not isinstance(own, dict):
             raise InputError(f"{where} simulation must be a table, got {own!r}")
         sim_exp = build_settings(SimulationSettings, {**dataclasses.asdict(sim), **own},
                                  f"{where} [simulation]")
-        check_keys(exp, [f.name for f in dataclasses.fields(Experiment)], where)
         for key in ("system", "noise_kind", "levels", "trials"):
             if key not in exp:
                 raise InputError(f"{where}: missing required key {key!r}")
@@ -290,12 +247,17 @@ def _parse(raw: dict[str, Any]) -> SweepConfig:
         object.__setattr__(experiments[-1], "simulation", sim_exp)
     values = {k: _check_type(raw[k], tp, k) for k, tp in _TOP.items()
               if k in raw and tp not in (dict, list)}
-    return SweepConfig(
-        name=values.get("name", "sweep"), seed=values.get("seed", 0),
-        experiments=tuple(experiments), estimator=estimator,
-        phase=values.get("phase", "estimated"), error_bins=values.get("error_bins", 16),
-        block_trials=values.get("block_trials", 8), raw=raw,
-    )
+    try:
+        return SweepConfig(
+            name=values.get("name", "sweep"), seed=values.get("seed", 0),
+            experiments=tuple(experiments), estimator=raw.get("estimator", {}),
+            phase=values.get("phase", "estimated"), error_bins=values.get("error_bins", 16),
+            block_trials=values.get("block_trials", 8), raw=raw,
+        )
+    except InputError:
+        raise
+    except ValueError as err:  # from the estimator's own validation
+        raise InputError(str(err)) from None
 
 
 def apply_overrides(raw: dict, overrides: list[str]) -> dict:
@@ -346,33 +308,56 @@ def apply_overrides(raw: dict, overrides: list[str]) -> dict:
     return raw
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> SweepConfig:
-    """Read and validate a TOML sweep config (the embedded default when ``path`` is None).
+def sweep_config_names() -> list[str]:
+    """Names of the packaged sweep configs (those with an ``[[experiment]]``)."""
+    return [n for n in config_names() if "experiment" in read_config(n)]
+
+
+def resolve_config(config: str | Path) -> tuple[str, str]:
+    """The TOML text a ``--config`` value names, and where it came from.
+
+    ``config`` is a path to a TOML file, or the name of a packaged sweep config (``"quick"`` or
+    ``"quick.toml"``); an existing file wins over a packaged name.
+    """
+    path = Path(config)
+    if path.is_dir():
+        raise InputError(f"config {path} is a folder; expected a TOML file or the name of a "
+                         f"packaged config ({', '.join(sweep_config_names())})")
+    if path.is_file():
+        try:
+            return path.read_bytes().decode("utf-8"), str(path)
+        except UnicodeDecodeError:
+            raise InputError(f"config {path}: not UTF-8 text; TOML files must be UTF-8") \
+                from None
+        except OSError as err:
+            raise InputError(f"config {path}: cannot read it ({err.strerror})") from None
+    name = str(config)
+    stem = name[:-5] if name.endswith(".toml") else name
+    if stem not in sweep_config_names():
+        raise InputError(
+            f"config {name!r} not found: neither a TOML file nor a packaged sweep config"
+            f"{did_you_mean(stem, sweep_config_names())}; packaged: "
+            f"{', '.join(sweep_config_names())}"
+        )
+    return configs().joinpath(f"{stem}.toml").read_text(encoding="utf-8"), f"{stem}.toml (packaged)"
+
+
+def load_config(config: str | Path | None = None, overrides: list[str] = ()) -> SweepConfig:
+    """Read and validate a sweep config: a path to a TOML file, the name of a packaged config
+    (``"quick"``, ``"fig4a"``, ...), or None for the default sweep (``"default"``).
 
     Raises:
         InputError: naming the file (and line, for TOML syntax), the key and what was
             expected; ``--set`` problems name the override.
     """
-    if path is None:
-        raw = tomllib.loads(DEFAULT_TOML)
-        source = "the default config"
+    if config is None:
+        text, source = DEFAULT_TOML, "default.toml (packaged)"
     else:
-        path = Path(path)
-        source = str(path)
-        if not path.exists():
-            raise InputError(f"config file {path} not found")
-        if path.is_dir():
-            raise InputError(f"config {path} is a folder; expected a TOML file such as "
-                             "configs/quick.toml")
-        try:
-            raw = tomllib.loads(path.read_bytes().decode("utf-8"))
-        except UnicodeDecodeError:
-            raise InputError(f"config {path}: not UTF-8 text; TOML files must be UTF-8") \
-                from None
-        except tomllib.TOMLDecodeError as err:
-            raise InputError(f"config {path}: invalid TOML: {err}") from None
-        except OSError as err:
-            raise InputError(f"config {path}: cannot read it ({err.strerror})") from None
+        text, source = resolve_config(config)
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(f"config {source}: invalid TOML: {err}") from None
     raw = apply_overrides(raw, list(overrides))
     try:
         return _parse(raw)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -25,7 +25,6 @@ from ..evaluation.models import (
 )
 from ..physics.gaits import reference_gait
 from ..physics.systems import NLinkSwimmer
-from ..regression.estimator import ConnectionEstimator
 from ..simulation.observe import observe
 from ..simulation.rollout import simulate
 from .config import Experiment, SweepConfig
@@ -147,7 +146,7 @@ def run_cell(config: SweepConfig, cell: Cell) -> ExperimentResult:
 
     # the sweep scores body-velocity models only, so the metric is not fitted (at low noise its
     # quadratic regressors can be too thin to fit, which should not stop a connection study)
-    estimator = ConnectionEstimator(**{**asdict(config.estimator), "metric": False})
+    estimator = config.make_estimator().set_params(regression__metric=False)
     phase = traj.truth.phase if config.phase == "true" else None
     t0 = clock()
     prepared = estimator.prepare(traj, phase=phase)

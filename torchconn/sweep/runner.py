@@ -19,7 +19,7 @@ import hashlib
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -216,7 +216,7 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged)
         made = make_figures(out, *as_dicts, config.experiments)
     sidecar = {
         "config": config.raw,
-        "estimator": asdict(config.estimator),
+        "estimator": config.estimator,
         "root_seed": config.seed,
         "seeds": {e.name: experiment_seeds(config, e).tolist() for e in config.experiments},
         "block_trials": config.block_trials,
