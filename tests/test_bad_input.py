@@ -418,3 +418,16 @@ def test_threads_flag_sets_torch_threads(tmp_path, capsys):
         assert torch.get_num_threads() == 1  # the default, in every command
     finally:
         torch.set_num_threads(before)
+
+
+def test_an_internal_error_is_one_line_not_a_traceback(tmp_path, capsys, monkeypatch):
+    def broken(*args, **kwargs):
+        raise RuntimeError("simulated bug")
+
+    monkeypatch.setattr("torchconn.sweep.runner.run_cell", broken)
+    config = _write(tmp_path, "s.toml", GOOD_TOML)
+    code = sweep_cli.main(["--config", str(config), "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert "internal error (RuntimeError): simulated bug" in err and "TORCHCONN_DEBUG" in err
+    assert not (tmp_path / "o" / "results.csv").exists()
