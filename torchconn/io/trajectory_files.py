@@ -365,7 +365,7 @@ def write_csv(traj: Trajectory, path: str | PathLike) -> Path:
     text = buf.getvalue()
     if traj.power is not None:
         # power is the last column; its missing cells (at least each trial's last row, whose
-        # interval ends after the recording) are written empty, as CONVENTIONS has it
+        # interval ends after the recording) are written empty, as docs/conventions.md has it
         text = re.sub(r",nan$", ",", text, flags=re.MULTILINE)
     path.write_text(text)
     return path

@@ -198,7 +198,7 @@ _ROW_CHUNK = 2048
 class IntervalSamples:
     """Recorded samples turned into the sample intervals the power channel belongs to.
 
-    Row ``k`` describes ``[t_k, t_{k+1})`` (CONVENTIONS); the last row is NaN.
+    Row ``k`` describes ``[t_k, t_{k+1})`` (docs/conventions.md); the last row is NaN.
 
     Attributes:
         r_mid: ``(..., T, d)`` the interval's mid-shape ``r̄_k = (r_k + r_{k+1})/2``.
@@ -592,7 +592,7 @@ def power_noise_variance(residual: Tensor, m_v: Tensor, dt: float) -> Tensor:
     ``E[res_k res_{k+1}] = −(4/Δt²) Σ_i (M̂v)_{k,i} (M̂v)_{k+1,i} ω_i²``, while a smooth model
     error contributes the same to lags 1 and 2. Regressing ``res_k (res_{k+1} − res_{k+2})`` on
     that feature gives ``ω²``. One level is fitted for all joints (the motion-capture noise of
-    every joint angle, as in CONVENTIONS): per-joint levels were measured too noisy to separate
+    every joint angle, as in docs/conventions.md): per-joint levels were measured too noisy to separate
     on the 5-link (0 to 1.5× the truth at ω = 0.002).
 
     Args:
