@@ -70,7 +70,8 @@ def _folder_name(key: str, value: str) -> None:
 
 @dataclass(frozen=True, kw_only=True)
 class SimulationSettings:
-    """Rollout settings (CONVENTIONS defaults): α, η, cycles, sampling, fine steps."""
+    """Rollout settings (defaults: the paper's, docs/conventions.md): α, η, cycles, sampling,
+    fine steps."""
 
     alpha: float = 0.05
     eta: float = 0.025
