@@ -64,18 +64,21 @@ def _parse(value: str):
 def read_csv_rows(path: Path, columns=None) -> list[tuple]:
     """Rows of a table written by :func:`write_csv`, numbers parsed back. With ``columns``,
     the header must match and every row must have that many fields (else ``ValueError``)."""
-    with Path(path).open(newline="", encoding="utf-8") as fh:
-        reader = csv.reader(fh)
-        header = next(reader, None)
-        if columns is not None and tuple(header or ()) != tuple(columns):
-            raise ValueError(f"header {header} is not {list(columns)}")
-        rows = []
-        for row in reader:
-            if columns is not None and len(row) != len(columns):
-                raise ValueError(f"line {reader.line_num} has {len(row)} fields, expected "
-                                 f"{len(columns)}")
-            rows.append(tuple(_parse(v) for v in row))
-        return rows
+    return _rows(Path(path).read_bytes(), columns)
+
+
+def _rows(data: bytes, columns=None) -> list[tuple]:
+    reader = csv.reader(io.StringIO(data.decode("utf-8"), newline=""))
+    header = next(reader, None)
+    if columns is not None and tuple(header or ()) != tuple(columns):
+        raise ValueError(f"header {header} is not {list(columns)}")
+    rows = []
+    for row in reader:
+        if columns is not None and len(row) != len(columns):
+            raise ValueError(f"line {reader.line_num} has {len(row)} fields, expected "
+                             f"{len(columns)}")
+        rows.append(tuple(_parse(v) for v in row))
+    return rows
 
 
 def read_table(path: Path | str) -> list[dict]:
@@ -136,7 +139,7 @@ class ResultStore:
             if not isinstance(sums, dict) or hashlib.sha256(data).hexdigest() != sums.get(name):
                 return None, f"{name} does not match its checksum (truncated or edited)"
             try:
-                tables[table] = read_csv_rows(d / name, columns)
+                tables[table] = _rows(data, columns)
             except (ValueError, UnicodeDecodeError, csv.Error) as err:
                 return None, f"{name} does not parse ({err})"
         return ExperimentResult(timings=dict(timings), **tables), None
