@@ -1,4 +1,5 @@
-"""``python -m torchconn.sweep``: run the paper's experiments and check its claims."""
+"""``torchconn-sweep`` (``python -m torchconn.sweep``): run the paper's experiments and check
+its claims."""
 
 from __future__ import annotations
 
