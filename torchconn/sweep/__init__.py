@@ -1,6 +1,7 @@
 """The sweep runner: the paper's accuracy-versus-noise experiments in one command.
 
-``python -m torchconn.sweep [--config configs/NAME.toml] [--out DIR] [--set key=value ...]``
+``torchconn-sweep [--config NAME|FILE.toml] [--out DIR] [--set key=value ...]`` (or
+``python -m torchconn.sweep``), ``NAME`` a packaged config (``quick``, ``fig4a``, ...).
 """
 
 from .config import DEFAULT_TOML, Experiment, SimulationSettings, SweepConfig, load_config

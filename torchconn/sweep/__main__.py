@@ -1,4 +1,5 @@
-"""``python -m torchconn.sweep``: run the paper's experiments and check its claims.
+"""``torchconn-sweep`` (``python -m torchconn.sweep``): run the paper's experiments and check
+its claims.
 
 Exit codes: 0 done, 2 bad input or an unusable output folder (one line says what to fix),
 1 an internal error.
