@@ -5,11 +5,13 @@
 """
 
 from .config import DEFAULT_TOML, Experiment, SimulationSettings, SweepConfig, load_config
-from .experiment import ExperimentResult, run_experiment
-from .runner import run_sweep
-from .store import read_table
+from .experiment import Cell, ExperimentResult, experiment_cells, run_cell, run_experiment
+from .lock import FolderBusy, FolderLock
+from .runner import SweepSummary, run_sweep
+from .store import ResultStore, read_table
 
 __all__ = [
     "DEFAULT_TOML", "Experiment", "SimulationSettings", "SweepConfig", "load_config",
-    "ExperimentResult", "run_experiment", "run_sweep", "read_table",
+    "Cell", "ExperimentResult", "experiment_cells", "run_cell", "run_experiment",
+    "FolderBusy", "FolderLock", "SweepSummary", "run_sweep", "ResultStore", "read_table",
 ]
