@@ -136,7 +136,10 @@ def test_get_and_set_params_follow_scikit_learn_without_it():
     with pytest.raises(ValueError, match=r"'regression__nbins' \(did you mean 'regression__n_bins'"):
         est.set_params(regression__nbins=3)
     with pytest.raises(ValueError, match="TubeRegression.n_bins must be >= 3"):
-        est.set_params(regression__n_bins=2)
+        est.set_params(phaser__order=2, regression__n_bins=2)
+    with pytest.raises(TypeError, match="smoother must be a Smoother"):
+        est.set_params(smoother=Phaser(), pool=True)
+    assert est.get_params() == rebuilt.get_params()  # a refused call changes nothing
     assert "n_bins=32" in repr(est) and "Phaser(order=4" in repr(est)
 
 
