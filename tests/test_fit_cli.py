@@ -27,7 +27,8 @@ def recording(tmp_path_factory):
 
 def test_fit_writes_model_table_and_plots(recording, tmp_path):
     out = tmp_path / "fit"
-    assert main([str(recording), "--links", "3", "--out", str(out), "--grid", "50"]) == 0
+    assert main([str(recording), "--links", "3", "--out", str(out), "--grid", "50",
+                 "--set", "cycle.order=7"]) == 0
     with (out / "connection.csv").open() as fh:
         rows = list(csv.reader(fh))
     header = rows[0]
@@ -43,6 +44,9 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
     assert np.abs(table[:, 3:9] - a_true).max() < 0.03
     model = LocalConnectionModel.load(out / "model.npz")
     assert model.batch_shape == ()
+    settings = model.meta["settings"]  # the estimator's full settings travel with the model
+    assert settings["cycle"]["order"] == 7 and settings["regression"]["n_bins"] == 48
+    assert settings["pool"] is True and settings["phaser"]["method"] == "phaser"
     for name in ("connection.png", "limit_cycle.png", "metric.png"):
         assert (out / name).stat().st_size > 1000
 
@@ -50,3 +54,17 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
 def test_fit_rejects_the_wrong_number_of_links(recording, tmp_path, capsys):
     assert main([str(recording), "--links", "5", "--out", str(tmp_path / "x")]) == 2
     assert "joint" in capsys.readouterr().err
+
+
+def test_fit_rejects_unknown_or_bad_settings_by_name(recording, tmp_path, capsys):
+    for extra, message in (
+        (["--set", "regression.kernal=box"], "unknown key 'kernal' (did you mean 'kernel'?)"),
+        (["--set", "smoother.order=4"], "RTSSmoother.order must be one of 2, 3, got 4"),
+        (["--set", "phasr.order=2"], "unknown key 'phasr' (did you mean 'phaser'?)"),
+        (["--n-bins", "2"], "TubeRegression.n_bins must be >= 3, got 2"),
+    ):
+        with pytest.raises(SystemExit) as exit_:
+            main([str(recording), "--links", "3", "--out", str(tmp_path / "x"), *extra])
+        assert exit_.value.code == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()  # refused before anything is read or written

@@ -20,10 +20,11 @@ import torch
 
 from .io.trajectory_files import read_csv
 from .phase.phaser import Phaser
-from .regression.estimator import ConnectionEstimator
+from .regression.estimator import estimator_from_settings
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 from .regression.tube import TubeRegression
+from .sweep.config import apply_overrides
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
@@ -80,19 +81,27 @@ def main(argv: list[str] | None = None) -> int:
                    help="bin half-width in bin spacings (default: sized from the data)")
     p.add_argument("--phase-order", type=int, default=phaser.order,
                    help=f"Phaser correction order (default {phaser.order})")
+    p.add_argument("--set", action="append", default=[], metavar="STAGE.FIELD=VALUE",
+                   help="any other estimator setting, as in a sweep config's [estimator] table, "
+                   "e.g. --set smoother.order=3 --set regression.kernel=box (stages: smoother, "
+                   "phaser, cycle, regression; repeatable)")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
     args = p.parse_args(argv)
     if args.links < 2:
         p.error(f"--links must be >= 2, got {args.links}")
+    settings = {
+        "pool": True, "phaser": {"order": args.phase_order},
+        "regression": {"n_bins": args.n_bins, "fourier_order": args.fourier_order,
+                       "window": args.window},
+    }
+    try:
+        est = estimator_from_settings(apply_overrides(settings, args.set), where="settings")
+    except ValueError as err:
+        p.error(str(err))
 
     try:
         traj = read_csv(args.data, n_joints=args.links - 1)
-        est = ConnectionEstimator(
-            phaser=Phaser(order=args.phase_order),
-            regression=TubeRegression(n_bins=args.n_bins, fourier_order=args.fourier_order,
-                                      window=args.window),
-            pool=True,
-        ).fit(traj)
+        est.fit(traj)
     except (ValueError, FileNotFoundError) as err:
         print(f"torchconn-fit: error: {err}", file=sys.stderr)
         return 2
