@@ -11,7 +11,7 @@ a :class:`ValueError`.
 :func:`check_value` checks an option against its type annotation (``bool``, ``int``, ``float``,
 ``Literal[...]``, ``X | None``) and bounds, the estimator stages' validation
 (:mod:`torchconn._options`); :func:`unknown_keys_message` words a rejected key with its closest
-valid one.
+valid one (:func:`did_you_mean`).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from torch import Tensor
 
 __all__ = [
     "describe", "tensor", "last_dim", "finite", "integer", "check_shapes", "phase_samples",
-    "first_index", "check_value", "unknown_keys_message",
+    "first_index", "check_value", "unknown_keys_message", "did_you_mean",
 ]
 
 
@@ -191,10 +191,13 @@ def check_value(where: str, value: Any, tp: Any, bounds: dict | None = None) -> 
                 raise ValueError(f"{where} must be {rel} {limit}, got {value!r}")
 
 
+def did_you_mean(word: str, choices) -> str:
+    """``" (did you mean 'x'?)"`` for the closest of ``choices``, or ``""``."""
+    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
 def unknown_keys_message(where: str, unknown, valid) -> str:
     """``where: unknown key 'x' (did you mean 'y'?); valid keys are …`` (closest via difflib)."""
-    parts = []
-    for key in sorted(map(str, unknown)):
-        close = difflib.get_close_matches(key, list(valid), n=1)
-        parts.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    parts = [f"{key!r}{did_you_mean(key, valid)}" for key in sorted(map(str, unknown))]
     return f"{where}: unknown key {', '.join(parts)}; valid keys are {', '.join(sorted(valid))}"

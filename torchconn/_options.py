@@ -16,7 +16,7 @@ from typing import Any
 
 from ._checks import check_value, unknown_keys_message
 
-__all__ = ["Options", "option"]
+__all__ = ["Options", "option", "check_value", "unknown_keys_message"]
 
 _MISSING = dataclasses.MISSING
 

@@ -4,8 +4,12 @@ Also runs as ``python -m torchconn.fit``. Reads trajectory CSV files (the format
 docs/conventions.md, section "Trajectory file format"), estimates phase and limit cycle, fits the
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
-uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>]``) and PNG
-plots with 95% confidence bands.
+uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>,
+M_gamma_dot_<i>, power_on_cycle]``) and PNG plots with 95% confidence bands. ``M_gamma_dot``
+(``M̂γ̇``) and ``power_on_cycle`` (``γ̇ᵀM̂γ̇``) are what the gait itself identifies; the full
+``M̂`` is only as good as the recording's off-cycle excitation (see the bands in ``metric.png``).
+Exit codes: 0 done, 2 bad input or an unusable output folder (one line says what to fix),
+1 an internal error.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
 from .io.trajectory_files import read_csv
 from .phase.phaser import Phaser
 from .regression.estimator import estimator_from_settings
@@ -27,6 +32,8 @@ from .regression.tube import TubeRegression
 from .sweep.config import apply_overrides
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
+
+PROG = "torchconn-fit"
 
 
 def connection_table(model: LocalConnectionModel, n_points: int = 100):
@@ -44,23 +51,29 @@ def connection_table(model: LocalConnectionModel, n_points: int = 100):
     if model.M is not None:
         cols += [f"M_{i + 1}_{j + 1}" for i in range(d) for j in range(d)]
         blocks.append(model.metric(phi).reshape(n_points, -1))
+        # the parts of M̂ the gait itself identifies, beside the full M̂
+        cols += [f"M_gamma_dot_{i + 1}" for i in range(d)] + ["power_on_cycle"]
+        blocks += [model.metric_gamma_dot(phi), model.power_on_cycle(phi)[:, None]]
     return cols, torch.cat(blocks, -1).tolist()
 
 
 def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = 100) -> Path:
     """Write :func:`connection_table` to ``path`` (CSV with a header row)."""
     path = Path(path)
-    cols, rows = connection_table(model, n_points)
+    _write_table(path, *connection_table(model, n_points))
+    return path
+
+
+def _write_table(path: Path, cols, rows) -> None:
     with path.open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(cols)
         writer.writerows(rows)
-    return path
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="torchconn-fit",
+        prog=PROG,
         description="Fit one local connection model (and the metric, when the files have a "
         "power column) to your recorded trials, pooled, and write DIR/model.npz, "
         "DIR/connection.csv (one row per phase) and PNG plots with 95% bands. "
@@ -85,39 +98,54 @@ def main(argv: list[str] | None = None) -> int:
                    help="any other estimator setting, as in a sweep config's [estimator] table, "
                    "e.g. --set smoother.order=3 --set regression.kernel=box (stages: smoother, "
                    "phaser, cycle, regression; repeatable)")
-    p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
+    p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
+    add_threads(p)
     args = p.parse_args(argv)
-    if args.links < 2:
-        p.error(f"--links must be >= 2, got {args.links}")
-    settings = {
-        "pool": True, "phaser": {"order": args.phase_order},
-        "regression": {"n_bins": args.n_bins, "fourier_order": args.fourier_order,
-                       "window": args.window},
-    }
-    try:
-        est = estimator_from_settings(apply_overrides(settings, args.set), where="settings")
-    except ValueError as err:
-        p.error(str(err))
 
-    try:
+    def body() -> int:
+        set_threads(args.threads)
+        if args.links < 2:
+            raise InputError(f"--links must be >= 2, got {args.links}")
+        if args.grid < 2:
+            raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
+        if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
+            raise InputError(f"--window must be a positive number, got {args.window}")
+        settings = {
+            "pool": True, "phaser": {"order": args.phase_order},
+            "regression": {"n_bins": args.n_bins, "fourier_order": args.fourier_order,
+                           "window": args.window},
+        }
+        try:
+            estimator = estimator_from_settings(apply_overrides(settings, args.set),
+                                                where="estimator options")
+        except ValueError as err:
+            raise InputError(str(err)) from None
+        out = prepare_output(args.out)
         traj = read_csv(args.data, n_joints=args.links - 1)
-        est.fit(traj)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"torchconn-fit: error: {err}", file=sys.stderr)
-        return 2
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    model = est.model_
-    model.save(out / "model.npz")
-    write_connection_csv(model, out / "connection.csv", args.grid)
-    plot_connection(model, out / "connection.png")
-    plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
-    if model.M is not None:
-        plot_metric(model, out / "metric.png")
-    print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
-          f"samples (d = {traj.shape_dim})")
-    print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
-    return 0
+        est = estimator.fit(traj)
+        model = est.model_
+        # everything is computed before the first file is written: no partial outputs
+        cols, rows = connection_table(model, args.grid)
+        model.save(out / "model.npz")
+        _write_table(out / "connection.csv", cols, rows)
+        plot_connection(model, out / "connection.png")
+        plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
+        if model.M is not None:
+            plot_metric(model, out / "metric.png")
+        print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
+              f"samples (d = {traj.shape_dim})")
+        if model.M is not None:
+            noise = (model.meta or {}).get("metric_noise_std")
+            if noise is not None:
+                print("shape noise estimated for the metric (rad): "
+                      + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
+            print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; "
+                  "the full M only as far as the data leave the cycle (see the bands in "
+                  "metric.png)")
+        print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
+        return 0
+
+    return run_command(PROG, body)
 
 
 if __name__ == "__main__":
