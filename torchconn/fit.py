@@ -94,6 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--phase-order", type=int, default=phaser.order,
                    help=f"Phaser correction order (default {phaser.order})")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
+    p.add_argument("--metric", choices=("auto", "yes", "no"), default="auto",
+                   help="estimate the dissipation metric: auto (default) when the files have a "
+                   "power column, yes to require one, no never")
     add_threads(p)
     args = p.parse_args(argv)
 
@@ -109,7 +112,9 @@ def main(argv: list[str] | None = None) -> int:
             estimator = ConnectionEstimator(
                 phaser=Phaser(order=args.phase_order),
                 regression=TubeRegression(n_bins=args.n_bins, fourier_order=args.fourier_order,
-                                          window=args.window),
+                                          window=args.window,
+                                          metric={"auto": None, "yes": True,
+                                                  "no": False}[args.metric]),
                 pool=True,
             )
         except ValueError as err:

@@ -192,8 +192,8 @@ class TubeRegression(Regression):
         """
         if not bool(torch.isfinite(traj.power).any()):
             raise ValueError("the power column has no values (all empty or NaN): the metric "
-                             "cannot be estimated; pass TubeRegression(metric=False) to fit the "
-                             "connection alone")
+                             "cannot be estimated; fit the connection alone with "
+                             "TubeRegression(metric=False) (torchconn-fit: --metric no)")
         iv = interval_samples(traj.r, traj.power, traj.phase, traj.dt)
         phase = _unwrapped(iv.phase)
         offset = iv.r_mid - cycle.gamma_at(torch.nan_to_num(iv.phase)).to(iv.r_mid)
