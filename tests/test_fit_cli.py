@@ -80,3 +80,18 @@ def test_fit_takes_any_stage_setting_and_refuses_bad_ones_by_name(recording, tmp
                  "--set", "regression.kernel=box"]) == 0
     settings = LocalConnectionModel.load(out / "model.npz").meta["settings"]
     assert settings["cycle"]["order"] == 7 and settings["regression"]["kernel"] == "box"
+
+
+def test_fit_metric_option(recording, tmp_path, capsys):
+    no_power = tmp_path / "no_power.csv"
+    lines = recording.read_text().splitlines()
+    no_power.write_text("\n".join(",".join(line.split(",")[:-1]) for line in lines) + "\n")
+    # asked for without a power column: a clear error, nothing written
+    assert main([str(no_power), "--links", "3", "--out", str(tmp_path / "a"),
+                 "--metric", "yes"]) == 2
+    assert "power" in capsys.readouterr().err
+    assert not (tmp_path / "a" / "model.npz").exists()
+    # switched off with a power column: the connection alone
+    assert main([str(recording), "--links", "3", "--out", str(tmp_path / "b"), "--metric",
+                 "no"]) == 0
+    assert LocalConnectionModel.load(tmp_path / "b" / "model.npz").M is None

@@ -99,6 +99,9 @@ def main(argv: list[str] | None = None) -> int:
                    "e.g. --set smoother.order=3 --set regression.kernel=box (stages: smoother, "
                    "phaser, cycle, regression; repeatable)")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
+    p.add_argument("--metric", choices=("auto", "yes", "no"), default="auto",
+                   help="estimate the dissipation metric: auto (default) when the files have a "
+                   "power column, yes to require one, no never")
     add_threads(p)
     args = p.parse_args(argv)
 
@@ -113,7 +116,8 @@ def main(argv: list[str] | None = None) -> int:
         settings = {
             "pool": True, "phaser": {"order": args.phase_order},
             "regression": {"n_bins": args.n_bins, "fourier_order": args.fourier_order,
-                           "window": args.window},
+                           "window": args.window,
+                           "metric": {"auto": None, "yes": True, "no": False}[args.metric]},
         }
         try:
             estimator = estimator_from_settings(apply_overrides(settings, args.set),

@@ -181,7 +181,7 @@ class ConnectionEstimator:
                 "the regression asks for the metric (metric=True) but the data have no power "
                 "channel (CSV column 'power', or Trajectory.power): record the dissipated power "
                 "to estimate the metric, or use metric=None (fit it when power is present) / "
-                "False to fit the connection alone"
+                "False to fit the connection alone (torchconn-fit: --metric auto / no)"
             )
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)

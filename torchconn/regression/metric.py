@@ -439,7 +439,8 @@ def tied_metric_regression(
               "in every direction of shape space at every phase (noise on the gait over many "
               "cycles); a gait without noise, a joint held fixed or too few cycles leave M "
               "unidentified. Lower the Fourier orders, drop the derivative term "
-              "(derivative_order=None) or record more varied data"
+              "(derivative_order=None), record more varied data, or fit the connection alone "
+              "(TubeRegression(metric=False); torchconn-fit: --metric no)"
         )
     h = (rhs - shrink[..., None] * corr_h) * inv
     beta = torch.cholesky_solve(h.unsqueeze(-1), chol)[..., 0] * inv
