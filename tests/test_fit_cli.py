@@ -95,3 +95,14 @@ def test_fit_metric_option(recording, tmp_path, capsys):
     assert main([str(recording), "--links", "3", "--out", str(tmp_path / "b"), "--metric",
                  "no"]) == 0
     assert LocalConnectionModel.load(tmp_path / "b" / "model.npz").M is None
+
+
+def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tmp_path,
+                                                                    capsys):
+    out = tmp_path / "cv"
+    assert main([str(recording), "--links", "3", "--out", str(out), "--regression",
+                 "noise_aware", "--complexity", "cv"]) == 0
+    text = capsys.readouterr().out
+    assert "complexity chosen by held-out error" in text
+    assert "held-out R² (v_x, v_y, omega)" in text and "phase-averaged velocity" in text
+    assert LocalConnectionModel.load(out / "model.npz").batch_shape == ()

@@ -28,6 +28,7 @@ from .regression import (
     ConnectionEstimator,
     EstimatorSettings,
     LocalConnectionModel,
+    NoiseAwareRegression,
     TubeRegression,
     estimator_from_settings,
 )
@@ -47,6 +48,6 @@ __all__ = [
     "Trajectory", "GroundTruth", "SmoothedState", "gaits", "se2",
     "simulate", "observe", "read_csv", "write_csv",
     "ConnectionEstimator", "LocalConnectionModel", "estimator_from_settings",
-    "RTSSmoother", "Phaser", "SelfConsistentCycle", "TubeRegression",
+    "RTSSmoother", "Phaser", "SelfConsistentCycle", "TubeRegression", "NoiseAwareRegression",
     "EstimatorSettings",
 ]

@@ -18,6 +18,7 @@ import argparse
 import csv
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import torch
@@ -98,6 +99,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="any other estimator setting, as in a sweep config's [estimator] table, "
                    "e.g. --set smoother.order=3 --set regression.kernel=box (stages: smoother, "
                    "phaser, cycle, regression; repeatable)")
+    p.add_argument("--regression", choices=("tube", "noise_aware"), default="tube",
+                   help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
+                   "raw differences with the motion-capture noise removed (unbiased under noise)")
+    p.add_argument("--complexity", choices=("fixed", "cv"), default="fixed",
+                   help="fixed: --n-bins and --fourier-order as given (default); cv: bins, "
+                   "Fourier order and ridge chosen by held-out error over blocks of whole cycles")
+    p.add_argument("--folds", type=int, default=3,
+                   help="blocks of whole cycles for the held-out check and --complexity cv "
+                   "(default 3; 0 skips the check)")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
     p.add_argument("--metric", choices=("auto", "yes", "no"), default="auto",
                    help="estimate the dissipation metric: auto (default) when the files have a "
@@ -111,11 +121,13 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--links must be >= 2, got {args.links}")
         if args.grid < 2:
             raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
+        if args.folds < 0 or args.folds == 1:
+            raise InputError(f"--folds must be 0 (no held-out check) or >= 2, got {args.folds}")
         if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
             raise InputError(f"--window must be a positive number, got {args.window}")
         settings = {
             "pool": True, "phaser": {"order": args.phase_order},
-            "regression": {"n_bins": args.n_bins, "fourier_order": args.fourier_order,
+            "regression": {"method": args.regression, "n_bins": args.n_bins, "fourier_order": args.fourier_order,
                            "window": args.window,
                            "metric": {"auto": None, "yes": True, "no": False}[args.metric]},
         }
@@ -126,7 +138,15 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(str(err)) from None
         out = prepare_output(args.out)
         traj = read_csv(args.data, n_joints=args.links - 1)
-        est = estimator.fit(traj)
+        if args.complexity == "cv":
+            est = estimator.select_complexity(traj, n_folds=max(args.folds, 2))
+        else:
+            est = estimator.fit(traj)
+        held_out = None
+        if args.folds:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # reported below
+                held_out = est.cross_validate(args.folds)
         model = est.model_
         # everything is computed before the first file is written: no partial outputs
         cols, rows = connection_table(model, args.grid)
@@ -146,6 +166,22 @@ def main(argv: list[str] | None = None) -> int:
             print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; "
                   "the full M only as far as the data leave the cycle (see the bands in "
                   "metric.png)")
+        if args.complexity == "cv":
+            c = est.complexity_
+            print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
+                  f"{c.fourier_order}, ridge {c.ridge:g}")
+        if held_out is not None:
+            print(f"held-out R² (v_x, v_y, omega), each of {args.folds} blocks of whole cycles "
+                  "left out in turn:")
+            for name, r2 in (("model", held_out.r2),
+                             ("phase-averaged velocity", held_out.r2_phase_average),
+                             ("template", held_out.r2_template)):
+                print(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
+            if bool(held_out.worse_than_phase_average.any()):
+                print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
+                      "velocity: it overfits this recording (try --complexity cv, fewer "
+                      "--n-bins, a lower --fourier-order or a wider --window, or record more "
+                      "cycles)")
         print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
         return 0
 
