@@ -127,8 +127,8 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--window must be a positive number, got {args.window}")
         settings = {
             "pool": True, "phaser": {"order": args.phase_order},
-            "regression": {"method": args.regression, "n_bins": args.n_bins, "fourier_order": args.fourier_order,
-                           "window": args.window,
+            "regression": {"method": args.regression, "n_bins": args.n_bins,
+                           "fourier_order": args.fourier_order, "window": args.window,
                            "metric": {"auto": None, "yes": True, "no": False}[args.metric]},
         }
         try:
