@@ -26,11 +26,11 @@ import torch
 from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
 from .io.trajectory_files import read_csv
 from .phase.phaser import Phaser
-from .regression.estimator import ConnectionEstimator
+from .regression.estimator import estimator_from_settings
 from .regression.model import LocalConnectionModel
-from .regression.noise_aware import NoiseAwareRegression
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 from .regression.tube import TubeRegression
+from .sweep.config import apply_overrides
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
@@ -95,6 +95,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="bin half-width in bin spacings (default: sized from the data)")
     p.add_argument("--phase-order", type=int, default=phaser.order,
                    help=f"Phaser correction order (default {phaser.order})")
+    p.add_argument("--set", action="append", default=[], metavar="STAGE.FIELD=VALUE",
+                   help="any other estimator setting, as in a sweep config's [estimator] table, "
+                   "e.g. --set smoother.order=3 --set regression.kernel=box (stages: smoother, "
+                   "phaser, cycle, regression; repeatable)")
     p.add_argument("--regression", choices=("tube", "noise_aware"), default="tube",
                    help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
                    "raw differences with the motion-capture noise removed (unbiased under noise)")
@@ -105,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="blocks of whole cycles for the held-out check and --complexity cv "
                    "(default 3; 0 skips the check)")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
+    p.add_argument("--metric", choices=("auto", "yes", "no"), default="auto",
+                   help="estimate the dissipation metric: auto (default) when the files have a "
+                   "power column, yes to require one, no never")
     add_threads(p)
     args = p.parse_args(argv)
 
@@ -118,16 +125,17 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--folds must be 0 (no held-out check) or >= 2, got {args.folds}")
         if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
             raise InputError(f"--window must be a positive number, got {args.window}")
+        settings = {
+            "pool": True, "phaser": {"order": args.phase_order},
+            "regression": {"method": args.regression, "n_bins": args.n_bins,
+                           "fourier_order": args.fourier_order, "window": args.window,
+                           "metric": {"auto": None, "yes": True, "no": False}[args.metric]},
+        }
         try:
-            method = NoiseAwareRegression if args.regression == "noise_aware" else TubeRegression
-            estimator = ConnectionEstimator(
-                phaser=Phaser(order=args.phase_order),
-                regression=method(n_bins=args.n_bins, fourier_order=args.fourier_order,
-                                  window=args.window),
-                pool=True,
-            )
+            estimator = estimator_from_settings(apply_overrides(settings, args.set),
+                                                where="estimator options")
         except ValueError as err:
-            raise InputError(f"estimator options: {err}") from None
+            raise InputError(str(err)) from None
         out = prepare_output(args.out)
         traj = read_csv(args.data, n_joints=args.links - 1)
         if args.complexity == "cv":

@@ -33,7 +33,8 @@ from typing import Any
 
 from torch import Tensor
 
-from .._options import Options, unknown_keys_message
+from .._checks import unknown_keys_message
+from .._options import Options
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
@@ -130,7 +131,7 @@ class ConnectionEstimator:
         self.cycle = cycle
         self.regression = regression
         self.pool = pool
-        self._validate()
+        _check_arguments(**self.get_params(deep=False))
 
     # ------------------------------------------------------------------ scikit-learn params
     def get_params(self, deep: bool = True) -> dict[str, Any]:
@@ -153,29 +154,18 @@ class ConnectionEstimator:
         unknown = set(params) - set(valid)
         if unknown:
             raise ValueError(unknown_keys_message("ConnectionEstimator.set_params", unknown, valid))
-        direct = {k: v for k, v in params.items() if "__" not in k}
-        for key, value in direct.items():
-            setattr(self, key, value)
+        new = {k: v for k, v in params.items() if "__" not in k}
         nested: dict[str, dict[str, Any]] = {}
         for key, value in params.items():
             if "__" in key:
                 stage, field = key.split("__", 1)
                 nested.setdefault(stage, {})[field] = value
         for stage, changes in nested.items():
-            setattr(self, stage, getattr(self, stage).replace(**changes))
-        self._validate()
+            new[stage] = new.get(stage, getattr(self, stage)).replace(**changes)
+        _check_arguments(**{**self.get_params(deep=False), **new})  # all or nothing
+        for key, value in new.items():
+            setattr(self, key, value)
         return self
-
-    def _validate(self) -> None:
-        for name, (base, methods) in STAGES.items():
-            value = getattr(self, name)
-            if not isinstance(value, base):
-                raise TypeError(
-                    f"ConnectionEstimator: {name} must be a {base.__name__} (e.g. "
-                    f"{next(iter(methods.values())).__name__}()), got {type(value).__name__}"
-                )
-        if not isinstance(self.pool, bool):
-            raise ValueError(f"ConnectionEstimator: pool must be true or false, got {self.pool!r}")
 
     # ------------------------------------------------------------------ fitting
     def fit(self, traj: Trajectory, phase: Tensor | None = None) -> "ConnectionEstimator":
@@ -193,7 +183,7 @@ class ConnectionEstimator:
                 "the regression asks for the metric (metric=True) but the data have no power "
                 "channel (CSV column 'power', or Trajectory.power): record the dissipated power "
                 "to estimate the metric, or use metric=None (fit it when power is present) / "
-                "False to fit the connection alone"
+                "False to fit the connection alone (torchconn-fit: --metric auto / no)"
             )
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
@@ -293,6 +283,19 @@ class ConnectionEstimator:
         changed = [f"{k}={v!r}" for k, v in self.get_params(deep=False).items()
                    if v != getattr(default, k)]
         return "ConnectionEstimator(" + ", ".join(changed) + ")"
+
+
+def _check_arguments(*, pool: Any, **stages: Any) -> None:
+    """The constructor's arguments: each stage an instance of its kind's base, pool a bool."""
+    for name, (base, methods) in STAGES.items():
+        value = stages[name]
+        if not isinstance(value, base):
+            raise TypeError(
+                f"ConnectionEstimator: {name} must be a {base.__name__} (e.g. "
+                f"{next(iter(methods.values())).__name__}()), got {type(value).__name__}"
+            )
+    if not isinstance(pool, bool):
+        raise ValueError(f"ConnectionEstimator: pool must be true or false, got {pool!r}")
 
 
 # ---------------------------------------------------------------------- settings tables
@@ -485,17 +488,7 @@ class EstimatorSettings:
     pool: bool = False
 
     def __post_init__(self) -> None:
-        if not isinstance(self.n_bins, int) or self.n_bins < 3:
-            raise ValueError(f"n_bins must be an integer >= 3, got {self.n_bins!r}")
-        if not isinstance(self.fourier_order, int) or not 0 <= 2 * self.fourier_order < self.n_bins:
-            raise ValueError(
-                f"fourier_order must satisfy 0 <= 2*fourier_order < n_bins={self.n_bins} (the "
-                f"series is fitted to one value per bin), got {self.fourier_order!r}"
-            )
-        if self.window is not None and self.window <= 0:
-            raise ValueError(f"window must be positive or None (auto), got {self.window!r}")
+        estimator_from_settings(asdict(self), where="EstimatorSettings")  # the stages' checks
         warnings.warn("EstimatorSettings is deprecated: build the estimator from its stages, or "
                       "from a settings table with estimator_from_settings", DeprecationWarning,
                       stacklevel=3)
-
-

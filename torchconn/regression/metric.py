@@ -3,7 +3,7 @@
 Two models:
 
 - :func:`tied_metric_regression` (the estimator's default): on the sample intervals the power
-  channel belongs to (CONVENTIONS: ``power`` at row ``k`` is the mean over ``[t_k, t_{k+1})``),
+  channel belongs to (docs/conventions.md: ``power`` at row ``k`` is the mean over ``[t_k, t_{k+1})``),
   one metric explains all of the power, ``P_k ≈ v_kᵀ [M(φ) + ∂M/∂r_k(φ) δ_k] v_k`` with
   ``v_k = (r_{k+1} − r_k)/Δt`` the raw sample differences and ``M(φ)``, ``∂M/∂r(φ)`` Fourier
   series in phase; the observation noise's known contribution to the normal equations is
@@ -439,7 +439,8 @@ def tied_metric_regression(
               "in every direction of shape space at every phase (noise on the gait over many "
               "cycles); a gait without noise, a joint held fixed or too few cycles leave M "
               "unidentified. Lower the Fourier orders, drop the derivative term "
-              "(derivative_order=None) or record more varied data"
+              "(derivative_order=None), record more varied data, or fit the connection alone "
+              "(TubeRegression(metric=False); torchconn-fit: --metric no)"
         )
     h = (rhs - shrink[..., None] * corr_h) * inv
     beta = torch.cholesky_solve(h.unsqueeze(-1), chol)[..., 0] * inv
