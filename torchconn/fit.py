@@ -1,23 +1,38 @@
-"""``python -m torchconn.fit DATA.csv [MORE.csv …] --links N --out DIR``: fit your recordings.
+"""``torchconn-fit DATA… --links N --out DIR``: fit your recordings (CSV or tracking files).
 
-Reads trajectories in the CONVENTIONS CSV format, estimates phase and limit cycle, fits the
+Reads trajectories in the CONVENTIONS CSV format, or tracking files (SLEAP, DeepLabCut, WCON,
+point arrays) converted on the fly with the options of ``torchconn-convert``; applies known
+conditions (``--known ambient_flow:u_x=…``); runs the checks before fitting
+(:mod:`torchconn.io.preflight`); estimates phase and limit cycle, fits the
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>]``) and PNG
-plots with 95% confidence bands.
+plots with 95% confidence bands, and ``DIR/fit.json`` (settings, data summary, conversion
+report, checks, versions). Every estimator setting is reachable through ``--config`` (an
+``[estimator]`` table) and ``--set estimator.key=value``. Exit codes: 0 done, 2 bad input.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import math
 import sys
 from pathlib import Path
 
 import torch
 
-from .io.trajectory_files import read_csv
+from .convert import (
+    add_conversion_arguments,
+    config_tables,
+    conversion_settings,
+    load_recordings,
+    write_sidecar,
+)
+from .discrepancy.known import changes_data, parse_known, relative_to_known
+from .io.preflight import CYCLE_RULES, preflight
+from .physics.systems.swimmer import NLinkSwimmer
 from .regression.estimator import ConnectionEstimator, EstimatorSettings
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
@@ -54,46 +69,116 @@ def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points
     return path
 
 
+def _estimator_settings(args, table: dict | None) -> EstimatorSettings:
+    """EstimatorSettings: fit's defaults (pooled trials), the [estimator] table, then flags."""
+    values = {"pool": True}
+    values.update(table or {})
+    known = {f.name for f in dataclasses.fields(EstimatorSettings)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(f"unknown [estimator] setting(s) {unknown}; known: {sorted(known)}")
+    for flag, name in (("n_bins", "n_bins"), ("fourier_order", "fourier_order"),
+                       ("window", "window"), ("phase_order", "phase_order")):
+        v = getattr(args, flag)
+        if v is not None:
+            values[name] = v
+    values.setdefault("min_cycles", CYCLE_RULES["fit"].per_trial)
+    return EstimatorSettings(**values)
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m torchconn.fit", description=__doc__.split("\n")[0])
-    p.add_argument("data", nargs="+", type=Path, help="trajectory CSV files (CONVENTIONS format)")
+    p = argparse.ArgumentParser(prog="torchconn-fit", description=__doc__.split("\n")[0])
+    p.add_argument("data", nargs="+", type=Path,
+                   help="trajectory CSV files (CONVENTIONS format) or tracking files")
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    defaults = EstimatorSettings()
-    p.add_argument("--n-bins", type=int, default=defaults.n_bins,
-                   help=f"phase bins (default {defaults.n_bins})")
-    p.add_argument("--fourier-order", type=int, default=defaults.fourier_order,
-                   help=f"Fourier order in phase (default {defaults.fourier_order})")
-    p.add_argument("--window", type=float, default=None,
+    p.add_argument("--config", type=Path,
+                   help="TOML file with [estimator] (EstimatorSettings) and [convert] tables")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a setting, e.g. --set estimator.ridge=1e-6 (repeatable)")
+    p.add_argument("--n-bins", type=int, help="phase bins (shortcut for estimator.n_bins)")
+    p.add_argument("--fourier-order", type=int, help="Fourier order in phase")
+    p.add_argument("--window", type=float,
                    help="bin half-width in bin spacings (default: sized from the data)")
-    p.add_argument("--phase-order", type=int, default=3, help="Phaser correction order")
+    p.add_argument("--phase-order", type=int, help="Phaser correction order")
+    p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
+                   help="a known condition, e.g. ambient_flow:u_x=0.01,u_y=0 (repeatable): the "
+                   "recording is modelled relative to it")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
+    p.add_argument("--no-figures", action="store_true", help="do not write PNG plots")
+    add_conversion_arguments(p)
     args = p.parse_args(argv)
+    prog = "torchconn-fit"
     if args.links < 2:
         p.error(f"--links must be >= 2, got {args.links}")
+    torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
 
     try:
-        traj = read_csv(args.data, n_joints=args.links - 1)
-        est = ConnectionEstimator(
-            n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
-            phase_order=args.phase_order, pool=True,
-        ).fit(traj)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"python -m torchconn.fit: error: {err}", file=sys.stderr)
+        tables = config_tables(args.config, args.overrides)
+        unknown = sorted(set(tables) - {"estimator", "convert"})
+        if unknown:
+            raise ValueError(f"unknown config section(s) {unknown}; fit reads [estimator] and "
+                             "[convert]")
+        settings = _estimator_settings(args, tables.get("estimator"))
+        conv = conversion_settings(args, args.links, tables.get("convert"))
+        swimmer = NLinkSwimmer(args.links, frame=conv.frame)
+        known = [parse_known(k, swimmer) for k in args.known]
+        for k in known:
+            if not changes_data(k):
+                raise ValueError(f"--known {k.name}: it changes only the simulator, and fit "
+                                 "estimates the model from the data without one; give it to "
+                                 "discrepancy instead")
+        args.out.mkdir(parents=True, exist_ok=True)
+        rec = load_recordings(args.data, fmt=args.format, n_links=args.links, settings=conv)
+        traj = relative_to_known(rec.trajectory, known, swimmer)
+        check = preflight(traj, body_length=rec.body_length)
+        print("\n".join(check.lines("fit")))
+        if not check.ready["fit"]:
+            raise ValueError("the recording is not ready to fit: "
+                             + "; ".join(check.problems["fit"]))
+        est = ConnectionEstimator(**dataclasses.asdict(settings)).fit(traj)
+    except (ValueError, FileNotFoundError, ImportError, RuntimeError) as err:
+        print(f"{prog}: error: {err}", file=sys.stderr)
         return 2
     out = args.out
-    out.mkdir(parents=True, exist_ok=True)
     model = est.model_
     model.save(out / "model.npz")
     write_connection_csv(model, out / "connection.csv", args.grid)
-    plot_connection(model, out / "connection.png")
-    plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
-    if model.M is not None:
-        plot_metric(model, out / "metric.png")
+    outputs = ["model.npz", "connection.csv"]
+    if not args.no_figures:
+        plot_connection(model, out / "connection.png")
+        plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
+        outputs += ["connection.png", "limit_cycle.png"]
+        if model.M is not None:
+            plot_metric(model, out / "metric.png")
+            outputs.append("metric.png")
+    write_sidecar(out / "fit.json", {
+        "command": prog, "argv": sys.argv[1:] if argv is None else list(argv),
+        "settings": {"estimator": dataclasses.asdict(settings),
+                     "convert": dataclasses.asdict(conv) if rec.reports else None},
+        "known": [k.to_dict() for k in known],
+        "data": {"sources": [str(x) for x in args.data],
+                 "n_trials": int(traj.batch_shape.numel()), "n_samples": traj.n_samples,
+                 "dt": traj.dt, "trials": traj.meta.get("trials"),
+                 "conversion": [r.to_dict() for r in rec.reports]},
+        "preflight": check.to_dict(),
+        "model": {"window": model.meta.get("window"), "metric": model.M is not None},
+        # held-out skill against the baselines: filled once the estimator has score()
+        "held_out_skill": _held_out_skill(est, traj),
+        "outputs": outputs,
+    })
     print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
           f"samples (d = {traj.shape_dim})")
-    print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
+    print(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
     return 0
+
+
+def _held_out_skill(est: ConnectionEstimator, traj) -> dict | None:
+    """Hook for the estimator's held-out ``score()`` (issue 12); None until it exists."""
+    score = getattr(est, "score", None)
+    if score is None:
+        return None
+    return None
 
 
 if __name__ == "__main__":
