@@ -33,13 +33,16 @@ __all__ = ["main", "add_conversion_arguments", "conversion_settings", "load_reco
 
 
 # ============================================================================ shared CLI parts
-def add_conversion_arguments(p: argparse.ArgumentParser) -> None:
-    """The tracking-conversion options (shared by ``convert`` and ``fit``)."""
+def add_conversion_arguments(p: argparse.ArgumentParser, *, frame: bool = True) -> None:
+    """The tracking-conversion options (shared by ``convert``, ``fit`` and ``discrepancy``;
+    ``frame=False`` when the command has its own ``--frame``)."""
     g = p.add_argument_group("tracking files (see torchconn.io.tracking.ConversionSettings)")
     g.add_argument("--format", choices=("auto",) + FORMATS, default="auto",
                    help="input format (default: from the suffix and the first lines)")
     g.add_argument("--fps", type=float, help="frame rate (default: the file's time stamps)")
-    g.add_argument("--frame", choices=("center", "com-mean"), help="body frame (default center)")
+    if frame:
+        g.add_argument("--frame", choices=("center", "com-mean"),
+                       help="body frame (default center)")
     g.add_argument("--curve", choices=("spline", "polyline"),
                    help="curve through the keypoints (default spline; polyline for robots)")
     g.add_argument("--head", choices=("first", "last"),

@@ -12,14 +12,16 @@ import argparse
 import sys
 import time
 import tomllib
-import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 
-from ..io.trajectory_files import read_csv
+from ..convert import add_conversion_arguments, conversion_settings, load_recordings
+from ..io.preflight import preflight
 from ..physics.systems.swimmer import NLinkSwimmer
 from .effects import REGISTRY
+from .known import known_system, parse_known, relative_to_known
 from .workflow import DiscrepancySettings, diagnose
 
 
@@ -30,7 +32,8 @@ def _parser() -> argparse.ArgumentParser:
         "missing physical effect, add it and report the gap before and after.",
     )
     p.add_argument("data", nargs="+", type=Path, help="trajectory CSV file(s): t, x, y, theta, "
-                   "r1..rd[, power][, trial]")
+                   "r1..rd[, power][, trial]; or tracking files (converted as by "
+                   "torchconn-convert)")
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--drag-ratio", type=float, default=2.0,
                    help="nominal lateral/longitudinal drag ratio (default 2)")
@@ -48,6 +51,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-terms", action="store_true",
                    help="skip the term-by-term comparison with the Stage 4 local model")
     p.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
+    p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
+                   help="a condition with known parameters, e.g. ambient_flow:u_x=0.01,u_y=0 "
+                   "(repeatable): the recording is modelled with it and it is not screened")
+    add_conversion_arguments(p, frame=False)
     p.add_argument("--quiet", action="store_true", help="print only the verdict line")
     return p
 
@@ -87,21 +94,27 @@ def main(argv: list[str] | None = None) -> int:
         system = NLinkSwimmer(args.links, drag_ratio=args.drag_ratio, frame=frame,
                               link_lengths=args.link_lengths)
         settings = _settings(args)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # unknown columns are reported by io
-            try:
-                traj = read_csv(args.data, n_joints=args.links - 1)
-            except ValueError as err:
-                if "expected n_joints" in str(err):
-                    raise ValueError(f"{err}: the data do not match --links {args.links} "
-                                     f"(an N-link swimmer has N - 1 joint columns)") from None
-                raise
+        known = [parse_known(k, system) for k in args.known]
+        conv = conversion_settings(args, args.links)
+        rec = load_recordings(args.data, fmt=args.format, n_links=args.links, settings=conv)
+        traj = relative_to_known(rec.trajectory, known, system)
+        system = known_system(system, known)
+        if known:
+            names = [k.name for k in known]
+            pool = settings.candidates if settings.candidates is not None else tuple(REGISTRY)
+            settings = replace(settings, candidates=tuple(c for c in pool if c not in names))
+        check = preflight(traj, body_length=rec.body_length)
+        if not args.quiet:
+            print("\n".join(check.lines("discrepancy")))
+        if not check.ready["discrepancy"]:
+            raise ValueError("the recording is not ready for the discrepancy workflow: "
+                             + "; ".join(check.problems["discrepancy"]))
         t0 = time.time()
         if not args.quiet:
             print(f"torchconn.discrepancy: {len(args.data)} file(s), {system}")
         report = diagnose(traj, system, settings, log=say)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
+    except (ValueError, FileNotFoundError, ImportError) as err:
+        print(f"torchconn-discrepancy: error: {err}", file=sys.stderr)
         return 2
     paths = report.save(args.out, figures=not args.no_figures)
     if args.quiet:

@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass, fields
 import torch
 from torch import Tensor
 
+from ..io.preflight import CYCLE_RULES
 from ..phase.fourier import fit_fourier
 from ..phase.limit_cycle import LimitCycle, fit_limit_cycle, phase_rate
 from ..phase.phaser import estimate_phase
@@ -59,7 +60,8 @@ class EstimatorSettings:
         phase_order: Phaser's correction order (2-4 robust).
         cycle_order: Fourier order of the limit cycle γ(φ).
         smoother_order: Kalman smoother model order (2: white acceleration).
-        min_cycles: fewest cycles a trial must cover.
+        min_cycles: fewest cycles a trial must cover (the ``fit`` rule of
+            :data:`torchconn.io.preflight.CYCLE_RULES`).
         metric: also estimate the metric when the data carry power.
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
@@ -76,7 +78,7 @@ class EstimatorSettings:
     phase_order: int = 3
     cycle_order: int = 8
     smoother_order: int = 2
-    min_cycles: float = 3.0
+    min_cycles: float = CYCLE_RULES["fit"].per_trial
     metric: bool = True
     pool: bool = False
 
