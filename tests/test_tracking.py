@@ -267,6 +267,23 @@ def test_preflight_states_one_cycle_rule_per_command_and_warns_on_coarse_samplin
     assert not bad.ready["fit"] and "no periodic gait" in bad.problems["fit"][0]
 
 
+def test_discrepancy_with_the_known_flow_finds_nothing_else(tmp_path, capsys):
+    from torchconn.discrepancy import simulate_with_effects
+    from torchconn.discrepancy.__main__ import main as discrepancy_main
+    from torchconn.io.trajectory_files import write_csv
+
+    flow = {"ambient_flow": {"u_x": -0.01, "u_y": 0.008}}
+    traj = simulate_with_effects(NLinkSwimmer(3), reference_gait("3link"), flow, eta=0.025,
+                                 n_cycles=12, seeds=[7, 8], omega=0.002)
+    path = write_csv(traj, tmp_path / "tank.csv")
+    args = [str(path), "--links", "3", "--no-terms", "--no-figures", "--quiet"]
+    assert discrepancy_main(args + ["--out", str(tmp_path / "a")]) == 0
+    assert "ambient_flow" in capsys.readouterr().out  # unknown, the flow is found
+    assert discrepancy_main(args + ["--known", "ambient_flow:u_x=-0.01,u_y=0.008",
+                                    "--out", str(tmp_path / "b")]) == 0
+    assert "verdict: none" in capsys.readouterr().out  # known, nothing is left
+
+
 def test_known_ambient_flow_gives_the_recording_relative_to_the_water():
     sw = NLinkSwimmer(3)
     traj = simulate(sw, reference_gait("3link"), eta=0.025, n_cycles=2, seeds=np.array([0]))

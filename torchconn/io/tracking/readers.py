@@ -122,7 +122,7 @@ _SUFFIX_FORMAT = {".wcon": "wcon", ".json": "wcon", ".zip": "wcon", ".npz": "poi
 
 def detect_format(path: str | PathLike) -> str:
     """The format of a tracking file, from its suffix and first lines; ``"torchconn"`` for a
-    trajectory CSV in the CONVENTIONS format (``t, x, y, theta, r1, ...``)."""
+    trajectory CSV in the CONVENTIONS format (a ``theta`` or ``r<i>`` column)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in _SUFFIX_FORMAT:
@@ -147,8 +147,8 @@ def detect_format(path: str | PathLike) -> str:
         header = cells[0] if cells else []
         if "frame_idx" in header and any(c.endswith(".x") for c in header):
             return "sleap"
-        if {"t", "x", "y", "theta"} <= set(header) and "r1" in header:
-            return "torchconn"
+        if "theta" in header or any(re.fullmatch(r"r\d+", c) for c in header):
+            return "torchconn"  # a trajectory CSV (read_csv names any missing column)
         return "points"
     raise TrackingFormatError(
         f"{path}: unknown tracking file type {suffix or '(no suffix)'!r}; known: SLEAP "
