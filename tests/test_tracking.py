@@ -19,6 +19,7 @@ from torchconn.fit import main as fit_main
 from torchconn.io.preflight import CYCLE_RULES, preflight
 from torchconn.io.tracking import ConversionSettings, TrackingFormatError, convert, read_tracking
 from torchconn.physics.gaits import reference_gait
+from torchconn.simulation.observe import observe
 from torchconn.testing.tracking import render_keypoints
 from torchconn.trajectory import Trajectory
 
@@ -259,6 +260,11 @@ def test_preflight_states_one_cycle_rule_per_command_and_warns_on_coarse_samplin
     assert "fit needs 3 cycles" in text and "discrepancy needs 3 cycles per trial and 10" in text
     short = preflight(traj[:1])  # 5 cycles: enough to fit, not for the discrepancy workflow
     assert short.ready == {"fit": True, "discrepancy": False}
+    # a third of the samples lost is still a periodic gait
+    lossy = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=6,
+                     seeds=np.array([3]))
+    lossy = observe(lossy, 0.0, dropout=0.33, seeds=np.array([3]))
+    assert preflight(lossy).periodicity[0] > 0.9
     g = torch.Generator().manual_seed(0)
     noise = torch.randn(1, 600, 2, generator=g, dtype=torch.float64)
     flat = Trajectory(t=torch.arange(600, dtype=torch.float64), r=noise,

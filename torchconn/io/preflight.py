@@ -53,12 +53,14 @@ def periodicity(r: Tensor, cycles: Tensor) -> Tensor:
     1 for a sinusoid, about 0 for noise or a random walk (ρ(P) ≈ ρ(P/2))."""
     s, valid = principal_signal(r)
     T = r.shape[-2]
-    span = valid.sum(-1).clamp_min(1).to(r.dtype)
+    idx = torch.arange(T, device=r.device)
+    first = torch.where(valid, idx, T).amin(-1)
+    last = torch.where(valid, idx, -1).amax(-1)
+    span = (last - first + 1).clamp_min(1).to(r.dtype)  # recorded span, gaps included
     period = (span / cycles.clamp_min(1e-9)).clamp(2, T - 1)
 
     def rho(lag: Tensor) -> Tensor:
         lag_i = lag.round().long().clamp(1, T - 1)  # (...)
-        idx = torch.arange(T, device=r.device)
         j = (idx + lag_i[..., None]).clamp(max=T - 1)
         both = valid & valid.gather(-1, j) & (idx + lag_i[..., None] < T)
         a, b = s, s.gather(-1, j)

@@ -7,6 +7,9 @@ so the tracking converter, which inverts it, is checked against an independent c
 
 from __future__ import annotations
 
+import csv
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -14,7 +17,7 @@ from ..io.tracking.readers import Keypoints
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..trajectory import Trajectory
 
-__all__ = ["render_keypoints"]
+__all__ = ["render_keypoints", "write_sleap_csv"]
 
 
 def render_keypoints(
@@ -82,3 +85,23 @@ def render_keypoints(
     return [Keypoints(points=img[b], names=names, frames=np.arange(len(t), dtype=np.int64),
                       scores=scores[b], times=t.copy(), source=f"rendered trial {b}",
                       format="points", units="px") for b in range(img.shape[0])]
+
+
+def write_sleap_csv(kp: Keypoints, path: str | Path, track: str = "track_0") -> Path:
+    """Write keypoints in SLEAP's analysis CSV layout (``track, frame_idx, instance.score,
+    <node>.x, <node>.y, <node>.score, ...``; a lost point has empty cells)."""
+    path = Path(path)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["track", "frame_idx", "instance.score"]
+                   + [f"{n}.{a}" for n in kp.names for a in ("x", "y", "score")])
+        scores = kp.scores if kp.scores is not None else np.ones(kp.points.shape[:2])
+        for f, pts, sc in zip(kp.frames, kp.points, scores, strict=True):
+            ok = np.isfinite(pts).all(-1)
+            if not ok.any():
+                continue  # SLEAP writes no row for a frame without an instance
+            row = [track, int(f), f"{float(np.mean(sc[ok])):.4f}"]
+            for (x, y), s_, o in zip(pts, sc, ok, strict=True):
+                row += [f"{x:.3f}", f"{y:.3f}", f"{s_:.4f}"] if o else ["", "", ""]
+            w.writerow(row)
+    return path

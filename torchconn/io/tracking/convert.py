@@ -72,6 +72,11 @@ class ConversionSettings:
             in the file's order).
         track: which animal (name or index) when a file has several.
         fix_flips: undo head/tail swaps found between frames (else only report them).
+        fill_interior: a frame that lost interior keypoints (not the first or last) keeps them,
+            placed on the straight line between their tracked neighbours; default off: the
+            frame is missing and the smoother bridges it in time, which measured more accurate
+            (joint-angle RMS error 0.013 vs 0.048 rad, 3-link, 3 keypoints per link, 3 % lost
+            points, 0.5 px noise; docs/tracking.md), though it keeps fewer frames.
         time_origin: ``"first"`` (t = 0 at the first frame read) or ``"frame0"`` (t = frame / fps).
     """
 
@@ -87,6 +92,7 @@ class ConversionSettings:
     keypoints: tuple[str, ...] | None = None
     track: str | int | None = None
     fix_flips: bool = True
+    fill_interior: bool = False
     time_origin: str = "first"
 
     def __post_init__(self) -> None:
@@ -127,7 +133,8 @@ class ConversionReport:
         scale: file units per body length, and ``scale_source`` (``"median"`` or ``"given"``).
         dt: sampling interval (s); ``frames``: first and last frame read.
         n_frames: frames on the grid from first to last; ``n_valid``: frames converted.
-        missing_by_keypoint: frames lost because this keypoint was missing or below threshold.
+        missing_by_keypoint: frames in which this keypoint was missing or below threshold.
+        filled_points: interior points placed between their neighbours (``fill_interior``).
         body_length: median, 10th and 90th percentile of the chain length (body lengths,
             so the median is 1 unless ``scale`` was given).
         flipped_frames: frames whose head and tail were swapped (undone when ``fix_flips``).
@@ -149,6 +156,7 @@ class ConversionReport:
     n_frames: int
     n_valid: int
     missing_by_keypoint: dict
+    filled_points: int
     body_length: dict
     flipped_frames: tuple[int, ...]
     tail_first: bool
@@ -374,6 +382,14 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
     point_ok = np.isfinite(pts).all(-1)
     if s.min_score is not None and scores is not None:
         point_ok &= np.nan_to_num(scores, nan=-np.inf) >= s.min_score
+    filled = 0
+    if s.fill_interior and pts.shape[1] > 2:
+        ends = point_ok[:, 0] & point_ok[:, -1]
+        lost = ~point_ok & ends[:, None]
+        filled = int(lost.sum())
+        if filled:
+            pts = _fill_interior(pts, point_ok)
+            point_ok = point_ok | lost
     frame_ok = point_ok.all(-1)
     if not frame_ok.any():
         best = {n: float(np.nanmax(scores[:, j])) if scores is not None and np.isfinite(
@@ -497,7 +513,7 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
         source=src, format=kp.format, keypoints=tuple(used), settings=settings_out,
         scale=scale, scale_source=scale_source, dt=dt,
         frames=(int(kp.frames[0]), int(kp.frames[0]) + F - 1), n_frames=F,
-        n_valid=int(valid.sum()), missing_by_keypoint=missing_by_kp,
+        n_valid=int(valid.sum()), missing_by_keypoint=missing_by_kp, filled_points=filled,
         body_length={"median": float(bl[valid].median()),
                      "p10": float(torch.quantile(bl[valid], 0.1)),
                      "p90": float(torch.quantile(bl[valid], 0.9))},
@@ -508,6 +524,20 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
             "dt": dt}
     traj = Trajectory(t=t, pose=traj_pose, r=traj_r, meta=meta)
     return Conversion(trajectory=traj, trial_times=times, report=report, body_length=bl)
+
+
+def _fill_interior(pts: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """``pts (F, K, 2)`` with each missing point (``~ok``) placed on the segment between the
+    nearest tracked points before and after it in the keypoint order (linear in the index)."""
+    K = pts.shape[1]
+    k = np.arange(K)
+    prev = np.maximum.accumulate(np.where(ok, k, -1), axis=1)
+    nxt = np.minimum.accumulate(np.where(ok, k, K)[:, ::-1], axis=1)[:, ::-1]
+    inside = ~ok & (prev >= 0) & (nxt < K)
+    p0 = np.take_along_axis(pts, prev.clip(0)[..., None], 1)
+    p1 = np.take_along_axis(pts, nxt.clip(max=K - 1)[..., None], 1)
+    w = ((k - prev) / np.maximum(nxt - prev, 1))[..., None]
+    return np.where(inside[..., None], p0 * (1 - w) + p1 * w, pts)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
