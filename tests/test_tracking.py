@@ -205,8 +205,8 @@ def test_fit_from_tracks_equals_fit_from_converted_csvs(tracked, tmp_path):
     assert set(sidecar["preflight"]["rules"]) == set(CYCLE_RULES)
     csvs = sorted((tmp_path / "csv").glob("*.csv"))
     assert [c.name for c in csvs] == ["fish0.csv", "fish1.csv"]
-    args = ["--links", "3", "--no-figures", "--set", "estimator.n_bins=24",
-            "--set", "estimator.fourier_order=6"]
+    args = ["--links", "3", "--no-figures", "--set", "estimator.regression.n_bins=24",
+            "--set", "estimator.regression.fourier_order=6"]
     assert fit_main([str(c) for c in csvs] + args + ["--out", str(tmp_path / "a")]) == 0
     assert fit_main([str(p) for p in tracked] + args + opts[2:] + ["--out",
                                                                     str(tmp_path / "b")]) == 0
@@ -214,7 +214,8 @@ def test_fit_from_tracks_equals_fit_from_converted_csvs(tracked, tmp_path):
     b = np.loadtxt(tmp_path / "b" / "connection.csv", delimiter=",", skiprows=1)
     np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
     side = json.loads((tmp_path / "b" / "fit.json").read_text())
-    assert side["settings"]["estimator"]["n_bins"] == 24
+    assert side["settings"]["estimator"]["regression"]["n_bins"] == 24
+    assert side["settings"]["estimator"]["pool"] is True
     assert side["data"]["n_trials"] == 2 and len(side["data"]["conversion"]) == 2
     assert "torch" in side["versions"]
 

@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 import sys
 import tomllib
 import warnings
@@ -23,13 +21,14 @@ from pathlib import Path
 
 import torch
 
+from ._provenance import write_sidecar
 from .io.preflight import preflight
 from .io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
 from .io.trajectory_files import read_csv, write_csv
 from .trajectory import Trajectory
 
 __all__ = ["main", "add_conversion_arguments", "conversion_settings", "load_recordings",
-           "Recordings", "write_sidecar", "config_tables"]
+           "Recordings", "config_tables"]
 
 
 # ============================================================================ shared CLI parts
@@ -169,18 +168,6 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
                    for k in range(c.trajectory.batch_shape[0]))
     return Recordings(trajectory=traj, reports=tuple(c.report for c in convs),
                       body_length=torch.cat([c.body_length for c in convs]), trials=trials)
-
-
-def write_sidecar(path: Path, payload: dict) -> Path:
-    """Write JSON atomically (a temporary file renamed over the target)."""
-    from .discrepancy.workflow import _jsonable, _versions
-
-    payload = dict(payload)
-    payload.setdefault("versions", _versions())
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_jsonable(payload), indent=2, default=str))
-    os.replace(tmp, path)
-    return path
 
 
 def _error(prog: str, err: BaseException) -> int:

@@ -1,6 +1,7 @@
 """``torchconn-fit DATA… --links N --out DIR``: fit your recordings (CSV or tracking files).
 
-Reads trajectories in the CONVENTIONS CSV format, or tracking files (SLEAP, DeepLabCut, WCON,
+Also runs as ``python -m torchconn.fit``. Reads trajectory CSV files (the format of
+docs/conventions.md, section "Trajectory file format"), or tracking files (SLEAP, DeepLabCut, WCON,
 point arrays) converted on the fly with the options of ``torchconn-convert``; applies known
 conditions (``--known ambient_flow:u_x=…``); runs the checks before fitting
 (:mod:`torchconn.io.preflight`); estimates phase and limit cycle, fits the
@@ -9,7 +10,8 @@ into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row pe
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>]``) and PNG
 plots with 95% confidence bands, and ``DIR/fit.json`` (settings, data summary, conversion
 report, checks, versions). Every estimator setting is reachable through ``--config`` (an
-``[estimator]`` table) and ``--set estimator.key=value``. Exit codes: 0 done, 2 bad input.
+``[estimator]`` table, read by :func:`~torchconn.regression.estimator.estimator_from_settings`)
+and ``--set estimator.<stage>.<field>=value``. Exit codes: 0 done, 2 bad input.
 """
 
 from __future__ import annotations
@@ -23,17 +25,17 @@ from pathlib import Path
 
 import torch
 
-from .convert import (
-    add_conversion_arguments,
-    config_tables,
-    conversion_settings,
-    load_recordings,
-    write_sidecar,
-)
+from ._provenance import write_sidecar
+from .convert import add_conversion_arguments, config_tables, conversion_settings, load_recordings
 from .discrepancy.known import changes_data, parse_known, relative_to_known
-from .io.preflight import CYCLE_RULES, preflight
+from .io.preflight import preflight
 from .physics.systems.swimmer import NLinkSwimmer
-from .regression.estimator import ConnectionEstimator, EstimatorSettings
+from .regression.estimator import (
+    FLAT_KEYS,
+    ConnectionEstimator,
+    estimator_from_settings,
+    estimator_settings,
+)
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 
@@ -69,21 +71,22 @@ def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points
     return path
 
 
-def _estimator_settings(args, table: dict | None) -> EstimatorSettings:
-    """EstimatorSettings: fit's defaults (pooled trials), the [estimator] table, then flags."""
-    values = {"pool": True}
-    values.update(table or {})
-    known = {f.name for f in dataclasses.fields(EstimatorSettings)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise ValueError(f"unknown [estimator] setting(s) {unknown}; known: {sorted(known)}")
-    for flag, name in (("n_bins", "n_bins"), ("fourier_order", "fourier_order"),
-                       ("window", "window"), ("phase_order", "phase_order")):
+#: shortcut flags -> the estimator settings they set (FLAT_KEYS maps them to a stage's field)
+_FLAGS = {"n_bins": "n_bins", "fourier_order": "fourier_order", "window": "window",
+          "phase_order": "phase_order"}
+
+
+def build_estimator(args, table: dict | None) -> ConnectionEstimator:
+    """The estimator of ``fit``: trials pooled by default, then the ``[estimator]`` table
+    (nested per stage, see :func:`estimator_from_settings`), then the shortcut flags."""
+    table = {"pool": True, **(table or {})}
+    for flag, key in _FLAGS.items():
         v = getattr(args, flag)
         if v is not None:
-            values[name] = v
-    values.setdefault("min_cycles", CYCLE_RULES["fit"].per_trial)
-    return EstimatorSettings(**values)
+            stage, field = FLAT_KEYS[key]
+            table.pop(key, None)
+            table[stage] = {**table.get(stage, {}), field: v}
+    return estimator_from_settings(table)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -93,14 +96,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--config", type=Path,
-                   help="TOML file with [estimator] (EstimatorSettings) and [convert] tables")
+                   help="TOML file with an [estimator] table (stage sub-tables [estimator.phaser], "
+                   "[estimator.regression], ...) and a [convert] table")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a setting, e.g. --set estimator.ridge=1e-6 (repeatable)")
-    p.add_argument("--n-bins", type=int, help="phase bins (shortcut for estimator.n_bins)")
-    p.add_argument("--fourier-order", type=int, help="Fourier order in phase")
+                   help="override a setting, e.g. --set estimator.regression.ridge=1e-6 "
+                   "(repeatable)")
+    p.add_argument("--n-bins", type=int, help="phase bins (estimator.regression.n_bins)")
+    p.add_argument("--fourier-order", type=int,
+                   help="Fourier order in phase (estimator.regression.fourier_order)")
     p.add_argument("--window", type=float,
                    help="bin half-width in bin spacings (default: sized from the data)")
-    p.add_argument("--phase-order", type=int, help="Phaser correction order")
+    p.add_argument("--phase-order", type=int, help="Phaser correction order "
+                   "(estimator.phaser.order)")
     p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
                    help="a known condition, e.g. ambient_flow:u_x=0.01,u_y=0 (repeatable): the "
                    "recording is modelled relative to it")
@@ -119,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             raise ValueError(f"unknown config section(s) {unknown}; fit reads [estimator] and "
                              "[convert]")
-        settings = _estimator_settings(args, tables.get("estimator"))
+        estimator = build_estimator(args, tables.get("estimator"))
         conv = conversion_settings(args, args.links, tables.get("convert"))
         swimmer = NLinkSwimmer(args.links, frame=conv.frame)
         known = [parse_known(k, swimmer) for k in args.known]
@@ -136,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         if not check.ready["fit"]:
             raise ValueError("the recording is not ready to fit: "
                              + "; ".join(check.problems["fit"]))
-        est = ConnectionEstimator(**dataclasses.asdict(settings)).fit(traj)
+        est = estimator.fit(traj)
     except (ValueError, FileNotFoundError, ImportError, RuntimeError) as err:
         print(f"{prog}: error: {err}", file=sys.stderr)
         return 2
@@ -154,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             outputs.append("metric.png")
     write_sidecar(out / "fit.json", {
         "command": prog, "argv": sys.argv[1:] if argv is None else list(argv),
-        "settings": {"estimator": dataclasses.asdict(settings),
+        "settings": {"estimator": estimator_settings(estimator),
                      "convert": dataclasses.asdict(conv) if rec.reports else None},
         "known": [k.to_dict() for k in known],
         "data": {"sources": [str(x) for x in args.data],
