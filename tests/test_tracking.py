@@ -160,6 +160,19 @@ def test_gaps_blank_or_split(sims):
     torch.testing.assert_close(split.trajectory.r[1, :69], blank.trajectory.r[0, 130:199])
 
 
+def test_scrambled_keypoint_order_is_reported(sims):
+    kp = render_keypoints(sims[3], NLinkSwimmer(3), per_link=2, origin_px=(0.0, 0.0))[0]
+    order = [0, 3, 1, 6, 2, 5, 4]  # e.g. node columns sorted by name
+    shuffled = type(kp)(points=kp.points[:, order], names=tuple(kp.names[i] for i in order),
+                        frames=kp.frames, times=kp.times, source="sorted.csv", format="points")
+    with pytest.warns(UserWarning, match="zig-zag"):
+        convert(shuffled, ConversionSettings(n_links=3))
+    fixed = ConversionSettings(n_links=3, keypoints=kp.names)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # in the right order: no warning
+        convert(shuffled, fixed)
+
+
 def test_flipped_heads_are_found_and_undone(sims):
     traj = sims[3]
     kp = render_keypoints(traj, NLinkSwimmer(3), origin_px=(0.0, 0.0), noise_px=0.2)[0]

@@ -47,6 +47,8 @@ DLC_PCUTOFF = 0.6
 _SPLINE_DENSITY = 32
 #: a frame is a head/tail flip of the previous one when the reversed chain is this much closer
 _FLIP_RATIO = 0.5
+#: keypoint order whose chain is this much longer than the points sorted along the body axis
+_SCRAMBLED = 1.5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -404,6 +406,12 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
             "leave out unreliable keypoints with --keypoints"
         )
     missing_by_kp = {n: int((~point_ok[:, j]).sum()) for j, n in enumerate(used)}
+    ratio = _order_ratio(pts[frame_ok])
+    if ratio > _SCRAMBLED:
+        note(f"the keypoints in the order {', '.join(used)} zig-zag: the chain through them is "
+             f"{ratio:.1f} times longer (median over frames) than through the same points "
+             "sorted along the body axis. Give their order head to tail with --keypoints "
+             "(sleap-io's CSV export, for one, sorts the node columns alphabetically)")
     if len(used) < s.n_links + 1 and s.curve == "polyline":
         note(f"{len(used)} keypoints for {s.n_links} links with curve='polyline': joints between "
              "keypoints fall on straight segments (their angles are 0); use curve='spline'")
@@ -524,6 +532,22 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
             "dt": dt}
     traj = Trajectory(t=t, pose=traj_pose, r=traj_r, meta=meta)
     return Conversion(trajectory=traj, trial_times=times, report=report, body_length=bl)
+
+
+def _order_ratio(pts: np.ndarray) -> float:
+    """Median over frames ``pts (F, K, 2)`` of the chain length in the given keypoint order over
+    the chain length with the points sorted along the frame's principal axis (1: in order)."""
+    if pts.shape[0] == 0 or pts.shape[1] < 3:
+        return 1.0
+    c = pts - pts.mean(1, keepdims=True)
+    axis = np.linalg.svd(c, full_matrices=False)[2][:, 0]  # (F, 2)
+    order = np.argsort((c * axis[:, None, :]).sum(-1), axis=1)
+    srt = np.take_along_axis(pts, order[..., None], 1)
+
+    def length(p):
+        return np.linalg.norm(np.diff(p, axis=1), axis=-1).sum(-1)
+
+    return float(np.median(length(pts) / np.maximum(length(srt), 1e-300)))
 
 
 def _fill_interior(pts: np.ndarray, ok: np.ndarray) -> np.ndarray:
