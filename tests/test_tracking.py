@@ -80,6 +80,33 @@ def test_multi_animal_files_pick_the_named_animal():
         read_tracking(SAMPLES / "dlc_multi.csv", track="fish3")
 
 
+def test_layout_variants(tmp_path):
+    h5py = pytest.importorskip("h5py")
+    # sleap-io's "standard" preset: frame-first arrays, named by a dims attribute
+    with h5py.File(tmp_path / "std.h5", "w") as h:
+        h["tracks"] = PTS[:, None]  # (frame, track, node, xy)
+        h["tracks"].attrs["dims"] = json.dumps(["frame", "track", "node", "xy"])
+        h["node_names"] = np.array([n.encode() for n in NAMES])
+    np.testing.assert_allclose(read_tracking(tmp_path / "std.h5").points, PTS)
+    # WCON: one record per time, centroid origin, zipped, midlines of different lengths
+    data = [{"id": 5, "t": i * 40, "x": list(PTS[i, :, 0] - 1), "y": list(PTS[i, :, 1] + 2),
+             "cx": 1.0, "cy": -2.0} for i in range(F)]
+    data[3]["x"], data[3]["y"] = [10.0, 19.0], [26.0, 24.0]  # a two-point midline
+    doc = {"units": {"t": "ms", "x": "mm", "y": "mm", "cx": "mm", "cy": "mm"}, "data": data}
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "w.wcon.zip", "w") as z:
+        z.writestr("w.wcon", json.dumps(doc))
+    kp = read_tracking(tmp_path / "w.wcon.zip")
+    np.testing.assert_allclose(kp.times, np.arange(F) * 0.04)
+    np.testing.assert_allclose(kp.points[[0, 1, 2, 4]], PTS[[0, 1, 2, 4]])
+    np.testing.assert_allclose(kp.points[3], [[11.0, 24.0], [15.5, 23.0], [20.0, 22.0]])
+    # plain points without a header: x, y pairs
+    (tmp_path / "p.csv").write_text("\n".join(",".join(str(v) for v in PTS[i].ravel())
+                                              for i in range(F)))
+    np.testing.assert_allclose(read_tracking(tmp_path / "p.csv").points, PTS)
+
+
 def test_hdf5_without_h5py_says_how_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "h5py", None)
     with pytest.raises(ImportError, match=r"torchconn\[tracking\]"):

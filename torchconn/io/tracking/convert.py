@@ -43,8 +43,11 @@ __all__ = ["ConversionSettings", "ConversionReport", "Conversion", "convert", "c
 
 #: DeepLabCut's documented default ``pcutoff``: below it a likelihood marks a point as not found
 DLC_PCUTOFF = 0.6
-#: dense samples per keypoint interval of the spline before arc-length resampling
-_SPLINE_DENSITY = 32
+#: dense samples along the whole spline before arc-length resampling (at least 4 per keypoint
+#: interval): resampled points within 0.011 px of a 16x denser curve (46 keypoints, 200 px body)
+_SPLINE_POINTS = 512
+#: frames resampled per block (bounds the memory of the dense curve)
+_BLOCK = 4096
 #: a frame is a head/tail flip of the previous one when the reversed chain is this much closer
 _FLIP_RATIO = 0.5
 #: keypoint order whose chain is this much longer than the points sorted along the body axis
@@ -250,7 +253,18 @@ def resample_midline(points: Tensor, n_links: int, *, curve: str = "spline") -> 
     """
     if points.shape[-2] < 2:
         raise ValueError(f"a midline needs at least 2 points, got {points.shape[-2]}")
-    dense = _natural_spline_dense(points, _SPLINE_DENSITY) if curve == "spline" else points
+    lead = points.shape[:-2]
+    flat = points.reshape(-1, *points.shape[-2:])
+    out = torch.cat([_resample(flat[i:i + _BLOCK], n_links, curve)
+                     for i in range(0, max(flat.shape[0], 1), _BLOCK)]) if flat.shape[0] else \
+        flat.new_zeros((0, n_links + 1, 2))
+    return out.reshape(*lead, n_links + 1, 2)
+
+
+def _resample(points: Tensor, n_links: int, curve: str) -> Tensor:
+    K = points.shape[-2]
+    density = max(4, math.ceil(_SPLINE_POINTS / (K - 1)))
+    dense = _natural_spline_dense(points, density) if curve == "spline" else points
     seg = torch.linalg.vector_norm(torch.diff(dense, dim=-2), dim=-1)  # (..., J-1)
     s = torch.cat([torch.zeros_like(seg[..., :1]), torch.cumsum(seg, -1)], -1)  # (..., J)
     target = s[..., -1:] * torch.linspace(0, 1, n_links + 1, dtype=s.dtype, device=s.device)

@@ -310,17 +310,15 @@ def _read_sleap_csv(path: Path, track) -> Keypoints:
                                       f"'{n}.y'")
     if not nodes:
         raise TrackingFormatError(f"{path}: no '<node>.x' / '<node>.y' columns")
-    data = np.array([[_cell(r[col["frame_idx"]], path, line, "frame_idx")] for r, line in
-                     zip(rows, lines, strict=True)]).reshape(-1)
+    data = _table(rows, [col["frame_idx"]], path, lines, ["frame_idx"])[:, 0]
     tracks = [r[col["track"]].strip() if "track" in col else "" for r in rows]
     tnames = sorted(set(tracks), key=tracks.index)
-    xy = np.array([[[_cell(r[col[f"{n}.{a}"]], path, line, f"{n}.{a}") for a in "xy"]
-                    for n in nodes] for r, line in zip(rows, lines, strict=True)],
-                  dtype=np.float64).reshape(len(rows), len(nodes), 2)
+    xy_names = [f"{n}.{a}" for n in nodes for a in "xy"]
+    xy = _table(rows, [col[c] for c in xy_names], path, lines, xy_names).reshape(
+        len(rows), len(nodes), 2)
     has_scores = all(f"{n}.score" in col for n in nodes)
-    sc = (np.array([[_cell(r[col[f"{n}.score"]], path, line, f"{n}.score") for n in nodes]
-                    for r, line in zip(rows, lines, strict=True)], dtype=np.float64)
-          .reshape(len(rows), len(nodes)) if has_scores else None)
+    sc_names = [f"{n}.score" for n in nodes]
+    sc = _table(rows, [col[c] for c in sc_names], path, lines, sc_names) if has_scores else None
     tr = np.array(tracks)
     counts = np.array([np.isfinite(xy[tr == t]).all(-1).sum() for t in tnames])
     k = _choose_track(path, [t or "(untracked)" for t in tnames], counts, track, "track")
@@ -371,6 +369,26 @@ def _csv_rows(path: Path, header_rows: int = 1):
                                       f"{'the header has' if heads else 'the first row has'} "
                                       f"{width}")
     return (heads[0] if header_rows == 1 else heads), rows, lines
+
+
+def _table(rows: list[list[str]], cols: list[int], path: Path, lines: list[int],
+           names: list[str]) -> np.ndarray:
+    """``(len(rows), len(cols))`` floats of the given columns; empty, ``nan``, ``NA`` and
+    ``null`` cells are NaN. A bad cell raises an error naming its line and column."""
+    if not rows:
+        return np.zeros((0, len(cols)))
+    raw = np.char.strip(np.asarray([[r[j] for j in cols] for r in rows], dtype=str))
+    raw = np.where(np.isin(np.char.lower(raw), ["", "na", "null", "nan"]), "nan", raw)
+    try:
+        out = raw.astype(np.float64)
+    except ValueError:
+        out = None
+    if out is None or np.isinf(out).any():
+        for r, line in zip(rows, lines, strict=True):
+            for c, name in zip(cols, names, strict=True):
+                _cell(r[c], path, line, name)
+        raise TrackingFormatError(f"{path}: unreadable numbers")  # pragma: no cover
+    return out
 
 
 def _cell(text: str, path: Path, line: int, column: str) -> float:
@@ -466,9 +484,8 @@ def _read_dlc_csv(path: Path, track) -> Keypoints:
     coords_level = levels.index("coords")
     columns = [tuple(c if i != coords_level else c.lower() for i, c in enumerate(col))
                for col in columns]
-    values = np.array([[_cell(r[j], path, line, "/".join(columns[j - n_idx]))
-                        for j in range(n_idx, len(r))] for r, line in zip(rows, lines, strict=True)],
-                      dtype=np.float64).reshape(len(rows), len(columns))
+    values = _table(rows, list(range(n_idx, n_idx + len(columns))), path, lines,
+                    ["/".join(c) for c in columns])
     frames = _frame_numbers([r[n_idx - 1] for r in rows], path, lines)
     return _dlc_table(path, levels, columns, values, frames, track)
 
@@ -587,19 +604,30 @@ def _read_wcon(path: Path, track) -> Keypoints:
 
         ox, oy = per_time("ox", None), per_time("oy", None)
         cx, cy = per_time("cx", None), per_time("cy", None)
-        hd = per_time("head", None)
-        for k in range(n):
-            xk = np.atleast_1d(np.asarray(x[k], dtype=np.float64))  # JSON null -> nan via float
-            yk = np.atleast_1d(np.asarray(y[k], dtype=np.float64))
-            if xk.shape != yk.shape:
-                raise TrackingFormatError(f"{path}: worm {wid!r} at t={t[k]}: {xk.size} x but "
-                                          f"{yk.size} y points")
-            ox_k = ox[k] if ox[k] is not None else cx[k]
-            oy_k = oy[k] if oy[k] is not None else cy[k]
-            xs.append(xk + (ox_k or 0.0))
-            ys.append(yk + (oy_k or 0.0))
-            ts.append(math.nan if t[k] is None else float(t[k]))
-            heads.append(hd[k])
+        # the origin: ox/oy, else the centroid cx/cy (WCON), else 0; JSON null -> NaN
+        orig_x = np.array([a if a is not None else (b if b is not None else 0.0)
+                           for a, b in zip(ox, cx, strict=True)], dtype=np.float64)
+        orig_y = np.array([a if a is not None else (b if b is not None else 0.0)
+                           for a, b in zip(oy, cy, strict=True)], dtype=np.float64)
+        heads += per_time("head", None)
+        ts.append(np.array([math.nan if v is None else v for v in t], dtype=np.float64))
+        try:  # one midline length for every time: one array
+            xa, ya = np.array(x, dtype=np.float64), np.array(y, dtype=np.float64)
+            if xa.ndim == 1:
+                xa, ya = xa[:, None], ya[:, None]
+            if xa.shape != ya.shape or xa.ndim != 2:
+                raise ValueError
+            xs += list(xa + orig_x[:, None])
+            ys += list(ya + orig_y[:, None])
+        except ValueError:  # ragged: one array per time
+            for k in range(n):
+                xk = np.atleast_1d(np.asarray(x[k], dtype=np.float64))
+                yk = np.atleast_1d(np.asarray(y[k], dtype=np.float64))
+                if xk.shape != yk.shape:
+                    raise TrackingFormatError(f"{path}: worm {wid!r} at t={t[k]}: {xk.size} x "
+                                              f"but {yk.size} y points") from None
+                xs.append(xk + orig_x[k])
+                ys.append(yk + orig_y[k])
     sizes = {a.size for a in xs}
     if len(sizes) != 1:
         # midlines of varying length: resample each to the longest at equal arc length
@@ -609,7 +637,7 @@ def _read_wcon(path: Path, track) -> Keypoints:
     K = xs[0].size
     pts = np.stack([np.stack([np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)],
                              -1) for a, b in zip(xs, ys, strict=True)])
-    t = np.asarray(ts) * _TIME_UNITS[t_unit]
+    t = np.concatenate(ts) * _TIME_UNITS[t_unit]
     order = np.argsort(t, kind="stable")
     pts, t = pts[order], t[order]
     if np.isnan(t).any():
@@ -717,20 +745,17 @@ def _read_points_csv(path: Path) -> Keypoints:
         coord_cols = list(range(width))
         names = [f"p{i}" for i in range(width // 2)]
     colname = (lambda j: header[j]) if header else (lambda j: f"column {j + 1}")
-    vals = np.array([[_cell(r[j], path, line, colname(j)) for j in coord_cols]
-                     for r, line in zip(rows, lines, strict=True)], dtype=np.float64)
+    vals = _table(rows, coord_cols, path, lines, [colname(j) for j in coord_cols])
     pts = vals.reshape(len(rows), len(names), 2)
     t = None
     frames = np.arange(len(rows), dtype=np.int64)
     if tcol is not None:
-        t = np.array([_cell(r[tcol], path, line, header[tcol]) for r, line in
-                      zip(rows, lines, strict=True)])
+        t = _table(rows, [tcol], path, lines, [header[tcol]])[:, 0]
         if np.isnan(t).any():
             i = int(np.argmax(np.isnan(t)))
             raise TrackingFormatError(f"{path}, line {lines[i]}: empty time {header[tcol]!r}")
     elif fcol is not None:
-        fr = np.array([_cell(r[fcol], path, line, header[fcol]) for r, line in
-                       zip(rows, lines, strict=True)])
+        fr = _table(rows, [fcol], path, lines, [header[fcol]])[:, 0]
         if np.isnan(fr).any() or (fr != np.round(fr)).any():
             raise TrackingFormatError(f"{path}: column {header[fcol]!r} must hold integer frame "
                                       "numbers")
