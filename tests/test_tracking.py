@@ -212,6 +212,17 @@ def test_flipped_heads_are_found_and_undone(sims):
     assert conv.report.flipped_frames == tuple(range(50, 60))
     ref = convert(kp, ConversionSettings(n_links=3, curve="polyline", flip_y=True))
     torch.testing.assert_close(conv.trajectory.r, ref.trajectory.r)
+    # an animal that turned around during a long gap is not a swap
+    turned = kp.points.copy()
+    turned[100:140] = np.nan
+    centre = np.nanmean(turned[140:], axis=1, keepdims=True)
+    turned[140:] = 2 * centre - turned[140:]  # rotated by 180 degrees about its centre
+    turned = type(kp)(points=turned, names=kp.names, frames=kp.frames, times=kp.times,
+                      source="turned", format="points")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        conv = convert(turned, ConversionSettings(n_links=3, curve="polyline", flip_y=True))
+    assert conv.report.flipped_frames == ()
     # a whole recording read with the wrong end as head moves tail first
     with pytest.warns(UserWarning, match="tail first"):
         back = convert(kp, ConversionSettings(n_links=3, curve="polyline", flip_y=True,

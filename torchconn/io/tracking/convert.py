@@ -50,6 +50,8 @@ _SPLINE_POINTS = 512
 _BLOCK = 4096
 #: a frame is a head/tail flip of the previous one when the reversed chain is this much closer
 _FLIP_RATIO = 0.5
+#: frames further apart than this are not compared for head/tail swaps
+_FLIP_MAX_STEP = 3
 #: keypoint order whose chain is this much longer than the points sorted along the body axis
 _SCRAMBLED = 1.5
 
@@ -338,7 +340,8 @@ def _time_grid(kp: Keypoints, s: ConversionSettings) -> tuple[np.ndarray, float]
 
 def _flips(q: Tensor, valid: Tensor) -> Tensor:
     """``(F,)`` True for frames whose chain ``q (F, N+1, 2)`` is reversed relative to the
-    majority orientation, judged by continuity between consecutive valid frames."""
+    majority orientation, judged by continuity between valid frames at most
+    ``_FLIP_MAX_STEP`` frames apart."""
     idx = torch.nonzero(valid).flatten()
     out = torch.zeros_like(valid)
     if idx.numel() < 2:
@@ -346,7 +349,8 @@ def _flips(q: Tensor, valid: Tensor) -> Tensor:
     a, b = q[idx[:-1]], q[idx[1:]]
     same = torch.linalg.vector_norm(b - a, dim=-1).mean(-1)
     rev = torch.linalg.vector_norm(b - a.flip(-2), dim=-1).mean(-1)
-    switch = rev < _FLIP_RATIO * same
+    # only frames close in time are compared: across a long gap the animal may have turned
+    switch = (rev < _FLIP_RATIO * same) & (torch.diff(idx) <= _FLIP_MAX_STEP)
     parity = torch.cat([torch.zeros(1, dtype=torch.long, device=q.device),
                         torch.cumsum(switch.long(), 0)]) % 2
     minority = 1 if int(parity.sum()) * 2 < parity.numel() else 0
