@@ -10,11 +10,12 @@ it got. Cross-field rules go in the subclass's ``__post_init__`` after ``super()
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
 import types
 import typing
 from typing import Any, Literal
+
+from ._cli import did_you_mean
 
 __all__ = ["Options", "option", "check_value", "unknown_keys_message"]
 
@@ -106,8 +107,5 @@ class Options:
 
 def unknown_keys_message(where: str, unknown, valid) -> str:
     """``where: unknown key 'x' (did you mean 'y'?); valid keys are …`` (closest via difflib)."""
-    parts = []
-    for key in sorted(map(str, unknown)):
-        close = difflib.get_close_matches(key, list(valid), n=1)
-        parts.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    parts = [f"{key!r}{did_you_mean(key, valid)}" for key in sorted(map(str, unknown))]
     return f"{where}: unknown key {', '.join(parts)}; valid keys are {', '.join(sorted(valid))}"

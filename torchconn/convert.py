@@ -2,7 +2,7 @@
 
 Reads SLEAP (analysis .h5/.csv), DeepLabCut (.csv/.h5), WCON (.wcon/.json/.zip) or plain point
 arrays (.csv/.npz), fits a curve through each frame's keypoints, resamples it to an N-link
-chain and writes one CONVENTIONS CSV per trial (``DIR/<file>.csv``, or
+chain and writes one trajectory CSV per trial (``DIR/<file>.csv``, or
 ``DIR/<file>_trial<k>.csv`` when gaps split the recording) and ``DIR/convert.json``: every
 setting as resolved (per-format defaults included), what was found in each file (missing
 keypoints, head/tail flips, gaps, body-length spread, scale) and the checks before fitting
@@ -15,12 +15,12 @@ import argparse
 import dataclasses
 import sys
 import tomllib
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
 from ._provenance import write_sidecar
 from .io.preflight import preflight
 from .io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
@@ -69,7 +69,7 @@ def config_tables(path: Path | None, overrides: list[str]) -> dict:
     raw = {}
     if path is not None:
         if not Path(path).exists():
-            raise FileNotFoundError(f"config file {path} not found")
+            raise InputError(f"config file {path} not found")
         try:
             with Path(path).open("rb") as fh:
                 raw = tomllib.load(fh)
@@ -119,28 +119,31 @@ class Recordings:
 
 
 def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
-                    settings: ConversionSettings | None = None) -> Recordings:
-    """Trajectory CSVs (CONVENTIONS format) or tracking files, all of one kind."""
+                    settings=None, read_csv=read_csv) -> Recordings:
+    """Trajectory CSVs (docs/conventions.md) or tracking files, all of one kind.
+
+    ``settings`` may be a function returning them, called only when there are tracking files
+    (so that CSV input never depends on conversion options); ``read_csv`` reads the CSVs.
+    """
     kinds = {}
     for p in paths:
         if not Path(p).exists():
             raise FileNotFoundError(f"input file {p} not found")
         kinds[p] = detect_format(p) if fmt == "auto" else fmt
     if all(k == "torchconn" for k in kinds.values()):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)
-            try:
-                traj = read_csv(paths, n_joints=n_links - 1)
-            except ValueError as err:
-                if "expected n_joints" in str(err):
-                    raise ValueError(f"{err}: the data do not match --links {n_links} (an N-link "
-                                     "swimmer has N - 1 joint columns)") from None
-                raise
+        try:
+            traj = read_csv(paths, n_joints=n_links - 1)
+        except ValueError as err:
+            if "expected n_joints" in str(err):
+                raise InputError(f"{err}: the data do not match --links {n_links} (an N-link "
+                                 "swimmer has N - 1 joint columns)") from None
+            raise
         return Recordings(trajectory=traj, reports=(), body_length=None, trials=())
     if any(k == "torchconn" for k in kinds.values()):
         csvs = [str(p) for p, k in kinds.items() if k == "torchconn"]
         raise ValueError(f"trajectory CSVs ({', '.join(csvs)}) mixed with tracking files; "
                          "convert the tracking files first or pass one kind")
+    settings = settings() if callable(settings) else settings
     settings = settings or ConversionSettings(n_links=n_links)
     convs = [convert_file(p, settings, format=kinds[p]) for p in paths]
     dt = convs[0].report.dt
@@ -170,14 +173,12 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
                       body_length=torch.cat([c.body_length for c in convs]), trials=trials)
 
 
-def _error(prog: str, err: BaseException) -> int:
-    print(f"{prog}: error: {err}", file=sys.stderr)
-    return 2
-
-
 # ============================================================================ the command
+PROG = "torchconn-convert"
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="torchconn-convert", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
     p.add_argument("sources", nargs="+", type=Path, help="tracking files")
     p.add_argument("--links", type=int, required=True, help="number of links N (odd for the "
                    "center frame)")
@@ -186,44 +187,44 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", type=Path, help="TOML file with a [convert] table")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set convert.max_gap=0.5")
+    add_threads(p)
     args = p.parse_args(argv)
-    prog = "torchconn-convert"
-    torch.set_num_threads(1)
-    try:
+
+    def body() -> int:
+        set_threads(args.threads)
         tables = config_tables(args.config, args.overrides)
+        unknown = sorted(set(tables) - {"convert"})
+        if unknown:
+            raise InputError(f"unknown config section(s) {unknown}; convert reads [convert]")
         settings = conversion_settings(args, args.links, tables.get("convert"))
-        args.out.mkdir(parents=True, exist_ok=True)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            rec = load_recordings(args.sources, fmt=args.format, n_links=args.links,
-                                  settings=settings)
+        out = prepare_output(args.out)
+        rec = load_recordings(args.sources, fmt=args.format, n_links=args.links,
+                              settings=settings)
         if not rec.reports:
-            raise ValueError("the inputs are already trajectory CSVs; nothing to convert")
-    except (ValueError, FileNotFoundError, ImportError) as err:
-        return _error(prog, err)
-    for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
-    check = preflight(rec.trajectory, body_length=rec.body_length)
-    print("\n".join(check.lines()))
-    files = []
-    for rep in rec.reports:
-        stem = Path(rep.source).name.rsplit(".", 1)[0]
-        mine = [tr for (path, _, tr) in rec.trials if str(path) == rep.source]
-        outs = []
-        for k, tr in enumerate(mine):
-            name = f"{stem}.csv" if len(mine) == 1 else f"{stem}_trial{k}.csv"
-            outs.append(str(write_csv(tr, args.out / name)))
-        files.append({"source": rep.source, "outputs": outs, "report": rep.to_dict()})
-        how = "given" if rep.scale_source == "given" else "median chain length"
-        print(f"{rep.source}: {rep.n_valid}/{rep.n_frames} frames, {len(outs)} trial(s), "
-              f"{rep.scale:.4g} units per body length ({how}) -> {', '.join(outs)}")
-    write_sidecar(args.out / "convert.json", {
-        "command": "torchconn-convert", "argv": sys.argv[1:] if argv is None else list(argv),
-        "settings": dataclasses.asdict(settings), "files": files,
-        "preflight": check.to_dict(),
-    })
-    print(f"wrote {args.out / 'convert.json'}")
-    return 0
+            raise InputError("the inputs are already trajectory CSVs; nothing to convert")
+        check = preflight(rec.trajectory, body_length=rec.body_length)
+        print("\n".join(check.lines()))
+        files = []
+        for rep in rec.reports:
+            stem = Path(rep.source).name.rsplit(".", 1)[0]
+            mine = [tr for (path, _, tr) in rec.trials if str(path) == rep.source]
+            outs = []
+            for k, tr in enumerate(mine):
+                name = f"{stem}.csv" if len(mine) == 1 else f"{stem}_trial{k}.csv"
+                outs.append(str(write_csv(tr, out / name)))
+            files.append({"source": rep.source, "outputs": outs, "report": rep.to_dict()})
+            how = "given" if rep.scale_source == "given" else "median chain length"
+            print(f"{rep.source}: {rep.n_valid}/{rep.n_frames} frames, {len(outs)} trial(s), "
+                  f"{rep.scale:.4g} units per body length ({how}) -> {', '.join(outs)}")
+        write_sidecar(out / "convert.json", {
+            "command": PROG, "argv": sys.argv[1:] if argv is None else list(argv),
+            "settings": dataclasses.asdict(settings), "files": files,
+            "preflight": check.to_dict(),
+        })
+        print(f"wrote {out / 'convert.json'}")
+        return 0
+
+    return run_command(PROG, body)
 
 
 if __name__ == "__main__":

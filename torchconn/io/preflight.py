@@ -85,6 +85,7 @@ class Preflight:
         missing_fraction: missing samples per trial (within its recorded span).
         longest_gap: longest run of missing samples per trial, in cycles.
         length_spread: (p90 − p10) / median body length across frames, or None.
+        periodic: every trial shows a periodic gait (periodicity ≥ :data:`MIN_PERIODICITY`).
         ready: command -> True when it can run.
         problems: messages that stop a command (command -> list).
         warnings: messages that do not.
@@ -97,6 +98,7 @@ class Preflight:
     missing_fraction: tuple[float, ...]
     longest_gap: tuple[float, ...]
     length_spread: float | None
+    periodic: bool
     ready: dict
     problems: dict
     warnings: tuple[str, ...]
@@ -195,6 +197,7 @@ def preflight(traj: Trajectory, *, body_length: Tensor | None = None) -> Preflig
         samples_per_cycle=tuple(float(x) for x in spc), periodicity=tuple(float(x) for x in per),
         missing_fraction=tuple(float(x) for x in missing),
         longest_gap=tuple(float(x) for x in longest_cycles), length_spread=spread,
+        periodic=bool((per >= MIN_PERIODICITY).all()),
         ready={cmd: not p for cmd, p in problems.items()}, problems=problems,
         warnings=tuple(warn),
     )

@@ -50,7 +50,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Keypoints", "FORMATS", "read_tracking", "detect_format", "TrackingFormatError"]
+__all__ = ["Keypoints", "FORMATS", "read_tracking", "detect_format", "TrackingFormatError",
+           "MissingDependencyError"]
 
 #: the formats :func:`read_tracking` knows
 FORMATS = ("sleap", "dlc", "wcon", "points")
@@ -58,6 +59,11 @@ FORMATS = ("sleap", "dlc", "wcon", "points")
 
 class TrackingFormatError(ValueError):
     """A tracking file that cannot be read as asked (the message names file, frame, keypoint)."""
+
+
+class MissingDependencyError(ImportError, ValueError):
+    """An optional dependency a file needs is not installed (a ``ValueError`` too, so that the
+    commands report it as bad input with exit code 2)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,7 +128,8 @@ _SUFFIX_FORMAT = {".wcon": "wcon", ".json": "wcon", ".zip": "wcon", ".npz": "poi
 
 def detect_format(path: str | PathLike) -> str:
     """The format of a tracking file, from its suffix and first lines; ``"torchconn"`` for a
-    trajectory CSV in the CONVENTIONS format (a ``theta`` or ``r<i>`` column)."""
+    trajectory CSV (docs/conventions.md: a ``theta`` or ``r<i>`` column), and for a text file
+    that is not UTF-8 (the trajectory reader names the encoding problem)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in _SUFFIX_FORMAT:
@@ -140,6 +147,18 @@ def detect_format(path: str | PathLike) -> str:
             "pass --format to say what it is"
         )
     if suffix in (".csv", ".txt", ".tsv"):
+        try:
+            with path.open("rb") as fh:
+                start = fh.read(4096)
+        except OSError as err:
+            raise FileNotFoundError(f"cannot open {path}: {err}") from err
+        try:
+            start.decode("utf-8")
+            ok = b"\0" not in start
+        except UnicodeDecodeError as err:
+            ok = err.start > len(start) - 4  # a character cut at the end of the block
+        if not ok:
+            return "torchconn"
         head = _first_lines(path, 4)
         cells = [[c.strip().lower() for c in line.split(",")] for line in head]
         if cells and cells[0] and cells[0][0] == "scorer":
@@ -208,7 +227,7 @@ def _h5py(path: Path):
     try:
         import h5py
     except ImportError:
-        raise ImportError(
+        raise MissingDependencyError(
             f"{path} is an HDF5 file, and reading HDF5 needs h5py: pip install "
             "'torchconn[tracking]' (or pip install h5py), or export CSV from the tracker"
         ) from None
