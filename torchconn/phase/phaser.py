@@ -39,6 +39,7 @@ from torch import Tensor
 
 from .. import _checks
 from .._options import Options, option
+from ..io.preflight import CYCLE_RULES
 from .fourier import FourierSeries, fit_fourier, fourier_design
 from .smoothing import unwrap
 
@@ -238,7 +239,8 @@ class Phaser(PhaseEstimator):
 
     Attributes:
         order: harmonics in each series correction (2-4 robust; high orders fit the noise).
-        min_cycles: fewest cycles a trial must cover.
+        min_cycles: fewest cycles a trial must cover (default: the ``fit`` rule of
+            :data:`torchconn.io.preflight.CYCLE_RULES`).
         section_channel: the channel whose upward crossing of its mean defines phase 0.
         periodic_padding: extend each record by its periodic continuation before the Hilbert
             transform (see :func:`estimate_phase`).
@@ -250,7 +252,7 @@ class Phaser(PhaseEstimator):
     """
 
     order: int = option(3, ge=0)
-    min_cycles: float = option(3.0, gt=0)
+    min_cycles: float = option(CYCLE_RULES["fit"].per_trial, gt=0)
     section_channel: int = 0
     periodic_padding: bool = True
 
