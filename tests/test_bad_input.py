@@ -82,6 +82,8 @@ SWEEP_CASES = [
     ("eta-nan", _edit("n_cycles = 5", "n_cycles = 5\neta = nan"), [],
      ["eta must be a finite number"]),
     ("eta-negative", _edit("n_cycles = 5", "n_cycles = 5\neta = -0.1"), [], ["eta must be"]),
+    ("substeps-odd", _edit("n_cycles = 5", "n_cycles = 5\nsubsteps = 3"), [],
+     ["substeps must be even", "got 3"]),
     ("unknown-system", _edit('system = "3link"', 'system = "4link"'), [],
      ["system must be one of", "'4link'"]),
     ("noise-kind-typo", _edit('noise_kind = "system"', 'noise_kind = "sytem"'), [],

@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 import argparse
-import difflib
 import os
 import sys
 import traceback
@@ -22,6 +21,8 @@ import uuid
 import warnings
 from collections.abc import Callable, Iterable
 from pathlib import Path
+
+from ._checks import did_you_mean, unknown_keys_message
 
 __all__ = ["InputError", "add_threads", "set_threads", "prepare_output", "run_command",
            "check_keys", "did_you_mean"]
@@ -34,17 +35,9 @@ class InputError(ValueError):
     """Bad input a user can fix: the message names the input and what was expected."""
 
 
-def did_you_mean(word: str, choices: Iterable[str]) -> str:
-    """``" (did you mean 'x'?)"`` for the closest of ``choices``, or ``""``."""
-    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
-    return f" (did you mean {close[0]!r}?)" if close else ""
-
-
 def check_keys(table: dict, known: Iterable[str], where: str) -> None:
     """Raise :class:`InputError` listing ``table``'s keys that are not in ``known``, with the
     closest valid key and all of them."""
-    from ._options import unknown_keys_message
-
     known = [str(k) for k in known]
     unknown = [k for k in table if k not in known]
     if unknown:

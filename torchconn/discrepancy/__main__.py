@@ -14,12 +14,16 @@ import argparse
 import sys
 import time
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 from .._cli import InputError, add_threads, check_keys, prepare_output, run_command, set_threads
+from ..convert import add_conversion_arguments, conversion_settings, load_recordings
+from ..io.preflight import preflight
 from ..io.trajectory_files import read_csv
 from ..physics.systems.swimmer import NLinkSwimmer
 from .effects import REGISTRY
+from .known import known_system, parse_known, relative_to_known
 from .workflow import DiscrepancySettings, diagnose
 
 PROG = "torchconn-discrepancy"
@@ -35,7 +39,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("data", nargs="+", type=Path,
                    help="trajectory CSV file(s): columns t, x, y, theta, r1..rd[, power][, trial] "
-                   '(format: docs/conventions.md, section "Trajectory file format")')
+                   '(format: docs/conventions.md, section "Trajectory file format"), or tracking '
+                   "files (converted as by torchconn-convert, same options)")
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--drag-ratio", type=float, default=2.0,
                    help="nominal lateral/longitudinal drag ratio (default 2)")
@@ -53,6 +58,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-terms", action="store_true",
                    help="skip the term-by-term comparison with the Stage 4 local model")
     p.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
+    p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
+                   help="a condition with known parameters, e.g. ambient_flow:u_x=0.01,u_y=0 "
+                   "(repeatable): the recording is modelled with it and it is not screened")
+    add_conversion_arguments(p, frame=False)
     p.add_argument("--quiet", action="store_true", help="print only the verdict line")
     add_threads(p)
     return p
@@ -110,14 +119,25 @@ def main(argv: list[str] | None = None) -> int:
         system = NLinkSwimmer(args.links, drag_ratio=args.drag_ratio, frame=frame,
                               link_lengths=args.link_lengths)
         settings = _settings(args)
+        known = [parse_known(k, system) for k in args.known]
+        def conv():  # conversion options matter (and are checked) for tracking files only
+            return conversion_settings(args, args.links)
+
         out = prepare_output(args.out)
-        try:
-            traj = read_csv(args.data, n_joints=args.links - 1)
-        except ValueError as err:
-            if "expected n_joints" in str(err):
-                raise InputError(f"{err}: the data do not match --links {args.links} "
-                                 f"(an N-link swimmer has N - 1 joint columns)") from None
-            raise
+        rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
+                              settings=conv, read_csv=read_csv)
+        traj = relative_to_known(rec.trajectory, known, system)
+        system = known_system(system, known)
+        if known:
+            names = [k.name for k in known]
+            pool = settings.candidates if settings.candidates is not None else tuple(REGISTRY)
+            settings = replace(settings, candidates=tuple(c for c in pool if c not in names))
+        check = preflight(traj, body_length=rec.body_length)
+        if not args.quiet:
+            print("\n".join(check.lines("discrepancy")))
+        if not check.periodic:  # the cycle rule itself is applied by diagnose()
+            raise InputError("the recording is not ready for the discrepancy workflow: "
+                             + "; ".join(check.problems["discrepancy"]))
         t0 = time.time()
         if not args.quiet:
             print(f"torchconn-discrepancy: {len(args.data)} file(s), {system}")

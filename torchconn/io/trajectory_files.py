@@ -33,7 +33,7 @@ from torch import Tensor
 
 from ..trajectory import GroundTruth, SmoothedState, Trajectory
 
-__all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles"]
+__all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles", "principal_signal"]
 
 _POSE_COLUMNS = ("t", "x", "y", "theta")
 _JOINT = re.compile(r"^r(\d+)$")
@@ -58,22 +58,17 @@ _PLAUSIBLE = {
 
 
 # ============================================================================ cycles
-def count_cycles(r: Tensor) -> Tensor:
-    """Rough number of gait cycles in each trial, from the dominant frequency of ``r``.
-
-    ``r`` is centred, projected onto its first principal component, and the peak of the
-    (zero-padded) spectrum of that signal, in cycles per sample, is multiplied by the span of
-    the trial's valid samples. NaN samples (drop-outs, padding) count as the mean.
+def principal_signal(r: Tensor) -> tuple[Tensor, Tensor]:
+    """The centred shapes projected on their leading principal component.
 
     Args:
-        r: ``(..., T, d)`` joint angles.
+        r: ``(..., T, d)`` joint angles; NaN samples (drop-outs, padding) count as the mean.
     Returns:
-        ``(...,)`` cycle counts (float, 0 for trials with fewer than 2 valid samples).
+        ``s (..., T)`` (0 at invalid samples) and ``valid (..., T)``.
     """
     if not isinstance(r, Tensor) or r.ndim < 2:
         raise ValueError(f"r must be a tensor of shape (..., T, d), got {getattr(r, 'shape', r)}")
     r = r.to(torch.float64) if not r.is_floating_point() else r
-    T = r.shape[-2]
     valid = torch.isfinite(r).all(-1)  # (..., T)
     n_valid = valid.sum(-1)
     x = torch.where(valid[..., None], r, torch.zeros((), dtype=r.dtype, device=r.device))
@@ -81,15 +76,31 @@ def count_cycles(r: Tensor) -> Tensor:
     x = torch.where(valid[..., None], x - mean, torch.zeros((), dtype=r.dtype, device=r.device))
     cov = x.transpose(-1, -2) @ x
     pc = torch.linalg.eigh(cov)[1][..., -1]  # (..., d) leading eigenvector
-    s = (x @ pc[..., None])[..., 0]  # (..., T)
+    return (x @ pc[..., None])[..., 0], valid
+
+
+def count_cycles(r: Tensor) -> Tensor:
+    """Rough number of gait cycles in each trial, from the dominant frequency of ``r``.
+
+    The peak of the (zero-padded) spectrum of :func:`principal_signal`, in cycles per sample,
+    is multiplied by the span of the trial's valid samples.
+
+    Args:
+        r: ``(..., T, d)`` joint angles.
+    Returns:
+        ``(...,)`` cycle counts (float, 0 for trials with fewer than 2 valid samples).
+    """
+    s, valid = principal_signal(r)
+    T = r.shape[-2]
+    n_valid = valid.sum(-1)
     n_fft = 1 << max(4, math.ceil(math.log2(8 * T)))
     power = torch.fft.rfft(s, n=n_fft).abs()
     power[..., 0] = 0.0
-    k = power.argmax(-1).to(r.dtype)
+    k = power.argmax(-1).to(s.dtype)
     idx = torch.arange(T, device=r.device)
     first = torch.where(valid, idx, T).amin(-1)
     last = torch.where(valid, idx, -1).amax(-1)
-    span = (last - first + 1).clamp_min(0).to(r.dtype)
+    span = (last - first + 1).clamp_min(0).to(s.dtype)
     return torch.where(n_valid >= 2, k / n_fft * span, torch.zeros_like(span))
 
 

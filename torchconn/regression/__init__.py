@@ -52,6 +52,7 @@ from .metric import (
     tied_metric_regression,
 )
 from .model import BinEstimates, LocalConnectionModel
+from .noise_aware import NoiseAwareRegression
 from .tube import Regression, TubeRegression
 
 __all__ = [
@@ -63,5 +64,6 @@ __all__ = [
     "IllConditionedBinWarning",
     "LocalConnectionModel", "BinEstimates",
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
-    "Regression", "TubeRegression", "EstimatorSettings", "prepare", "fit_local_model",
+    "Regression", "TubeRegression", "NoiseAwareRegression", "EstimatorSettings", "prepare",
+    "fit_local_model",
 ]

@@ -153,8 +153,8 @@ class TubeRegression(Regression):
                                                  self.samples_per_regressor)
             return assign_bins(phase, M, window=window, kernel=self.kernel), window
 
-        bins, window = bins_for(1 + 2 * d + d * d)
-        fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
+        fit, window, connection_meta = self._connection_fit(
+            traj, pool, (phase, r, r_dot, xi), gamma_m, gamma_dot_m, opts, bins_for)
         metric_fit, metric_window, noise = None, None, None
         if self.metric is not False and power is not None:
             if self.metric_method == "tied":
@@ -187,8 +187,19 @@ class TubeRegression(Regression):
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
                   "batch_shape": list(batch), "window": window, "metric_window": metric_window,
-                  "metric_noise_std": noise},
+                  "metric_noise_std": noise, **connection_meta},
         )
+
+    def _connection_fit(self, traj: Trajectory, pool: bool, samples, gamma_m: Tensor,
+                        gamma_dot_m: Tensor, opts: dict, bins_for):
+        """The connection's per-bin regression on the smoothed ``samples`` (phase, r, ṙ, ξ,
+        pooled when ``pool``): returns the :class:`ConnectionFit`, the window and extra meta.
+        Subclasses regress differently (:class:`~torchconn.regression.NoiseAwareRegression`)."""
+        phase, r, r_dot, xi = samples
+        d = r.shape[-1]
+        bins, window = bins_for(1 + 2 * d + d * d)
+        fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
+        return fit, window, {}
 
     def _tied_metric(self, traj: Trajectory, cycle: LimitCycle, centres: Tensor,
                      gamma_dot_m: Tensor, pool: bool):

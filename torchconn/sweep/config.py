@@ -84,7 +84,10 @@ class SimulationSettings:
         _in_range("eta", self.eta, float, 0.0)
         _in_range("n_cycles", self.n_cycles, int, 2, 100_000)
         _in_range("samples_per_cycle", self.samples_per_cycle, int, 8, 100_000)
-        _in_range("substeps", self.substeps, int, 1, 1000)
+        _in_range("substeps", self.substeps, int, 2, 1000)
+        if self.substeps % 2:
+            raise InputError(f"substeps must be even (each sample sits mid-way through its "
+                             f"fine steps), got {self.substeps}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -140,7 +143,7 @@ class SweepConfig:
     estimator: dict = field(default_factory=dict)
     phase: str = "estimated"
     error_bins: int = 16
-    block_trials: int = 8
+    block_trials: int = 20
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -253,7 +256,7 @@ def _parse(raw: dict[str, Any]) -> SweepConfig:
             name=values.get("name", "sweep"), seed=values.get("seed", 0),
             experiments=tuple(experiments), estimator=raw.get("estimator", {}),
             phase=values.get("phase", "estimated"), error_bins=values.get("error_bins", 16),
-            block_trials=values.get("block_trials", 8), raw=raw,
+            block_trials=values.get("block_trials", 20), raw=raw,
         )
     except InputError:
         raise
