@@ -3,8 +3,9 @@
 Two models:
 
 - :func:`tied_metric_regression` (the estimator's default): on the sample intervals the power
-  channel belongs to (docs/conventions.md: ``power`` at row ``k`` is the mean over ``[t_k, t_{k+1})``),
-  one metric explains all of the power, ``P_k ≈ v_kᵀ [M(φ) + ∂M/∂r_k(φ) δ_k] v_k`` with
+  channel belongs to (docs/conventions.md: ``power`` at row ``k`` is the mean over
+  ``[t_k, t_{k+1})``), one metric explains all of the power,
+  ``P_k ≈ v_kᵀ [M(φ) + ∂M/∂r_k(φ) δ_k] v_k`` with
   ``v_k = (r_{k+1} − r_k)/Δt`` the raw sample differences and ``M(φ)``, ``∂M/∂r(φ)`` Fourier
   series in phase; the observation noise's known contribution to the normal equations is
   removed (:func:`power_noise_variance` estimates its level from the power residuals).
