@@ -36,9 +36,10 @@ from .effects import (
 )
 from .forward import ForwardModel, Measurement, prepare_measurement
 from .model import AugmentedModel, load_augmented
+from .report import VERDICTS, DiscrepancyReport
 from .residuals import compare_terms, phase_profile
 from .simulate import effect_parameters, simulate_with_effects
-from .workflow import VERDICTS, DiscrepancyReport, DiscrepancySettings, diagnose
+from .workflow import DiscrepancySettings, diagnose
 
 __all__ = [
     "Effect", "Param", "REGISTRY", "register", "get_effect",

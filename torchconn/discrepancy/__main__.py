@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     paths = report.save(args.out, figures=not args.no_figures)
     if args.quiet:
-        names = ", ".join(e["name"] for e in report.effects)
+        names = ", ".join(e.name for e in report.effects)
         print(f"verdict: {report.verdict}" + (f" ({names})" if names else ""))
     else:
         print(report.summary())
