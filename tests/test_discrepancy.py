@@ -395,6 +395,31 @@ def test_nine_link_drag_ratio_and_its_look_alike():
     assert "link_length" in beside
 
 
+@pytest.mark.slow
+def test_interval_coverage_over_a_small_simulation_study():
+    """Nominal 95% intervals over a small simulation study (3 seeds per registered effect, two
+    trials of 15 cycles, the reference magnitudes): each effect is named (alone or beside a
+    look-alike it is confounded with) and its intervals cover the truth in >= 90% of cases
+    overall, in at least 2 of 3 per effect."""
+    settings = DiscrepancySettings(compare_terms=False, experiments=False)
+    covered: dict[str, list[bool]] = {}
+    for name, cases in CASES.items():
+        values = cases[0]
+        for seed in (101, 202, 303):
+            traj = simulate_with_effects(SWIMMER, GAIT, {name: values}, eta=ETA, alpha=ALPHA,
+                                         n_cycles=15, seeds=[seed, seed + 1], omega=OMEGA)
+            report = diagnose(traj, SWIMMER, settings)
+            entry = next((e for e in report.effects if e.name == name), None)
+            assert report.verdict == "effect" and entry is not None, report.summary()
+            covered.setdefault(name, []).append(all(
+                entry.ci[k][0] <= v <= entry.ci[k][1]
+                for k, v in truth_physical(name, values).items()))
+    print(covered)
+    flat = [c for v in covered.values() for c in v]
+    assert sum(flat) / len(flat) >= 0.9, covered
+    assert all(sum(v) >= 2 for v in covered.values()), covered
+
+
 # ============================================================================ bad input
 def test_bad_input_errors(tmp_path):
     with pytest.raises(ValueError, match="too few cycles"):
