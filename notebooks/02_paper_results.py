@@ -72,7 +72,7 @@ import matplotlib.ticker
 import numpy as np
 import torch
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, simulate
+from torchconn import ConnectionEstimator, NLinkSwimmer, TubeRegression, simulate
 from torchconn.evaluation.models import error_summary, reference_models
 from torchconn.physics.gaits import reference_gait
 from torchconn.sweep import load_config, read_table, run_sweep
@@ -424,12 +424,12 @@ bin_errs = []
 for n_bins in BIN_COUNTS:
     # the largest order the bins allow, up to the default 12 (the order must stay < M/2)
     order = min(12, (n_bins - 1) // 2)
-    bin_errs.append(x_errors(ConnectionEstimator(n_bins=n_bins, fourier_order=order)
-                             .fit(prepared)))
+    regression = TubeRegression(n_bins=n_bins, fourier_order=order)
+    bin_errs.append(x_errors(ConnectionEstimator(regression=regression).fit(prepared)))
 order_errs = []
 for order in ORDERS:
-    order_errs.append(x_errors(ConnectionEstimator(n_bins=48, fourier_order=order)
-                               .fit(prepared)))
+    regression = TubeRegression(n_bins=48, fourier_order=order)
+    order_errs.append(x_errors(ConnectionEstimator(regression=regression).fit(prepared)))
 print(f"{len(CYCLE_COUNTS) + len(BIN_COUNTS) + len(ORDERS)} fits in "
       f"{time.perf_counter() - t0:.1f} s")
 

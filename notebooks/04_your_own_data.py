@@ -57,7 +57,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, read_csv, simulate, write_csv
+from torchconn import ConnectionEstimator, NLinkSwimmer, TubeRegression, read_csv, simulate, write_csv
 from torchconn.fit import connection_table
 from torchconn.physics import se2
 from torchconn.physics.gaits import FourierGait, evaluate, reference_gait
@@ -139,7 +139,7 @@ nb.save(fig, "raw_data")
 # collapse onto one curve.
 
 # %%
-est = ConnectionEstimator(n_bins=48, fourier_order=12, pool=True)
+est = ConnectionEstimator(regression=TubeRegression(n_bins=48, fourier_order=12), pool=True)
 prepared = est.prepare(data)
 phase = prepared.phase  # (trials, T)
 print(f"phase {tuple(phase.shape)}; cycles per trial: "

@@ -9,16 +9,12 @@ previous release were, for one release.
 from __future__ import annotations
 
 import csv
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import torch
-from torch import Tensor
-
-from .. import __version__
+from .._provenance import jsonable, write_sidecar
 from ..physics.systems.swimmer import NLinkSwimmer
 from .model import AugmentedModel
 from .residuals import COMPONENTS
@@ -43,7 +39,7 @@ class _Record:
         return getattr(self, key, default)
 
     def to_dict(self) -> dict:
-        return _jsonable(asdict(self))
+        return jsonable(asdict(self))
 
 
 # ============================================================================ selection
@@ -265,11 +261,10 @@ class DiscrepancyReport:
             "terms": _terms_summary(self.terms),
             "profiles": {k: {kk: vv.tolist() for kk, vv in v.items()}
                          for k, v in self.profiles.items()},
-            "data": _jsonable(self.data),
+            "data": jsonable(self.data),
             "settings": self.settings,
             "model": self.model.to_dict() if isinstance(self.model.nominal, NLinkSwimmer)
             else repr(self.model),
-            "versions": _versions(),
         }
 
     def summary(self) -> str:
@@ -308,7 +303,7 @@ class DiscrepancyReport:
         out.mkdir(parents=True, exist_ok=True)
         paths = {}
         paths["report"] = out / "report.json"
-        paths["report"].write_text(json.dumps(_jsonable(self.to_dict()), indent=2))
+        write_sidecar(paths["report"], self.to_dict())
         if isinstance(self.model.nominal, NLinkSwimmer):
             paths["model"] = self.model.save(out / "augmented_model.json")
         paths["profile_csv"] = out / "residual_profile.csv"
@@ -338,28 +333,6 @@ def _range_text(r: tuple[float, float]) -> str:
     if math.isinf(lo):
         return f"<= {hi:g}"
     return f"[{lo:g}, {hi:g}]"
-
-
-def _versions() -> dict:
-    import numpy
-    import scipy
-
-    return {"torchconn": __version__, "torch": torch.__version__, "numpy": numpy.__version__,
-            "scipy": scipy.__version__}
-
-
-def _jsonable(x):
-    if isinstance(x, Mapping):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, Tensor):
-        return _jsonable(x.detach().tolist())
-    if hasattr(x, "tolist"):
-        return _jsonable(x.tolist())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def _terms_summary(terms: dict | None) -> dict | None:

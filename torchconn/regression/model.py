@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import _checks
 from ..phase.fourier import FourierSeries
 
 __all__ = ["LocalConnectionModel", "BinEstimates"]
@@ -140,12 +141,8 @@ class LocalConnectionModel:
 
     def _check_samples(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> None:
         d = self.shape_dim
-        for name, x in (("r", r), ("r_dot", r_dot)):
-            if x.shape[-1] != d or x.shape[:-1] != phase.shape:
-                raise ValueError(
-                    f"{name} must have shape phase.shape + ({d},) = {tuple(phase.shape) + (d,)} "
-                    f"for a model of a {d}-joint system, got {tuple(x.shape)}"
-                )
+        _checks.phase_samples(phase, r, r_dot, d=d, same_batch=True,
+                              why=f" for a model of a {d}-joint system")
 
     def __getitem__(self, index) -> "LocalConnectionModel":
         """Select batch elements (e.g. one trial's model): ``model[level, trial]``."""

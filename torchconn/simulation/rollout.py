@@ -55,6 +55,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import _checks
 from ..physics import se2
 from ..physics.gaits import as_gait
 from ..physics.systems.base import LocomotionSystem
@@ -213,8 +214,7 @@ def simulate(
         raise ValueError(f"gait has {gait.shape_dim} joints but the system has {d}")
     for name, v, lo in (("n_cycles", n_cycles, 1), ("samples_per_cycle", samples_per_cycle, 2),
                         ("substeps", substeps, 2)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        _checks.integer(v, name, minimum=lo)
     if substeps % 2:
         raise ValueError(
             f"substeps must be even (each sample sits mid-way through its {substeps} fine "

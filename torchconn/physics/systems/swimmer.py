@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ... import _checks
 from .. import se2
 from .base import LocomotionSystem, check_shapes
 
@@ -63,8 +64,7 @@ class NLinkSwimmer(LocomotionSystem):
         link_lengths=None,
         drag_coefficient: float | Tensor = 1.0,
     ):
-        if isinstance(n_links, bool) or not isinstance(n_links, int) or n_links < 2:
-            raise ValueError(f"n_links must be an integer >= 2, got {n_links!r}")
+        _checks.integer(n_links, "n_links", minimum=2)
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
         if frame == "center" and n_links % 2 == 0:
