@@ -180,6 +180,30 @@ def test_forward_model_leaves_only_noise_on_clean_data():
     assert (rel < 2e-3).all(), rel
 
 
+def test_long_kernels_by_fft_equal_the_direct_correlation(monkeypatch):
+    """Dense sampling smooths by FFT: the same zero-padded correlation as conv1d, values and
+    forward-mode tangents, to rounding."""
+    import torch.autograd.forward_ad as fwAD
+
+    from torchconn.discrepancy import forward
+
+    traj = simulate_with_effects(SWIMMER, GAIT, {}, eta=ETA, n_cycles=5, seeds=[2], omega=OMEGA,
+                                 samples_per_cycle=160)
+    m = prepare_measurement(traj, SWIMMER, min_cycles=3)
+    assert m.half_width >= 20
+    x = torch.randn(m.pose.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+
+    def smooth(threshold):
+        monkeypatch.setattr(forward, "_FFT_HALF_WIDTH", threshold)
+        with fwAD.dual_level():
+            out = fwAD.unpack_dual(m.smooth_velocity(fwAD.make_dual(m.pose, x)))
+        return out.primal, out.tangent
+
+    (a, da), (b, db) = smooth(10**9), smooth(0)
+    torch.testing.assert_close(b, a, rtol=0, atol=1e-12 * float(a.abs().max()))
+    torch.testing.assert_close(db, da, rtol=0, atol=1e-12 * float(da.abs().max()))
+
+
 def test_forward_jacobian_is_the_derivative():
     """Forward-mode autograd Jacobians of the residual against central differences (float64)."""
     traj = simulate_with_effects(SWIMMER, GAIT, {}, eta=ETA, n_cycles=5, seeds=[2], omega=OMEGA)
