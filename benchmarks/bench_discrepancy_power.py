@@ -327,6 +327,9 @@ def plot(summary: list[dict], st: dict, effects: list[str], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if len(st["factors"]) == 1:
+        return plot_one_magnitude(summary, st, effects, path, plt)
+
     fig, axes = plt.subplots(3, len(effects), figsize=(2.6 * len(effects), 7.4),
                              constrained_layout=True, squeeze=False)
     for j, effect in enumerate(effects):
@@ -362,6 +365,39 @@ def plot(summary: list[dict], st: dict, effects: list[str], path: Path) -> None:
     axes[2, 0].set_ylabel("95% interval coverage")
     axes[1, 0].set_ylabel("median relative parameter error")
     axes[0, 0].legend(fontsize=6)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_one_magnitude(summary: list[dict], st: dict, effects: list[str], path: Path,
+                       plt) -> None:
+    """A study at one magnitude: bars per effect and noise level -- named right (unregistered
+    effects: called unexplained; clean data: none) and 95% interval coverage."""
+    shown = ["clean"] + list(effects)
+    fig, axes = plt.subplots(2, 1, figsize=(1.0 * len(shown) + 2, 5.4), constrained_layout=True,
+                             sharex=True)
+    width = 0.8 / len(st["omegas"])
+    for i, om in enumerate(st["omegas"]):
+        rows = {s["effect"]: s for s in summary if s["omega"] == om and s["method"] == "workflow"}
+        x = np.arange(len(shown)) + (i - (len(st["omegas"]) - 1) / 2) * width
+        axes[0].bar(x, [rows[e]["p_correct"] if e in rows else np.nan for e in shown], width,
+                    color=f"C{i}", label=f"ω = {om:g}")
+        axes[1].bar(x, [rows[e]["ci_coverage"] if e in rows else np.nan for e in shown], width,
+                    color=f"C{i}")
+        for xx, e in zip(x, shown, strict=True):
+            if e in rows:
+                axes[0].text(xx, 0.02, f"n={rows[e]['n']}", ha="center", fontsize=6,
+                             rotation=90, color="w")
+    axes[0].set_ylabel("P(right answer)\n(clean: none; unregistered:\nunexplained)")
+    axes[1].set_ylabel("95% interval coverage\n(named effects)")
+    axes[1].axhline(0.95, color="k", lw=0.8, ls=":")
+    axes[1].axhline(0.90, color="k", lw=0.8, ls="--")
+    for a in axes:
+        a.set_ylim(0, 1.05)
+    axes[1].set_xticks(np.arange(len(shown)), shown, rotation=30, ha="right", fontsize=8)
+    axes[0].legend(fontsize=7, loc="lower right")
+    axes[0].set_title(f"{st['n_links']}-link, {st['trials']} trials x {st['n_cycles']} cycles, "
+                      f"reference magnitudes x{st['factors'][0]:g}", fontsize=9)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
