@@ -172,8 +172,8 @@ class EffectEstimate(_Record):
     ci_level: float
     gain: float
     p_value: float
-    confounded_with: tuple[str, ...] = ()
-    look_alikes: tuple[LookAlike, ...] = ()
+    confounded_with: list[str] = field(default_factory=list)
+    look_alikes: list[LookAlike] = field(default_factory=list)
 
 
 # ============================================================================ what is left

@@ -206,8 +206,8 @@ def diagnose(
         + ", ".join(f"{c} {flex.component_gain[c]:.3g}" for c in COMPONENTS))
     verdict = "unexplained" if unexplained else ("effect" if sel.accepted else "none")
 
-    estimates = [replace(e, confounded_with=tuple(c.effects[1] for c in confounds
-                                                  if c.effects[0] == e.name))
+    estimates = [replace(e, confounded_with=[c.effects[1] for c in confounds
+                                             if c.effects[0] == e.name])
                  for e in estimates]
     effects = {n: v.detach() for n, v in final.params().items()} if verdict == "effect" else {}
     model = AugmentedModel(nominal=system, effects=effects,
@@ -527,7 +527,7 @@ def _estimates(job: _Job, sel: _Selection, fit: EffectFit) -> list[EffectEstimat
             fitted={sp.name: float(v) for sp, v in zip(specs, p, strict=True)},
             fitted_se={sp.name: float(v) for sp, v in zip(specs, p_se, strict=True)},
             ci_level=s.ci_level, gain=gain, p_value=pval,
-            look_alikes=sel.look_alikes.get(name, ())))
+            look_alikes=list(sel.look_alikes.get(name, ()))))
     return out
 
 
