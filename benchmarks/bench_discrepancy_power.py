@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import sys
 import time
@@ -49,6 +48,7 @@ import numpy as np
 import torch
 from scipy import stats
 
+from torchconn._provenance import write_sidecar
 from torchconn.discrepancy import (
     REGISTRY,
     DiscrepancySettings,
@@ -264,13 +264,12 @@ def main(argv: list[str] | None = None) -> int:
     summary = summarise(rows)
     table = format_table(summary)
     print(table)
-    (args.out / "power.json").write_text(json.dumps({
+    write_sidecar(args.out / "power.json", {
         "config": cfg, "root_seed": st["root_seed"], "pysindy": have_sindy,
+        "pysindy_version": _pysindy_version(),
         "sindy_thresholds": thresholds if have_sindy else None,
-        "versions": {"torch": torch.__version__, "numpy": np.__version__,
-                     "pysindy": _pysindy_version()},
         "summary": summary, "seconds": time.time() - t0,
-    }, indent=2, default=str))
+    })
     shown = list(effects) + [u for u in UNREGISTERED if any(r["effect"] == u for r in rows)]
     plot(summary, st, shown, args.out / "power.png")
     print(f"wrote {args.out / 'power.csv'}, power.json, power.png in {time.time() - t0:.0f} s")

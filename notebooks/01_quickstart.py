@@ -37,7 +37,7 @@
 # 4. compare $\hat A$ and $\partial\hat A/\partial r$ with the truth along the gait, with 95%
 #    confidence intervals, and predict body velocities.
 #
-# **Conventions** (`shared/CONVENTIONS.md`): total body length 1 (all lengths are in body
+# **Conventions** (`docs/conventions.md` in the repository): total body length 1 (all lengths are in body
 # lengths), lateral/longitudinal drag ratio 2, body frame at the middle link, the paper's sign
 # $\xi = A(r)\dot r$ (Hatton's GSP writes $\xi = -A_{gsp}\dot r$, so $A = -A_{gsp}$), angles in
 # radians, and **phase** $\varphi$ in radians with $2\pi$ per gait cycle; on the limit cycle

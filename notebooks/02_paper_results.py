@@ -48,10 +48,11 @@
 # runs the package's default sweep at paper-like sizes: 30 cycles per trial, 10 trials per
 # level, the paper's ranges of system noise ($0.25\eta$–$4\eta$) and observation noise
 # ($\omega$ up to 0.04); a few minutes on two cores. For the paper's exact experiments, run the
-# configs in `configs/` from the command line and point `TORCHCONN_SWEEP_DIR` at the result:
+# packaged configs (`fig3`, `fig4a`, `fig4b`; the files are in `configs/`) from the command
+# line and point `TORCHCONN_SWEEP_DIR` at the result:
 #
 # ```bash
-# python -m torchconn.sweep --config configs/fig4a.toml --out runs/fig4a
+# torchconn-sweep --config fig4a --out runs/fig4a
 # TORCHCONN_SWEEP_DIR=runs/fig4a python notebooks/02_paper_results.py
 # ```
 
@@ -94,8 +95,9 @@ nb = Notebook("02_paper_results")
 # `load_config(path, overrides)` reads a TOML config (`None`: the embedded default) and applies
 # `key=value` overrides, exactly like the command line's `--set`. Every cell (level, trial) gets
 # its own seed from `numpy.random.SeedSequence(root).spawn`, so results do not depend on the
-# order in which cells run. `run_sweep` is resumable: finished experiments stored in the output
-# directory are skipped when their configuration has not changed.
+# order in which cells run. `run_sweep` is resumable: it stores cells (one level, a block of
+# trials) as they finish, and reuses intact ones when neither the configuration nor torchconn's
+# code has changed.
 
 # %%
 sweep_env = os.environ.get("TORCHCONN_SWEEP_DIR", "").strip()
@@ -123,7 +125,7 @@ else:
     for exp in config.experiments:
         print(f"  {exp.name:>18}: levels {list(exp.levels)}, {exp.trials} trials, "
               f"{exp.simulation.n_cycles} cycles")
-    print("the same from the command line: python -m torchconn.sweep --out", SWEEP,
+    print("the same from the command line: torchconn-sweep --out", SWEEP,
           " ".join(f"--set {o!r}" for o in overrides))
     t0 = time.perf_counter()
     run_sweep(config, SWEEP, quiet=True, figures=False)

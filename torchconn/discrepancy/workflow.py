@@ -309,7 +309,9 @@ def _screen(job: _Job, accepted: list[str], current: EffectFit, remaining: list[
     """Fit every remaining candidate beside the accepted ones: fits, held-out tests, and the
     physical values outside range of each."""
     fits = {c: job.fit(accepted + [c], current) for c in remaining}
-    tests = {c: paired_gain(current.sse_cv, fits[c].sse_cv, job.n_entries) for c in remaining}
+    every = paired_gain(current.sse_cv, torch.stack([fits[c].sse_cv for c in remaining]),
+                        job.n_entries)  # all candidates' tests at once
+    tests = {c: {k: float(v[i]) for k, v in every.items()} for i, c in enumerate(remaining)}
     bad = {c: get_effect(c).out_of_range(fits[c].p[fits[c].slices[c]], job.fm.system)
            for c in remaining}
     return fits, tests, bad

@@ -1,6 +1,6 @@
 """The viscous N-link swimmer (resistive-force theory), exact and batched.
 
-Conventions (``shared/CONVENTIONS.md``, matching Hatton's GSP up to the sign of A):
+Conventions (docs/conventions.md, matching Hatton's GSP up to the sign of A):
 N rigid links in a chain, link 1 the tail, body +x from tail to head; shape ``r_i`` is the
 angle of link i+1 minus that of link i. A straight link of length ``l`` moving with twist
 ``xi_link`` in its midpoint frame feels the drag wrench
