@@ -227,8 +227,16 @@ def fit_local_model(
         M=None if metric_fit is None else series(metric_fit.M, 2),
         bins=estimates,
         meta={"settings": asdict(settings), "dt": traj.dt, "batch_shape": list(batch),
-              "window": window, "metric_window": metric_window},
+              "window": window, "metric_window": metric_window,
+              "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
     )
+
+
+def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:
+    """Per-joint RMS of the offsets ``δ = r − γ(φ)`` over every sample of every trial: the
+    width of the tube the data covered (``(d,)`` as a list, for the JSON-able ``meta``)."""
+    delta = (r - gamma).reshape(-1, r.shape[-1])
+    return [float(v) for v in delta.pow(2).nanmean(0).sqrt()]
 
 
 def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
