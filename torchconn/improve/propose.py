@@ -27,7 +27,8 @@ from ..regression.gait_prediction import (
 )
 from ..regression.model import LocalConnectionModel
 
-__all__ = ["OBJECTIVES", "TrustRegion", "Proposal", "propose_gait", "objective_value"]
+__all__ = ["OBJECTIVES", "TrustRegion", "Proposal", "propose_gait", "objective_value",
+           "check_trust_region"]
 
 #: what a proposal maximises: |(x, y)| per cycle, |(x, y)| / cost, |θ| per cycle
 OBJECTIVES = ("displacement", "efficiency", "turning")
@@ -225,3 +226,23 @@ def propose_gait(
         gain=predicted - current, gain_se=gain_se, radius=radius, step=step,
         prediction=prediction,
     )
+
+
+def check_trust_region(model: LocalConnectionModel, gait, trust_region: TrustRegion,
+                       *, phase_offset: float | None = 0.0) -> float:
+    """The largest change ``max_φ |γ'(φ) − γ̂(φ + φ₀)|`` of ``gait`` from the model's cycle (rad);
+    raises ``ValueError`` when it exceeds the trust radius (e.g. a hand-edited proposal).
+
+    ``phase_offset``: ``φ₀`` (0 for gaits in the model's phase, None to align them).
+    """
+    pred = predict_gait(model, gait, phase_offset=phase_offset, n_draws=0,
+                        warn_excursion=math.inf, max_excursion=math.inf)
+    radius = trust_region.radius_for(model)
+    step = float(pred.max_offset.max())
+    if step > radius * (1 + 1e-6):
+        raise ValueError(
+            f"the gait leaves the trust region: it comes {step:.3g} rad from the fitted cycle, "
+            f"the trust radius is {radius:.3g} rad; the model's prediction does not cover it. "
+            "Take a shorter step, or record this gait first"
+        )
+    return step
