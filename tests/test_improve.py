@@ -210,3 +210,16 @@ def test_export_round_trips(tmp_path, fitted_3link):
     spec = json.loads(paths["json"].read_text())
     back = FourierGait(torch.tensor(spec["fourier_coefficients"], dtype=torch.float64))
     torch.testing.assert_close(back.coeffs, gait.coeffs)
+
+
+def test_command_proposes_from_recordings(tmp_path):
+    from torchconn import write_csv
+    from torchconn.improve.__main__ import main
+
+    traj = simulate(NLinkSwimmer(3), circle_gait(2, 0.8), eta=0.025, n_cycles=10,
+                    seeds=np.arange(2))
+    path = write_csv(traj, tmp_path / "rec.csv")
+    assert main(["propose", str(path), "--links", "3", "--out", str(tmp_path / "next")]) == 0
+    assert (tmp_path / "next" / "next_gait.csv").exists()
+    assert main(["propose", str(tmp_path / "missing.csv"), "--links", "3",
+                 "--out", str(tmp_path / "x")]) == 2
