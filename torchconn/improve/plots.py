@@ -68,8 +68,8 @@ def plot_rounds(result: LoopResult, path: str | Path, ceiling: float | None = No
     ax.plot(k, [r.true for r in rounds], "s", mfc="none", label="recorded gait: true")
     kp = [i + 1 for i in k]
     pred = [r.predicted for r in rounds]
-    ax.errorbar(kp, pred, yerr=[[p - r.predicted_low for p, r in zip(pred, rounds)],
-                                [r.predicted_high - p for p, r in zip(pred, rounds)]],
+    ax.errorbar(kp, pred, yerr=[[r.predicted - r.predicted_low for r in rounds],
+                                [r.predicted_high - r.predicted for r in rounds]],
                 fmt="^", color="C2", capsize=3, label="proposal: predicted (95%)")
     ax.plot(kp, [r.realised for r in rounds], "x", color="C3", ms=8, label="proposal: realised")
     if ceiling is not None:
