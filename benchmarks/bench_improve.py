@@ -18,23 +18,22 @@ import time
 import torch
 
 from torchconn import NLinkSwimmer
-from torchconn.improve import LoopSettings, circle_gait, improve, true_objective
+from torchconn.improve import LoopSettings, ceiling, circle_gait, improve, true_objective
 from torchconn.improve.baselines import finite_difference_baseline
-from torchconn.physics.gaits import ModalGait, nine_link_modes, optimised_gait
-from torchconn.physics.gaits.reference import load_gaits
+from torchconn.physics.gaits import ModalGait, evaluate, nine_link_modes, optimised_gait
 
 
-def ceiling_value(links: int) -> float | None:
-    """|(x, y)| per cycle of the stored x-extremal gait found with the true connection."""
-    table = load_gaits()
+def ceiling_value(links: int) -> tuple[float, float] | tuple[None, None]:
+    """The optimiser's best with the true connection, in its gait family (simple loops about
+    the straight shape, |r| ≤ π): ``(|(x, y)| maximised, x of the stored x-extremal gait)``."""
     if links == 3:
-        gait = optimised_gait("three_link_x_extremal")
+        stored = optimised_gait("three_link_x_extremal")
     elif links == 9:
-        gait = ModalGait(nine_link_modes(), optimised_gait("nine_link_x_extremal"))
+        stored = ModalGait(nine_link_modes(), optimised_gait("nine_link_x_extremal"))
     else:
-        return None
-    assert table  # the file is there
-    return true_objective(NLinkSwimmer(links), gait, "displacement", 1024)
+        return None, None
+    x = float(evaluate(NLinkSwimmer(links), stored, 1024).displacement[0])
+    return ceiling(NLinkSwimmer(links)).x_displacement, x
 
 
 def main(argv=None) -> int:
@@ -68,9 +67,13 @@ def main(argv=None) -> int:
                   f"{r.true:.4f} | {r.accepted} | {r.predicted:.4f} [{r.predicted_low:.4f}, "
                   f"{r.predicted_high:.4f}] | {r.realised:.4f} | {r.covered} | {shape:.2f} |")
         best = max(r.realised for r in res.rounds)
-        falls = [res.rounds[k].true - res.rounds[k + 1].true for k in range(len(res.rounds) - 1)]
+        kept = [r.true for r in res.rounds if r.accepted]  # the gaits the loop moved on from
+        falls = [kept[k] - kept[k + 1] for k in range(len(kept) - 1)]
         worst_fall = max([0.0] + falls)
-        cap = ceiling_value(links)
+        cap, cap_x = ceiling_value(links)
+        last = evaluate(system, max(res.rounds, key=lambda r: r.realised).proposal).displacement
+        print(f"best proposal's displacement per cycle (x, y, θ): {last.numpy().round(4)}; "
+              f"ceiling |(x, y)| {cap}, stored x-extremal x {cap_x}")
         fd_best, fd_cycles, fd_match = None, None, None
         if not args.no_baseline:
             budget = int(args.fd_factor * res.rounds[-1].cycles_used)

@@ -36,13 +36,16 @@ def finite_difference_baseline(
     system: LocomotionSystem, start: FourierGait, *, budget: int, trials: int = 4,
     cycles: int = 20, h: float = 0.05, step: float = 0.3, eta: float = 0.025,
     alpha: float = 0.05, objective: str = "displacement", seed: int = 0,
+    shape_bound: float | None = math.pi,
 ) -> list[BaselineStep]:
     """Central-difference gradient ascent of the measured objective until ``budget`` cycles.
 
     Args:
         start: the start gait; its Fourier coefficients (rows ``[a0, a1, b1, …]``) are the
             parameters. budget: recorded cycles allowed; h: difference step (rad);
-            step: length of each ascent step in coefficient space (rad).
+            step: length of each ascent step in coefficient space (rad);
+            shape_bound: after each step the gait is scaled about its mean shape until
+            ``|r| ≤ shape_bound`` (the joint limits the loop's proposals respect).
     """
     coeffs = start.coeffs.detach().clone()
     n = coeffs.numel()
@@ -67,5 +70,12 @@ def finite_difference_baseline(
         norm = float(torch.linalg.vector_norm(grad))
         if norm > 0 and math.isfinite(norm):
             coeffs = coeffs + step * grad.reshape(coeffs.shape) / norm
+        if shape_bound is not None:
+            phi = torch.linspace(0, 2 * math.pi, 256, dtype=coeffs.dtype)
+            peak = float(torch.linalg.vector_norm(FourierGait(coeffs)(phi), dim=-1).max())
+            if peak > shape_bound:
+                mean_norm = float(torch.linalg.vector_norm(coeffs[0]))
+                shrink = max(shape_bound - mean_norm, 0.0) / max(peak - mean_norm, 1e-12)
+                coeffs = torch.cat([coeffs[:1], coeffs[1:] * shrink])
         out.append(BaselineStep(used + per_eval, FourierGait(coeffs.clone()), measure(coeffs)))
     return out

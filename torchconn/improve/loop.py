@@ -78,10 +78,12 @@ class LoopSettings:
             (in tube radii): the radius grows when the measured gain of a step is more than
             ``good_ratio`` of the predicted one, shrinks below ``poor_ratio`` or when the
             recording measures worse than its start by more than the noise (rejected).
-        gain_error: prior relative error of a predicted gain (the first-order model's
-            truncation and the estimator's bias). Every measured step updates the mean relative
-            error, which corrects the next predicted gain, and the spread, which widens its
-            interval. 0.15: measured on 3-link circle gaits, seeds outside the tests.
+        gain_error: prior relative error of a predicted gain for a step of
+            ``trust_region.scale`` tube radii (the first-order model's truncation and the
+            estimator's bias; it scales with the step). Every measured step updates the mean
+            relative error per tube radius, which corrects the next predicted gain, and its
+            spread, which widens the interval. 0.15: measured on 3-link circle gaits, seeds
+            outside the tests.
         level: central level of the prediction intervals.
         estimator: settings of the pooled fit each round.
         seed: root seed (per-round seeds from ``numpy.random.SeedSequence``).
@@ -220,8 +222,8 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
             ratio = measured_gain / predicted_gain if predicted_gain > 0 else 0.0
             if meas < base["measured"] - z * math.hypot(meas_se, base["measured_se"]):
                 accepted = False
-            if predicted_gain > 0:
-                errors.append(ratio - 1.0)
+            if predicted_gain > 0:  # relative error per tube radius of the step
+                errors.append((ratio - 1.0) / base["reach"])
             if not accepted or ratio < s.poor_ratio:
                 scale = max(scale * s.shrink, s.min_scale)
             elif ratio > s.good_ratio:
@@ -231,17 +233,20 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
                 warnings.simplefilter("ignore")  # e.g. no power channel: metric not estimated
                 model = ConnectionEstimator(**dataclasses.asdict(s.estimator)).fit(traj).model_
             base = {"model": model, "measured": meas, "measured_se": meas_se, "gait": gait}
-        # relative error of predicted gains: its mean (a prior of 0 worth one step) corrects the
-        # next gain, its spread (the prior gain_error, updated likewise) widens the interval
-        bias = sum(errors) / (1 + len(errors))
-        rel = math.sqrt((s.gain_error ** 2 + sum((e - bias) ** 2 for e in errors))
-                        / (1 + len(errors)))
         tr = dataclasses.replace(s.trust_region, scale=scale)
         prop = propose_gait(base["model"], s.objective, tr, seed=k)
-        gain = prop.gain * (1 + bias)
+        # The first-order model's error in A grows as (step)², so the relative error of a gain
+        # grows as the step: learn it per tube radius of step. Its mean (a prior of 0 worth one
+        # step) corrects the gain, its spread (prior gain_error) widens the interval.
+        reach = prop.step / prop.radius * scale  # the step in tube radii
+        bias = sum(errors) / (1 + len(errors))
+        prior = s.gain_error / s.trust_region.scale
+        spread = math.sqrt((prior ** 2 + sum((e - bias) ** 2 for e in errors)) / (1 + len(errors)))
+        gain = prop.gain * (1 + bias * reach)
         predicted = base["measured"] + gain
-        half = z * math.sqrt(base["measured_se"] ** 2 + prop.gain_se ** 2 + (rel * gain) ** 2)
-        base.update(gain=prop.gain)
+        half = z * math.sqrt(base["measured_se"] ** 2 + prop.gain_se ** 2
+                             + (spread * reach * gain) ** 2)
+        base.update(gain=prop.gain, reach=reach)
         rnd = Round(
             index=k, cycles_used=(k + 1) * s.trials * s.cycles, gait=gait, measured=meas,
             measured_se=meas_se, true=true_objective(system, gait, s.objective),

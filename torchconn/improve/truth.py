@@ -63,8 +63,11 @@ def exact_local_model(
     )
 
 
-def ceiling(system: LocomotionSystem, *, order: int = 4, starts=(1.0, 2.0)) -> OptimisedGait:
-    """The best x-displacement per cycle with the true connection, by the existing optimiser.
+def ceiling(system: LocomotionSystem, *, order: int = 4, starts=(1.0, 2.0),
+            component: int | str = "planar") -> OptimisedGait:
+    """The best displacement per cycle with the true connection, by the existing optimiser.
+
+    ``component``: ``"planar"`` (|(x, y)|, the loop's ``"displacement"`` objective) or 0, 1, 2.
 
     Simple loops star-shaped about the straight shape (:class:`PolarGait`, loop radius ≤ π) in
     the shape plane of a 3-link, or in the two-mode plane of the 9-link (modal radius ≤ π/2);
@@ -79,7 +82,7 @@ def ceiling(system: LocomotionSystem, *, order: int = 4, starts=(1.0, 2.0)) -> O
         raise ValueError(f"the ceiling's gait family is defined for 2 or 8 joints, got {d}")
     runs = [
         optimise_gait(system, modes=modes, order=order, radius=min(r, 0.9 * bound),
-                      max_radius=bound, direction=s)
+                      max_radius=bound, direction=s, component=component)
         for r in starts for s in (1, -1)
     ]
     return max(runs, key=lambda run: run.x_displacement)
