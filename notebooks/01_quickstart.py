@@ -37,7 +37,7 @@
 # 4. compare $\hat A$ and $\partial\hat A/\partial r$ with the truth along the gait, with 95%
 #    confidence intervals, and predict body velocities.
 #
-# **Conventions** (`shared/CONVENTIONS.md`): total body length 1 (all lengths are in body
+# **Conventions** (`docs/conventions.md` in the repository): total body length 1 (all lengths are in body
 # lengths), lateral/longitudinal drag ratio 2, body frame at the middle link, the paper's sign
 # $\xi = A(r)\dot r$ (Hatton's GSP writes $\xi = -A_{gsp}\dot r$, so $A = -A_{gsp}$), angles in
 # radians, and **phase** $\varphi$ in radians with $2\pi$ per gait cycle; on the limit cycle
@@ -60,7 +60,7 @@ import torch
 from matplotlib.patches import Ellipse
 from matplotlib.path import Path as PolygonPath
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, simulate
+from torchconn import ConnectionEstimator, NLinkSwimmer, TubeRegression, simulate
 from torchconn.evaluation.models import clean_trajectory, error_summary, reference_models
 from torchconn.physics.gaits import evaluate, reference_gait
 from torchconn.simulation import observe
@@ -291,12 +291,15 @@ nb.save(fig, "trials")
 #    $\partial A/\partial r(\gamma_m)$ with standard errors;
 # 5. interpolate the per-bin estimates by Fourier series in phase (`fourier_order`).
 #
-# `pool=True` fits one model to all trials together (the phase section makes them
-# comparable); the default fits one model per trial.
+# Each step is a stage object you can swap or tune: `smoother=RTSSmoother()` (1),
+# `phaser=Phaser()` (2), `cycle=SelfConsistentCycle()` (3), `regression=TubeRegression()`
+# (4-5, with `n_bins` and `fourier_order`). `pool=True` fits one model to all trials together
+# (the phase section makes them comparable); the default fits one model per trial.
 
 # %%
 t0 = time.perf_counter()
-est = ConnectionEstimator(n_bins=48, fourier_order=12, pool=True).fit(traj)
+est = ConnectionEstimator(regression=TubeRegression(n_bins=48, fourier_order=12), pool=True)
+est.fit(traj)
 model = est.model_
 print(f"{est!r} fitted in {time.perf_counter() - t0:.1f} s")
 print(f"phase rate {float(model.phase_rate):.4f} rad per time unit (1 by convention); "

@@ -48,10 +48,11 @@
 # runs the package's default sweep at paper-like sizes: 30 cycles per trial, 10 trials per
 # level, the paper's ranges of system noise ($0.25\eta$–$4\eta$) and observation noise
 # ($\omega$ up to 0.04); a few minutes on two cores. For the paper's exact experiments, run the
-# configs in `configs/` from the command line and point `TORCHCONN_SWEEP_DIR` at the result:
+# packaged configs (`fig3`, `fig4a`, `fig4b`; the files are in `configs/`) from the command
+# line and point `TORCHCONN_SWEEP_DIR` at the result:
 #
 # ```bash
-# python -m torchconn.sweep --config configs/fig4a.toml --out runs/fig4a
+# torchconn-sweep --config fig4a --out runs/fig4a
 # TORCHCONN_SWEEP_DIR=runs/fig4a python notebooks/02_paper_results.py
 # ```
 
@@ -72,7 +73,7 @@ import matplotlib.ticker
 import numpy as np
 import torch
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, simulate
+from torchconn import ConnectionEstimator, NLinkSwimmer, TubeRegression, simulate
 from torchconn.evaluation.models import error_summary, reference_models
 from torchconn.physics.gaits import reference_gait
 from torchconn.sweep import load_config, read_table, run_sweep
@@ -123,7 +124,7 @@ else:
     for exp in config.experiments:
         print(f"  {exp.name:>18}: levels {list(exp.levels)}, {exp.trials} trials, "
               f"{exp.simulation.n_cycles} cycles")
-    print("the same from the command line: python -m torchconn.sweep --out", SWEEP,
+    print("the same from the command line: torchconn-sweep --out", SWEEP,
           " ".join(f"--set {o!r}" for o in overrides))
     t0 = time.perf_counter()
     run_sweep(config, SWEEP, quiet=True, figures=False)
@@ -424,12 +425,12 @@ bin_errs = []
 for n_bins in BIN_COUNTS:
     # the largest order the bins allow, up to the default 12 (the order must stay < M/2)
     order = min(12, (n_bins - 1) // 2)
-    bin_errs.append(x_errors(ConnectionEstimator(n_bins=n_bins, fourier_order=order)
-                             .fit(prepared)))
+    regression = TubeRegression(n_bins=n_bins, fourier_order=order)
+    bin_errs.append(x_errors(ConnectionEstimator(regression=regression).fit(prepared)))
 order_errs = []
 for order in ORDERS:
-    order_errs.append(x_errors(ConnectionEstimator(n_bins=48, fourier_order=order)
-                               .fit(prepared)))
+    regression = TubeRegression(n_bins=48, fourier_order=order)
+    order_errs.append(x_errors(ConnectionEstimator(regression=regression).fit(prepared)))
 print(f"{len(CYCLE_COUNTS) + len(BIN_COUNTS) + len(ORDERS)} fits in "
       f"{time.perf_counter() - t0:.1f} s")
 

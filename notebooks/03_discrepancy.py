@@ -28,7 +28,7 @@
 #    simulator; effects are accepted one at a time by held-out gain over blocks of whole cycles.
 # 3. **The gap shrinking**: the held-out gap before and after, beside the noise floor.
 #
-# The same workflow is a command: `python -m torchconn.discrepancy DATA.csv --links 3 --out DIR`.
+# The same workflow is a command: `torchconn-discrepancy DATA.csv --links 3 --out DIR`.
 # The workflow is never told the answer; we check it at the end.
 
 # %%

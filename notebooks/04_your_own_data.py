@@ -25,12 +25,11 @@
 # 4. uses the model to **predict the motion of gaits you did not record** — nearby
 #    variations of the recorded one — and compares with the simulator.
 #
-# The same steps are available as a command: `python -m torchconn.fit DATA.csv --links 3
-# --out DIR`.
+# The same steps are available as a command: `torchconn-fit DATA.csv --links 3 --out DIR`.
 #
-# **The data format** (`shared/CONVENTIONS.md`, "Trajectory data"): one CSV per trial, or
-# several trials in one file with an integer `trial` column; a header row, then one row per
-# sample, **uniformly sampled**:
+# **The data format** (`docs/conventions.md` in the repository, "Trajectory file format"): one
+# CSV per trial, or several trials in one file with an integer `trial` column; a header row,
+# then one row per sample, **uniformly sampled**:
 #
 # | column | meaning | units |
 # |---|---|---|
@@ -38,7 +37,7 @@
 # | `x`, `y` | position of the body-frame origin in the world | body lengths |
 # | `theta` | heading of the body frame | rad, wrapped or unwrapped |
 # | `r1 … rd` | joint angles: link $i+1$ minus link $i$, counter-clockwise positive | rad |
-# | `power` (optional) | measured dissipated power | any consistent unit |
+# | `power` (optional) | mean dissipated power over $[t_k, t_{k+1})$; last row empty | any consistent unit |
 #
 # Link 1 is the tail. Missing samples (marker drop-outs) are empty or `nan` cells; other
 # columns are ignored with a warning. The model then follows the paper's sign,
@@ -57,7 +56,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, read_csv, simulate, write_csv
+from torchconn import ConnectionEstimator, NLinkSwimmer, TubeRegression, read_csv, simulate, write_csv
 from torchconn.fit import connection_table
 from torchconn.physics import se2
 from torchconn.physics.gaits import FourierGait, evaluate, reference_gait
@@ -139,7 +138,7 @@ nb.save(fig, "raw_data")
 # collapse onto one curve.
 
 # %%
-est = ConnectionEstimator(n_bins=48, fourier_order=12, pool=True)
+est = ConnectionEstimator(regression=TubeRegression(n_bins=48, fourier_order=12), pool=True)
 prepared = est.prepare(data)
 phase = prepared.phase  # (trials, T)
 print(f"phase {tuple(phase.shape)}; cycles per trial: "

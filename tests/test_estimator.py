@@ -8,9 +8,11 @@ import torch
 
 from torchconn import AffineConnectionSystem, NLinkSwimmer, Trajectory
 from torchconn.evaluation.models import phase_bin_errors, reference_models
+from torchconn.phase.limit_cycle import SelfConsistentCycle
 from torchconn.physics.gaits import FourierGait, reference_gait
-from torchconn.regression.estimator import ConnectionEstimator, EstimatorSettings
+from torchconn.regression.estimator import ConnectionEstimator
 from torchconn.regression.model import LocalConnectionModel
+from torchconn.regression.tube import TubeRegression
 from torchconn.simulation.rollout import simulate
 from torchconn.trajectory import SmoothedState
 
@@ -47,8 +49,10 @@ def test_toy_connection_is_recovered_exactly_from_noise_free_data():
     coeffs[1, 0], coeffs[2, 1], coeffs[3, 0] = 0.8, 0.6, 0.2  # order-2 gait
     gait = FourierGait(coeffs)
     traj = _exact_trajectory(toy, gait)
-    est = ConnectionEstimator(n_bins=16, fourier_order=6, window=1.0, cycle_order=2,
-                              metric=False).fit(traj)
+    est = ConnectionEstimator(
+        cycle=SelfConsistentCycle(order=2),
+        regression=TubeRegression(n_bins=16, fourier_order=6, window=1.0, metric=False),
+    ).fit(traj)
     phi = torch.linspace(0, 2 * math.pi, 50, dtype=F64)
     gamma = est.model_.gamma_at(phi)
     # the cycle comes from the data (mean of r at each phase); the connection at that cycle
@@ -76,7 +80,8 @@ def test_estimates_converge_to_the_simulator_as_data_grows():
     errs = {"A": [], "dA": [], "M": []}
     for n in cycles:
         s, tr = _swimmer_truth_trajectory(int(n), seeds=np.arange(2) + 100)
-        est = ConnectionEstimator(n_bins=96, fourier_order=16, window=1.0).fit(tr)
+        est = ConnectionEstimator(
+            regression=TubeRegression(n_bins=96, fourier_order=16, window=1.0)).fit(tr)
         b = est.model_.bins
         for name, est_v, true_v in (("A", b.A, s.connection(b.gamma)),
                                     ("dA", b.dA, s.connection_jacobian(b.gamma)),
@@ -93,8 +98,8 @@ def test_estimates_converge_to_the_simulator_as_data_grows():
 def test_data_driven_mean_error_per_phase_bin_is_zero_within_its_standard_error():
     s, tr = _swimmer_truth_trajectory(30, seeds=np.arange(8) + 11)
     M = 32
-    est = ConnectionEstimator(n_bins=M, fourier_order=10, window=0.5, kernel="box",
-                              metric=False).fit(tr)
+    est = ConnectionEstimator(regression=TubeRegression(
+        n_bins=M, fourier_order=10, window=0.5, kernel="box", metric=False)).fit(tr)
     b = est.model_.bins
     # each sample predicted by its own bin's regression (eq. advanceddatadriven at γ_m)
     m = torch.round(torch.remainder(tr.phase, 2 * math.pi) / (2 * math.pi / M)).long() % M
@@ -121,16 +126,16 @@ def test_data_driven_mean_error_per_phase_bin_is_zero_within_its_standard_error(
 
 def test_batched_fit_equals_one_trial_at_a_time():
     s, tr = _swimmer_truth_trajectory(12, seeds=np.arange(2))
-    est = ConnectionEstimator(n_bins=24, fourier_order=6, metric=False)
-    both = est.fit(tr).model_
-    one = ConnectionEstimator(n_bins=24, fourier_order=6, metric=False).fit(tr[1]).model_
+    regression = TubeRegression(n_bins=24, fourier_order=6, metric=False)
+    both = ConnectionEstimator(regression=regression).fit(tr).model_
+    one = ConnectionEstimator(regression=regression).fit(tr[1]).model_
     phi = torch.linspace(0, 6, 7, dtype=F64)
     assert torch.allclose(both[1].connection(phi), one.connection(phi), atol=1e-10)
 
 
 def test_model_save_load_round_trip(tmp_path):
     _, tr = _swimmer_truth_trajectory(12, seeds=np.arange(2))
-    model = ConnectionEstimator(n_bins=24, fourier_order=6).fit(
+    model = ConnectionEstimator(regression=TubeRegression(n_bins=24, fourier_order=6)).fit(
         tr.with_fields(power=torch.ones(tr.batch_shape + (tr.n_samples,), dtype=F64))).model_
     path = model.save(tmp_path / "m.npz")
     back = LocalConnectionModel.load(path)
@@ -144,17 +149,18 @@ def test_model_save_load_round_trip(tmp_path):
 
 def test_bad_settings_and_inputs_raise():
     with pytest.raises(ValueError, match="fourier_order must satisfy"):
-        EstimatorSettings(n_bins=8, fourier_order=4)
-    with pytest.raises(ValueError, match="n_bins must be an integer >= 3"):
-        EstimatorSettings(n_bins=2)
+        TubeRegression(n_bins=8, fourier_order=4)
+    with pytest.raises(ValueError, match=r"TubeRegression.n_bins must be >= 3, got 2"):
+        TubeRegression(n_bins=2)
     with pytest.raises(TypeError, match="torchconn.Trajectory"):
         ConnectionEstimator().fit({"r": 1})
     _, tr = _swimmer_truth_trajectory(4, seeds=np.arange(1))
     with pytest.raises(ValueError, match="samples"):
-        ConnectionEstimator(n_bins=48, fourier_order=12, window=0.5, metric=False).fit(tr)
+        ConnectionEstimator(regression=TubeRegression(window=0.5, metric=False)).fit(tr)
     with pytest.raises(RuntimeError, match="not fitted"):
         ConnectionEstimator().predict(tr)
-    model = ConnectionEstimator(n_bins=12, fourier_order=4, metric=False).fit(tr).model_
+    model = ConnectionEstimator(
+        regression=TubeRegression(n_bins=12, fourier_order=4, metric=False)).fit(tr).model_
     with pytest.raises(ValueError, match="r must have shape"):
         model.predict(tr.phase, torch.zeros(tr.phase.shape + (3,), dtype=F64), tr.r)
 
@@ -169,7 +175,8 @@ def test_trials_of_different_lengths_are_not_extrapolated(tmp_path):
     write_csv(long, tmp_path / "long.csv")
     write_csv(short, tmp_path / "short.csv")
     traj = read_csv([tmp_path / "long.csv", tmp_path / "short.csv"])  # short one NaN-padded
-    est = ConnectionEstimator(n_bins=24, fourier_order=6, pool=True, metric=False).fit(traj)
+    est = ConnectionEstimator(regression=TubeRegression(n_bins=24, fourier_order=6, metric=False),
+                              pool=True).fit(traj)
     prepared = est.trajectory_
     n_short = short.n_samples
     assert torch.isnan(prepared.phase[1, n_short:]).all()

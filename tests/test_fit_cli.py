@@ -1,4 +1,4 @@
-"""``python -m torchconn.fit`` on CSV recordings in the CONVENTIONS format."""
+"""``python -m torchconn.fit`` on CSV recordings in the trajectory file format."""
 
 import csv
 

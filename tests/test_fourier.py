@@ -137,7 +137,7 @@ def test_errors_are_clear():
     phi = torch.linspace(0, 6, 5, dtype=DT)
     with pytest.raises(ValueError, match="at least 7 samples"):
         fit_fourier(phi, torch.sin(phi), 3)
-    with pytest.raises(ValueError, match="order must be an int >= 0"):
+    with pytest.raises(ValueError, match="order must be an integer >= 0"):
         fit_fourier(phi, torch.sin(phi), -1)
     with pytest.raises(ValueError, match="T=5 samples"):
         fit_fourier(phi, torch.zeros(6, 2, dtype=DT), 1, value_ndim=1)

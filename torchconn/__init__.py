@@ -21,9 +21,16 @@ from importlib.metadata import PackageNotFoundError, version
 
 from . import _compat
 from .io import read_csv, write_csv
+from .phase import Phaser, RTSSmoother, SelfConsistentCycle
 from .physics import gaits, se2
 from .physics.systems import AffineConnectionSystem, LocomotionSystem, NLinkSwimmer
-from .regression import ConnectionEstimator, EstimatorSettings, LocalConnectionModel
+from .regression import (
+    ConnectionEstimator,
+    EstimatorSettings,
+    LocalConnectionModel,
+    TubeRegression,
+    estimator_from_settings,
+)
 from .simulation import observe, simulate
 from .trajectory import GroundTruth, SmoothedState, Trajectory
 
@@ -39,5 +46,7 @@ __all__ = [
     "NLinkSwimmer", "AffineConnectionSystem", "LocomotionSystem",
     "Trajectory", "GroundTruth", "SmoothedState", "gaits", "se2",
     "simulate", "observe", "read_csv", "write_csv",
-    "ConnectionEstimator", "EstimatorSettings", "LocalConnectionModel",
+    "ConnectionEstimator", "LocalConnectionModel", "estimator_from_settings",
+    "RTSSmoother", "Phaser", "SelfConsistentCycle", "TubeRegression",
+    "EstimatorSettings",
 ]

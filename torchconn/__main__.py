@@ -1,7 +1,7 @@
 """``python -m torchconn``: a one-screen check that the install works.
 
 Prints the 3-link swimmer's connection and curvature at the straight shape (compare with the
-closed forms in CONVENTIONS) and the reference gait's displacement, cost and efficiency.
+closed forms in docs/conventions.md) and the reference gait's displacement, cost and efficiency.
 """
 
 from __future__ import annotations

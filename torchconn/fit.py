@@ -1,6 +1,7 @@
-"""``python -m torchconn.fit DATA.csv [MORE.csv …] --links N --out DIR``: fit your recordings.
+"""``torchconn-fit DATA.csv [MORE.csv …] --links N --out DIR``: fit your recordings.
 
-Reads trajectories in the CONVENTIONS CSV format, estimates phase and limit cycle, fits the
+Also runs as ``python -m torchconn.fit``. Reads trajectory CSV files (the format of
+docs/conventions.md, section "Trajectory file format"), estimates phase and limit cycle, fits the
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>]``) and PNG
@@ -18,9 +19,11 @@ from pathlib import Path
 import torch
 
 from .io.trajectory_files import read_csv
-from .regression.estimator import ConnectionEstimator, EstimatorSettings
+from .phase.phaser import Phaser
+from .regression.estimator import ConnectionEstimator
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
+from .regression.tube import TubeRegression
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
@@ -55,18 +58,28 @@ def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m torchconn.fit", description=__doc__.split("\n")[0])
-    p.add_argument("data", nargs="+", type=Path, help="trajectory CSV files (CONVENTIONS format)")
+    p = argparse.ArgumentParser(
+        prog="torchconn-fit",
+        description="Fit one local connection model (and the metric, when the files have a "
+        "power column) to your recorded trials, pooled, and write DIR/model.npz, "
+        "DIR/connection.csv (one row per phase) and PNG plots with 95% bands. "
+        "Also runs as python -m torchconn.fit.",
+    )
+    p.add_argument("data", nargs="+", type=Path,
+                   help="trajectory CSV files: columns t, x, y, theta, r1..rd[, power][, trial], "
+                   'one trial per file or several with a trial column (format: '
+                   'docs/conventions.md, section "Trajectory file format")')
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    defaults = EstimatorSettings()
+    defaults, phaser = TubeRegression(), Phaser()
     p.add_argument("--n-bins", type=int, default=defaults.n_bins,
                    help=f"phase bins (default {defaults.n_bins})")
     p.add_argument("--fourier-order", type=int, default=defaults.fourier_order,
                    help=f"Fourier order in phase (default {defaults.fourier_order})")
     p.add_argument("--window", type=float, default=None,
                    help="bin half-width in bin spacings (default: sized from the data)")
-    p.add_argument("--phase-order", type=int, default=3, help="Phaser correction order")
+    p.add_argument("--phase-order", type=int, default=phaser.order,
+                   help=f"Phaser correction order (default {phaser.order})")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
     args = p.parse_args(argv)
     if args.links < 2:
@@ -75,11 +88,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         traj = read_csv(args.data, n_joints=args.links - 1)
         est = ConnectionEstimator(
-            n_bins=args.n_bins, fourier_order=args.fourier_order, window=args.window,
-            phase_order=args.phase_order, pool=True,
+            phaser=Phaser(order=args.phase_order),
+            regression=TubeRegression(n_bins=args.n_bins, fourier_order=args.fourier_order,
+                                      window=args.window),
+            pool=True,
         ).fit(traj)
     except (ValueError, FileNotFoundError) as err:
-        print(f"python -m torchconn.fit: error: {err}", file=sys.stderr)
+        print(f"torchconn-fit: error: {err}", file=sys.stderr)
         return 2
     out = args.out
     out.mkdir(parents=True, exist_ok=True)

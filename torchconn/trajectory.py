@@ -19,7 +19,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-__all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS"]
+__all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch"]
 
 #: axis of time in ``(..., T, C)`` arrays, and of coordinates
 TIME_AXIS = -2
@@ -209,3 +209,9 @@ def _expect(x, name: str, shape: tuple[int, ...]) -> None:
 
 def _describe(x) -> str:
     return f"shape {tuple(x.shape)}" if isinstance(x, Tensor) else type(x).__name__
+
+
+def pool_batch(x: Tensor, trailing: int) -> Tensor:
+    """Flatten all batch dims into the sample axis: ``(..., T, *c) -> (N·T, *c)``, where
+    ``trailing`` counts the dims after ``T`` (pooling trials into one recording)."""
+    return x.reshape((-1,) + tuple(x.shape[x.ndim - trailing:]))

@@ -1,6 +1,7 @@
-"""``python -m torchconn.discrepancy DATA.csv [MORE.csv ...] --links N --out DIR``.
+"""``torchconn-discrepancy DATA.csv [MORE.csv ...] --links N --out DIR``.
 
-Reads the recordings (CONVENTIONS CSV format), compares them with the nominal N-link swimmer,
+Also runs as ``python -m torchconn.discrepancy``. Reads the recordings (the format of
+docs/conventions.md, section "Trajectory file format"), compares them with the nominal N-link swimmer,
 names the missing effect(s) and writes ``DIR/report.json``, ``DIR/augmented_model.json``,
 ``DIR/residual_profile.csv`` and the figures; prints a readable summary. Exit codes: 0 done,
 2 bad input (a message says what to fix).
@@ -25,12 +26,15 @@ from .workflow import DiscrepancySettings, diagnose
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m torchconn.discrepancy",
+        prog="torchconn-discrepancy",
         description="Find where a recording and the nominal N-link swimmer disagree, name the "
-        "missing physical effect, add it and report the gap before and after.",
+        "missing physical effect, add it and report the gap before and after. Writes "
+        "DIR/report.json, DIR/augmented_model.json, DIR/residual_profile.csv and figures. "
+        "Also runs as python -m torchconn.discrepancy.",
     )
-    p.add_argument("data", nargs="+", type=Path, help="trajectory CSV file(s): t, x, y, theta, "
-                   "r1..rd[, power][, trial]")
+    p.add_argument("data", nargs="+", type=Path,
+                   help="trajectory CSV file(s): columns t, x, y, theta, r1..rd[, power][, trial] "
+                   '(format: docs/conventions.md, section "Trajectory file format")')
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--drag-ratio", type=float, default=2.0,
                    help="nominal lateral/longitudinal drag ratio (default 2)")
@@ -98,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise
         t0 = time.time()
         if not args.quiet:
-            print(f"torchconn.discrepancy: {len(args.data)} file(s), {system}")
+            print(f"torchconn-discrepancy: {len(args.data)} file(s), {system}")
         report = diagnose(traj, system, settings, log=say)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)

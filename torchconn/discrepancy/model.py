@@ -17,6 +17,7 @@ from pathlib import Path
 
 from torch import Tensor
 
+from .._provenance import write_json
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from .effects import get_effect
@@ -100,10 +101,7 @@ class AugmentedModel:
         return cls(nominal=nominal, effects=effects, meta=data.get("meta", {}))
 
     def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        return write_json(path, self.to_dict())
 
     def __repr__(self) -> str:
         eff = ", ".join(f"{n}={[round(x, 6) for x in p.tolist()]}" for n, p in self.effects.items())

@@ -26,6 +26,7 @@ from torch import Tensor
 
 from ..physics.systems.base import LocomotionSystem
 from ..regression.estimator import ConnectionEstimator
+from ..regression.tube import TubeRegression
 from ..trajectory import Trajectory
 from .forward import Measurement
 
@@ -120,8 +121,10 @@ def compare_terms(
         ``max_abs_z``, ``rms_z`` and ``frac_abs_z_gt_3`` per body-velocity component.
     """
     def fit(recording):
-        est = ConnectionEstimator(n_bins=n_bins, fourier_order=fourier_order, pool=True,
-                                  metric=False)
+        est = ConnectionEstimator(
+            regression=TubeRegression(n_bins=n_bins, fourier_order=fourier_order, metric=False),
+            pool=True,
+        )
         return est.fit(recording, phase=phase).model_.bins
 
     bins = fit(traj)

@@ -31,7 +31,6 @@ held-out residuals per component (each cycle predicted by parameters fitted with
 from __future__ import annotations
 
 import csv
-import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -40,7 +39,7 @@ import torch
 from scipy import stats
 from torch import Tensor
 
-from .. import __version__
+from .._provenance import write_sidecar
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..trajectory import Trajectory
@@ -163,7 +162,6 @@ class DiscrepancyReport:
             "settings": self.settings,
             "model": self.model.to_dict() if isinstance(self.model.nominal, NLinkSwimmer)
             else repr(self.model),
-            "versions": _versions(),
         }
 
     def summary(self) -> str:
@@ -200,7 +198,7 @@ class DiscrepancyReport:
         out.mkdir(parents=True, exist_ok=True)
         paths = {}
         paths["report"] = out / "report.json"
-        paths["report"].write_text(json.dumps(_jsonable(self.to_dict()), indent=2))
+        write_sidecar(paths["report"], self.to_dict())
         if isinstance(self.model.nominal, NLinkSwimmer):
             paths["model"] = self.model.save(out / "augmented_model.json")
         paths["profile_csv"] = out / "residual_profile.csv"
@@ -221,28 +219,6 @@ class DiscrepancyReport:
             if self.terms is not None:
                 paths["terms_figure"] = plot_terms(self.terms, out / "terms_vs_simulator.png")
         return paths
-
-
-def _versions() -> dict:
-    import numpy
-    import scipy
-
-    return {"torchconn": __version__, "torch": torch.__version__, "numpy": numpy.__version__,
-            "scipy": scipy.__version__}
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, Tensor):
-        return _jsonable(x.detach().tolist())
-    if hasattr(x, "tolist"):
-        return _jsonable(x.tolist())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def _profiles_json(profiles: dict) -> dict:

@@ -25,7 +25,7 @@ import torch
 from ..physics.gaits.evaluate import evaluate
 from ..physics.gaits.gait import FourierGait, as_gait
 from ..physics.systems.base import LocomotionSystem
-from ..regression.estimator import ConnectionEstimator, EstimatorSettings
+from ..regression.estimator import estimator_from_settings
 from ..regression.gait_prediction import normal_quantile
 from ..simulation import observe, simulate
 from .measure import measure_cycles
@@ -85,7 +85,8 @@ class LoopSettings:
             spread, which widens the interval. 0.15: measured on 3-link circle gaits, seeds
             outside the tests.
         level: central level of the prediction intervals.
-        estimator: settings of the pooled fit each round.
+        estimator: the estimator's settings table (:func:`estimator_from_settings`) for the
+            pooled fit each round.
         seed: root seed (per-round seeds from ``numpy.random.SeedSequence``).
     """
 
@@ -105,7 +106,7 @@ class LoopSettings:
     min_scale: float = 0.5
     gain_error: float = 0.15
     level: float = 0.95
-    estimator: EstimatorSettings = field(default_factory=lambda: EstimatorSettings(pool=True))
+    estimator: dict = field(default_factory=lambda: {"pool": True})
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -113,7 +114,7 @@ class LoopSettings:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"LoopSettings.{name} must be a positive integer, got {value!r}")
-        if not self.estimator.pool:
+        if not estimator_from_settings(self.estimator, where="LoopSettings.estimator").pool:
             raise ValueError("LoopSettings.estimator must pool the trials (pool=True): a "
                              "proposal needs one model")
         if not (0 < self.min_scale <= self.trust_region.scale <= self.max_scale):
@@ -231,7 +232,7 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
         if accepted:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # e.g. no power channel: metric not estimated
-                model = ConnectionEstimator(**dataclasses.asdict(s.estimator)).fit(traj).model_
+                model = estimator_from_settings(s.estimator).fit(traj).model_
             base = {"model": model, "measured": meas, "measured_se": meas_se, "gait": gait}
         tr = dataclasses.replace(s.trust_region, scale=scale)
         prop = propose_gait(base["model"], s.objective, tr, seed=k)

@@ -1,9 +1,10 @@
-"""Reading and writing trajectories: the CONVENTIONS CSV format and a lossless NPZ form.
+"""Reading and writing trajectories: the CSV trajectory format and a lossless NPZ form.
 
-CSV (CONVENTIONS, "Trajectory data"): a header row, then one row per sample on a uniform grid,
-columns ``t, x, y, theta, r1, …, rd`` and optionally ``power``; several trials may share a file
-with an integer ``trial`` column. Empty cells and ``nan`` are missing samples. Column names are
-matched case-insensitively after stripping blanks; any other column is ignored with a warning.
+CSV (docs/conventions.md, "Trajectory file format"): a header row, then one row per sample on a
+uniform grid, columns ``t, x, y, theta, r1, …, rd`` and optionally ``power`` (the mean power
+over ``[t_k, t_{k+1})``); several trials may share a file with an integer ``trial`` column.
+Empty cells and ``nan`` are missing samples. Column names are matched case-insensitively after
+stripping blanks; any other column is ignored with a warning.
 
 :func:`read_csv` returns one :class:`~torchconn.trajectory.Trajectory` with batch shape
 ``(n_trials,)`` (trials ordered by file, then trial id); trials of different lengths are padded
@@ -233,7 +234,7 @@ def read_csv(
     n_joints: int | None = None,
     min_cycles: float | None = None,
 ) -> Trajectory:
-    """Read trials from one or several CSV files (CONVENTIONS format).
+    """Read trials from one or several CSV files (docs/conventions.md, "Trajectory file format").
 
     Args:
         paths: a file or a sequence of files; a file may hold several trials (``trial`` column).
@@ -325,7 +326,7 @@ def read_csv(
 
 # ============================================================================ CSV writing
 def write_csv(traj: Trajectory, path: str | PathLike) -> Path:
-    """Write a trajectory in the CONVENTIONS CSV format.
+    """Write a trajectory in the CSV trajectory format (docs/conventions.md).
 
     Columns ``t, x, y, theta, r1, …, rd`` (+ ``power`` when present); the batch dims are
     flattened (C order) into trials, and a leading integer ``trial`` column ``0 … n−1`` is

@@ -7,8 +7,11 @@
 """
 
 from .fourier import FourierSeries, fit_fourier, fourier_design
-from .limit_cycle import LimitCycle, fit_limit_cycle, phase_rate
+from .limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle, fit_limit_cycle, phase_rate
 from .phaser import (
+    PhaseEstimator,
+    PhaseModel,
+    Phaser,
     analytic_signal,
     circular_rms,
     correction_series,
@@ -17,9 +20,19 @@ from .phaser import (
     protophase,
     whole_cycle_weights,
 )
-from .smoothing import body_velocity, noise_parameters, rts_smooth, smooth_trajectory, unwrap
+from .smoothing import (
+    RTSSmoother,
+    Smoother,
+    body_velocity,
+    noise_parameters,
+    rts_smooth,
+    smooth_trajectory,
+    unwrap,
+)
 
 __all__ = [
+    "Smoother", "RTSSmoother", "PhaseEstimator", "Phaser", "PhaseModel",
+    "CycleEstimator", "SelfConsistentCycle",
     "FourierSeries", "fit_fourier", "fourier_design",
     "LimitCycle", "fit_limit_cycle", "phase_rate",
     "analytic_signal", "protophase", "correction_series", "whole_cycle_weights",

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .. import _checks
+
 __all__ = ["FourierSeries", "fit_fourier", "fourier_design"]
 
 # Relative size below which a mean term counts as zero in FourierSeries.integral.
@@ -36,9 +38,8 @@ def fourier_design(phi: Tensor, order: int) -> Tensor:
     Returns:
         ``(..., T, 2K+1)``.
     """
-    _check_order(order)
-    if not isinstance(phi, Tensor):
-        raise TypeError(f"phi must be a torch.Tensor, got {type(phi).__name__}")
+    _checks.integer(order, "order")
+    _checks.tensor(phi, "phi", "(..., T)")
     if not phi.is_floating_point():
         phi = phi.to(torch.get_default_dtype())
     k = torch.arange(1, order + 1, dtype=phi.dtype, device=phi.device)
@@ -64,10 +65,8 @@ class FourierSeries:
 
     def __post_init__(self) -> None:
         c = self.coeffs
-        if not isinstance(c, Tensor):
-            raise TypeError(f"coeffs must be a torch.Tensor, got {type(c).__name__}")
-        if not isinstance(self.value_ndim, int) or self.value_ndim < 0:
-            raise ValueError(f"value_ndim must be an int >= 0, got {self.value_ndim!r}")
+        _checks.tensor(c, "coeffs", "(..., 2K+1, *value_shape)")
+        _checks.integer(self.value_ndim, "value_ndim")
         if c.ndim < self.value_ndim + 1:
             raise ValueError(
                 f"coeffs must have shape (..., 2K+1, *value_shape) with {self.value_ndim} value "
@@ -135,8 +134,7 @@ class FourierSeries:
 
     def derivative(self, n: int = 1) -> FourierSeries:
         """The ``n``-th derivative in phase (``n >= 0``); same order and shapes."""
-        if not isinstance(n, int) or n < 0:
-            raise ValueError(f"n must be an int >= 0, got {n!r}")
+        _checks.integer(n, "n")
         if n == 0:
             return self
         a, b, k = self._harmonics()
@@ -201,12 +199,9 @@ def fit_fourier(
         ValueError: bad order or shapes; fewer than ``2K+1`` usable samples in a batch element;
             phases that do not cover the circle well enough to determine order ``K``.
     """
-    _check_order(order)
-    for name, t in (("phi", phi), ("values", values)):
-        if not isinstance(t, Tensor):
-            raise TypeError(f"fit_fourier: {name} must be a torch.Tensor, got {type(t).__name__}")
-    if phi.ndim < 1:
-        raise ValueError(f"fit_fourier: phi must have shape (..., T), got {tuple(phi.shape)}")
+    _checks.integer(order, "order", fn="fit_fourier")
+    _checks.tensor(phi, "phi", "(..., T)", fn="fit_fourier", valid=lambda t: t.ndim >= 1)
+    _checks.tensor(values, "values", "(..., T, *value_shape)", fn="fit_fourier")
     if value_ndim is None:
         value_ndim = values.ndim - phi.ndim
     if not isinstance(value_ndim, int) or value_ndim < 0 or values.ndim < value_ndim + 1:
@@ -284,8 +279,3 @@ def fit_fourier(
     L = torch.linalg.cholesky(G)
     coef = torch.cholesky_solve(rhs, L)  # (..., n, V)
     return FourierSeries(coef.reshape(batch + (n,) + value_shape), value_ndim)
-
-
-def _check_order(order: int) -> None:
-    if isinstance(order, bool) or not isinstance(order, int) or order < 0:
-        raise ValueError(f"order must be an int >= 0, got {order!r}")

@@ -11,15 +11,20 @@ harmonic ``k``'s noise by ``k``, so high harmonics lean on ``ω``). The mean com
 
 from __future__ import annotations
 
+import abc
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from .. import _checks
+from .._options import Options, option
+from ..trajectory import Trajectory, pool_batch
 from .fourier import FourierSeries, fit_fourier
 
-__all__ = ["LimitCycle", "fit_limit_cycle", "phase_rate"]
+__all__ = ["CycleEstimator", "SelfConsistentCycle", "LimitCycle", "fit_limit_cycle", "phase_rate"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,10 +65,49 @@ class LimitCycle:
             ``(delta, delta_dot)``, both ``(..., T, d)``: ``δ = r - γ(φ)`` and
             ``δ̇ = ṙ - φ̇ dγ/dφ(φ)`` (``φ̇`` = :attr:`phase_rate`, 1 by convention).
         """
-        _check(phase, r, r_dot, "LimitCycle.offsets")
+        _checks.phase_samples(phase, r, r_dot, fn="LimitCycle.offsets")
         delta = r - self.gamma_at(phase)
         delta_dot = r_dot - self.phase_rate[..., None, None] * self.gamma_dot_at(phase)
         return delta, delta_dot
+
+
+class CycleEstimator(Options, abc.ABC):
+    """Base of the estimator's cycle stage: ``fit(traj, pool=...) -> LimitCycle``."""
+
+    @abc.abstractmethod
+    def fit(self, traj: Trajectory, *, pool: bool = False) -> LimitCycle:
+        """The cycle of a prepared trajectory (``phase`` and ``smoothed`` set).
+
+        One cycle per batch element, or with ``pool`` one for all trials together.
+        """
+
+
+@dataclass(frozen=True, kw_only=True)
+class SelfConsistentCycle(CycleEstimator):
+    """The matched-filter cycle of :func:`fit_limit_cycle` as the estimator's cycle stage.
+
+    ``γ₀`` is fitted to the recorded shapes (smoothing damps the gait's high harmonics), ``ω``
+    to the smoothed shape velocities per unit phase.
+
+    Attributes:
+        order: harmonics of the cycle's Fourier series.
+    """
+
+    order: int = option(8, ge=1)
+
+    def fit(self, traj: Trajectory, *, pool: bool = False) -> LimitCycle:
+        if not isinstance(traj, Trajectory) or traj.phase is None or traj.smoothed is None:
+            raise ValueError("SelfConsistentCycle.fit needs a trajectory with phase and smoothed "
+                             "state (ConnectionEstimator.prepare adds them)")
+        r_dot = traj.smoothed.r_dot
+        if not pool:
+            return fit_limit_cycle(traj.phase, traj.r, r_dot, order=self.order, dt=traj.dt)
+        # one cycle for all trials: fit dr/dφ (each trial's ṙ over its own phase rate) and keep
+        # the trials' mean rate
+        rate = phase_rate(traj.phase, traj.dt)
+        cycle = fit_limit_cycle(pool_batch(traj.phase, 0), pool_batch(traj.r, 1),
+                                pool_batch(r_dot / rate[..., None, None], 1), order=self.order)
+        return dataclasses.replace(cycle, phase_rate=rate.mean())
 
 
 def fit_limit_cycle(
@@ -90,7 +134,7 @@ def fit_limit_cycle(
     Returns:
         :class:`LimitCycle`; each batch element gets its own cycle.
     """
-    _check(phase, r, r_dot, "fit_limit_cycle")
+    _checks.phase_samples(phase, r, r_dot, fn="fit_limit_cycle")
     dtype = torch.promote_types(torch.promote_types(phase.dtype, r.dtype), r_dot.dtype)
     phase, r, r_dot = phase.to(dtype), r.to(dtype), r_dot.to(dtype)
     if dt is None:
@@ -158,9 +202,8 @@ def _residual_spectrum(
 def phase_rate(phase: Tensor, dt: float) -> Tensor:
     """Mean phase velocity ``φ̇``: least-squares slope of an unwrapped ``phase (..., T)``
     against time ``t = n dt``, ignoring NaN samples -> ``(...)``."""
-    if not isinstance(phase, Tensor) or phase.ndim < 1 or phase.shape[-1] < 2:
-        shape = tuple(phase.shape) if isinstance(phase, Tensor) else type(phase).__name__
-        raise ValueError(f"phase_rate: phase must have shape (..., T) with T >= 2, got {shape}")
+    _checks.tensor(phase, "phase", "(..., T) with T >= 2", fn="phase_rate",
+                   valid=lambda t: t.ndim >= 1 and t.shape[-1] >= 2)
     ok = torch.isfinite(phase)
     t = torch.arange(phase.shape[-1], dtype=phase.dtype, device=phase.device) * dt
     m = ok.to(phase.dtype)
@@ -168,21 +211,3 @@ def phase_rate(phase: Tensor, dt: float) -> Tensor:
     p = torch.where(ok, phase, torch.zeros_like(phase))
     tc = (t - (m * t).sum(-1, keepdim=True) / n) * m
     return (tc * p).sum(-1) / (tc * tc).sum(-1)
-
-
-def _check(phase: Tensor, r: Tensor, r_dot: Tensor, fn: str) -> None:
-    for name, x in (("phase", phase), ("r", r), ("r_dot", r_dot)):
-        if not isinstance(x, Tensor):
-            raise TypeError(f"{fn}: {name} must be a torch.Tensor, got {type(x).__name__}")
-    if phase.ndim < 1:
-        raise ValueError(f"{fn}: phase must have shape (..., T), got {tuple(phase.shape)}")
-    T = phase.shape[-1]
-    if r.ndim < 2 or r.shape[-2] != T:
-        raise ValueError(
-            f"{fn}: r must have shape (..., T={T}, d) matching phase {tuple(phase.shape)}, "
-            f"got {tuple(r.shape)}"
-        )
-    if r_dot.shape != r.shape:
-        raise ValueError(
-            f"{fn}: r_dot must have the same shape as r {tuple(r.shape)}, got {tuple(r_dot.shape)}"
-        )

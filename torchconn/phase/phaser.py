@@ -28,15 +28,23 @@ principal components); it needs no choice of sign or rotation direction.
 
 from __future__ import annotations
 
+import abc
+import copy
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from .. import _checks
+from .._options import Options, option
 from .fourier import FourierSeries, fit_fourier, fourier_design
 from .smoothing import unwrap
 
 __all__ = [
+    "PhaseEstimator",
+    "Phaser",
+    "PhaseModel",
     "analytic_signal",
     "protophase",
     "correction_series",
@@ -148,6 +156,182 @@ def hilbert_phase_pc1(x: Tensor) -> Tensor:
     return unwrap(torch.angle(analytic_signal(pc1, dim=-1)))
 
 
+@dataclass(frozen=True, eq=False)
+class PhaseModel:
+    """What Phaser learns from a recording, batched over ``...``; reusable on new recordings.
+
+    Attributes:
+        mean: ``(..., C)`` channel centres (averaged over whole cycles).
+        scale: ``(..., C)`` channel standard deviations.
+        channel_correction: series correction of each channel's protophase, batch ``(..., C)``:
+            ``ψ_c = θ_c + P_c(θ_c)`` (step 2).
+        weights: ``(..., C)`` complex combination of the channels' phasors ``e^{iψ_c}``: the
+            leading eigenvector of their coherence matrix (step 3).
+        correction: series correction of the combined phase, batch ``(...)`` (step 4).
+        offset: ``(...)`` Poincaré-section offset subtracted last: where phase 0 is (step 5).
+    """
+
+    mean: Tensor
+    scale: Tensor
+    channel_correction: FourierSeries
+    weights: Tensor
+    correction: FourierSeries
+    offset: Tensor
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.offset.shape
+
+
+# trailing (non-batch) dims of each PhaseModel field's tensor
+_MODEL_TRAILING = {"mean": 1, "scale": 1, "channel_correction": 2, "weights": 1, "correction": 1,
+                   "offset": 0}
+
+
+def _map_model(model: PhaseModel, fn) -> PhaseModel:
+    """Apply ``fn(tensor, n_trailing)`` to every tensor of ``model`` (series: their coeffs)."""
+    out = {}
+    for name, trailing in _MODEL_TRAILING.items():
+        value = getattr(model, name)
+        if isinstance(value, FourierSeries):
+            out[name] = FourierSeries(fn(value.coeffs, trailing), value.value_ndim)
+        else:
+            out[name] = fn(value, trailing)
+    return PhaseModel(**out)
+
+
+class PhaseEstimator(Options, abc.ABC):
+    """Base of the estimator's phase stage, in scikit-learn manners but immutable.
+
+    ``fitted = estimator.fit(x)`` returns a fitted *copy* (the option object itself stays
+    unfitted, so it can be shared and cloned) carrying ``model_`` (what was learned) and
+    ``phase_`` (the phase of the training record, ``(..., T)``); ``fitted.transform(x_new)``
+    reuses ``model_`` on new recordings of the same system.
+    """
+
+    @abc.abstractmethod
+    def fit(self, x: Tensor) -> PhaseEstimator:
+        """Learn a phase model from ``x (..., T, C)``; returns a fitted copy."""
+
+    @abc.abstractmethod
+    def transform(self, x: Tensor) -> Tensor:
+        """Phase ``(..., T)`` of ``x (..., T, C)`` under the fitted model."""
+
+    def _fitted_copy(self, **attributes) -> PhaseEstimator:
+        fitted = copy.copy(self)
+        for name, value in attributes.items():
+            object.__setattr__(fitted, name, value)  # fitted state: not an option field
+        return fitted
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "model_"):
+            raise RuntimeError(
+                f"this {type(self).__name__} is not fitted: use fitted = phaser.fit(x) and then "
+                "fitted.transform(x_new) (fit returns a fitted copy; the options stay unfitted)"
+            )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Phaser(PhaseEstimator):
+    """Revzen's Phaser (this module's algorithm) as the estimator's phase stage.
+
+    Attributes:
+        order: harmonics in each series correction (2-4 robust; high orders fit the noise).
+        min_cycles: fewest cycles a trial must cover.
+        section_channel: the channel whose upward crossing of its mean defines phase 0.
+        periodic_padding: extend each record by its periodic continuation before the Hilbert
+            transform (see :func:`estimate_phase`).
+
+    ``fit(x)`` and ``transform(x)`` take ``x (..., T, C)`` (e.g. smoothed shapes). NaN rows
+    before a trial's first or after its last finite row are padding (trials of unequal length
+    on one grid): each trial is then phased over its own span, NaN outside it. NaN inside a
+    span is an error (smooth drop-outs first).
+    """
+
+    order: int = option(3, ge=0)
+    min_cycles: float = option(3.0, gt=0)
+    section_channel: int = 0
+    periodic_padding: bool = True
+
+    def fit(self, x: Tensor) -> Phaser:
+        """Phaser fitted to ``x (..., T, C)``: a copy with ``model_`` (:class:`PhaseModel`,
+        batch ``(...)``) and ``phase_`` (``(..., T)``, equal to :func:`estimate_phase`)."""
+        _check_x(x, "Phaser.fit")
+        if not x.is_floating_point():
+            x = x.to(torch.get_default_dtype())
+        spans = _spans(x)
+        if spans is None:
+            model, phase = _fit(x, self, "Phaser.fit")
+        else:
+            # unequal lengths: one fit per trial on its own span, models stacked
+            flat = x.reshape(-1, *x.shape[-2:])
+            phase = torch.full(flat.shape[:-1], float("nan"), dtype=x.dtype, device=x.device)
+            models = []
+            for k, (lo, hi) in enumerate(spans):
+                m, phase[k, lo:hi] = _fit(flat[k, lo:hi], self, "Phaser.fit")
+                models.append(m)
+            batch = x.shape[:-2]
+            model = PhaseModel(**{
+                name: _stack([getattr(m, name) for m in models], batch)
+                for name in _MODEL_TRAILING
+            })
+            phase = phase.reshape(x.shape[:-1])
+        return self._fitted_copy(model_=model, phase_=phase)
+
+    def transform(self, x: Tensor) -> Tensor:
+        """Phase ``(..., T)`` of new recordings ``x (..., T, C)`` under the fitted model.
+
+        The channels are centred, scaled, corrected, combined and offset exactly as in the fit
+        (same phase origin); only the Hilbert transform and its periodic padding come from the
+        new data. ``x``'s batch dims broadcast against the model's. On the training record it
+        reproduces ``phase_``.
+        """
+        self._check_fitted()
+        _check_x(x, "Phaser.transform")
+        if not x.is_floating_point():
+            x = x.to(torch.get_default_dtype())
+        model = self.model_
+        if _spans(x) is None:
+            return _transform(model, x, self, "Phaser.transform")
+        batch = torch.broadcast_shapes(x.shape[:-2], model.batch_shape)
+        flat = x.expand(batch + x.shape[-2:]).reshape(-1, *x.shape[-2:])
+        per = _map_model(model, lambda t, n: t.expand(batch + t.shape[t.ndim - n:])
+                         .reshape((-1,) + t.shape[t.ndim - n:]))
+        phase = torch.full(flat.shape[:-1], float("nan"), dtype=x.dtype, device=x.device)
+        for k, (lo, hi) in enumerate(_spans(flat)):
+            one = _map_model(per, lambda t, n, k=k: t[k])
+            phase[k, lo:hi] = _transform(one, flat[k, lo:hi], self, "Phaser.transform")
+        return phase.reshape(batch + x.shape[-2:-1])
+
+
+def _stack(values: list, batch: torch.Size):
+    """Stack per-trial (unbatched) tensors or series into batch ``batch``."""
+    if isinstance(values[0], FourierSeries):
+        c = torch.stack([v.coeffs for v in values])
+        return FourierSeries(c.reshape(batch + c.shape[1:]), values[0].value_ndim)
+    t = torch.stack(values)
+    return t.reshape(batch + t.shape[1:])
+
+
+def _spans(x: Tensor) -> list[tuple[int, int]] | None:
+    """None when every row of ``x (..., T, C)`` is finite; else each batch element's
+    ``(first, last + 1)`` finite row, batch flattened (padding of unequal-length trials)."""
+    rows = torch.isfinite(x).all(-1)  # (..., T)
+    if bool(rows.all()):
+        return None
+    flat = rows.reshape(-1, rows.shape[-1])
+    spans = []
+    for k in range(flat.shape[0]):
+        idx = torch.nonzero(flat[k]).flatten()
+        if idx.numel() == 0:
+            raise ValueError(
+                f"Phaser: batch element {k} (flattened) of x has no row without NaN; smooth "
+                "drop-outs first (torchconn.phase.smoothing.rts_smooth predicts through them)"
+            )
+        spans.append((int(idx[0]), int(idx[-1]) + 1))
+    return spans
+
+
 def estimate_phase(
     x: Tensor,
     *,
@@ -173,6 +357,9 @@ def estimate_phase(
     upwards at ``φ = 0 (mod 2π)``. For a near-sinusoidal channel this is where the centred
     signal crosses zero upwards, and it is the same place on the cycle in every trial.
 
+    :class:`Phaser` does the same as an estimator stage whose fitted model can be reused on
+    new recordings.
+
     Returns:
         ``(..., T)`` unwrapped phase in radians, increasing on average by 2π per cycle.
 
@@ -182,72 +369,130 @@ def estimate_phase(
             first harmonic.
     """
     _check_x(x, "estimate_phase")
-    if isinstance(order, bool) or not isinstance(order, int) or order < 0:
-        raise ValueError(f"estimate_phase: order must be an int >= 0, got {order!r}")
-    C = x.shape[-1]
-    if not -C <= section_channel < C:
-        raise ValueError(
-            f"estimate_phase: section_channel={section_channel} is out of range for C={C} channels"
-        )
+    order = _checks.integer(order, "order", fn="estimate_phase")
     if not x.is_floating_point():
         x = x.to(torch.get_default_dtype())
-    _check_values(x)
+    options = _Options(order=order, min_cycles=min_cycles, section_channel=section_channel,
+                       periodic_padding=periodic_padding)
+    return _fit(x, options, "estimate_phase")[1]
 
-    # pass 1 counts cycles and finds the period; pass 2 re-centres each channel on a whole
-    # number of cycles (a partial cycle biases the mean by O(1/cycles)) and pads periodically
+
+@dataclass(frozen=True)
+class _Options:
+    """The fields of :class:`Phaser` that the functions below read (no validation)."""
+
+    order: int
+    min_cycles: float
+    section_channel: int
+    periodic_padding: bool
+
+
+def _first_pass(x: Tensor, o, fn: str) -> Tensor:
+    """Pass 1 on the plainly centred record: its phase ``(..., T)`` counts the cycles (checked
+    against ``min_cycles`` and the order) and measures the period."""
+    C = x.shape[-1]
+    if not -C <= o.section_channel < C:
+        raise ValueError(
+            f"{fn}: section_channel={o.section_channel} is out of range for C={C} channels"
+        )
+    _check_values(x, fn)
     z = (x - x.mean(-2, keepdim=True)) / x.std(-2, keepdim=True)
-    phase = _phaser(z, order, None)
+    phase = _phaser(z, o.order, None)[-1]
     span = phase[..., -1] - phase[..., 0]
     cycles = span / (2 * math.pi)
-    if bool((cycles < min_cycles).any()):
-        where = torch.nonzero(cycles < min_cycles)[0].tolist()
+    if bool((cycles < o.min_cycles).any()):
+        where = torch.nonzero(cycles < o.min_cycles)[0].tolist()
         raise ValueError(
-            f"estimate_phase: x covers only about {float(cycles.min()):.1f} cycles (batch index "
-            f"{tuple(where)}), fewer than min_cycles={min_cycles}; the phase correction needs "
+            f"{fn}: x covers only about {float(cycles.min()):.1f} cycles (batch index "
+            f"{tuple(where)}), fewer than min_cycles={o.min_cycles}; the phase correction needs "
             "several cycles -- record longer trials"
         )
     per_cycle = float((x.shape[-2] - 1) / cycles.max())
-    if 2 * order >= per_cycle:
+    if 2 * o.order >= per_cycle:
         raise ValueError(
-            f"estimate_phase: order={order} is too high for ~{per_cycle:.0f} samples per cycle "
+            f"{fn}: order={o.order} is too high for ~{per_cycle:.0f} samples per cycle "
             "(harmonics alias above half of it); use a small order such as 3"
         )
+    return phase
+
+
+def _fit(x: Tensor, o, fn: str) -> tuple[PhaseModel, Tensor]:
+    """The whole algorithm on ``x (..., T, C)`` (no NaN): the model and the phase ``(..., T)``."""
+    # pass 1 counts cycles and finds the period; pass 2 re-centres each channel on a whole
+    # number of cycles (a partial cycle biases the mean by O(1/cycles)) and pads periodically
+    phase = _first_pass(x, o, fn)
     w = whole_cycle_weights(phase)[..., None]
-    mean = (w * x).sum(-2, keepdim=True) / w.sum(-2, keepdim=True)
-    z = (x - mean) / x.std(-2, keepdim=True)
-    period = _period(phase) if periodic_padding else None
-    phase = _phaser(z, order, period)
+    mean = (w * x).sum(-2) / w.sum(-2)
+    scale = x.std(-2)
+    z = (x - mean[..., None, :]) / scale[..., None, :]
+    period = _period(phase) if o.periodic_padding else None
+    channel_correction, weights, correction, phase = _phaser(z, o.order, period)
 
     # Poincaré section: rotate so the section channel's fundamental is A sin(φ), A > 0
-    fund = fit_fourier(phase, z[..., section_channel], 1).coeffs  # (..., 3): a0, a1, b1
+    fund = fit_fourier(phase, z[..., o.section_channel], 1).coeffs  # (..., 3): a0, a1, b1
     amp = torch.hypot(fund[..., 1], fund[..., 2])
     if bool((amp < 0.1).any()):
         raise ValueError(
-            f"estimate_phase: channel {section_channel} has almost no first harmonic (amplitude "
+            f"{fn}: channel {o.section_channel} has almost no first harmonic (amplitude "
             f"{float(amp.min()):.2g} of its std), so it cannot define phase 0; pass another "
             "section_channel"
         )
     offset = torch.atan2(-fund[..., 1], fund[..., 2])
-    return phase - offset[..., None]
+    model = PhaseModel(mean=mean, scale=scale, channel_correction=channel_correction,
+                       weights=weights, correction=correction, offset=offset)
+    return model, phase - offset[..., None]
 
 
-def _phaser(z: Tensor, order: int, period: Tensor | None) -> Tensor:
-    """Phaser steps 1-4 on centred, scaled ``z (..., T, C)`` -> unwrapped phase ``(..., T)``."""
+def _transform(model: PhaseModel, x: Tensor, o, fn: str) -> Tensor:
+    """Phase ``(..., T)`` of ``x (..., T, C)`` (no NaN) under a fitted ``model``."""
+    if model.mean.shape[-1] != x.shape[-1]:
+        raise ValueError(f"{fn}: the phase model was fitted to {model.mean.shape[-1]} channels, "
+                         f"x has {x.shape[-1]}")
+    first = _first_pass(x, o, fn)
+    period = _period(first) if o.periodic_padding else None
+    z = (x - model.mean[..., None, :]) / model.scale[..., None, :]
+    theta = _protophases(z, period)
+    combined = _combine(theta + model.channel_correction(theta), model.weights)
+    return combined + model.correction(combined) - model.offset[..., None]
+
+
+def _protophases(z: Tensor, period: Tensor | None) -> Tensor:
+    """Step 1: wrapped Hilbert protophases ``(..., C, T)`` of ``z (..., T, C)``, the record
+    padded by its periodic continuation when ``period`` (samples, ``(...)``) is given."""
     T = z.shape[-2]
     if period is None:
         theta = torch.angle(analytic_signal(z, dim=-2))
     else:
         theta = torch.angle(analytic_signal(_periodic_pad(z, period), dim=-2)[..., :T, :])
-    theta = theta.mT  # (..., C, T)
+    return theta.mT
+
+
+def _combine(psi: Tensor, weights: Tensor) -> Tensor:
+    """Step 3's combination of channel phases ``psi (..., C, T)`` -> unwrapped ``(..., T)``."""
+    u = torch.polar(torch.ones_like(psi), psi).mT  # (..., T, C) unit phasors
+    return unwrap(torch.angle((u @ weights[..., None])[..., 0]))
+
+
+def _phaser(z: Tensor, order: int, period: Tensor | None):
+    """Phaser steps 1-4 on centred, scaled ``z (..., T, C)``.
+
+    Returns ``(channel_correction, weights, correction, phase)``: the fitted corrections and
+    channel weights (see :class:`PhaseModel`) and the unwrapped phase ``(..., T)``.
+    """
+    T = z.shape[-2]
+    theta = _protophases(z, period)
     w = whole_cycle_weights(unwrap(theta))
-    psi = theta + correction_series(theta, order, w)(theta)
+    channel_correction = correction_series(theta, order, w)
+    psi = theta + channel_correction(theta)
     u = torch.polar(torch.ones_like(psi), psi).mT  # (..., T, C) unit phasors
     # u_c ≈ e^{iφ} a_c with |a_c| = 1: the coherence uᴴu/T ≈ conj(a) aᵀ, whose top eigenvector
     # v ∝ conj(a) aligns the channels, so u v ∝ e^{iφ}
     _, vec = torch.linalg.eigh(u.mH @ u / T)
-    combined = unwrap(torch.angle((u @ vec[..., -1:])[..., 0]))  # (..., T)
+    weights = vec[..., -1]
+    combined = _combine(psi, weights)
     w = whole_cycle_weights(combined)
-    return combined + correction_series(combined, order, w)(combined)
+    correction = correction_series(combined, order, w)
+    return channel_correction, weights, correction, combined + correction(combined)
 
 
 def _period(phase: Tensor) -> Tensor:
@@ -302,36 +547,32 @@ def _interp(z: Tensor, pos: Tensor) -> Tensor:
 
 
 def _check_x(x: Tensor, fn: str) -> None:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{fn}: x must be a torch.Tensor, got {type(x).__name__}")
-    if x.ndim < 2 or x.shape[-1] < 1 or x.shape[-2] < 4:
-        raise ValueError(
-            f"{fn}: x must have shape (..., T, C) with T samples along axis -2 and C >= 1 "
-            f"channels along axis -1, got {tuple(x.shape)}"
-        )
+    _checks.tensor(
+        x, "x", "(..., T, C) with T >= 4 samples along axis -2 and C >= 1 channels along axis -1",
+        fn=fn, valid=lambda t: t.ndim >= 2 and t.shape[-1] >= 1 and t.shape[-2] >= 4,
+    )
 
 
-def _check_values(x: Tensor) -> None:
+def _check_values(x: Tensor, fn: str) -> None:
     nan = torch.isnan(x)
     if bool(nan.any()):
         allnan = nan.all(-2)
         if bool(allnan.any()):
-            where = torch.nonzero(allnan)[0].tolist()
+            where = _checks.first_index(allnan)
             raise ValueError(
-                f"estimate_phase: channel {where[-1]} of x (batch index {tuple(where[:-1])}) is "
+                f"{fn}: channel {where[-1]} of x (batch index {where[:-1]}) is "
                 "NaN at every sample; drop that channel"
             )
         raise ValueError(
-            f"estimate_phase: x contains {int(nan.sum())} NaN samples; fill or smooth drop-outs "
+            f"{fn}: x contains {int(nan.sum())} NaN samples; fill or smooth drop-outs "
             "first (torchconn.phase.smoothing.rts_smooth predicts through them)"
         )
-    if not bool(torch.isfinite(x).all()):
-        raise ValueError("estimate_phase: x contains inf")
+    _checks.finite(x, "x", fn=fn)
     std = x.std(-2)
     flat = std <= _CONST_TOL * x.abs().amax(-2)
     if bool(flat.any()):
-        where = torch.nonzero(flat)[0].tolist()
+        where = _checks.first_index(flat)
         raise ValueError(
-            f"estimate_phase: channel {where[-1]} of x (batch index {tuple(where[:-1])}) is "
+            f"{fn}: channel {where[-1]} of x (batch index {where[:-1]}) is "
             "constant and carries no phase; drop it"
         )

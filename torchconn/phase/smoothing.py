@@ -8,18 +8,30 @@ through one vectorised filter; only the time loop is in Python.
 
 Noise parameters, when not given, are estimated per channel (see :func:`rts_smooth`).
 Missing samples (NaN) are predicted through, so outputs are finite everywhere.
+
+The estimator's smoothing stage is an option object with one job, ``smoother.smooth(traj)``
+(or ``smoother(traj)``): :class:`RTSSmoother` here; any :class:`Smoother` subclass slots in.
 """
 
 from __future__ import annotations
 
+import abc
 import math
+from dataclasses import dataclass, fields
+from typing import Literal
 
 import torch
 from torch import Tensor
 
-from ..trajectory import SmoothedState
+from .. import _checks
+from .._options import Options
+from ..trajectory import SmoothedState, Trajectory
 
-__all__ = ["rts_smooth", "unwrap", "body_velocity", "smooth_trajectory", "noise_parameters"]
+__all__ = [
+    "Smoother", "RTSSmoother",
+    "rts_smooth", "unwrap", "body_velocity", "smooth_trajectory", "noise_parameters",
+    "recorded_span",
+]
 
 # log10 grid of the dimensionless noise ratio q dt^(2 order - 1) / R searched by GCV
 _MU_GRID = torch.linspace(-10.0, 6.0, 65).tolist()
@@ -35,8 +47,7 @@ def unwrap(angle: Tensor, dim: int = -1) -> Tensor:
     Each finite sample is shifted by a multiple of 2π so that it differs from the previous
     *finite* sample by less than π. NaNs stay NaN and do not break the unwrapping.
     """
-    if not isinstance(angle, Tensor):
-        raise TypeError(f"angle must be a torch.Tensor, got {type(angle).__name__}")
+    _checks.tensor(angle, "angle", "(..., T)")
     x = angle.movedim(dim, -1)
     n = x.shape[-1]
     if n == 0:
@@ -239,10 +250,8 @@ def noise_parameters(y: Tensor, dt: float, *, order: int = 2) -> tuple[Tensor, T
     Returns:
         ``(process_noise q, measurement_noise R)``, each ``(..., C)``.
     """
-    if not isinstance(y, Tensor) or y.ndim < 2 or y.shape[-2] < 2 + _DIFF_ORDER:
-        shape = tuple(y.shape) if isinstance(y, Tensor) else type(y).__name__
-        raise ValueError(f"noise_parameters: y must have shape (..., T, C) with T >= "
-                         f"{2 + _DIFF_ORDER}, got {shape}")
+    _checks.tensor(y, "y", f"(..., T, C) with T >= {2 + _DIFF_ORDER}", fn="noise_parameters",
+                   valid=lambda t: t.ndim >= 2 and t.shape[-2] >= 2 + _DIFF_ORDER)
     if order not in (2, 3):
         raise ValueError(f"noise_parameters: order must be 2 or 3, got {order!r}")
     if not y.is_floating_point():
@@ -290,13 +299,8 @@ def rts_smooth(
     Raises:
         ValueError: bad shapes/arguments, or a channel that is NaN at every sample.
     """
-    if not isinstance(y, Tensor):
-        raise TypeError(f"rts_smooth: y must be a torch.Tensor, got {type(y).__name__}")
-    if y.ndim < 2 or y.shape[-2] < 2 or y.shape[-1] < 1:
-        raise ValueError(
-            f"rts_smooth: y must have shape (..., T, C) with T >= 2 samples and C >= 1 "
-            f"channels, got {tuple(y.shape)}"
-        )
+    _checks.tensor(y, "y", "(..., T, C) with T >= 2 samples and C >= 1 channels",
+                   fn="rts_smooth", valid=lambda t: t.ndim >= 2 and t.shape[-2] >= 2 and t.shape[-1] >= 1)
     if order not in (2, 3):
         raise ValueError(f"rts_smooth: order must be 2 or 3, got {order!r}")
     dt = float(dt)
@@ -360,10 +364,8 @@ def body_velocity(pose: Tensor, pose_dot: Tensor) -> Tensor:
     Returns:
         ``(..., T, 3)`` body velocities ``(v_x, v_y, ω)`` (conventions: ``ξ = g⁻¹ġ``).
     """
-    for name, t in (("pose", pose), ("pose_dot", pose_dot)):
-        if not isinstance(t, Tensor) or t.ndim < 1 or t.shape[-1] != 3:
-            shape = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
-            raise ValueError(f"body_velocity: {name} must have shape (..., T, 3), got {shape}")
+    _checks.last_dim(pose, 3, "pose", fn="body_velocity")
+    _checks.last_dim(pose_dot, 3, "pose_dot", fn="body_velocity")
     th = pose[..., 2]
     c, s = torch.cos(th), torch.sin(th)
     xd, yd, thd = pose_dot.unbind(-1)
@@ -401,15 +403,10 @@ def smooth_trajectory(
         :class:`~torchconn.trajectory.SmoothedState` with ``pose`` (heading unwrapped), ``pose_dot``,
         ``r``, ``r_dot`` and the body velocity ``xi = g⁻¹ġ``.
     """
-    if not isinstance(pose, Tensor) or pose.ndim < 2 or pose.shape[-1] != 3:
-        shape = tuple(pose.shape) if isinstance(pose, Tensor) else type(pose).__name__
-        raise ValueError(f"smooth_trajectory: pose must have shape (..., T, 3), got {shape}")
-    if not isinstance(r, Tensor) or r.ndim < 2 or r.shape[:-1] != pose.shape[:-1]:
-        shape = tuple(r.shape) if isinstance(r, Tensor) else type(r).__name__
-        raise ValueError(
-            f"smooth_trajectory: r must have shape (..., T, d) with the same (..., T) as pose "
-            f"{tuple(pose.shape[:-1])}, got {shape}"
-        )
+    _checks.tensor(pose, "pose", "(..., T, 3)", fn="smooth_trajectory",
+                   valid=lambda t: t.ndim >= 2 and t.shape[-1] == 3)
+    _checks.tensor(r, "r", f"(..., T, d) with the same (..., T) as pose {tuple(pose.shape[:-1])}",
+                   fn="smooth_trajectory", valid=lambda t: t.ndim >= 2 and t.shape[:-1] == pose.shape[:-1])
     pose = torch.cat([pose[..., :2], unwrap(pose[..., 2], dim=-1)[..., None]], -1)
     y = torch.cat([pose, r.to(pose.dtype)], -1)
     if shared_bandwidth and process_noise is None:
@@ -425,3 +422,67 @@ def smooth_trajectory(
     return SmoothedState(
         pose=p, pose_dot=pd, r=val[..., 3:], r_dot=der[..., 3:], xi=body_velocity(p, pd)
     )
+
+
+class Smoother(Options, abc.ABC):
+    """Base of the estimator's smoothing stage: ``smooth(traj) -> traj`` with ``smoothed`` set.
+
+    A smoother fills :attr:`Trajectory.smoothed <torchconn.trajectory.Trajectory.smoothed>`
+    (poses and shapes, their time derivatives, the body velocity) for every batch element,
+    finite over each trial's recorded span and NaN on the padding after a shorter trial's end.
+    """
+
+    @abc.abstractmethod
+    def smooth(self, traj: Trajectory) -> Trajectory:
+        """``traj`` with ``smoothed`` set (every other field unchanged)."""
+
+    def __call__(self, traj: Trajectory) -> Trajectory:
+        return self.smooth(traj)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RTSSmoother(Smoother):
+    """Kalman/Rauch–Tung–Striebel smoothing of every channel (:func:`smooth_trajectory`).
+
+    Attributes:
+        order: 2 -- white-acceleration model (position, velocity); 3 -- white jerk.
+        shared_bandwidth: give all channels of a trial one noise ratio (see
+            :func:`smooth_trajectory`; measured worse under observation noise, so off).
+    """
+
+    order: Literal[2, 3] = 2
+    shared_bandwidth: bool = False
+
+    def smooth(self, traj: Trajectory) -> Trajectory:
+        """Smooth ``traj``'s poses ``(..., T, 3)`` and shapes ``(..., T, d)`` into ``smoothed``.
+
+        Trials padded with NaN rows after their end (unequal lengths on one grid) are smoothed
+        over their recorded span only: the smoother's extrapolation into the padding means
+        nothing, so it is blanked to NaN there.
+        """
+        if not isinstance(traj, Trajectory):
+            raise TypeError(f"RTSSmoother.smooth: traj must be a torchconn.Trajectory, "
+                            f"got {type(traj).__name__}")
+        smoothed = smooth_trajectory(traj.pose, traj.r, traj.dt, order=self.order,
+                                     shared_bandwidth=self.shared_bandwidth)
+        recorded = recorded_span(traj)
+        if not bool(recorded.all()):
+            keep = recorded[..., None]
+            smoothed = SmoothedState(**{
+                f.name: torch.where(keep, getattr(smoothed, f.name), float("nan"))
+                for f in fields(smoothed)
+            })
+        return traj.with_fields(smoothed=smoothed)
+
+
+def recorded_span(traj: Trajectory) -> Tensor:
+    """``(..., T)`` True from the first to the last sample with any finite value per trial.
+
+    Trials of different lengths share one time grid, the shorter ones padded with NaN rows; the
+    padding is not a drop-out to smooth through but time that was never recorded.
+    """
+    finite = torch.isfinite(torch.cat([traj.pose, traj.r], -1)).any(-1)  # (..., T)
+    idx = torch.arange(finite.shape[-1], device=finite.device)
+    first = torch.where(finite, idx, finite.shape[-1]).min(-1, keepdim=True).values
+    last = torch.where(finite, idx, -1).max(-1, keepdim=True).values
+    return (idx >= first) & (idx <= last)

@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._checks import last_dim
+
 __all__ = [
     "hat",
     "vee",
@@ -31,13 +33,6 @@ __all__ = [
 _SMALL = 1e-4  # below this |omega| the series forms of exp/log are used
 
 
-def _check_last(x: Tensor, name: str, n: int = 3) -> None:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.ndim < 1 or x.shape[-1] != n:
-        raise ValueError(f"{name} must have shape (..., {n}), got {tuple(x.shape)}")
-
-
 def wrap_angle(a: Tensor) -> Tensor:
     """Wrap angles to [-pi, pi)."""
     return torch.remainder(a + torch.pi, 2 * torch.pi) - torch.pi
@@ -45,7 +40,7 @@ def wrap_angle(a: Tensor) -> Tensor:
 
 def hat(xi: Tensor) -> Tensor:
     """se(2) vector ``(..., 3)`` -> matrix ``(..., 3, 3)``."""
-    _check_last(xi, "xi")
+    last_dim(xi, 3, "xi")
     vx, vy, w = xi.unbind(-1)
     z = torch.zeros_like(w)
     return torch.stack(
@@ -67,7 +62,7 @@ def vee(X: Tensor) -> Tensor:
 
 def to_matrix(g: Tensor) -> Tensor:
     """Pose ``(..., 3)`` -> homogeneous matrix ``(..., 3, 3)``."""
-    _check_last(g, "g")
+    last_dim(g, 3, "g")
     x, y, th = g.unbind(-1)
     c, s = torch.cos(th), torch.sin(th)
     z, o = torch.zeros_like(x), torch.ones_like(x)
@@ -97,7 +92,7 @@ def exp(xi: Tensor) -> Tensor:
 
     ``exp(xi)`` is the pose reached after unit time at constant body velocity ``xi``.
     """
-    _check_last(xi, "xi")
+    last_dim(xi, 3, "xi")
     vx, vy, w = xi.unbind(-1)
     a, b = _v_coeffs(w)
     return torch.stack([a * vx - b * vy, b * vx + a * vy, w], -1)
@@ -105,7 +100,7 @@ def exp(xi: Tensor) -> Tensor:
 
 def log(g: Tensor) -> Tensor:
     """Group logarithm: pose ``(..., 3)`` -> twist ``(..., 3)``; theta is wrapped to (-pi, pi]."""
-    _check_last(g, "g")
+    last_dim(g, 3, "g")
     x, y, th = g.unbind(-1)
     th = torch.atan2(torch.sin(th), torch.cos(th))
     a, b = _v_coeffs(th)
@@ -115,8 +110,8 @@ def log(g: Tensor) -> Tensor:
 
 def compose(g: Tensor, h: Tensor) -> Tensor:
     """Group product ``g h`` of poses ``(..., 3)`` (broadcasting); theta is not wrapped."""
-    _check_last(g, "g")
-    _check_last(h, "h")
+    last_dim(g, 3, "g")
+    last_dim(h, 3, "h")
     x, y, th = g.unbind(-1)
     hx, hy, hth = h.unbind(-1)
     c, s = torch.cos(th), torch.sin(th)
@@ -125,7 +120,7 @@ def compose(g: Tensor, h: Tensor) -> Tensor:
 
 def inverse(g: Tensor) -> Tensor:
     """Group inverse of poses ``(..., 3)``."""
-    _check_last(g, "g")
+    last_dim(g, 3, "g")
     x, y, th = g.unbind(-1)
     c, s = torch.cos(th), torch.sin(th)
     return torch.stack([-c * x - s * y, s * x - c * y, -th], -1)
@@ -138,7 +133,7 @@ def relative(g: Tensor, h: Tensor) -> Tensor:
 
 def adjoint(g: Tensor) -> Tensor:
     """Adjoint matrix ``Ad_g`` ``(..., 3, 3)``, so that ``g hat(xi) g^-1 = hat(Ad_g xi)``."""
-    _check_last(g, "g")
+    last_dim(g, 3, "g")
     x, y, th = g.unbind(-1)
     c, s = torch.cos(th), torch.sin(th)
     z, o = torch.zeros_like(x), torch.ones_like(x)
@@ -150,8 +145,8 @@ def adjoint(g: Tensor) -> Tensor:
 
 def bracket(a: Tensor, b: Tensor) -> Tensor:
     """se(2) commutator ``[a, b] = vee(hat(a) hat(b) - hat(b) hat(a))`` for ``(..., 3)`` twists."""
-    _check_last(a, "a")
-    _check_last(b, "b")
+    last_dim(a, 3, "a")
+    last_dim(b, 3, "b")
     ax, ay, aw = a.unbind(-1)
     bx, by, bw = b.unbind(-1)
     return torch.stack([ay * bw - by * aw, bx * aw - ax * bw, torch.zeros_like(aw)], -1)
@@ -175,7 +170,7 @@ def integrate(
         poses ``(..., T + 1, 3)`` for ``"exp"`` (g0 included) or ``(..., T, 3)`` for
         ``"midpoint"`` (poses at the sample times, the first one g0). Heading is unwrapped.
     """
-    _check_last(xi, "xi")
+    last_dim(xi, 3, "xi")
     if xi.ndim < 2:
         raise ValueError(f"xi must have shape (..., T, 3), got {tuple(xi.shape)}")
     if method == "exp":

@@ -1,7 +1,9 @@
 """Regress: phase-centred local models of the connection and the metric (the paper's Sec. 4).
 
 - :mod:`~torchconn.regression.estimator` -- :class:`ConnectionEstimator`, the whole pipeline
-  (smooth → phase → limit cycle → tube regressions → Fourier in phase) in scikit-learn manners.
+  (smooth → phase → limit cycle → tube regressions → Fourier in phase) in scikit-learn manners,
+  each stage a pluggable option object.
+- :mod:`~torchconn.regression.tube` -- :class:`TubeRegression`, the regression stage.
 - :mod:`~torchconn.regression.model` -- :class:`LocalConnectionModel`, the fitted ``Â``, ``∂Â/∂r``,
   ``M̂`` as Fourier series in phase, with per-bin standard errors.
 - :mod:`~torchconn.regression.plots` -- figures of a fitted model with confidence bands.
@@ -26,9 +28,18 @@ from __future__ import annotations
 from ._wls import IllConditionedBinWarning
 from .binning import KERNELS, BinIndex, assign_bins
 from .connection import ConnectionFit, connection_design, connection_regression
-from .estimator import ConnectionEstimator, EstimatorSettings, fit_local_model, prepare
+from .estimator import (
+    STAGES,
+    ConnectionEstimator,
+    EstimatorSettings,
+    estimator_from_settings,
+    estimator_settings,
+    fit_local_model,
+    prepare,
+)
 from .metric import MetricFit, metric_design, metric_n_coef, metric_regression
 from .model import BinEstimates, LocalConnectionModel
+from .tube import Regression, TubeRegression
 
 __all__ = [
     "assign_bins", "BinIndex", "KERNELS",
@@ -36,5 +47,6 @@ __all__ = [
     "metric_regression", "MetricFit", "metric_design", "metric_n_coef",
     "IllConditionedBinWarning",
     "LocalConnectionModel", "BinEstimates",
-    "ConnectionEstimator", "EstimatorSettings", "prepare", "fit_local_model",
+    "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
+    "Regression", "TubeRegression", "EstimatorSettings", "prepare", "fit_local_model",
 ]

@@ -19,6 +19,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from .. import _checks
 from .binning import BinIndex
 
 __all__ = ["IllConditionedBinWarning"]
@@ -84,32 +85,25 @@ class Solution:
 # ---------------------------------------------------------------------------------- inputs
 def _check_samples(x, name: str, batch_n: tuple | None, width: int | None, fn: str) -> Tensor:
     what = "(..., N" + (")" if width == 0 else f", {width if width else 'd'})")
-    if not isinstance(x, Tensor) or not x.is_floating_point():
-        got = f"{x.dtype} tensor" if isinstance(x, Tensor) else type(x).__name__
-        raise TypeError(f"{fn}: {name} must be a floating-point torch.Tensor {what}, got {got}")
+    if batch_n is not None:
+        what = str(batch_n + ((width,) if width else ()))
     ndim = 1 if width == 0 else 2
-    ok = x.ndim >= ndim and (width in (None, 0) or x.shape[-1] == width)
-    if ok and batch_n is not None:
-        ok = tuple(x.shape[: x.ndim - ndim + 1]) == batch_n
-    if not ok:
-        expect = what if batch_n is None else str(batch_n + ((width,) if width else ()))
-        raise ValueError(f"{fn}: {name} must have shape {expect}, got {tuple(x.shape)}")
-    if torch.isinf(x).any():
-        raise ValueError(
-            f"{fn}: {name} contains ±inf; only NaN marks a missing sample (it is then excluded)"
-        )
-    return x
+
+    def ok(t: Tensor) -> bool:
+        good = t.ndim >= ndim and (width in (None, 0) or t.shape[-1] == width)
+        return good and (batch_n is None or tuple(t.shape[: t.ndim - ndim + 1]) == batch_n)
+
+    _checks.tensor(x, name, what, fn=fn, valid=ok, floating=True)
+    return _checks.finite(x, name, fn=fn, nan_ok=True,
+                          hint="only NaN marks a missing sample (it is then excluded)")
 
 
 def _check_cycle(x, name: str, batch: tuple, m: int, d: int, fn: str, like: Tensor) -> Tensor:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{fn}: {name} must be a torch.Tensor of shape (..., {m}, {d}), "
-                        f"got {type(x).__name__}")
-    if x.ndim < 2 or tuple(x.shape[-2:]) != (m, d):
-        raise ValueError(
-            f"{fn}: {name} must have shape (..., M, d) = (..., {m}, {d}) -- one point per phase "
-            f"bin of the limit cycle, in the d = {d} shape coordinates of r -- got {tuple(x.shape)}"
-        )
+    _checks.tensor(
+        x, name, f"(..., M, d) = (..., {m}, {d}) (one point per phase bin of the limit "
+        f"cycle, in the d = {d} shape coordinates of r)", fn=fn,
+        valid=lambda t: t.ndim >= 2 and tuple(t.shape[-2:]) == (m, d),
+    )
     try:
         x = x.to(like).expand(batch + (m, d))
     except RuntimeError:
@@ -117,9 +111,7 @@ def _check_cycle(x, name: str, batch: tuple, m: int, d: int, fn: str, like: Tens
             f"{fn}: {name} of shape {tuple(x.shape)} does not broadcast to the batch "
             f"{batch} of r: expected (..., {m}, {d}) with ... broadcastable to {batch}"
         ) from None
-    if not torch.isfinite(x).all():
-        raise ValueError(f"{fn}: {name} contains NaN or inf; the limit cycle must be finite")
-    return x
+    return _checks.finite(x, name, fn=fn, hint="the limit cycle must be finite")
 
 
 def prepare(fn: str, r, r_dot, y, y_name: str, y_width: int, bins: BinIndex,

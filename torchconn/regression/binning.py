@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .. import _checks
+
 __all__ = ["BinIndex", "assign_bins", "KERNELS"]
 
 #: weight kernels on the scaled distance ``s = |φ − φ_m| / (window · 2π/M)`` in ``[0, 1]``
@@ -101,14 +103,8 @@ def assign_bins(
         :class:`BinIndex` with ``index``/``weight`` ``(..., M, Nmax)``, ``Nmax`` the largest bin
         count across the batch.
     """
-    if not isinstance(phase, Tensor) or not phase.is_floating_point() or phase.ndim < 1:
-        raise TypeError(
-            "phase must be a floating-point torch.Tensor of shape (..., N), got "
-            + (f"{phase.dtype} tensor {tuple(phase.shape)}" if isinstance(phase, Tensor)
-               else type(phase).__name__)
-        )
-    if isinstance(n_bins, bool) or not isinstance(n_bins, int) or n_bins < 1:
-        raise ValueError(f"n_bins must be a positive int, got {n_bins!r}")
+    _checks.tensor(phase, "phase", "(..., N)", floating=True, valid=lambda t: t.ndim >= 1)
+    _checks.integer(n_bins, "n_bins", minimum=1)
     if not (0 < window < n_bins / 2):
         raise ValueError(
             f"window must lie in (0, n_bins/2) = (0, {n_bins / 2}) bin spacings, so that a bin "

@@ -1,43 +1,376 @@
 """The estimator: recordings in, a local connection model out (the paper's Sec. 4).
 
-Three pure, batched steps, each usable on its own, and a scikit-learn style wrapper:
+:class:`ConnectionEstimator` joins four stages, each a small immutable option object with one
+job, in the manner of pysindy's ``SINDy(differentiation_method=…, feature_library=…,
+optimizer=…)``::
 
-1. :func:`prepare` -- smooth poses and shapes (Kalman/RTS), derive body velocities, and
-   estimate the phase (Phaser) unless one is supplied; adds ``smoothed`` and ``phase`` to the
-   :class:`~torchconn.trajectory.Trajectory`.
-2. :func:`fit_limit_cycle` (:mod:`torchconn.phase.limit_cycle`) -- the self-consistent cycle γ(φ).
-3. :func:`fit_local_model` -- the tube regressions in M phase bins (eq. ``advancedregression``
-   and, with power, ``advancedmetricregression``) and their Fourier series in phase.
+    ConnectionEstimator(
+        smoother=RTSSmoother(order=2),          # phase/smoothing.py: smooth(traj) -> traj
+        phaser=Phaser(order=3),                 # phase/phaser.py: fit(r) -> fitted, transform(r)
+        cycle=SelfConsistentCycle(order=8),     # phase/limit_cycle.py: fit(traj) -> LimitCycle
+        regression=TubeRegression(n_bins=48),   # regression/tube.py: fit(traj, cycle) -> model
+        pool=False,                             # one model per trial, or one for all trials
+    )
 
-:class:`ConnectionEstimator` strings them together: ``ConnectionEstimator(n_bins=16).fit(traj)``.
+Swapping a stage is a keyword argument; a new method is a new subclass of the stage's base
+(:class:`~torchconn.phase.smoothing.Smoother`, :class:`~torchconn.phase.phaser.PhaseEstimator`,
+:class:`~torchconn.phase.limit_cycle.CycleEstimator`, :class:`~torchconn.regression.tube.Regression`).
+``get_params`` / ``set_params`` follow scikit-learn (``regression__n_bins`` keys), so
+``sklearn.base.clone`` and grid searches work without torchconn depending on scikit-learn.
+
+:func:`estimator_from_settings` builds an estimator from a nested mapping (the sweep's TOML
+``[estimator]`` table) and :func:`estimator_settings` writes one back. The steps are also
+functions: :func:`prepare` (smooth, phase) and :func:`fit_local_model` (the regressions).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 import warnings
-from dataclasses import asdict, dataclass, fields
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from typing import Any
 
-import torch
 from torch import Tensor
 
-from ..phase.fourier import fit_fourier
-from ..phase.limit_cycle import LimitCycle, fit_limit_cycle, phase_rate
-from ..phase.phaser import estimate_phase
-from ..phase.smoothing import smooth_trajectory
-from ..trajectory import SmoothedState, Trajectory
-from .binning import assign_bins
-from .connection import connection_regression
-from .metric import metric_n_coef, metric_regression
-from .model import BinEstimates, LocalConnectionModel
+from .._options import Options, unknown_keys_message
+from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
+from ..phase.phaser import PhaseEstimator, Phaser
+from ..phase.smoothing import RTSSmoother, Smoother
+from ..trajectory import Trajectory
+from .model import LocalConnectionModel
+from .tube import Regression, TubeRegression
 
-__all__ = ["EstimatorSettings", "ConnectionEstimator", "prepare", "fit_local_model"]
+__all__ = [
+    "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
+    "prepare", "fit_local_model", "EstimatorSettings",
+]
+
+#: the estimator's stages: keyword -> (base class, {method name: class}); the first method is
+#: the default. A settings table picks one with ``method = "name"``.
+STAGES: dict[str, tuple[type, dict[str, type]]] = {
+    "smoother": (Smoother, {"rts": RTSSmoother}),
+    "phaser": (PhaseEstimator, {"phaser": Phaser}),
+    "cycle": (CycleEstimator, {"self_consistent": SelfConsistentCycle}),
+    "regression": (Regression, {"tube": TubeRegression}),
+}
+
+#: torchconn 0.1's flat settings (``EstimatorSettings``) -> (stage, field)
+FLAT_KEYS: dict[str, tuple[str, str]] = {
+    **{k: ("regression", k) for k in (
+        "n_bins", "fourier_order", "window", "samples_per_regressor", "kernel", "delta_max",
+        "ridge", "on_ill_conditioned", "metric")},
+    "phase_order": ("phaser", "order"),
+    "min_cycles": ("phaser", "min_cycles"),
+    "cycle_order": ("cycle", "order"),
+    "smoother_order": ("smoother", "order"),
+}
+
+
+class ConnectionEstimator:
+    """Estimate a local connection (and metric) around the gait in recorded trials.
+
+    Args:
+        smoother: smooths poses and shapes and derives velocities (:class:`RTSSmoother`).
+        phaser: estimates the phase when none is given (:class:`Phaser`).
+        cycle: fits the limit cycle γ(φ) to the phased shapes (:class:`SelfConsistentCycle`).
+        regression: fits the local model around the cycle (:class:`TubeRegression`).
+        pool: fit one model to all trials together (their phases must share a Poincaré section,
+            which Phaser's phase 0 provides) instead of one model per trial.
+
+    scikit-learn manners: the constructor only stores its arguments, :meth:`fit` returns
+    ``self``, fitted attributes end in ``_``:
+
+    - ``trajectory_``: the prepared :class:`~torchconn.trajectory.Trajectory` (smoothed, phase);
+    - ``phaser_``: the fitted phaser (its ``model_`` can phase new recordings with the same
+      origin), or None when the phase was given or already in the trajectory;
+    - ``limit_cycle_``: the :class:`~torchconn.phase.limit_cycle.LimitCycle`;
+    - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`.
+
+    Example::
+
+        est = ConnectionEstimator(regression=TubeRegression(n_bins=48, fourier_order=12))
+        est.fit(traj)
+        xi_hat = est.predict(traj)               # (..., T, 3)
+        A_on_cycle = est.model_.connection(phi)  # (..., P, 3, d)
+        est.set_params(regression__n_bins=24)    # a new regression stage, unfitted settings
+
+    torchconn 0.1's flat keywords (``n_bins=…``, ``phase_order=…``) still work for one release,
+    with a :class:`DeprecationWarning`; they set the matching stage's field.
+    """
+
+    def __init__(
+        self,
+        *,
+        smoother: Smoother = RTSSmoother(),
+        phaser: PhaseEstimator = Phaser(),
+        cycle: CycleEstimator = SelfConsistentCycle(),
+        regression: Regression = TubeRegression(),
+        pool: bool = False,
+        **flat: Any,
+    ):
+        if flat:
+            unknown = set(flat) - set(FLAT_KEYS)
+            if unknown:
+                raise TypeError(unknown_keys_message("ConnectionEstimator", unknown,
+                                                 [*STAGES, "pool", *FLAT_KEYS]))
+            warnings.warn(
+                "ConnectionEstimator(" + ", ".join(f"{k}=…" for k in flat) + "): flat settings "
+                "are deprecated; set the stages' fields instead, e.g. "
+                "ConnectionEstimator(regression=TubeRegression(n_bins=…), phaser=Phaser(order=…))",
+                DeprecationWarning, stacklevel=2,
+            )
+            stages = _apply_flat(dict(smoother=smoother, phaser=phaser, cycle=cycle,
+                                      regression=regression), flat, "ConnectionEstimator")
+            smoother, phaser, cycle, regression = (stages[k] for k in STAGES)
+        self.smoother = smoother
+        self.phaser = phaser
+        self.cycle = cycle
+        self.regression = regression
+        self.pool = pool
+        self._validate()
+
+    # ------------------------------------------------------------------ scikit-learn params
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        """The constructor's arguments; with ``deep`` also each stage's fields as
+        ``stage__field`` (scikit-learn's protocol)."""
+        params = {name: getattr(self, name) for name in (*STAGES, "pool")}
+        if deep:
+            for name in STAGES:
+                for key, value in getattr(self, name).get_params().items():
+                    params[f"{name}__{key}"] = value
+        return params
+
+    def set_params(self, **params: Any) -> "ConnectionEstimator":
+        """Set constructor arguments or stage fields (``regression__n_bins=24``); returns self.
+
+        A stage field is changed by replacing the stage with a changed copy, so option objects
+        shared with other estimators are never modified.
+        """
+        valid = self.get_params(deep=True)
+        unknown = set(params) - set(valid)
+        if unknown:
+            raise ValueError(unknown_keys_message("ConnectionEstimator.set_params", unknown, valid))
+        direct = {k: v for k, v in params.items() if "__" not in k}
+        for key, value in direct.items():
+            setattr(self, key, value)
+        nested: dict[str, dict[str, Any]] = {}
+        for key, value in params.items():
+            if "__" in key:
+                stage, field = key.split("__", 1)
+                nested.setdefault(stage, {})[field] = value
+        for stage, changes in nested.items():
+            setattr(self, stage, getattr(self, stage).replace(**changes))
+        self._validate()
+        return self
+
+    def _validate(self) -> None:
+        for name, (base, methods) in STAGES.items():
+            value = getattr(self, name)
+            if not isinstance(value, base):
+                raise TypeError(
+                    f"ConnectionEstimator: {name} must be a {base.__name__} (e.g. "
+                    f"{next(iter(methods.values())).__name__}()), got {type(value).__name__}"
+                )
+        if not isinstance(self.pool, bool):
+            raise ValueError(f"ConnectionEstimator: pool must be true or false, got {self.pool!r}")
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, traj: Trajectory, phase: Tensor | None = None) -> "ConnectionEstimator":
+        """Fit to recordings ``traj`` (batch dims ``...``: one model per trial unless pooled).
+
+        Args:
+            traj: a :class:`~torchconn.trajectory.Trajectory` (simulated, or read with
+                :func:`torchconn.io.trajectory_files.read_csv`).
+            phase: optional ``(..., T)`` phase to use instead of the phaser's estimate.
+        """
+        if not isinstance(traj, Trajectory):
+            raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
+        if getattr(self.regression, "metric", False) and traj.power is None:
+            warnings.warn("no power channel in the data: the metric is not estimated", stacklevel=2)
+        traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
+        cycle = self.cycle.fit(traj, pool=self.pool)
+        model = self.regression.fit(traj, cycle, pool=self.pool)
+        self.trajectory_ = traj
+        self.phaser_ = fitted_phaser
+        self.limit_cycle_ = cycle
+        self.model_ = dataclasses.replace(
+            model, meta={**(model.meta or {}), "settings": estimator_settings(self)}
+        )
+        return self
+
+    def prepare(self, traj: Trajectory, phase: Tensor | None = None) -> Trajectory:
+        """:func:`prepare` with this estimator's smoother and phaser (smoothing, phase)."""
+        return _prepare(traj, phase, self.smoother, self.phaser)[0]
+
+    def predict(self, traj: Trajectory) -> Tensor:
+        """Body velocity ``(..., T, 3)`` the fitted model predicts for (prepared) recordings.
+
+        A trajectory without phase/smoothed state is prepared first with this estimator's
+        smoother and phaser.
+        """
+        model = self._fitted()
+        traj = self.prepare(traj)
+        return model.predict(traj.phase, traj.smoothed.r, traj.smoothed.r_dot)
+
+    def _fitted(self) -> LocalConnectionModel:
+        if not hasattr(self, "model_"):
+            raise RuntimeError("this ConnectionEstimator is not fitted yet: call fit(traj) first")
+        return self.model_
+
+    def __repr__(self) -> str:
+        default = ConnectionEstimator()
+        changed = [f"{k}={v!r}" for k, v in self.get_params(deep=False).items()
+                   if v != getattr(default, k)]
+        return "ConnectionEstimator(" + ", ".join(changed) + ")"
+
+
+# ---------------------------------------------------------------------- settings tables
+def estimator_from_settings(settings: Mapping[str, Any] | None = None, *,
+                            where: str = "estimator") -> ConnectionEstimator:
+    """Build an estimator from a nested mapping, e.g. the sweep's TOML ``[estimator]`` table.
+
+    Keys: ``pool``, and one sub-table per stage (``smoother``, ``phaser``, ``cycle``,
+    ``regression``) holding that stage's fields and optionally ``method`` (a name in
+    :data:`STAGES`, default its first). torchconn 0.1's flat keys (``n_bins``,
+    ``phase_order``, ``smoother_order``, ``cycle_order``, …; see :data:`FLAT_KEYS`) are
+    accepted too. Example::
+
+        [estimator]
+        pool = false
+        [estimator.phaser]
+        order = 4
+        [estimator.regression]
+        n_bins = 32
+        fourier_order = 10
+
+    Raises:
+        ValueError: an unknown key (the valid ones are listed, with the closest match), a
+            value of the wrong type or out of range (the key is named), an unknown method.
+    """
+    settings = dict(settings or {})
+    if not isinstance(settings, Mapping):
+        raise ValueError(f"{where} must be a table (mapping), got {type(settings).__name__}")
+    unknown = set(settings) - {*STAGES, "pool", *FLAT_KEYS}
+    if unknown:
+        raise ValueError(unknown_keys_message(where, unknown, [*STAGES, "pool", *FLAT_KEYS]))
+    stages = {}
+    for name, (_, methods) in STAGES.items():
+        table = settings.get(name, {})
+        if not isinstance(table, Mapping):
+            raise ValueError(f"{where}.{name} must be a table of {name} options, got {table!r}")
+        table = dict(table)
+        method = table.pop("method", next(iter(methods)))
+        if method not in methods:
+            raise ValueError(unknown_keys_message(f"{where}.{name}.method", {method}, methods))
+        cls = methods[method]
+        valid = [f.name for f in dataclasses.fields(cls)]
+        bad = set(table) - set(valid)
+        if bad:
+            raise ValueError(unknown_keys_message(f"{where}.{name} ({cls.__name__})", bad,
+                                              [*valid, "method"]))
+        try:
+            stages[name] = cls(**table)
+        except ValueError as err:
+            raise ValueError(f"{where}.{name}: {err}") from None
+    flat = {k: v for k, v in settings.items() if k in FLAT_KEYS}
+    stages = _apply_flat(stages, flat, where)
+    pool = settings.get("pool", False)
+    if not isinstance(pool, bool):
+        raise ValueError(f"{where}.pool must be true or false, got {pool!r}")
+    return ConnectionEstimator(**stages, pool=pool)
+
+
+def estimator_settings(estimator: ConnectionEstimator) -> dict[str, Any]:
+    """The nested settings table of ``estimator`` (the inverse of
+    :func:`estimator_from_settings`; JSON-ready except that None stays None)."""
+    out: dict[str, Any] = {}
+    for name, (_, methods) in STAGES.items():
+        stage = getattr(estimator, name)
+        method = next((m for m, cls in methods.items() if type(stage) is cls),
+                      f"{type(stage).__module__}.{type(stage).__qualname__}")
+        out[name] = {"method": method, **stage.get_params()}
+    out["pool"] = estimator.pool
+    return out
+
+
+def _apply_flat(stages: dict[str, Options], flat: Mapping[str, Any], where: str) -> dict:
+    """Stages with torchconn 0.1's flat settings applied (:data:`FLAT_KEYS`)."""
+    changes: dict[str, dict[str, Any]] = {}
+    for key, value in flat.items():
+        stage, field = FLAT_KEYS[key]
+        changes.setdefault(stage, {})[field] = value
+    out = dict(stages)
+    for stage, fields in changes.items():
+        try:
+            out[stage] = out[stage].replace(**fields)
+        except ValueError as err:
+            raise ValueError(f"{where}: {err}") from None
+    return out
+
+
+# ---------------------------------------------------------------------- the steps as functions
+def prepare(
+    traj: Trajectory,
+    *,
+    phase: Tensor | None = None,
+    smoother: Smoother = RTSSmoother(),
+    phaser: PhaseEstimator = Phaser(),
+) -> Trajectory:
+    """Add smoothed state and phase to a trajectory (steps that do not depend on the model).
+
+    Args:
+        traj: recordings ``(..., T, ·)``; NaN drop-outs allowed; shorter trials padded with NaN.
+        phase: ``(..., T)`` phase to use instead of estimating one (a robot's gait clock, or the
+            true phase of a simulation). An existing ``traj.phase`` is used likewise, and an
+            existing ``traj.smoothed`` is kept.
+        smoother, phaser: the stages (see :class:`ConnectionEstimator`).
+
+    Returns:
+        the trajectory with ``smoothed`` and ``phase`` set.
+    """
+    return _prepare(traj, phase, smoother, phaser)[0]
+
+
+def _prepare(traj, phase, smoother, phaser) -> tuple[Trajectory, PhaseEstimator | None]:
+    if traj.smoothed is None:
+        traj = smoother.smooth(traj)
+    if phase is not None:
+        return traj.with_fields(phase=phase), None
+    if traj.phase is not None:
+        return traj, None
+    fitted = phaser.fit(traj.smoothed.r)
+    return traj.with_fields(phase=fitted.phase_), fitted
+
+
+def fit_local_model(traj: Trajectory, cycle: LimitCycle,
+                    regression: Regression | EstimatorSettings = TubeRegression(), *,
+                    pool: bool = False) -> LocalConnectionModel:
+    """The regressions in every phase bin and their Fourier series in phase:
+    ``regression.fit(traj, cycle, pool=pool)``.
+
+    Args:
+        traj: a prepared trajectory (``smoothed`` and ``phase`` set), batch dims ``...``.
+        cycle: its limit cycle (batch dims ``...``, or none when ``pool``).
+        regression: the regression stage; an :class:`EstimatorSettings` (deprecated) gives
+            its regression fields and ``pool``.
+
+    Returns:
+        a :class:`LocalConnectionModel` with batch dims ``...`` (none when pooled).
+    """
+    if isinstance(regression, EstimatorSettings):
+        flat = {k: v for k, v in asdict(regression).items() if k in FLAT_KEYS}
+        pool = regression.pool
+        regression = estimator_from_settings(flat).regression
+    return regression.fit(traj, cycle, pool=pool)
 
 
 @dataclass(frozen=True, kw_only=True)
 class EstimatorSettings:
-    """Every knob of the estimator, with the defaults used throughout torchconn.
+    """torchconn 0.1's flat estimator settings, kept for one release (deprecated).
+
+    Use the stage objects instead (:class:`ConnectionEstimator`); every field maps to one stage
+    field (:data:`FLAT_KEYS`), and ``estimator_from_settings(asdict(settings))`` converts.
 
     Attributes:
         n_bins: phase bins M (regression centres φ_m = 2πm/M).
@@ -90,247 +423,8 @@ class EstimatorSettings:
             )
         if self.window is not None and self.window <= 0:
             raise ValueError(f"window must be positive or None (auto), got {self.window!r}")
+        warnings.warn("EstimatorSettings is deprecated: build the estimator from its stages, or "
+                      "from a settings table with estimator_from_settings", DeprecationWarning,
+                      stacklevel=3)
 
 
-def prepare(
-    traj: Trajectory,
-    *,
-    phase: Tensor | None = None,
-    phase_order: int = 3,
-    smoother_order: int = 2,
-    min_cycles: float = 3.0,
-) -> Trajectory:
-    """Add smoothed state and phase to a trajectory (steps that do not depend on the model).
-
-    Args:
-        traj: recordings ``(..., T, ·)``; NaN drop-outs allowed.
-        phase: ``(..., T)`` phase to use instead of estimating one (a robot's gait clock, or the
-            true phase of a simulation). An existing ``traj.phase`` is used likewise.
-        phase_order, smoother_order, min_cycles: see :class:`EstimatorSettings`.
-
-    Returns:
-        the trajectory with ``smoothed`` and ``phase`` set.
-    """
-    recorded = _recorded_span(traj)  # (..., T): False on the NaN padding after a trial's end
-    padded = not bool(recorded.all())
-    if traj.smoothed is None:
-        smoothed = smooth_trajectory(traj.pose, traj.r, traj.dt, order=smoother_order)
-        if padded:  # the smoother extrapolates into the padding: those values mean nothing
-            smoothed = SmoothedState(**{
-                f.name: _blank(getattr(smoothed, f.name), recorded) for f in fields(smoothed)
-            })
-        traj = traj.with_fields(smoothed=smoothed)
-    if phase is not None:
-        traj = traj.with_fields(phase=phase)
-    elif traj.phase is None:
-        r = traj.smoothed.r
-        if padded:
-            traj = traj.with_fields(phase=_phase_per_trial(r, recorded, phase_order, min_cycles))
-        else:
-            traj = traj.with_fields(phase=estimate_phase(r, order=phase_order,
-                                                         min_cycles=min_cycles))
-    return traj
-
-
-def _recorded_span(traj: Trajectory) -> Tensor:
-    """``(..., T)`` True from the first to the last sample with any finite value per trial.
-
-    Trials of different lengths share one time grid, the shorter ones padded with NaN rows; the
-    padding is not a drop-out to smooth through but time that was never recorded.
-    """
-    finite = torch.isfinite(torch.cat([traj.pose, traj.r], -1)).any(-1)  # (..., T)
-    idx = torch.arange(finite.shape[-1], device=finite.device)
-    first = torch.where(finite, idx, finite.shape[-1]).min(-1, keepdim=True).values
-    last = torch.where(finite, idx, -1).max(-1, keepdim=True).values
-    return (idx >= first) & (idx <= last)
-
-
-def _blank(x: Tensor, keep: Tensor) -> Tensor:
-    """``x (..., T, C)`` with NaN where ``keep (..., T)`` is False."""
-    return torch.where(keep[..., None], x, torch.full_like(x, float("nan")))
-
-
-def _phase_per_trial(r: Tensor, recorded: Tensor, order: int, min_cycles: float) -> Tensor:
-    """Phaser on each trial's recorded span (unequal lengths: one call per trial), NaN outside.
-
-    Phase 0 is the same Poincaré section in every trial, so the phases are comparable.
-    """
-    flat_r, flat_ok = r.reshape(-1, *r.shape[-2:]), recorded.reshape(-1, recorded.shape[-1])
-    out = torch.full(flat_ok.shape, float("nan"), dtype=r.dtype, device=r.device)
-    for k in range(flat_r.shape[0]):
-        span = torch.nonzero(flat_ok[k]).flatten()
-        lo, hi = int(span[0]), int(span[-1]) + 1
-        out[k, lo:hi] = estimate_phase(flat_r[k, lo:hi], order=order, min_cycles=min_cycles)
-    return out.reshape(recorded.shape)
-
-
-def fit_local_model(
-    traj: Trajectory, cycle: LimitCycle, settings: EstimatorSettings = EstimatorSettings()
-) -> LocalConnectionModel:
-    """The tube regressions in every phase bin and their Fourier series in phase.
-
-    Args:
-        traj: a prepared trajectory (``smoothed`` and ``phase`` set), batch dims ``...``.
-        cycle: its limit cycle (batch dims ``...``, or none when ``settings.pool``).
-        settings: estimator settings.
-
-    Returns:
-        a :class:`LocalConnectionModel` with batch dims ``...`` (none when pooled).
-    """
-    if traj.smoothed is None or traj.phase is None:
-        raise ValueError("fit_local_model needs a prepared trajectory: call prepare(traj) first")
-    s = traj.smoothed
-    phase, r, r_dot, xi, power = traj.phase, s.r, s.r_dot, s.xi, traj.power
-    if settings.pool:
-        phase, r, r_dot, xi = (_pool(x, k) for x, k in ((phase, 0), (r, 1), (r_dot, 1), (xi, 1)))
-        power = None if power is None else _pool(power, 0)
-    M = settings.n_bins
-    centres = torch.arange(M, dtype=r.dtype, device=r.device) * (2 * math.pi / M)
-    batch = phase.shape[:-1]
-    gamma_m = cycle.gamma_at(centres.expand(batch + (M,)))
-    gamma_dot_m = cycle.phase_rate[..., None, None] * cycle.gamma_dot_at(centres.expand(batch + (M,)))
-    opts = dict(
-        delta_max=settings.delta_max, ridge=settings.ridge,
-        on_ill_conditioned=settings.on_ill_conditioned,
-    )
-    d = r.shape[-1]
-
-    def bins_for(n_regressors: int):
-        window = settings.window or _auto_window(phase, M, n_regressors,
-                                                 settings.samples_per_regressor)
-        return assign_bins(phase, M, window=window, kernel=settings.kernel), window
-
-    bins, window = bins_for(1 + 2 * d + d * d)
-    fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
-    metric_fit, metric_window = None, None
-    if settings.metric and power is not None:
-        mbins, metric_window = bins_for(metric_n_coef(d, False))
-        metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
-                                       with_metric_derivative=False, **opts)
-
-    estimates = BinEstimates(
-        phase=centres, gamma=gamma_m, gamma_dot=gamma_dot_m,
-        c=fit.c, b=fit.b, A=fit.A, dA=fit.dA,
-        c_se=fit.se_c, b_se=fit.se_b, A_se=fit.se_A, dA_se=fit.se_dA,
-        n_samples=fit.n_samples,
-        M=None if metric_fit is None else metric_fit.M,
-        M_se=None if metric_fit is None else metric_fit.se_M,
-    )
-    K = settings.fourier_order
-
-    def series(values: Tensor, ndim: int):
-        return fit_fourier(centres, values, K, value_ndim=ndim)
-
-    return LocalConnectionModel(
-        gamma=cycle.gamma, phase_rate=cycle.phase_rate,
-        c=series(fit.c, 1), b=series(fit.b, 2), A=series(fit.A, 2), dA=series(fit.dA, 3),
-        M=None if metric_fit is None else series(metric_fit.M, 2),
-        bins=estimates,
-        meta={"settings": asdict(settings), "dt": traj.dt, "batch_shape": list(batch),
-              "window": window, "metric_window": metric_window,
-              "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
-    )
-
-
-def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:
-    """Per-joint RMS of the offsets ``δ = r − γ(φ)`` over every sample of every trial: the
-    width of the tube the data covered (``(d,)`` as a list, for the JSON-able ``meta``)."""
-    delta = (r - gamma).reshape(-1, r.shape[-1])
-    return [float(v) for v in delta.pow(2).nanmean(0).sqrt()]
-
-
-def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
-    """Half-width (in bin spacings) holding ``per_regressor`` samples per regressor on average
-    in the batch element with the fewest finite samples; at least 1, at most a quarter cycle
-    (a window must stay local for the first-order model to hold)."""
-    fewest = float(torch.isfinite(phase).sum(-1).min())
-    per_spacing = fewest / n_bins
-    # a tricube window of half-width w spacings carries the weight of ~1.2 w spacings
-    window = per_regressor * n_regressors / (1.2 * per_spacing)
-    return float(min(max(window, 1.0), n_bins / 4))
-
-
-def _pool(x: Tensor, trailing: int) -> Tensor:
-    """Flatten all batch dims into the sample axis: ``(..., T, *c) -> (N·T, *c)``."""
-    return x.reshape((-1,) + tuple(x.shape[x.ndim - trailing:]))
-
-
-class ConnectionEstimator:
-    """Estimate a local connection (and metric) around the gait in recorded trials.
-
-    scikit-learn manners: the constructor only stores settings (see
-    :class:`EstimatorSettings` for each), :meth:`fit` returns ``self``, fitted attributes end
-    in ``_``:
-
-    - ``trajectory_``: the prepared :class:`~torchconn.trajectory.Trajectory` (smoothed, phase);
-    - ``limit_cycle_``: the :class:`~torchconn.phase.limit_cycle.LimitCycle`;
-    - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`.
-
-    Example::
-
-        est = ConnectionEstimator(n_bins=48, fourier_order=12).fit(traj)
-        xi_hat = est.predict(traj)             # (..., T, 3)
-        A_on_cycle = est.model_.connection(phi)  # (..., P, 3, d)
-    """
-
-    def __init__(self, **settings):
-        self.settings = EstimatorSettings(**settings)
-
-    def fit(self, traj: Trajectory, phase: Tensor | None = None) -> "ConnectionEstimator":
-        """Fit to recordings ``traj`` (batch dims ``...``: one model per trial unless pooled).
-
-        Args:
-            traj: a :class:`~torchconn.trajectory.Trajectory` (simulated, or read with
-                :func:`torchconn.io.trajectory_files.read_csv`).
-            phase: optional ``(..., T)`` phase to use instead of Phaser's estimate.
-        """
-        s = self.settings
-        if not isinstance(traj, Trajectory):
-            raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
-        if s.metric and traj.power is None:
-            warnings.warn("no power channel in the data: the metric is not estimated", stacklevel=2)
-        traj = self.prepare(traj, phase)
-        # γ₀ from the recorded shapes (smoothing damps the gait's high harmonics), ω from the
-        # smoothed velocities
-        sm = traj.smoothed
-        if s.pool:
-            # one cycle for all trials: fit dr/dφ (each trial's ṙ over its own phase rate) and
-            # keep the trials' mean rate
-            rate = phase_rate(traj.phase, traj.dt)
-            cycle = fit_limit_cycle(
-                _pool(traj.phase, 0), _pool(traj.r, 1),
-                _pool(sm.r_dot / rate[..., None, None], 1), order=s.cycle_order,
-            )
-            cycle = dataclasses.replace(cycle, phase_rate=rate.mean())
-        else:
-            cycle = fit_limit_cycle(traj.phase, traj.r, sm.r_dot, order=s.cycle_order,
-                                    dt=traj.dt)
-        self.trajectory_ = traj
-        self.limit_cycle_ = cycle
-        self.model_ = fit_local_model(traj, cycle, s)
-        return self
-
-    def prepare(self, traj: Trajectory, phase: Tensor | None = None) -> Trajectory:
-        """:func:`prepare` with this estimator's settings (smoothing, phase)."""
-        s = self.settings
-        return prepare(traj, phase=phase, phase_order=s.phase_order,
-                       smoother_order=s.smoother_order, min_cycles=s.min_cycles)
-
-    def predict(self, traj: Trajectory) -> Tensor:
-        """Body velocity ``(..., T, 3)`` the fitted model predicts for (prepared) recordings.
-
-        A trajectory without phase/smoothed state is prepared first with the fit's settings.
-        """
-        model = self._fitted()
-        traj = self.prepare(traj)
-        return model.predict(traj.phase, traj.smoothed.r, traj.smoothed.r_dot)
-
-    def _fitted(self) -> LocalConnectionModel:
-        if not hasattr(self, "model_"):
-            raise RuntimeError("this ConnectionEstimator is not fitted yet: call fit(traj) first")
-        return self.model_
-
-    def __repr__(self) -> str:
-        changed = {k: v for k, v in asdict(self.settings).items()
-                   if v != getattr(EstimatorSettings(), k)}
-        return "ConnectionEstimator(" + ", ".join(f"{k}={v!r}" for k, v in changed.items()) + ")"

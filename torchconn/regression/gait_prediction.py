@@ -129,7 +129,8 @@ def sample_models(
     if not isinstance(n_draws, int) or n_draws < 1:
         raise ValueError(f"n_draws must be a positive integer, got {n_draws!r}")
     meta, bins = model.meta or {}, model.bins
-    kernel = meta.get("settings", {}).get("kernel", "box")
+    settings = meta.get("settings", {})
+    kernel = settings.get("regression", settings).get("kernel", "box")
     gen = torch.Generator().manual_seed(seed)
     centres = bins.phase
 

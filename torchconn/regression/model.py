@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import _checks
 from ..phase.fourier import FourierSeries
 from .gait_prediction import GaitPrediction, predict_gait
 
@@ -63,7 +64,7 @@ class LocalConnectionModel:
 
     Attributes:
         gamma: limit cycle ``γ(φ)``, value shape ``(d,)``.
-        phase_rate: ``(...)`` mean phase velocity ``φ̇`` (1 in CONVENTIONS units: one cycle per
+        phase_rate: ``(...)`` mean phase velocity ``φ̇`` (1 in the units of docs/conventions.md: one cycle per
             2π time units); on the cycle ``ṙ = φ̇ dγ/dφ``.
         c, b, A, dA: Fourier series of the regression terms, value shapes ``(3,)``,
             ``(3, d)``, ``(3, d)``, ``(3, d, d)`` (``dA[..., k, i, j] = ∂A^k_i/∂r_j``).
@@ -155,12 +156,8 @@ class LocalConnectionModel:
 
     def _check_samples(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> None:
         d = self.shape_dim
-        for name, x in (("r", r), ("r_dot", r_dot)):
-            if x.shape[-1] != d or x.shape[:-1] != phase.shape:
-                raise ValueError(
-                    f"{name} must have shape phase.shape + ({d},) = {tuple(phase.shape) + (d,)} "
-                    f"for a model of a {d}-joint system, got {tuple(x.shape)}"
-                )
+        _checks.phase_samples(phase, r, r_dot, d=d, same_batch=True,
+                              why=f" for a model of a {d}-joint system")
 
     def __getitem__(self, index) -> "LocalConnectionModel":
         """Select batch elements (e.g. one trial's model): ``model[level, trial]``."""

@@ -1,6 +1,6 @@
 """The motion-capture observation model: measurement noise and marker drop-outs.
 
-CONVENTIONS ("Phase and noise"): i.i.d. Gaussian noise of standard deviation ω is added to
+docs/conventions.md ("Phase and noise"): i.i.d. Gaussian noise of standard deviation ω is added to
 every recorded ``x, y`` (body lengths), ``θ`` (rad) and ``r_i`` (rad) sample. The power
 channel is left as recorded. Drop-outs blank whole samples -- pose, shape and power of a row
 become NaN -- the way a lost marker loses the frame. The hidden ``truth`` is kept.

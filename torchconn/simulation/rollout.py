@@ -1,6 +1,7 @@
 """Batched stochastic rollouts of a swimmer following a noisy gait (the paper's eq. ``simsde``).
 
-The shape follows the Stratonovich SDE of the paper's Sec. 5.2 (CONVENTIONS, "Phase and noise")::
+The shape follows the Stratonovich SDE of the paper's Sec. 5.2 (docs/conventions.md,
+"Phase and noise")::
 
     dφ = dt + η∘dW_φ,    dδ = −αδ dt + η∘dW_δ,    r(t) = γ_REF(φ(t)) + δ(t),
 
@@ -55,6 +56,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import _checks
 from ..physics import se2
 from ..physics.gaits import as_gait
 from ..physics.systems.base import LocomotionSystem
@@ -213,8 +215,7 @@ def simulate(
         raise ValueError(f"gait has {gait.shape_dim} joints but the system has {d}")
     for name, v, lo in (("n_cycles", n_cycles, 1), ("samples_per_cycle", samples_per_cycle, 2),
                         ("substeps", substeps, 2)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        _checks.integer(v, name, minimum=lo)
     if substeps % 2:
         raise ValueError(
             f"substeps must be even (each sample sits mid-way through its {substeps} fine "

@@ -8,17 +8,20 @@ from pathlib import Path
 
 import torch
 
-from .config import load_config
+from .config import load_config, sweep_config_names
 from .runner import run_sweep
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m torchconn.sweep",
+        prog="torchconn-sweep",
         description="Batched sweeps over system and observation noise (the paper's Sec. 5). "
-        "With no arguments, runs the embedded default sweep (about 80 s on 2 cores).",
+        "With no arguments, runs the packaged default sweep (about 80 s on 2 cores). "
+        "Also runs as python -m torchconn.sweep.",
     )
-    p.add_argument("--config", type=Path, help="TOML config (see configs/); default: embedded")
+    p.add_argument("--config", metavar="NAME|FILE",
+                   help="sweep config: the name of a packaged config (%s) or a path to a TOML "
+                   "file; default: default" % ", ".join(sweep_config_names()))
     p.add_argument("--out", type=Path, help="output directory (default: runs/<config name>)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set experiment.trials=2 "

@@ -1,4 +1,4 @@
-"""Sweep configuration: TOML files in ``configs/`` (or the embedded default), with overrides.
+"""Sweep configuration: TOML files (packaged by name, or any path), with overrides.
 
 A sweep is a list of experiments; each runs one system under one kind of noise at several
 levels, several trials per level:
@@ -8,7 +8,10 @@ levels, several trials per level:
 - ``noise_kind = "observation"``: levels are values of ω (motion-capture noise std), η fixed
   at ``eta_factor · η``.
 
-Every field is documented in ``configs/default.toml``, which mirrors :data:`DEFAULT_TOML`.
+Every field is documented in the packaged ``default.toml`` (the repository's
+``configs/default.toml``, the sweep run with no config). The configs that ship with torchconn
+(``default``, ``quick``, ``fig3``, ``fig4a``, ``fig4b``) are named by their stem; a path names
+any other TOML file.
 """
 
 from __future__ import annotations
@@ -22,57 +25,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..regression.estimator import EstimatorSettings
+from .._provenance import source_hash
+from .._resources import config_names, configs, read_config
+from ..regression.estimator import ConnectionEstimator, estimator_from_settings, estimator_settings
 
 __all__ = [
-    "SimulationSettings", "Experiment", "SweepConfig", "load_config", "apply_overrides",
+    "SimulationSettings", "Experiment", "SweepConfig", "load_config", "resolve_config",
+    "sweep_config_names",
+    "apply_overrides",
     "DEFAULT_TOML", "SYSTEMS", "NOISE_KINDS",
 ]
 
 SYSTEMS = ("3link", "9link")
 NOISE_KINDS = ("system", "observation")
 
-#: the sweep `python -m torchconn.sweep` runs with no arguments (about 80 s on 2 cores)
-DEFAULT_TOML = """
-name = "default"
-seed = 20190101
-phase = "estimated"
-error_bins = 24
-
-[simulation]
-alpha = 0.05
-eta = 0.025
-n_cycles = 30
-samples_per_cycle = 64
-substeps = 8
-
-[estimator]
-
-[[experiment]]
-system = "3link"
-noise_kind = "system"
-levels = [0.25, 0.5, 1.0, 2.0, 4.0]
-trials = 12
-traces = true
-
-[[experiment]]
-system = "9link"
-noise_kind = "system"
-levels = [0.25, 0.5, 1.0, 2.0, 4.0]
-trials = 12
-traces = true
-
-[[experiment]]
-system = "9link"
-noise_kind = "observation"
-levels = [0.0, 0.005, 0.01, 0.02, 0.04]
-trials = 12
-"""
+#: the sweep ``torchconn-sweep`` runs with no ``--config`` (the packaged ``default.toml``,
+#: which documents every field; about 80 s on 2 cores)
+DEFAULT_TOML = configs().joinpath("default.toml").read_text(encoding="utf-8")
 
 
 @dataclass(frozen=True, kw_only=True)
 class SimulationSettings:
-    """Rollout settings (CONVENTIONS defaults): α, η, cycles, sampling, fine steps."""
+    """Rollout settings (defaults: the paper's, docs/conventions.md): α, η, cycles, sampling,
+    fine steps."""
 
     alpha: float = 0.05
     eta: float = 0.025
@@ -112,17 +87,27 @@ class Experiment:
 
 @dataclass(frozen=True, kw_only=True)
 class SweepConfig:
-    """A whole sweep: experiments, shared simulation and estimator settings, root seed."""
+    """A whole sweep: experiments, shared simulation and estimator settings, root seed.
+
+    ``estimator`` is the ``[estimator]`` table (see
+    :func:`~torchconn.regression.estimator.estimator_from_settings`), or a
+    :class:`ConnectionEstimator`; it is validated and stored in full, normalised form, so equal
+    estimators written differently (flat 0.1 keys, nested tables) hash alike.
+    """
 
     name: str
     seed: int
     experiments: tuple[Experiment, ...]
-    estimator: EstimatorSettings = EstimatorSettings()
+    estimator: dict = field(default_factory=dict)
     phase: str = "estimated"
     error_bins: int = 16
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
+        est = self.estimator
+        if not isinstance(est, ConnectionEstimator):
+            est = estimator_from_settings(est, where="[estimator]")
+        object.__setattr__(self, "estimator", estimator_settings(est))
         if self.phase not in ("estimated", "true"):
             raise ValueError(f"phase must be 'estimated' (Phaser) or 'true', got {self.phase!r}")
         names = [e.name for e in self.experiments]
@@ -130,15 +115,21 @@ class SweepConfig:
             raise ValueError(f"experiment names must be unique, got {names}")
 
     def fingerprint(self, experiment: Experiment) -> str:
-        """Hash of everything that determines an experiment's results (for resuming safely)."""
+        """Hash of everything that determines an experiment's results (for resuming safely),
+        the package's source code included."""
         payload = {
+            "source": source_hash(),
             "experiment": dataclasses.asdict(experiment),
-            "estimator": dataclasses.asdict(self.estimator),
+            "estimator": self.estimator,
             "seed": self.seed, "phase": self.phase, "error_bins": self.error_bins,
             "index": [e.name for e in self.experiments].index(experiment.name),
         }
         text = json.dumps(payload, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def make_estimator(self) -> ConnectionEstimator:
+        """A fresh (unfitted) estimator with this sweep's settings."""
+        return estimator_from_settings(self.estimator, where="[estimator]")
 
 
 def _parse(raw: dict[str, Any]) -> SweepConfig:
@@ -163,7 +154,7 @@ def _parse(raw: dict[str, Any]) -> SweepConfig:
         raise ValueError("the config defines no [[experiment]]")
     return SweepConfig(
         name=raw.get("name", "sweep"), seed=int(raw.get("seed", 0)),
-        experiments=tuple(experiments), estimator=EstimatorSettings(**raw.get("estimator", {})),
+        experiments=tuple(experiments), estimator=raw.get("estimator", {}),
         phase=raw.get("phase", "estimated"), error_bins=int(raw.get("error_bins", 16)), raw=raw,
     )
 
@@ -198,14 +189,39 @@ def apply_overrides(raw: dict, overrides: list[str]) -> dict:
     return raw
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> SweepConfig:
-    """Read a TOML sweep config (the embedded default when ``path`` is None)."""
-    if path is None:
-        raw = tomllib.loads(DEFAULT_TOML)
+def sweep_config_names() -> list[str]:
+    """Names of the packaged sweep configs (those with an ``[[experiment]]``)."""
+    return [n for n in config_names() if "experiment" in read_config(n)]
+
+
+def resolve_config(config: str | Path) -> tuple[str, str]:
+    """The TOML text a ``--config`` value names, and where it came from.
+
+    ``config`` is a path to a TOML file, or the name of a packaged sweep config (``"quick"`` or
+    ``"quick.toml"``); an existing file wins over a packaged name.
+    """
+    path = Path(config)
+    if path.is_file():
+        return path.read_text(encoding="utf-8"), str(path)
+    name = str(config)
+    stem = name[:-5] if name.endswith(".toml") else name
+    if stem not in sweep_config_names():
+        raise FileNotFoundError(
+            f"config {name!r} is neither a TOML file nor a packaged sweep config; packaged: "
+            f"{', '.join(sweep_config_names())}"
+        )
+    return configs().joinpath(f"{stem}.toml").read_text(encoding="utf-8"), f"{stem}.toml (packaged)"
+
+
+def load_config(config: str | Path | None = None, overrides: list[str] = ()) -> SweepConfig:
+    """Read a sweep config: a path to a TOML file, the name of a packaged config
+    (``"quick"``, ``"fig4a"``, ...), or None for the default sweep (``"default"``)."""
+    if config is None:
+        text, source = DEFAULT_TOML, "default.toml (packaged)"
     else:
-        path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"config file {path} not found")
-        with path.open("rb") as fh:
-            raw = tomllib.load(fh)
+        text, source = resolve_config(config)
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ValueError(f"config {source} is not valid TOML: {err}") from None
     return _parse(apply_overrides(raw, list(overrides)))

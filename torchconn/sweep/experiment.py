@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
+from .._provenance import spawn_seeds
 from ..evaluation.models import (
     COMPONENTS,
     MODELS,
@@ -24,7 +25,6 @@ from ..evaluation.models import (
 )
 from ..physics.gaits import reference_gait
 from ..physics.systems import NLinkSwimmer
-from ..regression.estimator import ConnectionEstimator
 from ..simulation.observe import observe
 from ..simulation.rollout import simulate
 from .config import Experiment, SweepConfig
@@ -56,19 +56,14 @@ def make_system(name: str) -> NLinkSwimmer:
 
 
 def experiment_seeds(config: SweepConfig, experiment: Experiment) -> np.ndarray:
-    """Seeds ``(levels, trials)``: cell (i, j) gets ``SeedSequence(root, spawn_key=(e, i, j))``.
+    """Seeds ``(levels, trials)``: cell (i, j) of experiment e gets
+    ``SeedSequence(root, spawn_key=(e, i, j))`` (:func:`torchconn._provenance.spawn_seeds`).
 
     Keyed by position, so a cell's seed does not depend on which other cells run, in which
     order, or on which backend.
     """
     e = [x.name for x in config.experiments].index(experiment.name)
-    L, n = len(experiment.levels), experiment.trials
-    seeds = np.empty((L, n), dtype=object)
-    for i in range(L):
-        for j in range(n):
-            ss = np.random.SeedSequence(config.seed, spawn_key=(e, i, j))
-            seeds[i, j] = int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
-    return seeds
+    return spawn_seeds(config.seed, (len(experiment.levels), experiment.trials), key=(e,))
 
 
 def run_experiment(config: SweepConfig, experiment: Experiment) -> ExperimentResult:
@@ -96,7 +91,7 @@ def run_experiment(config: SweepConfig, experiment: Experiment) -> ExperimentRes
 
     # the sweep scores body-velocity models only, so the metric is not fitted (at low noise its
     # quadratic regressors can be too thin to fit, which should not stop a connection study)
-    estimator = ConnectionEstimator(**{**asdict(config.estimator), "metric": False})
+    estimator = config.make_estimator().set_params(regression__metric=False)
     phase = traj.truth.phase if config.phase == "true" else None
     t0 = clock()
     prepared = estimator.prepare(traj, phase=phase)

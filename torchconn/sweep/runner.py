@@ -8,17 +8,13 @@ component, metric, value), ``phase_errors.csv`` (error per phase bin), ``traces.
 
 from __future__ import annotations
 
-import json
-import platform
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from .. import __version__
+from .._provenance import write_sidecar
 from .claims import check_claims
 from .config import SweepConfig
 from .experiment import (
@@ -127,15 +123,6 @@ def _run_dask(config, pending, store, progress, workers, scheduler) -> None:
             cluster.close()
 
 
-def _versions() -> dict:
-    import matplotlib
-    import scipy
-
-    return {"torchconn": __version__, "torch": torch.__version__, "numpy": np.__version__,
-            "scipy": scipy.__version__, "matplotlib": matplotlib.__version__,
-            "python": platform.python_version()}
-
-
 def _assemble(config, out, store, plan, wall, figures, log) -> dict:
     results, phase_errors, traces, timings = [], [], [], {}
     for exp, fp in plan:
@@ -160,16 +147,15 @@ def _assemble(config, out, store, plan, wall, figures, log) -> dict:
         made = make_figures(out, *as_dicts, config.experiments)
     sidecar = {
         "config": config.raw,
-        "estimator": asdict(config.estimator),
+        "estimator": config.estimator,
         "root_seed": config.seed,
         "seeds": {e.name: experiment_seeds(config, e).tolist() for e, _ in plan},
         "fingerprints": {e.name: fp for e, fp in plan},
-        "versions": _versions(),
         "timings_s": timings,
         "wall_time_s_this_run": wall,
         "torch_threads": torch.get_num_threads(),
     }
-    (out / "run.json").write_text(json.dumps(sidecar, indent=2, default=str))
+    write_sidecar(out / "run.json", sidecar)
     for claim, holds, evidence in claims:
         log(f"{'HOLDS' if holds is True else 'FAILS' if holds is False else 'n/a  '}  {claim}\n"
             f"       {evidence}")

@@ -2,8 +2,10 @@
 
 The objective is differentiated by autograd through the fourth-order Magnus integration of
 :mod:`torchconn.physics.gaits.evaluate` and maximised with L-BFGS (strong-Wolfe line search). Run as
-``python -m torchconn.physics.gaits.optimize`` to recompute the optimised gaits stored in
-``configs/gaits.toml``.
+``python -m torchconn.physics.gaits.optimize --out FILE.toml`` to recompute the optimised gaits
+(the repository's ``configs/gaits.toml``, packaged as ``torchconn.configs``, was written with
+``--out configs/gaits.toml`` from the repository root; read another file with
+``reference_gait(system, path=FILE.toml)``).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from ..systems import NLinkSwimmer
 from ..systems.base import LocomotionSystem
 from .evaluate import displacement, evaluate
 from .gait import ModalGait, PolarGait
-from .reference import GAITS_FILE, nine_link_modes, three_link_gait
+from .reference import nine_link_modes, three_link_gait
 
 __all__ = ["OptimisedGait", "optimise_gait", "main", "NINE_LINK_MAX_RADIUS"]
 
@@ -134,9 +136,12 @@ def _toml_entry(name: str, comment: str, run: OptimisedGait, extra: str = "") ->
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m torchconn.physics.gaits.optimize",
-        description="Optimise the x-extremal gaits and write configs/gaits.toml.",
+        description="Optimise the x-extremal 3- and 9-link gaits and write them to a TOML file "
+        "(the format of the packaged gaits.toml; read it back with "
+        "torchconn.physics.gaits.reference_gait(system, path=FILE)).",
     )
-    parser.add_argument("--out", type=Path, default=GAITS_FILE)
+    parser.add_argument("--out", type=Path, required=True, metavar="FILE.toml",
+                        help="where to write the gaits (e.g. configs/gaits.toml in a checkout)")
     parser.add_argument("--order", type=int, default=4, help="Fourier order of the log-radius")
     args = parser.parse_args(argv)
 

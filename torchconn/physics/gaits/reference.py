@@ -1,4 +1,9 @@
-"""The reference gaits of CONVENTIONS, and the optimised gaits stored in ``configs/gaits.toml``."""
+"""The reference gaits (docs/conventions.md, "Reference gaits") and the optimised gaits.
+
+The optimised gaits ship with the package in ``gaits.toml`` (the repository's ``configs/``),
+read with :mod:`importlib.resources`; every reader takes a ``path`` to use another file, e.g.
+one written by ``python -m torchconn.physics.gaits.optimize --out FILE.toml``.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +13,7 @@ from pathlib import Path
 
 import torch
 
+from ..._resources import read_config
 from .gait import FourierGait, ModalGait, PolarGait
 
 __all__ = [
@@ -16,7 +22,6 @@ __all__ = [
     "reference_gait",
     "optimised_gait",
     "load_gaits",
-    "GAITS_FILE",
     "THREE_LINK_EXTREMAL",
     "THREE_LINK_EFFICIENT",
 ]
@@ -26,10 +31,6 @@ THREE_LINK_EXTREMAL = (2.017955906441066, 1.353385144748382, 0.013112519773635,
                        0.263823759269392, -0.031456173657342, -0.003626287235861)
 THREE_LINK_EFFICIENT = (1.495398722861924, 1.326600886340017, 0.083253854456986,
                         0.089227148110158, -0.034695750579259, -0.044759551791058)
-
-#: where the optimised gaits live (the repository's ``configs/``)
-GAITS_FILE = Path(__file__).resolve().parents[3] / "configs" / "gaits.toml"
-
 
 def three_link_gait(kind: str = "extremal") -> FourierGait:
     """The Tam–Hosoi-form 3-link gait: ``r = R45 (a(t'), b(t'))`` with ``t' = −t``.
@@ -55,32 +56,37 @@ def nine_link_modes(dtype=torch.float64) -> torch.Tensor:
     return torch.stack([torch.sin(2 * math.pi * k / 8), torch.cos(2 * math.pi * k / 8)], -1)
 
 
-def load_gaits(path: Path | str = GAITS_FILE) -> dict:
-    """The optimised gaits' table from ``configs/gaits.toml``."""
+def load_gaits(path: Path | str | None = None) -> dict:
+    """The optimised gaits' table: the packaged ``gaits.toml``, or the TOML file ``path``."""
+    if path is None:
+        return read_config("gaits")
     path = Path(path)
-    if not path.exists():
+    if not path.is_file():
         raise FileNotFoundError(
-            f"{path} not found; it is written by `python -m torchconn.physics.gaits.optimize` and ships "
-            "in the repository's configs/ (install torchconn from a checkout: pip install -e .)"
+            f"gaits file {path} not found; write one with "
+            "`python -m torchconn.physics.gaits.optimize --out FILE.toml`, or pass path=None "
+            "for the gaits that ship with torchconn"
         )
     with path.open("rb") as fh:
         return tomllib.load(fh)
 
 
-def optimised_gait(name: str, path: Path | str = GAITS_FILE) -> PolarGait:
-    """An optimised planar gait stored in ``configs/gaits.toml`` (e.g. ``"nine_link_x_extremal"``)."""
+def optimised_gait(name: str, path: Path | str | None = None) -> PolarGait:
+    """An optimised planar gait (e.g. ``"nine_link_x_extremal"``) from the packaged
+    ``gaits.toml`` or the file ``path``."""
     table = load_gaits(path)
     if name not in table:
-        raise KeyError(f"no gait {name!r} in {path}; stored: {sorted(table)}")
+        where = "the packaged gaits.toml" if path is None else str(path)
+        raise KeyError(f"no gait {name!r} in {where}; stored: {sorted(table)}")
     entry = table[name]
     return PolarGait([0.0, 0.0], entry["radius_logit"], entry["direction"], entry["max_radius"])
 
 
-def reference_gait(system: str, path: Path | str = GAITS_FILE):
+def reference_gait(system: str, path: Path | str | None = None):
     """The reference gait of a system: ``"3link"`` (Tam–Hosoi extremal) or ``"9link"``.
 
     The 9-link reference is the x-extremal gait in the two-mode plane, found by the gait
-    optimiser and stored in ``configs/gaits.toml``.
+    optimiser and stored in the packaged ``gaits.toml`` (or the file ``path``).
     """
     if system in ("3link", "3-link", "three_link"):
         return three_link_gait("extremal")

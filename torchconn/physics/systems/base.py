@@ -14,26 +14,10 @@ from abc import ABC, abstractmethod
 import torch
 from torch import Tensor
 
+from ..._checks import check_shapes
 from .. import se2
 
 __all__ = ["LocomotionSystem", "check_shapes"]
-
-
-def check_shapes(r: Tensor, d: int, name: str = "r") -> Tensor:
-    """Validate a shape tensor ``(..., d)``: a floating tensor with no NaN/inf."""
-    if not isinstance(r, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor of shape (..., {d}), got {type(r).__name__}")
-    if r.ndim < 1 or r.shape[-1] != d:
-        raise ValueError(
-            f"{name} must have shape (..., {d}) for a system with {d} joints, got {tuple(r.shape)}"
-        )
-    if not r.is_floating_point():
-        raise TypeError(f"{name} must be a floating-point tensor, got dtype {r.dtype}")
-    if not torch.isfinite(r).all():
-        raise ValueError(
-            f"{name} contains NaN or inf; fill or drop missing samples before asking for A(r)"
-        )
-    return r
 
 
 class LocomotionSystem(ABC):

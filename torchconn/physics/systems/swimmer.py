@@ -1,6 +1,6 @@
 """The viscous N-link swimmer (resistive-force theory), exact and batched.
 
-Conventions (``shared/CONVENTIONS.md``, matching Hatton's GSP up to the sign of A):
+Conventions (docs/conventions.md, matching Hatton's GSP up to the sign of A):
 N rigid links in a chain, link 1 the tail, body +x from tail to head; shape ``r_i`` is the
 angle of link i+1 minus that of link i. A straight link of length ``l`` moving with twist
 ``xi_link`` in its midpoint frame feels the drag wrench
@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ... import _checks
 from .. import se2
 from .base import LocomotionSystem, check_shapes
 
@@ -63,8 +64,7 @@ class NLinkSwimmer(LocomotionSystem):
         link_lengths=None,
         drag_coefficient: float | Tensor = 1.0,
     ):
-        if isinstance(n_links, bool) or not isinstance(n_links, int) or n_links < 2:
-            raise ValueError(f"n_links must be an integer >= 2, got {n_links!r}")
+        _checks.integer(n_links, "n_links", minimum=2)
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
         if frame == "center" and n_links % 2 == 0:

@@ -1,0 +1,259 @@
+"""The estimator's pluggable stages: defaults equal the previous pipeline, options validate
+themselves, scikit-learn parameter protocol, settings tables, Phaser fit/transform."""
+
+import dataclasses
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from torchconn import NLinkSwimmer, observe, simulate
+from torchconn.phase.fourier import fit_fourier
+from torchconn.phase.limit_cycle import SelfConsistentCycle, fit_limit_cycle
+from torchconn.phase.phaser import Phaser, circular_rms, estimate_phase
+from torchconn.phase.smoothing import RTSSmoother, smooth_trajectory
+from torchconn.physics.gaits import reference_gait
+from torchconn.regression.binning import assign_bins
+from torchconn.regression.connection import connection_regression
+from torchconn.regression.estimator import (
+    ConnectionEstimator,
+    estimator_from_settings,
+    estimator_settings,
+)
+from torchconn.regression.metric import metric_n_coef, metric_regression
+from torchconn.regression.tube import TubeRegression
+from torchconn.sweep.config import load_config
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def recording():
+    """3-link, 2 trials x 10 cycles, motion-capture noise 0.002, with a power channel."""
+    seeds = np.arange(2) + 40
+    traj = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=10, seeds=seeds)
+    return observe(traj, 0.002, seeds=seeds)
+
+
+def _previous_defaults(traj):
+    """torchconn 0.1's default fit spelled out with its lower-level functions and its explicit
+    default numbers: RTS order 2, Phaser order 3 (>= 3 cycles), cycle order 8, 48 bins, tricube
+    windows sized to 2.5 samples per regressor, Fourier order 12, metric without ∂M/∂r."""
+    sm = smooth_trajectory(traj.pose, traj.r, traj.dt, order=2)
+    phase = estimate_phase(sm.r, order=3, min_cycles=3.0)
+    cycle = fit_limit_cycle(phase, traj.r, sm.r_dot, order=8, dt=traj.dt)
+    M, K, d = 48, 12, traj.shape_dim
+    centres = torch.arange(M, dtype=F64) * (2 * math.pi / M)
+    grid = centres.expand(phase.shape[:-1] + (M,))
+    gamma_m = cycle.gamma(grid)
+    gamma_dot_m = cycle.phase_rate[..., None, None] * cycle.gamma.derivative()(grid)
+
+    def bins(n_regressors):
+        per_spacing = phase.shape[-1] / M  # no NaN: every trial has all its samples
+        window = min(max(2.5 * n_regressors / (1.2 * per_spacing), 1.0), M / 4)
+        return assign_bins(phase, M, window=window, kernel="tricube")
+
+    opts = dict(delta_max=None, ridge=0.0, on_ill_conditioned="raise")
+    fit = connection_regression(sm.r, sm.r_dot, sm.xi, bins(1 + 2 * d + d * d), gamma_m,
+                                gamma_dot_m, **opts)
+    metric = metric_regression(sm.r, sm.r_dot, traj.power, bins(metric_n_coef(d, False)),
+                               gamma_m, gamma_dot_m, with_metric_derivative=False, **opts)
+    coeffs = {name: fit_fourier(centres, value, K, value_ndim=nd).coeffs
+              for name, value, nd in (("c", fit.c, 1), ("b", fit.b, 2), ("A", fit.A, 2),
+                                      ("dA", fit.dA, 3), ("M", metric.M, 2))}
+    return phase, cycle.gamma.coeffs, coeffs, fit.se_A
+
+
+def test_default_stages_reproduce_the_previous_defaults(recording):
+    est = ConnectionEstimator().fit(recording)
+    phase, gamma, coeffs, se_A = _previous_defaults(recording)
+    model = est.model_
+    torch.testing.assert_close(est.trajectory_.phase, phase, rtol=0, atol=1e-12)
+    torch.testing.assert_close(model.gamma.coeffs, gamma, rtol=0, atol=1e-12)
+    for name, expected in coeffs.items():
+        torch.testing.assert_close(getattr(model, name).coeffs, expected, rtol=0, atol=1e-12)
+    torch.testing.assert_close(model.bins.A_se, se_A, rtol=0, atol=1e-12)
+    # and the estimates are real ones: A within a few per cent of the swimmer's exact A
+    A_true = NLinkSwimmer(3).connection(model.bins.gamma)
+    assert float((model.bins.A - A_true).norm() / A_true.norm()) < 0.3
+
+
+def test_flat_settings_of_0_1_still_work_with_a_warning(recording):
+    with pytest.warns(DeprecationWarning, match="regression=TubeRegression"):
+        old = ConnectionEstimator(n_bins=24, fourier_order=6, phase_order=4, cycle_order=5)
+    new = ConnectionEstimator(phaser=Phaser(order=4), cycle=SelfConsistentCycle(order=5),
+                              regression=TubeRegression(n_bins=24, fourier_order=6))
+    assert old.get_params() == new.get_params()
+    with pytest.raises(TypeError, match=r"'n_bin' \(did you mean 'n_bins'\?\)"):
+        ConnectionEstimator(n_bin=24)
+
+
+def test_stage_options_validate_themselves():
+    cases = [
+        (lambda: TubeRegression(kernel="gauss"),
+         "TubeRegression.kernel must be one of 'box', 'tricube', 'epanechnikov', got 'gauss'"),
+        (lambda: TubeRegression(n_bins=2), "TubeRegression.n_bins must be >= 3, got 2"),
+        (lambda: TubeRegression(n_bins=48.0), "TubeRegression.n_bins must be an integer"),
+        (lambda: TubeRegression(window=0.0), "TubeRegression.window must be > 0"),
+        (lambda: TubeRegression(window="auto"),
+         "TubeRegression.window must be a finite number or None"),
+        (lambda: TubeRegression(on_ill_conditioned="ignore"),
+         "on_ill_conditioned must be one of 'raise', 'warn', 'ridge'"),
+        (lambda: TubeRegression(n_bins=10, fourier_order=5), "2\\*fourier_order < n_bins=10"),
+        (lambda: RTSSmoother(order=4), "RTSSmoother.order must be one of 2, 3, got 4"),
+        (lambda: RTSSmoother(order=True), "RTSSmoother.order must be one of 2, 3, got True"),
+        (lambda: Phaser(order=-1), "Phaser.order must be >= 0, got -1"),
+        (lambda: Phaser(min_cycles=float("nan")), "Phaser.min_cycles must be a finite number"),
+        (lambda: SelfConsistentCycle(order=0), "SelfConsistentCycle.order must be >= 1"),
+    ]
+    for make, message in cases:
+        with pytest.raises(ValueError, match=message):
+            make()
+    with pytest.raises(TypeError):
+        TubeRegression(48)  # keyword-only
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        TubeRegression().n_bins = 24
+    with pytest.raises(TypeError, match="regression must be a Regression"):
+        ConnectionEstimator(regression=Phaser())
+
+
+def test_get_and_set_params_follow_scikit_learn_without_it():
+    est = ConnectionEstimator(regression=TubeRegression(n_bins=24, fourier_order=6), pool=True)
+    shallow = est.get_params(deep=False)
+    assert set(shallow) == {"smoother", "phaser", "cycle", "regression", "pool"}
+    deep = est.get_params(deep=True)
+    assert deep["regression__n_bins"] == 24 and deep["phaser__order"] == 3
+    assert deep["smoother__order"] == 2 and deep["cycle__order"] == 8 and deep["pool"] is True
+    shared = est.regression
+    assert est.set_params(regression__n_bins=32, phaser__order=4, pool=False) is est
+    assert est.regression.n_bins == 32 and est.regression.fourier_order == 6
+    assert est.phaser.order == 4 and est.pool is False
+    assert shared.n_bins == 24  # the stage object was replaced, never modified
+    rebuilt = ConnectionEstimator(**est.get_params(deep=False))
+    assert rebuilt.get_params() == est.get_params()
+    with pytest.raises(ValueError, match=r"'regression__nbins' \(did you mean 'regression__n_bins'"):
+        est.set_params(regression__nbins=3)
+    with pytest.raises(ValueError, match="TubeRegression.n_bins must be >= 3"):
+        est.set_params(regression__n_bins=2)
+    assert "n_bins=32" in repr(est) and "Phaser(order=4" in repr(est)
+
+
+def test_sklearn_clone_gives_an_unfitted_estimator_with_equal_parameters(recording):
+    base = pytest.importorskip("sklearn.base")
+    est = ConnectionEstimator(phaser=Phaser(order=4),
+                              regression=TubeRegression(n_bins=24, fourier_order=6, metric=False))
+    est.fit(recording)
+    twin = base.clone(est)
+    assert not hasattr(twin, "model_") and not hasattr(twin, "phaser_")
+    assert twin.get_params(deep=True) == est.get_params(deep=True)
+    assert not hasattr(twin.phaser, "model_")  # the phase stage stays an unfitted option
+    twin.set_params(regression__n_bins=32)
+    assert est.regression.n_bins == 24
+    # the clone fits to the same model
+    torch.testing.assert_close(base.clone(est).fit(recording).model_.A.coeffs,
+                               est.model_.A.coeffs, rtol=0, atol=0)
+
+
+def test_settings_tables_build_the_estimator_and_name_bad_keys():
+    nested = estimator_from_settings({
+        "pool": True, "phaser": {"order": 4},
+        "regression": {"method": "tube", "n_bins": 24, "fourier_order": 6, "kernel": "box"},
+    })
+    flat = estimator_from_settings({"pool": True, "phase_order": 4, "n_bins": 24,
+                                    "fourier_order": 6, "kernel": "box"})
+    assert nested.get_params() == flat.get_params()
+    assert estimator_from_settings(estimator_settings(nested)).get_params() == nested.get_params()
+    assert estimator_settings(ConnectionEstimator())["regression"]["method"] == "tube"
+    bad = [
+        ({"regresion": {}}, r"estimator: unknown key 'regresion' \(did you mean 'regression'\?\)"),
+        ({"regression": {"n_bin": 3}},
+         r"estimator.regression \(TubeRegression\): unknown key 'n_bin' \(did you mean 'n_bins'"),
+        ({"regression": {"n_bins": 4.5}},
+         "estimator.regression: TubeRegression.n_bins must be an integer, got 4.5"),
+        ({"smoother": {"method": "kalman"}}, r"estimator.smoother.method: unknown key 'kalman'"),
+        ({"phaser": 3}, "estimator.phaser must be a table"),
+        ({"pool": "yes"}, "estimator.pool must be true or false"),
+        ({"phase_order": -2}, "Phaser.order must be >= 0, got -2"),
+    ]
+    for settings, message in bad:
+        with pytest.raises(ValueError, match=message):
+            estimator_from_settings(settings)
+
+
+def test_sweep_config_builds_the_estimator_and_its_fingerprint_follows_it(tmp_path):
+    path = tmp_path / "s.toml"
+    path.write_text("""
+name = "s"
+seed = 1
+[estimator.regression]
+n_bins = 24
+fourier_order = 6
+[[experiment]]
+system = "3link"
+noise_kind = "system"
+levels = [1.0]
+trials = 1
+""")
+    config = load_config(path)
+    est = config.make_estimator()
+    assert est.regression.n_bins == 24 and est.regression.fourier_order == 6
+    exp = config.experiments[0]
+    same = load_config(path, ["estimator.regression.fourier_order=6"])
+    assert same.fingerprint(same.experiments[0]) == config.fingerprint(exp)
+    for change in ("estimator.regression.n_bins=32", "estimator.phaser.order=4",
+                   "estimator.smoother.order=3", "estimator.cycle.order=5", "estimator.pool=true"):
+        other = load_config(path, [change])
+        assert other.fingerprint(other.experiments[0]) != config.fingerprint(exp), change
+    with pytest.raises(ValueError, match=r"\[estimator\].regression: TubeRegression.n_bins"):
+        load_config(path, ["estimator.regression.n_bins=2"])
+
+
+def test_phaser_transform_reuses_the_fitted_origin_on_new_recordings():
+    traj = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=16,
+                    seeds=np.arange(2) + 3)
+    r, truth = traj.r, traj.truth.phase
+    half = r.shape[-2] // 2
+    options = Phaser()
+    fitted = options.fit(r[..., :half, :])
+    assert not hasattr(options, "model_")  # fit returns a fitted copy; the options stay as given
+    with pytest.raises(RuntimeError, match="not fitted"):
+        options.transform(r)
+    torch.testing.assert_close(fitted.phase_, estimate_phase(r[..., :half, :]), rtol=0, atol=0)
+    torch.testing.assert_close(fitted.transform(r[..., :half, :]), fitted.phase_,
+                               rtol=0, atol=1e-12)
+    # on the unseen second half: the same phase origin, and an error of the fit's order (the
+    # learned corrections carry the training half's noise: 0.055 / 0.047 rad here, against
+    # 0.040 / 0.037 on the training half and 0.023 / 0.027 for a fresh estimate on the new half)
+    new = fitted.transform(r[..., half:, :])
+
+    def origin(est, true):  # circular mean of the estimate's offset from the true phase
+        d = est - true
+        return torch.atan2(torch.sin(d).mean(-1), torch.cos(d).mean(-1))
+
+    shift = origin(new, truth[..., half:]) - origin(fitted.phase_, truth[..., :half])
+    shift = torch.remainder(shift + math.pi, 2 * math.pi) - math.pi
+    print(f"origin shift between fit and new half: {shift.tolist()} rad; rms error "
+          f"{circular_rms(new, truth[..., half:]).tolist()}")
+    assert shift.abs().max() < 0.03
+    assert circular_rms(new, truth[..., half:]).max() < 0.08
+    # a different number of channels is refused with the counts named
+    with pytest.raises(ValueError, match="fitted to 2 channels, x has 1"):
+        fitted.transform(r[..., :1])
+
+
+def test_the_phase_stage_phases_padded_trials_over_their_own_spans():
+    traj = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=8,
+                    seeds=np.arange(2))
+    r = traj.r.clone()
+    r[1, -100:] = float("nan")  # the second trial ended earlier (padding on a shared grid)
+    fitted = Phaser().fit(r)
+    assert torch.isnan(fitted.phase_[1, -100:]).all()
+    torch.testing.assert_close(fitted.phase_[1, :-100], estimate_phase(r[1, :-100]),
+                               rtol=0, atol=0)
+    torch.testing.assert_close(fitted.phase_[0], estimate_phase(r[0]), rtol=0, atol=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = fitted.transform(r)
+    torch.testing.assert_close(again, fitted.phase_, rtol=0, atol=1e-12, equal_nan=True)

@@ -1,0 +1,167 @@
+"""The estimator's regression stage: tube regressions in phase bins, then Fourier in phase.
+
+:class:`TubeRegression` fits, in each of M phase bins, the first-order model of the body
+velocity around the cycle (eq. ``advancedregression``, :func:`connection_regression`) and, when
+the data carry power, the metric (eq. ``advancedmetricregression``, :func:`metric_regression`),
+and interpolates the per-bin estimates by Fourier series in phase into a
+:class:`~torchconn.regression.model.LocalConnectionModel`. Other regression methods derive from
+:class:`Regression` and slot into ``ConnectionEstimator(regression=…)``.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from .._options import Options, option
+from ..phase.fourier import fit_fourier
+from ..phase.limit_cycle import LimitCycle
+from ..trajectory import Trajectory, pool_batch
+from .binning import assign_bins
+from .connection import connection_regression
+from .metric import metric_n_coef, metric_regression
+from .model import BinEstimates, LocalConnectionModel
+
+__all__ = ["Regression", "TubeRegression"]
+
+
+class Regression(Options, abc.ABC):
+    """Base of the estimator's regression stage: ``fit(traj, cycle, pool=...) -> model``."""
+
+    @abc.abstractmethod
+    def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False
+            ) -> LocalConnectionModel:
+        """The local model of a prepared trajectory (``smoothed`` and ``phase`` set) around
+        ``cycle``: batch dims ``...`` of ``traj``, or none when ``pool``."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class TubeRegression(Regression):
+    """Tube regressions in phase bins and their Fourier series in phase (the paper's Sec. 4).
+
+    Attributes:
+        n_bins: phase bins M (regression centres φ_m = 2πm/M).
+        fourier_order: order of the Fourier series interpolating the per-bin estimates
+            (at most (M−1)/2). ``A(γ(φ))`` is nonlinear in the gait, so it carries harmonics
+            well above the gait's own; a low order biases the model.
+        window: half-width of a bin's phase window in units of the bin spacing (0.5: each
+            sample in exactly one bin; larger: overlapping windows, more samples per bin).
+            None (default) sizes it from the data: wide enough that a window holds about
+            ``samples_per_regressor`` samples per regressor, and at least 1.
+        samples_per_regressor: the data-size rule behind ``window=None``.
+        kernel: sample weights within a window (``"tricube"`` falls smoothly to zero at the
+            window's edge, which lowers the bias from the gait's curvature within a window).
+        delta_max: only samples with ``|δ| < delta_max`` enter a bin's regression (None: all).
+        ridge: Tikhonov penalty on the scaled regressors (0: ordinary least squares).
+        on_ill_conditioned: what to do with bins with too few samples or a rank-deficient
+            design: raise, warn, or regularise (``"ridge"``).
+        metric: also estimate the metric when the data carry power.
+    """
+
+    n_bins: int = option(48, ge=3)
+    fourier_order: int = option(12, ge=0)
+    window: float | None = option(None, gt=0)
+    samples_per_regressor: float = option(2.5, gt=0)
+    kernel: Literal["box", "tricube", "epanechnikov"] = "tricube"
+    delta_max: float | None = option(None, gt=0)
+    ridge: float = option(0.0, ge=0)
+    on_ill_conditioned: Literal["raise", "warn", "ridge"] = "raise"
+    metric: bool = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not 2 * self.fourier_order < self.n_bins:
+            raise ValueError(
+                f"TubeRegression.fourier_order must satisfy 2*fourier_order < n_bins="
+                f"{self.n_bins} (the series is fitted to one value per bin), got "
+                f"{self.fourier_order!r}"
+            )
+
+    def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False
+            ) -> LocalConnectionModel:
+        """Regressions in every phase bin and their Fourier series in phase.
+
+        Args:
+            traj: a prepared trajectory (``smoothed`` and ``phase`` set), batch dims ``...``.
+            cycle: its limit cycle (batch dims ``...``, or none when ``pool``).
+            pool: fit one model to all trials together.
+
+        Returns:
+            a :class:`LocalConnectionModel` with batch dims ``...`` (none when pooled).
+        """
+        if traj.smoothed is None or traj.phase is None:
+            raise ValueError("TubeRegression.fit needs a prepared trajectory: call "
+                             "ConnectionEstimator.prepare(traj) first")
+        s = traj.smoothed
+        phase, r, r_dot, xi, power = traj.phase, s.r, s.r_dot, s.xi, traj.power
+        if pool:
+            phase, r, r_dot, xi = (pool_batch(x, k)
+                                   for x, k in ((phase, 0), (r, 1), (r_dot, 1), (xi, 1)))
+            power = None if power is None else pool_batch(power, 0)
+        M = self.n_bins
+        centres = torch.arange(M, dtype=r.dtype, device=r.device) * (2 * math.pi / M)
+        batch = phase.shape[:-1]
+        gamma_m = cycle.gamma_at(centres.expand(batch + (M,)))
+        gamma_dot_m = (cycle.phase_rate[..., None, None]
+                       * cycle.gamma_dot_at(centres.expand(batch + (M,))))
+        opts = dict(delta_max=self.delta_max, ridge=self.ridge,
+                    on_ill_conditioned=self.on_ill_conditioned)
+        d = r.shape[-1]
+
+        def bins_for(n_regressors: int):
+            window = self.window or _auto_window(phase, M, n_regressors,
+                                                 self.samples_per_regressor)
+            return assign_bins(phase, M, window=window, kernel=self.kernel), window
+
+        bins, window = bins_for(1 + 2 * d + d * d)
+        fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
+        metric_fit, metric_window = None, None
+        if self.metric and power is not None:
+            mbins, metric_window = bins_for(metric_n_coef(d, False))
+            metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
+                                           with_metric_derivative=False, **opts)
+
+        estimates = BinEstimates(
+            phase=centres, gamma=gamma_m, gamma_dot=gamma_dot_m,
+            c=fit.c, b=fit.b, A=fit.A, dA=fit.dA,
+            c_se=fit.se_c, b_se=fit.se_b, A_se=fit.se_A, dA_se=fit.se_dA,
+            n_samples=fit.n_samples,
+            M=None if metric_fit is None else metric_fit.M,
+            M_se=None if metric_fit is None else metric_fit.se_M,
+        )
+
+        def series(values: Tensor, ndim: int):
+            return fit_fourier(centres, values, self.fourier_order, value_ndim=ndim)
+
+        return LocalConnectionModel(
+            gamma=cycle.gamma, phase_rate=cycle.phase_rate,
+            c=series(fit.c, 1), b=series(fit.b, 2), A=series(fit.A, 2), dA=series(fit.dA, 3),
+            M=None if metric_fit is None else series(metric_fit.M, 2),
+            bins=estimates,
+            meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
+                  "batch_shape": list(batch), "window": window, "metric_window": metric_window,
+                  "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
+        )
+
+
+def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:
+    """Per-joint RMS of the offsets ``δ = r − γ(φ)`` over every sample of every trial: the
+    width of the tube the data covered (``(d,)`` as a list, for the JSON-able ``meta``)."""
+    delta = (r - gamma).reshape(-1, r.shape[-1])
+    return [float(v) for v in delta.pow(2).nanmean(0).sqrt()]
+
+
+def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
+    """Half-width (in bin spacings) holding ``per_regressor`` samples per regressor on average
+    in the batch element with the fewest finite samples; at least 1, at most a quarter cycle
+    (a window must stay local for the first-order model to hold)."""
+    fewest = float(torch.isfinite(phase).sum(-1).min())
+    per_spacing = fewest / n_bins
+    # a tricube window of half-width w spacings carries the weight of ~1.2 w spacings
+    window = per_regressor * n_regressors / (1.2 * per_spacing)
+    return float(min(max(window, 1.0), n_bins / 4))
