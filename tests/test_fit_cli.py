@@ -33,7 +33,8 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
     header = rows[0]
     expected = (["phase", "r1", "r2"] + [f"A_{k}_{i}" for k in ("x", "y", "theta") for i in (1, 2)]
                 + [f"dA_{k}_{i}_{j}" for k in ("x", "y", "theta") for i in (1, 2) for j in (1, 2)]
-                + [f"M_{i}_{j}" for i in (1, 2) for j in (1, 2)])
+                + [f"M_{i}_{j}" for i in (1, 2) for j in (1, 2)]
+                + ["M_gamma_dot_1", "M_gamma_dot_2", "power_on_cycle"])
     assert header == expected
     assert len(rows) == 51
     table = np.array(rows[1:], dtype=float)
@@ -43,6 +44,15 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
     assert np.abs(table[:, 3:9] - a_true).max() < 0.03
     model = LocalConnectionModel.load(out / "model.npz")
     assert model.batch_shape == ()
+    # M̂γ̇ and the on-cycle power against the swimmer's exact metric on the fitted cycle
+    phi = torch.tensor(table[:, 0])
+    gd = model.gamma_dot_at(phi)
+    m_true = swimmer.metric(torch.tensor(table[:, 1:3]))
+    mgd_true = (m_true @ gd[..., None])[..., 0].numpy()
+    p_true = (gd.numpy() * mgd_true).sum(-1)
+    assert np.sqrt(((table[:, -3:-1] - mgd_true) ** 2).sum(-1).mean()
+                   / (mgd_true**2).sum(-1).mean()) < 0.02
+    assert np.sqrt(((table[:, -1] - p_true) ** 2).mean() / (p_true**2).mean()) < 0.01
     for name in ("connection.png", "limit_cycle.png", "metric.png"):
         assert (out / name).stat().st_size > 1000
 

@@ -66,6 +66,9 @@ def test_csv_round_trip_single_trial(traj, tmp_path):
     torch.testing.assert_close(back.r[0], one.r, **EXACT)
     torch.testing.assert_close(back.power[0], one.power, **EXACT)
     assert torch.isnan(back.r).any()  # the drop-outs survived as NaN
+    # power belongs to [t_k, t_k+1): the last row's cell is empty and reads back as missing
+    assert path.read_text().splitlines()[-1].endswith(",")
+    assert torch.isnan(back.power[0, -1]) and torch.isfinite(back.power[0, :-1]).any()
 
 
 def test_csv_round_trip_flattens_batch_into_trials(traj, tmp_path):

@@ -47,8 +47,8 @@ def test_noise_free_cycle_matches_gait_displacement():
 
 
 def test_noise_free_truth_is_the_interval_mean():
-    """xi and r_dot are the means over the centred recording interval; power is the metric
-    at the sample applied to that mean velocity.
+    """xi and r_dot are the means over the centred recording interval; power belongs to the
+    sample interval [t_k, t_k+1) (CONVENTIONS), with the metric at the interval's mid-shape.
 
     xi is compared with Gauss–Legendre quadrature of the smooth integrand; the trapezoid on the
     fine grid is second order, so halving h must quarter the error.
@@ -70,13 +70,32 @@ def test_noise_free_truth_is_the_interval_mean():
         errors.append(float((traj.truth.xi - xi).abs().max() / xi.abs().max()))
         r_dot = (gait(0.3 + traj.t + dt / 2) - gait(0.3 + traj.t - dt / 2)) / dt
         torch.testing.assert_close(traj.truth.r_dot, r_dot, rtol=0, atol=1e-12)
-        m_k = system.metric(gait(0.3 + traj.t))
-        power = torch.einsum("ti,tij,tj->t", r_dot, m_k, r_dot)
-        torch.testing.assert_close(traj.power, power, rtol=1e-12, atol=0)
+        # independent of the recording: the gait itself at the sample times
+        r_k = gait(0.3 + traj.t)
+        v = (r_k[1:] - r_k[:-1]) / dt
+        m_k = system.metric((r_k[1:] + r_k[:-1]) / 2)
+        power = torch.einsum("ti,tij,tj->t", v, m_k, v)
+        torch.testing.assert_close(traj.power[:-1], power, rtol=1e-12, atol=0)
+        assert torch.isnan(traj.power[-1])
     xi16, xi32 = errors
     print(f"interval-mean errors: xi {xi16:.2e} -> {xi32:.2e}")
     assert xi32 < 1e-4
     assert 3 < xi16 / xi32 < 5
+
+
+def test_power_on_sample_interval_constant_metric():
+    """The affine toy has a constant M, so on the rough SDE path the recorded power is exactly
+    ``v_kᵀ M v_k`` with ``v_k`` the difference of the recorded true shapes; the last row is empty."""
+    system = AffineConnectionSystem.random(d=3, seed=4)
+    gait = FourierGait(torch.tensor([[0.1, 0.0, -0.2], [1.0, 0.3, 0.0], [0.0, 0.5, 0.8]],
+                                    dtype=torch.float64))
+    traj = simulate(system, gait, eta=0.3, n_cycles=2, samples_per_cycle=16, seeds=[[3, 4]])
+    r = traj.truth.r.numpy()
+    v = np.diff(r, axis=-2) / traj.dt
+    expected = np.einsum("...i,ij,...j->...", v, system.m.numpy(), v)
+    np.testing.assert_allclose(traj.power[..., :-1].numpy(), expected, rtol=1e-13, atol=0)
+    assert torch.isnan(traj.power[..., -1]).all() and torch.isfinite(traj.power[..., :-1]).all()
+    torch.testing.assert_close(traj.truth.power, traj.power, rtol=0, atol=0, equal_nan=True)
 
 
 # ---------------------------------------------------------------------------- SDE statistics
@@ -183,7 +202,7 @@ def test_cell_result_independent_of_batch():
     alone = simulate(system, gait, eta=0.05, n_cycles=2, seeds=22)
     for name in ("pose", "r", "power"):
         torch.testing.assert_close(getattr(big, name)[1, 1], getattr(alone, name),
-                                   rtol=0, atol=1e-12)
+                                   rtol=0, atol=1e-12, equal_nan=True)
     for name in ("phase", "xi", "r_dot", "delta"):
         torch.testing.assert_close(getattr(big.truth, name)[1, 1], getattr(alone.truth, name),
                                    rtol=0, atol=1e-12)

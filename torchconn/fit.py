@@ -4,8 +4,10 @@ Also runs as ``python -m torchconn.fit``. Reads trajectory CSV files (the format
 docs/conventions.md, section "Trajectory file format"), estimates phase and limit cycle, fits the
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
-uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>]``) and PNG
-plots with 95% confidence bands.
+uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>,
+M_gamma_dot_<i>, power_on_cycle]``) and PNG plots with 95% confidence bands. ``M_gamma_dot``
+(``M̂γ̇``) and ``power_on_cycle`` (``γ̇ᵀM̂γ̇``) are what the gait itself identifies; the full
+``M̂`` is only as good as the recording's off-cycle excitation (see the bands in ``metric.png``).
 """
 
 from __future__ import annotations
@@ -43,6 +45,9 @@ def connection_table(model: LocalConnectionModel, n_points: int = 100):
     if model.M is not None:
         cols += [f"M_{i + 1}_{j + 1}" for i in range(d) for j in range(d)]
         blocks.append(model.metric(phi).reshape(n_points, -1))
+        # the parts of M̂ the gait itself identifies, beside the full M̂
+        cols += [f"M_gamma_dot_{i + 1}" for i in range(d)] + ["power_on_cycle"]
+        blocks += [model.metric_gamma_dot(phi), model.power_on_cycle(phi)[:, None]]
     return cols, torch.cat(blocks, -1).tolist()
 
 
@@ -107,6 +112,13 @@ def main(argv: list[str] | None = None) -> int:
         plot_metric(model, out / "metric.png")
     print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
           f"samples (d = {traj.shape_dim})")
+    if model.M is not None:
+        noise = (model.meta or {}).get("metric_noise_std")
+        if noise is not None:
+            print("shape noise estimated for the metric (rad): "
+                  + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
+        print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; the "
+              "full M only as far as the data leave the cycle (see the bands in metric.png)")
     print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
     return 0
 

@@ -19,7 +19,7 @@ from torch import Tensor
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..simulation.observe import observe
-from ..simulation.rollout import simulate
+from ..simulation.rollout import interval_power, simulate
 from ..trajectory import GroundTruth, Trajectory
 from .effects import Effect, get_effect
 from .forward import _swimmer_kwargs, cubic_interp
@@ -171,18 +171,14 @@ def simulate_with_effects(
     w = w / U
     win = rows[:, None] + torch.arange(-(U // 2), U // 2 + 1)  # (T, U+1) for even U
 
-    def interval_mean(x: Tensor) -> Tensor:
+    def interval_mean(x: Tensor) -> Tensor:  # (..., T_fine, C) -> (..., T, C)
         if U == 1:
-            return x[..., rows, :] if x.ndim > len(batch) + 1 else x[..., rows]
-        if x.ndim == len(batch) + 1:
-            return (x[..., win] * w).sum(-1)
+            return x[..., rows, :]
         return (x[..., win, :] * w[:, None]).sum(-2)
 
-    if U % 2:
-        xi = fine.truth.xi[..., rows, :]
-        power = fine.power[..., rows]
-    else:
-        xi, power = interval_mean(fine.truth.xi), interval_mean(fine.power)
+    xi = fine.truth.xi[..., rows, :] if U % 2 else interval_mean(fine.truth.xi)
+    # power on the output samples' intervals (CONVENTIONS), from the true shapes at those samples
+    power = interval_power(sys_eff, fine.r[..., rows, :], dt)
     half = U // 2
     r_dot = (fine.r[..., rows + half, :] - fine.r[..., rows - half, :]) / dt if U > 1 and \
         not U % 2 else fine.truth.r_dot[..., rows, :]

@@ -1,10 +1,11 @@
 """Reading and writing trajectories: the CSV trajectory format and a lossless NPZ form.
 
 CSV (docs/conventions.md, "Trajectory file format"): a header row, then one row per sample on a
-uniform grid, columns ``t, x, y, theta, r1, …, rd`` and optionally ``power`` (the mean power
-over ``[t_k, t_{k+1})``); several trials may share a file with an integer ``trial`` column.
-Empty cells and ``nan`` are missing samples. Column names are matched case-insensitively after
-stripping blanks; any other column is ignored with a warning.
+uniform grid, columns ``t, x, y, theta, r1, …, rd`` and optionally ``power``; several trials may
+share a file with an integer ``trial`` column. Empty cells and ``nan`` are missing samples.
+``power`` at row ``k`` is the mean power over ``[t_k, t_{k+1})``, so each trial's last ``power``
+cell is empty. Column names are matched case-insensitively after stripping blanks; any other
+column is ignored with a warning.
 
 :func:`read_csv` returns one :class:`~torchconn.trajectory.Trajectory` with batch shape
 ``(n_trials,)`` (trials ordered by file, then trial id); trials of different lengths are padded
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import math
 import re
@@ -331,8 +333,9 @@ def write_csv(traj: Trajectory, path: str | PathLike) -> Path:
     Columns ``t, x, y, theta, r1, …, rd`` (+ ``power`` when present); the batch dims are
     flattened (C order) into trials, and a leading integer ``trial`` column ``0 … n−1`` is
     written when there is more than one. Values use ``%.17g`` (exact round trip), missing ones
-    ``nan``. ``truth``, ``phase``, ``smoothed``, ``meta`` and the batch shape are not written:
-    use :func:`save_npz` for those.
+    ``nan``, except missing ``power`` cells, which are empty (the last row of every trial: its
+    interval ``[t_k, t_{k+1})`` ends after the recording). ``truth``, ``phase``, ``smoothed``,
+    ``meta`` and the batch shape are not written: use :func:`save_npz` for those.
 
     Returns:
         the path written.
@@ -357,7 +360,14 @@ def write_csv(traj: Trajectory, path: str | PathLike) -> Path:
         names.insert(0, "trial")
         fmt.insert(0, "%d")
     table = np.concatenate(parts, -1).reshape(n * T, len(names))
-    np.savetxt(path, table, fmt=fmt, delimiter=",", header=",".join(names), comments="")
+    buf = io.StringIO()
+    np.savetxt(buf, table, fmt=fmt, delimiter=",", header=",".join(names), comments="")
+    text = buf.getvalue()
+    if traj.power is not None:
+        # power is the last column; its missing cells (at least each trial's last row, whose
+        # interval ends after the recording) are written empty, as CONVENTIONS has it
+        text = re.sub(r",nan$", ",", text, flags=re.MULTILINE)
+    path.write_text(text)
     return path
 
 

@@ -186,8 +186,13 @@ class ConnectionEstimator:
         """
         if not isinstance(traj, Trajectory):
             raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
-        if getattr(self.regression, "metric", False) and traj.power is None:
-            warnings.warn("no power channel in the data: the metric is not estimated", stacklevel=2)
+        if getattr(self.regression, "metric", None) is True and traj.power is None:
+            raise ValueError(
+                "the regression asks for the metric (metric=True) but the data have no power "
+                "channel (CSV column 'power', or Trajectory.power): record the dissipated power "
+                "to estimate the metric, or use metric=None (fit it when power is present) / "
+                "False to fit the connection alone"
+            )
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
         model = self.regression.fit(traj, cycle, pool=self.pool)
@@ -393,7 +398,8 @@ class EstimatorSettings:
         cycle_order: Fourier order of the limit cycle γ(φ).
         smoother_order: Kalman smoother model order (2: white acceleration).
         min_cycles: fewest cycles a trial must cover.
-        metric: also estimate the metric when the data carry power.
+        metric: None (default): estimate the metric when the data carry power; True: require
+            it; False: never.
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
     """
@@ -410,7 +416,7 @@ class EstimatorSettings:
     cycle_order: int = 8
     smoother_order: int = 2
     min_cycles: float = 3.0
-    metric: bool = True
+    metric: bool | None = None
     pool: bool = False
 
     def __post_init__(self) -> None:

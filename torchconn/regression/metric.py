@@ -12,15 +12,20 @@ order in the offsets; it is fitted only when requested or when every bin has sam
 
 from __future__ import annotations
 
+import math
+import warnings
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from ..phase.fourier import fourier_design
 from . import _wls
 from .binning import BinIndex
 
-__all__ = ["MetricFit", "metric_regression", "metric_design", "metric_n_coef"]
+__all__ = ["MetricFit", "metric_regression", "metric_design", "metric_n_coef",
+           "tied_metric_regression", "tied_metric_n_coef", "tied_metric_predict",
+           "interval_samples", "IntervalSamples", "power_noise_variance"]
 
 
 @dataclass(frozen=True)
@@ -39,7 +44,15 @@ class MetricFit:
         condition: ``(..., M)`` 1-norm condition number of the standardised normal matrix.
         ridge: ``(..., M)`` ridge applied to each bin.
         coef, se_coef: ``(..., M, P)`` raw coefficients in the column order of
-            :func:`metric_design`, and their standard errors.
+            :func:`metric_design` (or of :func:`tied_metric_regression`), and their standard
+            errors.
+        se_power_on_cycle: ``(..., M)`` standard error of ``power_on_cycle``.
+        M_gamma_dot, se_M_gamma_dot: ``(..., M, d)`` ``M̂γ̇_m``, strongly identified by the gait
+            itself (the full ``M̂`` needs off-cycle excitation), and its standard error.
+        noise_correction: ``(..., M)`` fraction of the noise correction applied (1 unless the
+            corrected normal matrix was not positive definite); None for the paper's model.
+        cov_M: ``(..., M, q, q)`` covariance of the ``q = d(d+1)/2`` metric coefficients (tied
+            model only).
     """
 
     M: Tensor
@@ -53,6 +66,11 @@ class MetricFit:
     ridge: Tensor
     coef: Tensor
     se_coef: Tensor
+    se_power_on_cycle: Tensor | None = None
+    M_gamma_dot: Tensor | None = None
+    se_M_gamma_dot: Tensor | None = None
+    noise_correction: Tensor | None = None
+    cov_M: Tensor | None = None
 
 
 def metric_n_coef(d: int, with_metric_derivative: bool) -> int:
@@ -162,5 +180,433 @@ def metric_regression(
         dM=derivative_of(coef) if deriv else None, se_dM=derivative_of(se) if deriv else None,
         power_on_cycle=coef[..., 0], n_samples=sol.n_samples,
         residual_rms=sol.residual_rms[..., 0], condition=sol.condition, ridge=sol.ridge,
-        coef=coef, se_coef=se,
+        coef=coef, se_coef=se, se_power_on_cycle=se[..., 0],
+        # the coefficient of δ̇ is 2 M γ̇
+        M_gamma_dot=coef[..., 1:1 + d] / 2, se_M_gamma_dot=se[..., 1:1 + d] / 2,
     )
+
+
+# ================================================================================ tied model
+#: shrink factors tried, in order, on the noise correction when the corrected normal matrix is
+#: not positive definite
+_CORRECTION_STEPS = (1.0, 0.9, 0.75, 0.5, 0.25, 0.0)
+#: rows of the design built at once (bounds memory: rows × coefficients × 8 bytes)
+_ROW_CHUNK = 2048
+
+
+@dataclass(frozen=True)
+class IntervalSamples:
+    """Recorded samples turned into the sample intervals the power channel belongs to.
+
+    Row ``k`` describes ``[t_k, t_{k+1})`` (CONVENTIONS); the last row is NaN.
+
+    Attributes:
+        r_mid: ``(..., T, d)`` the interval's mid-shape ``r̄_k = (r_k + r_{k+1})/2``.
+        velocity: ``(..., T, d)`` its mean shape velocity ``v_k = (r_{k+1} − r_k)/Δt``.
+        phase: ``(..., T)`` its mid-phase (unwrapped when the input phase is).
+        power: ``(..., T)`` the power channel (NaN where either end of the interval is missing).
+    """
+
+    r_mid: Tensor
+    velocity: Tensor
+    phase: Tensor
+    power: Tensor
+
+
+def interval_samples(r: Tensor, power: Tensor, phase: Tensor, dt: float) -> IntervalSamples:
+    """Sample intervals from recorded shapes ``r (..., T, d)``, ``power (..., T)``,
+    ``phase (..., T)`` at sampling interval ``dt``. Raw (unsmoothed) shapes: the metric
+    regression removes their noise's known contribution instead of smoothing it away.
+    """
+    fn = "interval_samples"
+    if not isinstance(r, Tensor) or r.ndim < 2 or not r.is_floating_point():
+        raise TypeError(f"{fn}: r must be a floating-point tensor (..., T, d)")
+    batch_t = tuple(r.shape[:-1])
+    for name, x in (("power", power), ("phase", phase)):
+        if not isinstance(x, Tensor) or tuple(x.shape) != batch_t:
+            got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+            raise ValueError(f"{fn}: {name} must have shape (..., T) = {batch_t}, got {got}")
+    if not dt > 0:
+        raise ValueError(f"{fn}: dt must be positive, got {dt!r}")
+    nan = float("nan")
+
+    def pad(x: Tensor, axis: int) -> Tensor:
+        shape = list(x.shape)
+        shape[axis] = 1
+        return torch.cat([x, x.new_full(shape, nan)], axis)
+
+    step = torch.remainder(phase[..., 1:] - phase[..., :-1] + math.pi, 2 * math.pi) - math.pi
+    diff = r[..., 1:, :] - r[..., :-1, :]
+    missing = torch.isnan(pad(diff, -2)).any(-1)
+    return IntervalSamples(
+        r_mid=pad(0.5 * (r[..., 1:, :] + r[..., :-1, :]), -2),
+        velocity=pad(diff / dt, -2),
+        phase=pad(phase[..., :-1] + 0.5 * step.to(phase), -1),
+        power=torch.where(missing, nan, power.to(r)),
+    )
+
+
+def tied_metric_n_coef(d: int, order: int, derivative_order: int | None) -> int:
+    """Coefficients of the tied model: ``(2K+1)·q`` for ``M(φ)`` plus ``(2K_d+1)·d·q`` for
+    ``∂M/∂r(φ)``, ``q = d(d+1)/2``."""
+    q = d * (d + 1) // 2
+    n_feat = 2 * order + 1 + (0 if derivative_order is None else (2 * derivative_order + 1) * d)
+    return n_feat * q
+
+
+def tied_metric_regression(
+    offset: Tensor,
+    velocity: Tensor,
+    power: Tensor,
+    phase: Tensor,
+    phase_m: Tensor,
+    gamma_dot_m: Tensor,
+    *,
+    order: int = 6,
+    derivative_order: int | None = 2,
+    noise_variance: Tensor | None = None,
+    min_samples_per_coef: float = 3.0,
+    max_condition: float | None = None,
+) -> MetricFit:
+    """Fit ``P ≈ vᵀ [M(φ) + ∂M/∂r_k(φ) δ_k] v`` over the whole cycle, noise-corrected.
+
+    One metric explains the whole power of every sample interval: the term linear in the offset
+    velocity (``2 M γ̇ · δ̇``, strongly identified by the gait) and the quadratic one
+    (``δ̇ᵀ M δ̇``, identified only by off-cycle excitation) share their coefficients instead of
+    being fitted apart. ``M(φ)`` is a Fourier series of order ``order`` in phase and
+    ``∂M/∂r(φ)`` one of order ``derivative_order`` (None: not fitted); each coefficient is
+    estimated from all samples, not one bin's. Regressors: ``b_h(φ) v_i v_j`` and
+    ``b_h(φ) δ_k v_i v_j`` (``i ≤ j`` in :func:`torch.triu_indices` order, ``b`` the
+    :func:`~torchconn.phase.fourier.fourier_design` columns).
+
+    Noise: ``v`` comes from raw sample differences, so observation noise ``ε`` on ``r``
+    enters as ``e = (ε_{k+1} − ε_k)/Δt``, Gaussian with covariance
+    ``Σ = diag(noise_variance)`` (``= 2ω²/Δt²``) and independent of the noise on ``r̄``
+    (a sum and a difference of i.i.d. Gaussians). The products of regressors are biased by
+    ``Σ``; the known bias is removed from the normal equations (the Gaussian fourth-moment
+    identity: an errors-in-variables correction). ``r̄``'s own noise, variance ``ω²/2`` against
+    the offsets' ``η²/2α``, only biases ``∂M/∂r`` (by ~0.2 % at ω = 0.005) and is left alone.
+    Where the corrected normal matrix is not positive definite (the noise swamps the
+    excitation) the correction is shrunk (``MetricFit.noise_correction`` < 1) with a warning.
+
+    Standard errors: the sandwich ``G⁻¹ (Σ_c s_c s_cᵀ) G⁻¹`` over cycles ``c`` (whole turns of
+    ``phase``), ``s_c`` the summed scores of the corrected regressors: they reflect the actual
+    scatter, the serial correlation of differenced noise and how much excitation each direction
+    of ``M`` gets (wide bands where the data do not excite a direction).
+
+    Args:
+        offset: ``(..., N, d)`` ``δ = r̄ − γ(φ)``, the interval's offset from the cycle at its
+            own phase; velocity: ``(..., N, d)`` ``v``; power: ``(..., N)``; phase: ``(..., N)``
+            unwrapped (:func:`interval_samples`). Samples with any NaN are excluded.
+        phase_m: ``(M,)`` phases at which to report (bin centres).
+        gamma_dot_m: ``(..., M, d)`` ``γ̇`` there, for ``M̂γ̇`` and the on-cycle power.
+        order, derivative_order: Fourier orders of ``M(φ)`` and ``∂M/∂r(φ)``.
+        noise_variance: ``(..., d)`` or ``(d,)`` variance of the noise on ``velocity``;
+            None: no correction.
+        min_samples_per_coef: fewest valid samples per coefficient.
+        max_condition: largest condition number of the equilibrated normal matrix (default
+            1e12 in float64).
+
+    Returns:
+        :class:`MetricFit` at ``phase_m``: ``coef``/``se_coef`` are the ``(..., P)``
+        coefficients; ``n_samples`` and ``residual_rms`` count the samples nearest each
+        ``phase_m``; ``condition`` and ``noise_correction`` are the fit's, repeated per phase.
+
+    Raises:
+        ValueError: too few samples, or a metric the data do not identify (the shape velocity
+            does not vary in every direction: a gait without noise, a joint held fixed).
+    """
+    fn = "tied_metric_regression"
+    delta = _wls._check_samples(offset, "offset", None, None, fn)
+    batch_n, d = tuple(delta.shape[:-1]), delta.shape[-1]
+    v = _wls._check_samples(velocity, "velocity", batch_n, d, fn).to(delta)
+    y = _wls._check_samples(power, "power", batch_n, 0, fn).to(delta)
+    ph = _wls._check_samples(phase, "phase", batch_n, 0, fn).to(delta)
+    batch = batch_n[:-1]
+    if not isinstance(phase_m, Tensor) or phase_m.ndim != 1:
+        raise ValueError(f"{fn}: phase_m must be a 1-D tensor of phases (M,)")
+    m = phase_m.shape[0]
+    gd = _wls._check_cycle(gamma_dot_m, "gamma_dot_m", batch, m, d, fn, delta)
+    for name, k in (("order", order), ("derivative_order", derivative_order)):
+        if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 0):
+            raise ValueError(f"{fn}: {name} must be a non-negative int, got {k!r}")
+    dtype, dev = delta.dtype, delta.device
+    if max_condition is None:
+        max_condition = 1e12 if dtype == torch.float64 else 1e-2 / torch.finfo(dtype).eps
+    q = d * (d + 1) // 2
+    p = tied_metric_n_coef(d, order, derivative_order)
+    sig = delta.new_zeros(batch + (d,))
+    if noise_variance is not None:
+        nv = torch.as_tensor(noise_variance, dtype=dtype, device=dev)
+        try:
+            sig = nv.expand(batch + (d,))
+        except RuntimeError:
+            raise ValueError(f"{fn}: noise_variance must have shape (..., d) broadcastable to "
+                             f"{batch + (d,)}, got {tuple(nv.shape)}") from None
+        if not bool(torch.isfinite(sig).all()) or bool((sig < 0).any()):
+            raise ValueError(f"{fn}: noise_variance must be finite and >= 0")
+
+    valid = ~(delta.isnan().any(-1) | v.isnan().any(-1) | y.isnan() | ph.isnan())
+    w = valid.to(dtype)
+    n_valid = valid.sum(-1)
+    fewest = int(n_valid.min()) if n_valid.numel() else 0
+    if fewest < min_samples_per_coef * p:
+        raise ValueError(
+            f"{fn}: {fewest} usable power samples (finite power, shapes at both ends of the "
+            f"interval) for P = {p} coefficients of the metric (Fourier order {order}"
+            + ("" if derivative_order is None else f", derivative order {derivative_order}")
+            + f", d = {d}); need at least {min_samples_per_coef:g}·P = "
+              f"{math.ceil(min_samples_per_coef * p)}. Record more cycles, or lower the orders"
+        )
+    zero = delta.new_zeros(())
+    delta = torch.where(valid.unsqueeze(-1), delta, zero)
+    v = torch.where(valid.unsqueeze(-1), v, zero)
+    y = torch.where(valid, y, zero)
+    ph = torch.where(valid, ph, zero)
+    iu, ju = torch.triu_indices(d, d, device=dev)
+    on_diag = (iu == ju).to(dtype)
+
+    def features(rows: slice) -> Tensor:  # (..., n, g)
+        f = fourier_design(ph[..., rows], order)
+        if derivative_order is not None:
+            fd = fourier_design(ph[..., rows], derivative_order)
+            f = torch.cat([f, (fd.unsqueeze(-1) * delta[..., rows, None, :]).flatten(-2)], -1)
+        return f
+
+    # normal equations and the noise's contributions, accumulated over row chunks
+    n = ph.shape[-1]
+    g_n = p // q
+    gram = delta.new_zeros(batch + (p, p))
+    rhs = delta.new_zeros(batch + (p,))
+    s2 = delta.new_zeros(batch + (g_n, g_n * d * d))
+    s0 = delta.new_zeros(batch + (g_n, g_n))
+    fy = delta.new_zeros(batch + (g_n,))
+    for start in range(0, n, _ROW_CHUNK):
+        rows = slice(start, min(start + _ROW_CHUNK, n))
+        f = features(rows) * w[..., rows, None]  # zero rows for missing samples
+        vr = v[..., rows, :]
+        quad = vr[..., iu] * vr[..., ju]
+        x = (f.unsqueeze(-1) * quad.unsqueeze(-2)).flatten(-2)
+        gram += x.mT @ x
+        rhs += (x * y[..., rows, None]).sum(-2)
+        vv = (vr.unsqueeze(-1) * vr.unsqueeze(-2)).flatten(-2)
+        s2 += f.mT @ (f.unsqueeze(-1) * vv.unsqueeze(-2)).flatten(-2)
+        s0 += f.mT @ f
+        fy += (f * y[..., rows, None]).sum(-2)
+    corr_g, corr_h = _noise_terms(s2.unflatten(-1, (g_n, d, d)), s0, fy, sig, iu, ju, on_diag)
+
+    diag = gram.diagonal(dim1=-2, dim2=-1)
+    dead = diag <= 0
+    inv = torch.where(dead, 1.0, diag.rsqrt())
+    eye = torch.eye(p, dtype=dtype, device=dev)
+    shrink = torch.full(batch, float("nan"), dtype=dtype, device=dev)
+    chol = eye.expand(batch + (p, p)).clone()
+    for t in _CORRECTION_STEPS:
+        g = (gram - t * corr_g) * inv.unsqueeze(-1) * inv.unsqueeze(-2) + torch.diag_embed(
+            dead.to(dtype))
+        c, info = torch.linalg.cholesky_ex(g)
+        take = (info == 0) & shrink.isnan()
+        chol = torch.where(take[..., None, None], c, chol)
+        shrink = torch.where(take, t, shrink)
+        if not bool(shrink.isnan().any()):
+            break
+    failed = shrink.isnan()
+    shrink = shrink.nan_to_num(0.0)
+    g_final = (gram - shrink[..., None, None] * corr_g) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
+    ev = torch.linalg.eigvalsh(g_final + torch.diag_embed(dead.to(dtype)))
+    condition = torch.where(failed | dead.any(-1) | (ev[..., 0] <= 0), torch.inf,
+                            ev[..., -1] / ev[..., 0].clamp(min=torch.finfo(dtype).tiny))
+    bad = ~(condition <= max_condition)
+    if bool(bad.any()):
+        where = [tuple(i) for i in torch.nonzero(bad).tolist()][:5] if batch else []
+        raise ValueError(
+            f"{fn}: the data do not identify the metric"
+            + (f" (batch elements {where})" if where else "")
+            + f": the normal matrix of its P = {p} coefficients has condition number "
+              f"{float(condition.max()):.3g} > {max_condition:.3g}. The shape velocity must vary "
+              "in every direction of shape space at every phase (noise on the gait over many "
+              "cycles); a gait without noise, a joint held fixed or too few cycles leave M "
+              "unidentified. Lower the Fourier orders, drop the derivative term "
+              "(derivative_order=None) or record more varied data"
+        )
+    h = (rhs - shrink[..., None] * corr_h) * inv
+    beta = torch.cholesky_solve(h.unsqueeze(-1), chol)[..., 0] * inv
+    if bool((shrink < 1).any()):
+        warnings.warn(
+            f"{fn}: the noise-corrected normal matrix was not positive definite (the noise "
+            f"swamps the off-cycle excitation); the correction was shrunk to "
+            f"{float(shrink.min()):.2g} of its size, so M̂'s weakly excited directions are "
+            "biased towards smaller values", _wls.IllConditionedBinWarning, stacklevel=2)
+
+    # cluster-robust sandwich over whole cycles, on the corrected regressors
+    cyc = torch.floor(ph / (2 * math.pi))
+    cyc = torch.where(valid, cyc, torch.inf)
+    cyc = cyc - cyc.amin(-1, keepdim=True)
+    cyc = torch.where(valid, cyc, 0.0).to(torch.int64)
+    n_c = int(cyc.max()) + 1 if cyc.numel() else 1
+    sums = delta.new_zeros(batch + (n_c, p))
+    sse = delta.new_zeros(batch + (m,))
+    cnt = delta.new_zeros(batch + (m,))
+    near = torch.remainder(torch.round(ph * (m / (2 * math.pi))), m).to(torch.int64)
+    for start in range(0, n, _ROW_CHUNK):
+        rows = slice(start, min(start + _ROW_CHUNK, n))
+        f = features(rows) * w[..., rows, None]
+        vr = v[..., rows, :]
+        quad = vr[..., iu] * vr[..., ju] - sig[..., None, iu] * on_diag
+        x = (f.unsqueeze(-1) * quad.unsqueeze(-2)).flatten(-2)
+        resid = (y[..., rows] - (x @ beta.unsqueeze(-1))[..., 0]) * w[..., rows]
+        sums.scatter_add_(-2, cyc[..., rows, None].expand(x.shape), x * resid.unsqueeze(-1))
+        sse.scatter_add_(-1, near[..., rows], resid.square())
+        cnt.scatter_add_(-1, near[..., rows], w[..., rows])
+    n_clusters = (sums.abs().sum(-1) > 0).sum(-1).to(dtype)
+    meat = (sums.mT @ sums) * (n_clusters / (n_clusters - 1).clamp(min=1))[..., None, None]
+    l_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+    g_inv = (l_inv.mT @ l_inv) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
+    cov = g_inv @ meat @ g_inv
+    se = cov.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
+
+    # evaluate at phase_m
+    basis = fourier_design(phase_m.to(delta), order)  # (M, 2K+1)
+    n_m = (2 * order + 1) * q
+    coef_m = basis @ beta[..., :n_m].unflatten(-1, (2 * order + 1, q))  # (..., M, q)
+    cov_blk = cov[..., :n_m, :n_m].unflatten(-1, (2 * order + 1, q)).unflatten(-3, (
+        2 * order + 1, q))  # (..., h, q, h', q')
+    cov_m = torch.einsum("mh,...hapb,mp->...mab", basis, cov_blk, basis)
+    se_m = cov_m.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
+    d_m = se_d = None
+    if derivative_order is not None:
+        bd = fourier_design(phase_m.to(delta), derivative_order)
+        blk = beta[..., n_m:].unflatten(-1, (2 * derivative_order + 1, d, q))
+        d_m = _symmetric(torch.einsum("mh,...hkq->...mkq", bd, blk), d).movedim(-3, -1)
+        var = cov[..., n_m:, n_m:].diagonal(dim1=-2, dim2=-1).unflatten(
+            -1, (2 * derivative_order + 1, d, q))
+        # standard errors of ∂M/∂r ignoring the covariance between its harmonics (a guide)
+        se_d = _symmetric(torch.einsum("mh,...hkq->...mkq", bd.square(), var).sqrt(),
+                          d).movedim(-3, -1)
+
+    # ∂(Mγ̇)_i/∂c_kl = ½([i=k] γ̇_l + [i=l] γ̇_k): c_kl is M_kk on the diagonal, 2 M_kl off it
+    eye_d = torch.eye(d, dtype=dtype, device=dev)
+    jac = 0.5 * (eye_d[:, iu] * gd[..., None, ju] + eye_d[:, ju] * gd[..., None, iu])
+    grad = gd[..., iu] * gd[..., ju]
+    m_gd = (jac @ coef_m.unsqueeze(-1))[..., 0]
+    se_m_gd = ((jac @ cov_m) * jac).sum(-1).clamp(min=0).sqrt()
+    p_cyc = (grad * coef_m).sum(-1)
+    se_p = (grad.unsqueeze(-2) @ cov_m @ grad.unsqueeze(-1))[..., 0, 0].clamp(min=0).sqrt()
+
+    def per_phase(x: Tensor) -> Tensor:
+        return x.unsqueeze(-1).expand(batch + (m,))
+
+    return MetricFit(
+        M=_symmetric(coef_m, d), se_M=_symmetric(se_m, d), dM=d_m, se_dM=se_d,
+        power_on_cycle=p_cyc, n_samples=cnt.round().to(torch.int64),
+        residual_rms=(sse / cnt.clamp(min=1)).sqrt(), condition=per_phase(condition),
+        ridge=torch.zeros_like(per_phase(condition)), coef=beta, se_coef=se,
+        se_power_on_cycle=se_p, M_gamma_dot=m_gd, se_M_gamma_dot=se_m_gd,
+        noise_correction=per_phase(shrink), cov_M=cov_m,
+    )
+
+
+def _noise_terms(s2: Tensor, s0: Tensor, fy: Tensor, sig: Tensor, iu: Tensor, ju: Tensor,
+                 on_diag: Tensor) -> tuple[Tensor, Tensor]:
+    """The noise's expected contribution to the normal equations of the tied model.
+
+    With ``v̂ = v + e``, ``e ~ N(0, diag(σ))`` independent of the (noise-free) features ``F``,
+    the Gaussian moment identity gives the bias of ``Σ w F_a F_c v̂_i v̂_j v̂_k v̂_l`` as the six
+    terms ``(v̂v̂)σ`` minus the three ``σσ`` pairings, and of ``Σ w F_a y v̂_i v̂_j`` as
+    ``σ_i [i=j] Σ w F_a y``.
+
+    Args:
+        s2: ``(..., g, g, d, d)`` ``Σ w F_a F_c v̂_i v̂_j``; s0: ``(..., g, g)`` ``Σ w F_a F_c``;
+        fy: ``(..., g)`` ``Σ w F_a y``; sig: ``(..., d)`` noise variances.
+
+    Returns:
+        corrections ``(..., g·q, g·q)`` and ``(..., g·q)`` to subtract (layout ``a·q + pair``).
+    """
+    g = s0.shape[-1]
+    qn = iu.numel()
+    i, j = iu[:, None].expand(qn, qn), ju[:, None].expand(qn, qn)
+    k, l_ = iu[None, :].expand(qn, qn), ju[None, :].expand(qn, qn)
+    sg = sig[..., None, None, :]  # (..., 1, 1, d)
+
+    def eq(a: Tensor, b: Tensor) -> Tensor:
+        return (a == b).to(s2)
+
+    def s(a: Tensor, b: Tensor) -> Tensor:  # (..., g, g, q, q)
+        return s2[..., a, b]
+
+    def z(a: Tensor) -> Tensor:  # σ_a as (..., 1, 1, q, q)
+        return sg[..., a]
+
+    corr = (s(i, j) * z(k) * eq(k, l_) + s(k, l_) * z(i) * eq(i, j)
+            + s(i, k) * z(j) * eq(j, l_) + s(i, l_) * z(j) * eq(j, k)
+            + s(j, k) * z(i) * eq(i, l_) + s(j, l_) * z(i) * eq(i, k))
+    corr = corr - s0[..., None, None] * (z(i) * z(k) * eq(i, j) * eq(k, l_)
+                                         + z(i) * z(j) * (eq(i, k) * eq(j, l_)
+                                                          + eq(i, l_) * eq(j, k)))
+    corr_g = corr.transpose(-3, -2).reshape(corr.shape[:-4] + (g * qn, g * qn))
+    corr_h = (fy.unsqueeze(-1) * (sig[..., None, iu] * on_diag)).flatten(-2)
+    return corr_g, corr_h
+
+
+def tied_metric_predict(coef: Tensor, offset: Tensor, velocity: Tensor, phase: Tensor, *,
+                        order: int, derivative_order: int | None) -> tuple[Tensor, Tensor]:
+    """Power and ``M̂(φ) v`` the tied model predicts for samples.
+
+    Args:
+        coef: ``(..., P)`` coefficients from :func:`tied_metric_regression` (its ``coef``).
+        offset, velocity: ``(..., N, d)``; phase: ``(..., N)``.
+        order, derivative_order: the orders the coefficients were fitted with.
+
+    Returns:
+        ``(power (..., N), M̂v (..., N, d))`` (``M̂`` on the cycle, without the offset term).
+    """
+    d = velocity.shape[-1]
+    q = d * (d + 1) // 2
+    iu, ju = torch.triu_indices(d, d, device=velocity.device)
+    n_m = (2 * order + 1) * q
+    m_coef = coef[..., :n_m].unflatten(-1, (2 * order + 1, q))  # (..., h, q)
+    power, m_v = [], []
+    for start in range(0, phase.shape[-1], _ROW_CHUNK):
+        rows = slice(start, min(start + _ROW_CHUNK, phase.shape[-1]))
+        b = fourier_design(phase[..., rows], order)
+        mq = b @ m_coef  # (..., n, q)
+        if derivative_order is not None:
+            bd = fourier_design(phase[..., rows], derivative_order)
+            dq = coef[..., n_m:].unflatten(-1, (2 * derivative_order + 1, d * q))
+            dq = (bd @ dq).unflatten(-1, (d, q))  # (..., n, d, q)
+            mq_full = mq + (offset[..., rows, :, None] * dq).sum(-2)
+        else:
+            mq_full = mq
+        vr = velocity[..., rows, :]
+        power.append((mq_full * vr[..., iu] * vr[..., ju]).sum(-1))
+        m_v.append((_symmetric(mq, d) @ vr.unsqueeze(-1)).squeeze(-1))
+    return torch.cat(power, -1), torch.cat(m_v, -2)
+
+
+def power_noise_variance(residual: Tensor, m_v: Tensor, dt: float) -> Tensor:
+    """Observation-noise variance of the shape channels, from the power residuals' lag structure.
+
+    The power channel is noise-free, while the model's velocity ``v̂ = v + e`` carries the
+    differenced noise ``e_k = (ε_{k+1} − ε_k)/Δt``. To first order the residual of a fit
+    without noise correction is ``−2 (M̂v)ᵀ e_k``, and adjacent intervals share ``ε_{k+1}``, so
+    ``E[res_k res_{k+1}] = −(4/Δt²) Σ_i (M̂v)_{k,i} (M̂v)_{k+1,i} ω_i²``, while a smooth model
+    error contributes the same to lags 1 and 2. Regressing ``res_k (res_{k+1} − res_{k+2})`` on
+    that feature gives ``ω²``. One level is fitted for all joints (the motion-capture noise of
+    every joint angle, as in CONVENTIONS): per-joint levels were measured too noisy to separate
+    on the 5-link (0 to 1.5× the truth at ω = 0.002).
+
+    Args:
+        residual: ``(..., N)`` ``P − P̂`` of an uncorrected fit, in time order (NaN: skipped;
+            pooled trials may be concatenated when a NaN separates them).
+        m_v: ``(..., N, d)`` ``M̂v`` of the same samples.
+        dt: sampling interval.
+
+    Returns:
+        ``(..., d)`` ``ω²`` (≥ 0, the same for every joint), the noise on the recorded shapes.
+    """
+    z = residual[..., :-2] * (residual[..., 1:-1] - residual[..., 2:])  # (..., N-2)
+    f = -(4 / dt**2) * (m_v[..., :-2, :] * m_v[..., 1:-1, :]).sum(-1)
+    ok = torch.isfinite(z) & torch.isfinite(f)
+    z, f = torch.where(ok, z, 0.0), torch.where(ok, f, 0.0)
+    omega2 = (f * z).sum(-1) / (f * f).sum(-1).clamp(min=torch.finfo(f.dtype).tiny)
+    return omega2.clamp(min=0).unsqueeze(-1).expand(m_v.shape[:-2] + m_v.shape[-1:])

@@ -39,7 +39,12 @@ class BinEstimates:
         c, b, A, dA: ``(..., M, 3)``, ``(..., M, 3, d)``, ``(..., M, 3, d)``, ``(..., M, 3, d, d)``.
         c_se, b_se, A_se, dA_se: their standard errors (same shapes).
         n_samples: ``(..., M)`` samples used per bin.
-        M, M_se: ``(..., M, d, d)`` metric estimates and standard errors, or None.
+        M, M_se: ``(..., M, d, d)`` metric estimates and standard errors, or None. The full
+            ``M̂`` is only as good as the off-cycle excitation of the data: directions of the
+            shape velocity the recording rarely visits get wide errors.
+        M_gamma_dot, M_gamma_dot_se: ``(..., M, d)`` ``M̂γ̇`` on the cycle and its standard error
+            (identified by the gait itself), or None.
+        power_on_cycle, power_on_cycle_se: ``(..., M)`` ``γ̇ᵀM̂γ̇`` and its standard error, or None.
     """
 
     phase: Tensor
@@ -56,6 +61,10 @@ class BinEstimates:
     n_samples: Tensor
     M: Tensor | None = None
     M_se: Tensor | None = None
+    M_gamma_dot: Tensor | None = None
+    M_gamma_dot_se: Tensor | None = None
+    power_on_cycle: Tensor | None = None
+    power_on_cycle_se: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -117,6 +126,15 @@ class LocalConnectionModel:
         if self.M is None:
             raise ValueError("this model has no metric: fit it to data with a power channel")
         return self.M(phase)
+
+    def metric_gamma_dot(self, phase: Tensor) -> Tensor:
+        """``M̂γ̇`` on the cycle, the part of ``M̂`` the gait itself identifies:
+        ``(..., P)`` -> ``(..., P, d)``."""
+        return (self.metric(phase) @ self.gamma_dot_at(phase).unsqueeze(-1)).squeeze(-1)
+
+    def power_on_cycle(self, phase: Tensor) -> Tensor:
+        """Power dissipated on the cycle, ``γ̇ᵀM̂γ̇``: ``(..., P)`` -> ``(..., P)``."""
+        return (self.gamma_dot_at(phase) * self.metric_gamma_dot(phase)).sum(-1)
 
     def predict(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> Tensor:
         """Body velocity of samples in the tube (eq. ``advanceddatadriven``).

@@ -46,26 +46,50 @@ def plot_connection(model: LocalConnectionModel, path: Path | str, truth=None) -
 
 
 def plot_metric(model: LocalConnectionModel, path: Path | str, truth=None) -> Path:
-    """Diagonal and first off-diagonal metric entries along the gait, with 95% intervals."""
+    """The metric along the gait with 95% intervals: first row ``M̂γ̇`` per joint and the
+    on-cycle power ``γ̇ᵀM̂γ̇`` (what the gait itself identifies), then the diagonal and first
+    off-diagonal entries of the full ``M̂`` (only as good as the off-cycle excitation: wide bands
+    where the data do not excite a direction). ``truth(phi) -> (P, d, d)`` optionally draws the
+    true metric on the fitted cycle."""
     phi = _grid()
     d = model.shape_dim
     fit = model.metric(phi)
     bins = model.bins
     pairs = [(i, i) for i in range(d)] + [(i, i + 1) for i in range(d - 1)]
-    cols = min(len(pairs), 4)
-    rows = math.ceil(len(pairs) / cols)
+    cols = min(max(len(pairs), d + 1), 4)
+    top = math.ceil((d + 1) / cols)
+    rows = top + math.ceil(len(pairs) / cols)
     fig = Figure(figsize=(3 * cols, 2.4 * rows))
     axes = fig.subplots(rows, cols, squeeze=False)
     true = truth(phi) if truth is not None else None
-    for ax, (i, j) in zip(axes.flat, pairs, strict=False):
+    gd = model.gamma_dot_at(phi)
+    mgd = model.metric_gamma_dot(phi)
+    gd_bins = bins.gamma_dot
+    panels = [(f"(M γ̇)_{i + 1}", mgd[:, i], bins.M_gamma_dot, bins.M_gamma_dot_se, i,
+               None if true is None else (true @ gd[..., None])[:, i, 0]) for i in range(d)]
+    panels.append(("power on cycle γ̇ᵀMγ̇", model.power_on_cycle(phi), bins.power_on_cycle,
+                   bins.power_on_cycle_se, None,
+                   None if true is None else (gd[:, None, :] @ true @ gd[..., None])[:, 0, 0]))
+    for ax, (title, curve, est, se, i, ref) in zip(axes[:top].flat, panels, strict=False):
+        ax.plot(phi, curve, color="tab:purple")
+        if est is not None and se is not None and gd_bins is not None:
+            e, s = (est[:, i], se[:, i]) if i is not None else (est, se)
+            ax.errorbar(bins.phase, e, yerr=_Z95 * s, fmt="o", ms=3, color="tab:purple",
+                        alpha=0.7)
+        if ref is not None:
+            ax.plot(phi, ref, "k--", lw=1)
+        ax.set_title(title, fontsize=9)
+    for ax in list(axes[:top].flat)[len(panels):]:
+        ax.axis("off")
+    for ax, (i, j) in zip(axes[top:].flat, pairs, strict=False):
         ax.plot(phi, fit[:, i, j], color="tab:blue")
         ax.errorbar(bins.phase, bins.M[:, i, j], yerr=_Z95 * bins.M_se[:, i, j], fmt="o", ms=3,
                     color="tab:blue", alpha=0.7)
         if true is not None:
             ax.plot(phi, true[:, i, j], "k--", lw=1)
-        ax.set_title(f"M_{i + 1}{j + 1}", fontsize=9)
+        ax.set_title(f"M_{i + 1}{j + 1} (full metric)", fontsize=9)
         ax.set_xlabel("phase (rad)", fontsize=8)
-    for ax in list(axes.flat)[len(pairs):]:
+    for ax in list(axes[top:].flat)[len(pairs):]:
         ax.axis("off")
     return _save(fig, path)
 

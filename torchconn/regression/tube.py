@@ -2,8 +2,10 @@
 
 :class:`TubeRegression` fits, in each of M phase bins, the first-order model of the body
 velocity around the cycle (eq. ``advancedregression``, :func:`connection_regression`) and, when
-the data carry power, the metric (eq. ``advancedmetricregression``, :func:`metric_regression`),
-and interpolates the per-bin estimates by Fourier series in phase into a
+the data carry power, the metric -- by default the tied, noise-corrected model of
+:func:`~torchconn.regression.metric.tied_metric_regression` on the sample intervals of the raw
+shapes, or the paper's per-bin expansion (eq. ``advancedmetricregression``,
+:func:`metric_regression`) -- and interpolates the per-bin estimates by Fourier series in phase into a
 :class:`~torchconn.regression.model.LocalConnectionModel`. Other regression methods derive from
 :class:`Regression` and slot into ``ConnectionEstimator(regression=…)``.
 """
@@ -24,7 +26,14 @@ from ..phase.limit_cycle import LimitCycle
 from ..trajectory import Trajectory, pool_batch
 from .binning import assign_bins
 from .connection import connection_regression
-from .metric import metric_n_coef, metric_regression
+from .metric import (
+    interval_samples,
+    metric_n_coef,
+    metric_regression,
+    power_noise_variance,
+    tied_metric_predict,
+    tied_metric_regression,
+)
 from .model import BinEstimates, LocalConnectionModel
 
 __all__ = ["Regression", "TubeRegression"]
@@ -60,7 +69,22 @@ class TubeRegression(Regression):
         ridge: Tikhonov penalty on the scaled regressors (0: ordinary least squares).
         on_ill_conditioned: what to do with bins with too few samples or a rank-deficient
             design: raise, warn, or regularise (``"ridge"``).
-        metric: also estimate the metric when the data carry power.
+        metric: estimate the dissipation metric: None (default) when the data carry a power
+            channel, True to require one (fitting data without it is an error that names the
+            missing ``power`` column), False never.
+        metric_method: ``"tied"`` (default): one ``M(φ)`` (and ``∂M/∂r(φ)``), Fourier in phase,
+            explains the power of each sample interval, ``P ≈ vᵀ[M + ∂M/∂r δ]v`` with ``v`` the
+            raw sample differences, noise-corrected
+            (:func:`~torchconn.regression.metric.tied_metric_regression`); ``"paper"``: the
+            per-bin expansion of eq. ``advancedmetricregression`` in the smoothed offsets, with
+            separate linear and quadratic terms (torchconn 0.1's method, kept for comparison;
+            it does not converge, see the README).
+        metric_order, metric_derivative_order: Fourier orders in phase of the tied model's
+            ``M(φ)`` and ``∂M/∂r(φ)`` (None: no derivative term). Chosen by measurement on
+            3- and 5-link gaits other than the benchmark's (README, "Known limits").
+        metric_noise_correction: estimate the shapes' observation noise (from the uncorrected
+            fit's power residuals) and remove its contribution to the tied model's normal
+            equations.
     """
 
     n_bins: int = option(48, ge=3)
@@ -71,7 +95,11 @@ class TubeRegression(Regression):
     delta_max: float | None = option(None, gt=0)
     ridge: float = option(0.0, ge=0)
     on_ill_conditioned: Literal["raise", "warn", "ridge"] = "raise"
-    metric: bool = True
+    metric: bool | None = None
+    metric_method: Literal["tied", "paper"] = "tied"
+    metric_order: int = option(6, ge=0)
+    metric_derivative_order: int | None = option(1, ge=0)
+    metric_noise_correction: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -120,11 +148,14 @@ class TubeRegression(Regression):
 
         bins, window = bins_for(1 + 2 * d + d * d)
         fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
-        metric_fit, metric_window = None, None
-        if self.metric and power is not None:
-            mbins, metric_window = bins_for(metric_n_coef(d, False))
-            metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
-                                           with_metric_derivative=False, **opts)
+        metric_fit, metric_window, noise = None, None, None
+        if self.metric is not False and power is not None:
+            if self.metric_method == "tied":
+                metric_fit, noise = self._tied_metric(traj, cycle, centres, gamma_dot_m, pool)
+            else:
+                mbins, metric_window = bins_for(metric_n_coef(d, False))
+                metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
+                                               with_metric_derivative=False, **opts)
 
         estimates = BinEstimates(
             phase=centres, gamma=gamma_m, gamma_dot=gamma_dot_m,
@@ -133,6 +164,10 @@ class TubeRegression(Regression):
             n_samples=fit.n_samples,
             M=None if metric_fit is None else metric_fit.M,
             M_se=None if metric_fit is None else metric_fit.se_M,
+            M_gamma_dot=None if metric_fit is None else metric_fit.M_gamma_dot,
+            M_gamma_dot_se=None if metric_fit is None else metric_fit.se_M_gamma_dot,
+            power_on_cycle=None if metric_fit is None else metric_fit.power_on_cycle,
+            power_on_cycle_se=None if metric_fit is None else metric_fit.se_power_on_cycle,
         )
 
         def series(values: Tensor, ndim: int):
@@ -145,8 +180,53 @@ class TubeRegression(Regression):
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
                   "batch_shape": list(batch), "window": window, "metric_window": metric_window,
-                  "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
+                  "metric_noise_std": noise, "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
+
+    def _tied_metric(self, traj: Trajectory, cycle: LimitCycle, centres: Tensor,
+                     gamma_dot_m: Tensor, pool: bool):
+        """The tied metric regression on the sample intervals of the raw recorded shapes.
+
+        Returns the :class:`~torchconn.regression.metric.MetricFit` at the bin centres and the
+        estimated shape-noise standard deviations (a list, JSON-ready; None without correction).
+        """
+        if not bool(torch.isfinite(traj.power).any()):
+            raise ValueError("the power column has no values (all empty or NaN): the metric "
+                             "cannot be estimated; pass TubeRegression(metric=False) to fit the "
+                             "connection alone")
+        iv = interval_samples(traj.r, traj.power, traj.phase, traj.dt)
+        phase = _unwrapped(iv.phase)
+        offset = iv.r_mid - cycle.gamma_at(torch.nan_to_num(iv.phase)).to(iv.r_mid)
+        v, power = iv.velocity, iv.power
+        if pool:
+            # distinct cycle numbers per trial, so that each trial's cycles are their own clusters
+            span = float(torch.nan_to_num(phase).abs().amax()) + 4 * math.pi
+            trial = torch.arange(math.prod(phase.shape[:-1]), dtype=phase.dtype,
+                                 device=phase.device)
+            phase = phase + (2 * math.pi * math.ceil(span / (2 * math.pi)) * trial).reshape(
+                phase.shape[:-1] + (1,))
+            phase, offset, v, power = (pool_batch(x, k) for x, k in
+                                       ((phase, 0), (offset, 1), (v, 1), (power, 0)))
+        orders = dict(order=self.metric_order, derivative_order=self.metric_derivative_order)
+        fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders)
+        noise = None
+        if self.metric_noise_correction:
+            # the noise from the uncorrected fit's residuals (the power channel is noise-free),
+            # then the corrected fit
+            predicted, m_v = tied_metric_predict(fit.coef, offset, v, phase, **orders)
+            omega2 = power_noise_variance(power - predicted, m_v, traj.dt)  # (..., d)
+            noise = omega2.sqrt().tolist()
+            fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m,
+                                         **orders, noise_variance=2 * omega2 / traj.dt**2)
+        return fit, noise
+
+
+def _unwrapped(phase: Tensor) -> Tensor:
+    """``(..., T)`` phase made continuous (NaN gaps bridged), starting at its first value."""
+    step = torch.remainder(phase.diff(dim=-1) + math.pi, 2 * math.pi) - math.pi
+    first = torch.nan_to_num(phase[..., :1])
+    out = first + torch.cat([torch.zeros_like(first), torch.nan_to_num(step).cumsum(-1)], -1)
+    return torch.where(torch.isnan(phase), torch.nan, out)
 
 
 def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:

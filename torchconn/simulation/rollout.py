@@ -30,13 +30,16 @@ Recording
     - ``truth.xi``: the mean body velocity, ``Σ_n twist_n / Δt`` over the interval's fine
       steps, ``twist_n = ½(A(r_n) + A(r_{n+1})) Δr_n (+ drift h)``, i.e. ``∫ g⁻¹∘dg / Δt``;
     - ``truth.r_dot``: the mean shape velocity ``(r(t_k + Δt/2) − r(t_k − Δt/2)) / Δt``;
-    - ``power``: the dissipated power of the interval's mean shape velocity,
-      ``r̄_dotᵀ M(r_k) r̄_dot`` with ``r̄_dot = truth.r_dot``. Why not the mean of the fine-path
-      power ``(Δr_n/h)ᵀ M (Δr_n/h)``: **the SDE path is rough** (``Δr ~ η √h``), so that mean
-      carries a part ``≈ η² tr M / h`` that diverges as the fine step shrinks -- it measures the
-      integrator's step, not the swimmer -- and its fluctuations swamp the quadratic
-      ``δ̇ᵀ M δ̇`` signal the metric regression needs. The interval-mean form is what the recorded
-      motion implies at the recording rate, and it converges as ``h → 0``.
+    - ``power``: on the observable sample interval (CONVENTIONS, "Trajectory data"): row ``k``
+      holds the mean dissipated power over ``[t_k, t_{k+1})``, recorded as
+      ``v_kᵀ M(r̄_k) v_k`` with ``v_k = (r_{k+1} − r_k)/Δt`` and ``r̄_k = (r_k + r_{k+1})/2`` from
+      the recorded (true, noise-free) shapes at the sample times; the last row is NaN (its
+      interval ends after the recording). Why not the mean of the fine-path power
+      ``(Δr_n/h)ᵀ M (Δr_n/h)``: **the SDE path is rough** (``Δr ~ η √h``), so that mean carries
+      a part ``≈ η² tr M / h`` that diverges as the fine step shrinks -- it measures the
+      integrator's step, not the swimmer. And why the sample interval, not one centred on the
+      sample: a regression sees only the recorded samples, and ``v_k`` is exactly what their
+      differences give, so the power is matched from the data (:func:`interval_power`).
 
 Randomness
     ``seeds`` is an integer array of the batch shape. Every cell draws its initial offset and its
@@ -62,12 +65,13 @@ from ..physics.gaits import as_gait
 from ..physics.systems.base import LocomotionSystem
 from ..trajectory import GroundTruth, Trajectory
 
-__all__ = ["simulate", "cell_generators", "POWER_DEFINITION"]
+__all__ = ["simulate", "cell_generators", "interval_power", "POWER_DEFINITION"]
 
 POWER_DEFINITION = (
-    "dissipated power of the mean shape velocity over the recording interval centred on each "
-    "sample, r_dot_mean^T M(r_k) r_dot_mean (converges as the fine step h -> 0; the mean of "
-    "the fine-path power would diverge like eta^2 tr M / h on the rough SDE path)"
+    "power at sample k belongs to the sample interval [t_k, t_k+1): v_k^T M(rbar_k) v_k with "
+    "v_k = (r_k+1 - r_k)/dt and rbar_k = (r_k + r_k+1)/2 from the true recorded shapes; the last "
+    "row is NaN (the mean of the fine-path power would diverge like eta^2 tr M / h on the rough "
+    "SDE path)"
 )
 
 #: fine steps per integration block (rounded to whole recording intervals); fixed so that a
@@ -259,9 +263,10 @@ def simulate(
     )
 
     t = torch.arange(n_samples, dtype=torch.float64, device=device) * dt
+    power = interval_power(system, rec["r"], dt)
     truth = GroundTruth(
         phase=rec["phase"], pose=rec["pose"], r=rec["r"], xi=rec["xi"], r_dot=rec["r_dot"],
-        power=rec["power"], delta=rec["delta"],
+        power=power, delta=rec["delta"],
     )
     meta = {
         "source": "torchconn.simulation.rollout.simulate",
@@ -283,8 +288,34 @@ def simulate(
         "scheme": "Heun (Stratonovich), pose step exp(½(A(r_n)+A(r_n+1)) Δr) on SE(2)",
         "power": POWER_DEFINITION,
     }
-    return Trajectory(t=t, pose=rec["pose"], r=rec["r"], power=rec["power"], truth=truth,
+    return Trajectory(t=t, pose=rec["pose"], r=rec["r"], power=power, truth=truth,
                       meta=meta)
+
+
+def interval_power(system: LocomotionSystem, r: Tensor, dt: float) -> Tensor:
+    """The power channel of recorded shapes, on the sample intervals (CONVENTIONS).
+
+    Row ``k`` is ``v_kᵀ M(r̄_k) v_k`` with ``v_k = (r_{k+1} − r_k)/Δt`` and
+    ``r̄_k = (r_k + r_{k+1})/2``: the power of the interval's mean shape velocity, the quantity a
+    regression can match from the samples alone. The last row is NaN.
+
+    Args:
+        system: the system whose metric ``M(r)`` dissipates the power.
+        r: ``(..., T, d)`` true shapes at the sample times (``T ≥ 1``).
+        dt: sampling interval ``Δt > 0``.
+
+    Returns:
+        ``(..., T)`` power, NaN in the last row (and wherever ``r`` is NaN at either end).
+    """
+    if not isinstance(r, Tensor) or r.ndim < 2 or r.shape[-1] != system.shape_dim:
+        raise ValueError(f"interval_power: r must be a tensor (..., T, {system.shape_dim}), got "
+                         f"{tuple(r.shape) if isinstance(r, Tensor) else type(r).__name__}")
+    if not dt > 0:
+        raise ValueError(f"interval_power: dt must be positive, got {dt!r}")
+    v = (r[..., 1:, :] - r[..., :-1, :]) / dt
+    m = system.metric(0.5 * (r[..., 1:, :] + r[..., :-1, :]))
+    p = ((m @ v.unsqueeze(-1)).squeeze(-1) * v).sum(-1)
+    return torch.cat([p, p.new_full(p.shape[:-1] + (1,), float("nan"))], -1)
 
 
 # ---------------------------------------------------------------------------- integrator
@@ -327,12 +358,12 @@ def _integrate(
     phi = phase0 - dt / 2
     delta = delta0
     r = gait(phi) + delta
-    a_now, m_now = system.connection_and_metric(r)
+    a_now = system.connection(r)
     pose = torch.zeros(B, 3, **kw)
 
     T = n_samples
     out = {"phase": (T,), "delta": (T, d), "r": (T, d), "pose": (T, 3), "xi": (T, 3),
-           "r_dot": (T, d), "power": (T,)}
+           "r_dot": (T, d)}
     out = {k: torch.empty((B,) + shape, **kw) for k, shape in out.items()}  # recorded samples
     for k0 in range(0, n_samples, per_block):
         n_int = min(per_block, n_samples - k0)
@@ -353,12 +384,11 @@ def _integrate(
             deltas.append(delta)
         deltas = torch.stack(deltas, 1)
         rs_new = gait(phis) + deltas  # (B, K, d)
-        a_new, m_new = system.connection_and_metric(rs_new)
+        a_new = system.connection(rs_new)
 
         # fine points 0..K of the block (point 0 is the carried state)
         rs = torch.cat([r[:, None], rs_new], 1)
         a_all = torch.cat([a_now[:, None], a_new], 1)
-        m_all = torch.cat([m_now[:, None], m_new], 1)
         dr = rs[:, 1:] - rs[:, :-1]  # (B, K, d)
         a_bar = 0.5 * (a_all[:, 1:] + a_all[:, :-1])
         # tiny matrix-vector products: elementwise sums beat batched matmul here
@@ -378,15 +408,12 @@ def _integrate(
         out["r"][:, rows] = rs[:, sl]
         out["pose"][:, rows] = poses[:, sl]
         out["xi"][:, rows] = twist.reshape(B, n_int, S, 3).sum(2) / dt
-        r_dot = (rs[:, S::S] - rs[:, 0:K:S]) / dt
-        out["r_dot"][:, rows] = r_dot
-        out["power"][:, rows] = (m_all[:, sl] * r_dot[..., None, :] * r_dot[..., :, None]).sum(
-            (-1, -2))
+        out["r_dot"][:, rows] = (rs[:, S::S] - rs[:, 0:K:S]) / dt
 
         # carry the block's last fine point
         t_now += K * h
         phi, r, pose = phis[:, -1].clone(), rs[:, -1].clone(), poses[:, -1].clone()
-        a_now, m_now = a_new[:, -1].clone(), m_new[:, -1].clone()
+        a_now = a_new[:, -1].clone()
 
     return {k: v.reshape(batch + v.shape[1:]) for k, v in out.items()}
 

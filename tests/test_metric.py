@@ -1,0 +1,184 @@
+"""The tied, noise-corrected metric regression: sample intervals, the errors-in-variables
+correction, the noise estimate, accuracy and band coverage against the swimmer's exact metric,
+and clear errors for data that cannot give a metric."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
+from torchconn.physics.gaits import FourierGait
+from torchconn.regression.metric import interval_samples, tied_metric_regression
+from torchconn.regression.tube import TubeRegression
+
+F64 = torch.float64
+
+
+def wave_gait(d: int, amp: float = 0.8) -> FourierGait:
+    """A travelling wave ``r_k = amp cos(φ − πk/d)`` (not the benchmark's gaits)."""
+    k = torch.arange(d, dtype=F64)
+    c = torch.zeros(3, d, dtype=F64)
+    c[1], c[2] = amp * torch.cos(math.pi * k / d), amp * torch.sin(math.pi * k / d)
+    return FourierGait(c)
+
+
+def rel_rms(est: torch.Tensor, true: torch.Tensor, value_dims: int) -> float:
+    dims = tuple(range(-value_dims, 0)) if value_dims else ()
+    num = ((est - true) ** 2).sum(dims) if dims else (est - true) ** 2
+    den = (true**2).sum(dims) if dims else true**2
+    return float((num.mean() / den.mean()).sqrt())
+
+
+# ----------------------------------------------------------------------------- intervals
+def test_interval_samples_follow_the_power_convention():
+    r = torch.tensor([[0.0, 1.0], [0.2, 1.4], [0.6, 1.6], [float("nan"), 2.0], [1.0, 2.2]],
+                     dtype=F64)
+    power = torch.tensor([1.0, 2.0, 3.0, 4.0, float("nan")], dtype=F64)
+    phase = torch.tensor([6.0, 6.2, 0.12, 0.3, 0.5], dtype=F64)  # wraps after the 2nd sample
+    iv = interval_samples(r, power, phase, dt=0.5)
+    torch.testing.assert_close(iv.velocity[:2], torch.tensor([[0.4, 0.8], [0.8, 0.4]],
+                                                             dtype=F64))
+    torch.testing.assert_close(iv.r_mid[0], torch.tensor([0.1, 1.2], dtype=F64))
+    # mid-phase across the wrap: 6.2 + (0.12 + 2π − 6.2)/2
+    assert float(iv.phase[1]) == pytest.approx(6.2 + (0.12 + 2 * math.pi - 6.2) / 2)
+    # a missing shape blanks both intervals it bounds; the last row has no interval
+    assert torch.isnan(iv.power[2:]).all() and torch.isfinite(iv.power[:2]).all()
+    assert torch.isnan(iv.velocity[-1]).all()
+
+
+# ----------------------------------------------------------------------------- EIV correction
+def _constant_metric_data(n: int, noise_var: float, seed: int = 0):
+    """Samples around a circle with a constant metric and exact power; noisy velocities."""
+    g = torch.Generator().manual_seed(seed)
+    m_true = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=F64)
+    phase = torch.arange(n, dtype=F64) * (2 * math.pi / 64)
+    gdot = torch.stack([-torch.sin(phase), torch.cos(phase)], -1)
+    v = gdot + 0.3 * torch.randn(n, 2, generator=g, dtype=F64)
+    power = torch.einsum("ni,ij,nj->n", v, m_true, v)
+    v_obs = v + math.sqrt(noise_var) * torch.randn(n, 2, generator=g, dtype=F64)
+    return m_true, phase, v_obs, power
+
+
+def test_noise_correction_removes_the_errors_in_variables_bias():
+    s = 0.05  # noise variance of the velocity, half the offsets' own 0.09
+    m_true, phase, v_obs, power = _constant_metric_data(200_000, s)
+    zeros = torch.zeros_like(v_obs)
+    centres = torch.arange(8, dtype=F64) * (2 * math.pi / 8)
+    gd_m = torch.stack([-torch.sin(centres), torch.cos(centres)], -1)
+    fits = {}
+    for name, nv in (("raw", None), ("corrected", torch.full((2,), s, dtype=F64))):
+        fits[name] = tied_metric_regression(zeros, v_obs, power, phase, centres, gd_m, order=0,
+                                            derivative_order=None, noise_variance=nv)
+    z_raw = ((fits["raw"].M[0] - m_true) / fits["raw"].se_M[0]).abs()
+    z_cor = ((fits["corrected"].M[0] - m_true) / fits["corrected"].se_M[0]).abs()
+    print(f"|z| uncorrected {z_raw.max():.1f}, corrected {z_cor.max():.2f}")
+    assert z_raw.max() > 10  # the bias is many standard errors
+    assert z_cor.max() < 4  # gone, within the standard errors
+    assert float(fits["corrected"].noise_correction.min()) == 1.0
+    # M̂γ̇ and the on-cycle power are the same metric applied to γ̇
+    f = fits["corrected"]
+    torch.testing.assert_close(f.M_gamma_dot, (f.M @ gd_m[..., None])[..., 0])
+    torch.testing.assert_close(f.power_on_cycle, (gd_m * f.M_gamma_dot).sum(-1))
+
+
+# ----------------------------------------------------------------------------- on the swimmer
+@pytest.fixture(scope="module")
+def three_link():
+    """3-link travelling wave, 4 trials x 20 cycles (seeds not used to choose any default)."""
+    seeds = np.arange(4) + 500
+    system = NLinkSwimmer(3)
+    traj = simulate(system, wave_gait(2), eta=0.025, n_cycles=20, seeds=seeds)
+    return system, traj, seeds
+
+
+def _fit(traj, **options):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return ConnectionEstimator(regression=TubeRegression(**options), pool=True).fit(traj)
+
+
+def _errors(model, system) -> dict:
+    phi = torch.arange(128, dtype=F64) * (2 * math.pi / 128)
+    gd = model.gamma_dot_at(phi)
+    m_true = system.metric(model.gamma_at(phi))
+    mgd_true = (m_true @ gd[..., None])[..., 0]
+    return {"Mgd": rel_rms(model.metric_gamma_dot(phi), mgd_true, 1),
+            "power": rel_rms(model.power_on_cycle(phi), (gd * mgd_true).sum(-1), 0),
+            "M": rel_rms(model.metric(phi), m_true, 2)}
+
+
+def test_noise_level_is_estimated_from_the_power_residuals(three_link):
+    system, traj, seeds = three_link
+    clean = _fit(traj).model_.meta["metric_noise_std"]
+    noisy = _fit(observe(traj, 0.003, seeds=seeds)).model_.meta["metric_noise_std"]
+    print(f"estimated shape noise: clean {clean}, omega = 0.003: {noisy}")
+    assert max(clean) < 3e-4
+    assert all(abs(w / 0.003 - 1) < 0.2 for w in noisy)
+
+
+def test_metric_error_on_clean_and_noisy_recordings(three_link):
+    system, traj, seeds = three_link
+    errs = {om: _errors(_fit(observe(traj, om, seeds=seeds)).model_, system)
+            for om in (0.0, 0.002)}
+    old = _errors(_fit(traj, metric_method="paper").model_, system)
+    print(f"tied: {errs}; paper's per-bin method on clean data: {old}")
+    assert errs[0.0]["Mgd"] < 0.02 and errs[0.0]["power"] < 0.02 and errs[0.0]["M"] < 0.1
+    assert errs[0.002]["Mgd"] < 0.05 and errs[0.002]["power"] < 0.05
+    # the per-bin expansion on the same clean data is far off (the reason for the tied model)
+    assert old["power"] > 5 * errs[0.0]["power"]
+
+
+@pytest.mark.slow
+def test_metric_bands_cover_the_truth():
+    """Coverage of the per-bin 95 % bands over independent recordings (3-link, ω = 0.002)."""
+    system = NLinkSwimmer(3)
+    inside_m, inside_mgd = [], []
+    for rep in range(6):
+        seeds = np.arange(2) + 700 + 2 * rep
+        traj = observe(simulate(system, wave_gait(2), eta=0.025, n_cycles=30, seeds=seeds),
+                       0.002, seeds=seeds)
+        b = _fit(traj).model_.bins
+        m_true = system.metric(b.gamma)
+        iu, ju = torch.triu_indices(2, 2)
+        inside_m.append(((b.M - m_true).abs() <= 1.96 * b.M_se)[:, iu, ju].double().mean())
+        mgd_true = (m_true @ b.gamma_dot[..., None])[..., 0]
+        inside_mgd.append(((b.M_gamma_dot - mgd_true).abs()
+                           <= 1.96 * b.M_gamma_dot_se).double().mean())
+    cov_m, cov_mgd = float(torch.stack(inside_m).mean()), float(torch.stack(inside_mgd).mean())
+    print(f"coverage of the 95 % bands: full M {cov_m:.2f}, M gamma_dot {cov_mgd:.2f}")
+    assert 0.8 <= cov_m <= 1.0 and 0.8 <= cov_mgd <= 1.0
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_metric_asked_for_without_power_is_a_clear_error(three_link):
+    _, traj, _ = three_link
+    no_power = traj.with_fields(power=None)
+    with pytest.raises(ValueError, match="metric=True but|no power channel"):
+        ConnectionEstimator(regression=TubeRegression(metric=True)).fit(no_power)
+    # by default the metric is simply not fitted
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model = ConnectionEstimator(regression=TubeRegression(n_bins=24, fourier_order=6)).fit(
+            no_power[:1]).model_
+    assert model.M is None
+    with pytest.raises(ValueError, match="power column has no values"):
+        ConnectionEstimator().fit(traj.with_fields(power=torch.full_like(traj.power, math.nan)))
+
+
+def test_unidentifiable_metric_is_a_clear_error():
+    # shape velocity only along the gait: M is known only along γ̇, so the fit must refuse
+    n = 4000
+    phase = torch.arange(n, dtype=F64) * (2 * math.pi / 64)
+    v = torch.stack([-torch.sin(phase), torch.cos(phase)], -1)
+    power = (v * v).sum(-1)
+    centres = torch.arange(8, dtype=F64) * (2 * math.pi / 8)
+    gd = torch.stack([-torch.sin(centres), torch.cos(centres)], -1)
+    with pytest.raises(ValueError, match="do not identify the metric"):
+        tied_metric_regression(torch.zeros_like(v), v, power, phase, centres, gd, order=3,
+                               derivative_order=None)
+    with pytest.raises(ValueError, match="usable power samples"):
+        tied_metric_regression(torch.zeros_like(v[:40]), v[:40], power[:40], phase[:40],
+                               centres, gd, order=6, derivative_order=1)
