@@ -123,6 +123,7 @@ def test_propose_improves_and_stays_in_trust_region(fitted_3link):
     prop = propose_gait(model, "displacement", tr, n_draws=32)
     assert prop.step <= prop.radius * (1 + 1e-9)
     assert prop.gain > 0 and prop.gain_se > 0
+    assert abs(float(prop.prediction.displacement[2])) < tr.max_turn + 0.01  # goes straight
     base_true = true_objective(system, FourierGait(model.gamma.coeffs), "displacement")
     assert true_objective(system, prop.gait, "displacement") > base_true
 

@@ -36,7 +36,7 @@ def finite_difference_baseline(
     system: LocomotionSystem, start: FourierGait, *, budget: int, trials: int = 4,
     cycles: int = 20, h: float = 0.05, step: float = 0.3, eta: float = 0.025,
     alpha: float = 0.05, objective: str = "displacement", seed: int = 0,
-    shape_bound: float | None = math.pi,
+    shape_bound: float | None = math.pi, max_turn: float | None = 0.05,
 ) -> list[BaselineStep]:
     """Central-difference gradient ascent of the measured objective until ``budget`` cycles.
 
@@ -45,7 +45,9 @@ def finite_difference_baseline(
             parameters. budget: recorded cycles allowed; h: difference step (rad);
             step: length of each ascent step in coefficient space (rad);
             shape_bound: after each step the gait is scaled about its mean shape until
-            ``|r| ≤ shape_bound`` (the joint limits the loop's proposals respect).
+            ``|r| ≤ shape_bound`` (the joint limits the loop's proposals respect);
+            max_turn: the measured objective is penalised like the loop's proposals when the
+            measured rotation per cycle exceeds it (see :class:`TrustRegion`).
     """
     coeffs = start.coeffs.detach().clone()
     n = coeffs.numel()
@@ -58,7 +60,11 @@ def finite_difference_baseline(
         s = seeds.spawn(1)[0].generate_state(trials, dtype=np.uint32).astype(np.int64)
         traj = simulate(system, FourierGait(c), eta=eta, alpha=alpha, n_cycles=cycles, seeds=s)
         used += per_eval
-        return measure_cycles(traj).objective(objective)[0]
+        m = measure_cycles(traj)
+        value = m.objective(objective)[0]
+        if max_turn is not None and objective != "turning":
+            value -= 1e3 * max(abs(float(m.displacement[2])) - max_turn, 0.0) ** 2
+        return value
 
     while used + (2 * n + 1) * per_eval <= budget:
         grad = torch.zeros_like(coeffs).reshape(-1)

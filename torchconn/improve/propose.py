@@ -45,6 +45,10 @@ class TrustRegion:
         shape_bound: every shape of the proposal keeps ``|r| ≤ shape_bound`` (rad; joint limits,
             None: unbounded). π keeps a 3-link loop within the joint limits the gait optimiser
             uses, and a 9-link within its modal radius π/2 (``|r| = 2 × modal radius``).
+        max_turn: for the displacement and efficiency objectives, the net rotation per cycle
+            a proposal may have (rad, None: any). Without it |(x, y)| per cycle is maximised by
+            gaits that also turn (the chord of a screw motion), which make no progress over
+            many cycles; 0.05 rad (3°) per cycle keeps proposals going straight.
         steps, lr: projected Adam ascent (step ``lr × radius``).
     """
 
@@ -52,6 +56,7 @@ class TrustRegion:
     scale: float = 2.0
     order: int = 3
     shape_bound: float | None = math.pi
+    max_turn: float | None = 0.05
     steps: int = 200
     lr: float = 0.05
 
@@ -185,6 +190,8 @@ def propose_gait(
         r, v = base_r + delta(theta), base_v + delta.velocity(theta)
         disp, cost = predict_cycle(model, theta, r, v, n_steps, with_cost)
         f = objective_value(objective, disp, cost)
+        if tr.max_turn is not None and objective != "turning":
+            f = f - 1e3 * torch.relu(disp[..., 2].abs() - tr.max_turn).pow(2)
         if tr.shape_bound is not None:
             excess = torch.relu(torch.linalg.vector_norm(r, dim=-1) - tr.shape_bound)
             f = f - 1e3 * excess.pow(2).mean()
