@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import sys
 import warnings
 from pathlib import Path
 
-import torch
-
+from .._provenance import write_sidecar
 from ..io.trajectory_files import read_csv
 from ..physics.systems import NLinkSwimmer
 from ..regression.estimator import ConnectionEstimator
@@ -47,12 +45,11 @@ def _simulate(args) -> int:
     keys = list(rows[0])
     lines = [",".join(keys)] + [",".join(str(row[k]) for k in keys) for row in rows]
     (out / "rounds.csv").write_text("\n".join(lines) + "\n")
-    settings_json = dataclasses.asdict(settings)
-    (out / "run.json").write_text(json.dumps({
+    write_sidecar(out / "run.json", {
         "command": "simulate", "links": args.links, "start_radius": args.radius,
-        "settings": settings_json, "start_true": result.start_true,
-        "coverage": result.coverage, "torch": torch.__version__,
-    }, indent=2, default=str))
+        "settings": dataclasses.asdict(settings), "start_true": result.start_true,
+        "coverage": result.coverage, "rounds": rows,
+    })
     write_gait(result.rounds[-1].proposal, out / "next_gait")
     from .plots import plot_gaits, plot_rounds
 
@@ -85,6 +82,10 @@ def _propose(args) -> int:
     }
     paths = write_gait(prop.gait, args.out / "next_gait", period=period,
                        extra={"prediction": summary})
+    write_sidecar(args.out / "report.json", {
+        "command": "propose", "data": [str(p) for p in args.data], "links": args.links,
+        "scale": args.scale, **summary,
+    })
     print(f"measured {args.objective} {meas:.4g} ± {meas_se:.2g} per cycle; the next gait is "
           f"predicted to gain {prop.gain:.3g} [{lo:.3g}, {hi:.3g}]")
     print(f"wrote {paths['csv']} (joint angles over one cycle) and {paths['json']}")
