@@ -18,13 +18,23 @@ record it → …**
 recordings (``propose``).
 """
 
+from .baselines import BaselineStep, finite_difference_baseline
+from .export import gait_table, write_gait
 from .loop import LoopResult, LoopSettings, Round, circle_gait, improve, true_objective
 from .measure import CycleMeasurement, measure_cycles
-from .propose import OBJECTIVES, Proposal, TrustRegion, objective_value, propose_gait
+from .propose import (
+    OBJECTIVES,
+    Proposal,
+    TrustRegion,
+    check_trust_region,
+    objective_value,
+    propose_gait,
+)
 from .truth import ceiling, exact_local_model
 
 __all__ = [
     "OBJECTIVES", "TrustRegion", "Proposal", "propose_gait", "objective_value",
     "LoopSettings", "Round", "LoopResult", "improve", "circle_gait", "true_objective",
-    "CycleMeasurement", "measure_cycles", "ceiling", "exact_local_model",
+    "CycleMeasurement", "measure_cycles", "ceiling", "exact_local_model", "check_trust_region",
+    "finite_difference_baseline", "BaselineStep", "gait_table", "write_gait",
 ]
