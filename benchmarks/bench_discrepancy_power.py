@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import sys
 import time
@@ -42,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchconn._provenance import write_sidecar
 from torchconn.discrepancy import (
     REGISTRY,
     DiscrepancySettings,
@@ -225,13 +225,12 @@ def main(argv: list[str] | None = None) -> int:
     summary = summarise(rows)
     table = format_table(summary)
     print(table)
-    (args.out / "power.json").write_text(json.dumps({
+    write_sidecar(args.out / "power.json", {
         "config": cfg, "root_seed": st["root_seed"], "pysindy": have_sindy,
+        "pysindy_version": _pysindy_version(),
         "sindy_thresholds": thresholds if have_sindy else None,
-        "versions": {"torch": torch.__version__, "numpy": np.__version__,
-                     "pysindy": _pysindy_version()},
         "summary": summary, "seconds": time.time() - t0,
-    }, indent=2, default=str))
+    })
     shown = list(effects) + ([UNREGISTERED] if any(r["effect"] == UNREGISTERED for r in rows)
                              else [])
     plot(summary, st, shown, args.out / "power.png")

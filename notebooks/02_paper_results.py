@@ -95,8 +95,9 @@ nb = Notebook("02_paper_results")
 # `load_config(path, overrides)` reads a TOML config (`None`: the embedded default) and applies
 # `key=value` overrides, exactly like the command line's `--set`. Every cell (level, trial) gets
 # its own seed from `numpy.random.SeedSequence(root).spawn`, so results do not depend on the
-# order in which cells run. `run_sweep` is resumable: finished experiments stored in the output
-# directory are skipped when their configuration has not changed.
+# order in which cells run. `run_sweep` is resumable: it stores cells (one level, a block of
+# trials) as they finish, and reuses intact ones when neither the configuration nor torchconn's
+# code has changed.
 
 # %%
 sweep_env = os.environ.get("TORCHCONN_SWEEP_DIR", "").strip()

@@ -44,6 +44,9 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
     assert np.abs(table[:, 3:9] - a_true).max() < 0.03
     model = LocalConnectionModel.load(out / "model.npz")
     assert model.batch_shape == ()
+    settings = model.meta["settings"]  # the estimator's full settings travel with the model
+    assert settings["cycle"]["order"] == 8 and settings["regression"]["n_bins"] == 48
+    assert settings["pool"] is True and settings["phaser"]["method"] == "phaser"
     # M̂γ̇ and the on-cycle power against the swimmer's exact metric on the fitted cycle
     phi = torch.tensor(table[:, 0])
     gd = model.gamma_dot_at(phi)
@@ -60,3 +63,47 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
 def test_fit_rejects_the_wrong_number_of_links(recording, tmp_path, capsys):
     assert main([str(recording), "--links", "5", "--out", str(tmp_path / "x")]) == 2
     assert "joint" in capsys.readouterr().err
+
+
+def test_fit_takes_any_stage_setting_and_refuses_bad_ones_by_name(recording, tmp_path, capsys):
+    for extra, message in (
+        (["--set", "regression.kernal=box"], "unknown key 'kernal' (did you mean 'kernel'?)"),
+        (["--set", "smoother.order=4"], "RTSSmoother.order must be one of 2, 3, got 4"),
+        (["--set", "estimator.phasr.order=2"],
+         "unknown key 'phasr' (did you mean 'phaser'?)"),
+        (["--n-bins", "2"], "TubeRegression.n_bins must be >= 3, got 2"),
+    ):
+        assert main([str(recording), "--links", "3", "--out", str(tmp_path / "x"), *extra]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()  # refused before anything is read or written
+    out = tmp_path / "ok"
+    assert main([str(recording), "--links", "3", "--out", str(out), "--set", "cycle.order=7",
+                 "--set", "regression.kernel=box"]) == 0
+    settings = LocalConnectionModel.load(out / "model.npz").meta["settings"]
+    assert settings["cycle"]["order"] == 7 and settings["regression"]["kernel"] == "box"
+
+
+def test_fit_metric_option(recording, tmp_path, capsys):
+    no_power = tmp_path / "no_power.csv"
+    lines = recording.read_text().splitlines()
+    no_power.write_text("\n".join(",".join(line.split(",")[:-1]) for line in lines) + "\n")
+    # asked for without a power column: a clear error, nothing written
+    assert main([str(no_power), "--links", "3", "--out", str(tmp_path / "a"),
+                 "--metric", "yes"]) == 2
+    assert "power" in capsys.readouterr().err
+    assert not (tmp_path / "a" / "model.npz").exists()
+    # switched off with a power column: the connection alone
+    assert main([str(recording), "--links", "3", "--out", str(tmp_path / "b"), "--metric",
+                 "no"]) == 0
+    assert LocalConnectionModel.load(tmp_path / "b" / "model.npz").M is None
+
+
+def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tmp_path,
+                                                                    capsys):
+    out = tmp_path / "cv"
+    assert main([str(recording), "--links", "3", "--out", str(out), "--regression",
+                 "noise_aware", "--complexity", "cv"]) == 0
+    text = capsys.readouterr().out
+    assert "complexity chosen by held-out error" in text
+    assert "held-out R² (v_x, v_y, omega)" in text and "phase-averaged velocity" in text
+    assert LocalConnectionModel.load(out / "model.npz").batch_shape == ()

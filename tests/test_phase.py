@@ -14,6 +14,8 @@ import pytest
 import torch
 
 from torchconn.phase.phaser import (
+    PhaseAmbiguityWarning,
+    Phaser,
     circular_rms,
     correction_series,
     estimate_phase,
@@ -235,3 +237,21 @@ def test_errors_are_clear():
     no_fundamental = torch.stack([0.3 * torch.cos(2 * t), torch.sin(t), torch.cos(t)], -1)
     with pytest.raises(ValueError, match="channel 0 has almost no first harmonic"):
         estimate_phase(no_fundamental)
+
+
+def test_channels_carrying_a_harmonic_do_not_spoil_the_phase():
+    # x, y of a circle and xy, x² − y² (its second harmonic): unit phasors of all four gave
+    # ~0.9 rad error; the harmonic channels are now left out, with a warning
+    g = torch.Generator().manual_seed(0)
+    T = 126 * 20
+    t = torch.arange(T, dtype=torch.float64) * (2 * math.pi / 126)
+    walk = torch.cumsum(torch.randn(T, generator=g, dtype=torch.float64), 0)
+    phi = t + 0.05 * math.sqrt(2 * math.pi / 126) * walk
+    x, y = torch.cos(phi), torch.sin(phi)
+    noise = 0.01 * torch.randn(T, 4, generator=g, dtype=torch.float64)
+    mixed = torch.stack([x, y, x * y, x * x - y * y], -1) + noise
+    with pytest.warns(PhaseAmbiguityWarning, match="2 channel"):
+        phase = Phaser().fit(mixed).phase_
+    fundamental = Phaser().fit(mixed[:, :2]).phase_
+    assert float(circular_rms(phase, phi)) < 0.05
+    assert float(circular_rms(phase, phi)) < 1.2 * float(circular_rms(fundamental, phi))

@@ -48,7 +48,7 @@ def test_noise_free_cycle_matches_gait_displacement():
 
 def test_noise_free_truth_is_the_interval_mean():
     """xi and r_dot are the means over the centred recording interval; power belongs to the
-    sample interval [t_k, t_k+1) (CONVENTIONS), with the metric at the interval's mid-shape.
+    sample interval [t_k, t_k+1) (docs/conventions.md), with the metric at the interval's mid-shape.
 
     xi is compared with Gauss–Legendre quadrature of the smooth integrand; the trapezoid on the
     fine grid is second order, so halving h must quarter the error.

@@ -13,7 +13,7 @@ from torchconn import NLinkSwimmer, observe, simulate
 from torchconn.phase.fourier import fit_fourier
 from torchconn.phase.limit_cycle import SelfConsistentCycle, fit_limit_cycle
 from torchconn.phase.phaser import Phaser, circular_rms, estimate_phase
-from torchconn.phase.smoothing import RTSSmoother, smooth_trajectory
+from torchconn.phase.smoothing import RTSSmoother, Smoother, smooth_trajectory
 from torchconn.physics.gaits import reference_gait
 from torchconn.regression.binning import assign_bins
 from torchconn.regression.connection import connection_regression
@@ -25,6 +25,7 @@ from torchconn.regression.estimator import (
 from torchconn.regression.metric import metric_n_coef, metric_regression
 from torchconn.regression.tube import TubeRegression
 from torchconn.sweep.config import load_config
+from torchconn.trajectory import SmoothedState
 
 F64 = torch.float64
 
@@ -140,7 +141,10 @@ def test_get_and_set_params_follow_scikit_learn_without_it():
     with pytest.raises(ValueError, match=r"'regression__nbins' \(did you mean 'regression__n_bins'"):
         est.set_params(regression__nbins=3)
     with pytest.raises(ValueError, match="TubeRegression.n_bins must be >= 3"):
-        est.set_params(regression__n_bins=2)
+        est.set_params(phaser__order=2, regression__n_bins=2)
+    with pytest.raises(TypeError, match="smoother must be a Smoother"):
+        est.set_params(smoother=Phaser(), pool=True)
+    assert est.get_params() == rebuilt.get_params()  # a refused call changes nothing
     assert "n_bins=32" in repr(est) and "Phaser(order=4" in repr(est)
 
 
@@ -261,3 +265,32 @@ def test_the_phase_stage_phases_padded_trials_over_their_own_spans():
         warnings.simplefilter("error")
         again = fitted.transform(r)
     torch.testing.assert_close(again, fitted.phase_, rtol=0, atol=1e-12, equal_nan=True)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class _TruthSmoother(Smoother):
+    """A user's own smoothing stage: the simulation's noise-free state (tests only)."""
+
+    def smooth(self, traj):
+        g = traj.truth
+        return traj.with_fields(smoothed=SmoothedState(pose=g.pose, pose_dot=g.pose, r=g.r,
+                                                       r_dot=g.r_dot, xi=g.xi))
+
+
+def test_a_new_stage_slots_in_by_keyword(recording):
+    est = ConnectionEstimator(smoother=_TruthSmoother(),
+                              regression=TubeRegression(n_bins=24, fourier_order=6, metric=False))
+    est.fit(recording)
+    assert est.trajectory_.smoothed.xi is recording.truth.xi
+    settings = estimator_settings(est)
+    assert settings["smoother"]["method"].endswith("_TruthSmoother")
+    # exact velocities beat the RTS smoother's on this noisy recording (same regression)
+    default = ConnectionEstimator(regression=est.regression).fit(recording)
+
+    def error(e):
+        b = e.model_.bins
+        A_true = NLinkSwimmer(3).connection(b.gamma)
+        return float((b.A - A_true).norm() / A_true.norm())
+
+    print(f"relative RMS error of A: truth smoother {error(est):.4f}, RTS {error(default):.4f}")
+    assert error(est) < 0.05 and error(est) < 0.5 * error(default)

@@ -9,7 +9,7 @@ import pytest
 from torchconn.sweep import __main__ as cli
 from torchconn.sweep import experiment as experiment_module
 from torchconn.sweep.config import load_config
-from torchconn.sweep.runner import run_sweep
+from torchconn.sweep.runner import cell_fingerprint, run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--cycles", "8", "--trials", "2", "--quiet"]
@@ -85,26 +85,26 @@ def test_resume_after_interruption_gives_the_uninterrupted_table(tmp_path, monke
     run_sweep(config, tmp_path / "whole", quiet=True, figures=False)
 
     calls = []
-    real = experiment_module.run_experiment
+    real = experiment_module.run_cell
 
-    def dies_on_second(cfg, exp):
-        calls.append(exp.name)
-        if len(calls) == 2:
+    def dies_on_third(cfg, cell):
+        calls.append(cell.name)
+        if len(calls) == 3:
             raise KeyboardInterrupt
-        return real(cfg, exp)
+        return real(cfg, cell)
 
-    monkeypatch.setattr("torchconn.sweep.runner.run_experiment", dies_on_second)
+    monkeypatch.setattr("torchconn.sweep.runner.run_cell", dies_on_third)
     with pytest.raises(KeyboardInterrupt):
         run_sweep(config, tmp_path / "resumed", quiet=True, figures=False)
-    monkeypatch.setattr("torchconn.sweep.runner.run_experiment", real)
-    done = list((tmp_path / "resumed" / "cells").glob("*/done.json"))
-    assert len(done) == 1  # the first experiment was stored before the interruption
+    stored = list((tmp_path / "resumed" / "cells").glob("*/cell.json"))
+    assert len(stored) == 2  # the cells finished before the interruption were kept
 
     reran = []
-    monkeypatch.setattr("torchconn.sweep.runner.run_experiment",
-                        lambda cfg, exp: reran.append(exp.name) or real(cfg, exp))
-    run_sweep(config, tmp_path / "resumed", quiet=True, figures=False)
-    assert reran == [config.experiments[1].name]  # only the missing one ran
+    monkeypatch.setattr("torchconn.sweep.runner.run_cell",
+                        lambda cfg, cell: reran.append(cell.name) or real(cfg, cell))
+    summary = run_sweep(config, tmp_path / "resumed", quiet=True, figures=False)
+    assert reran == calls[2:] + ["3link-observation-L1-t0-2"]  # only the missing cells ran
+    assert summary.reused == 2 and summary.computed == tuple(reran)
     assert (tmp_path / "resumed" / "results.csv").read_text() == (
         tmp_path / "whole" / "results.csv").read_text()
 
@@ -115,6 +115,19 @@ def test_changed_config_never_reuses_stale_cells(tmp_path):
     second = load_config(path, ["estimator.fourier_order=5"])
     assert all(first.fingerprint(a) != second.fingerprint(b)
                for a, b in zip(first.experiments, second.experiments, strict=True))
+    cells = [experiment_module.experiment_cells(e, 4)[0] for e in first.experiments]
+    assert cell_fingerprint(first, cells[0]) != cell_fingerprint(second, cells[0])
+
+
+def test_fingerprint_covers_torchconn_version_and_source(tmp_path, monkeypatch):
+    config = load_config(_small_config(tmp_path))
+    cell = experiment_module.experiment_cells(config.experiments[0], 4)[0]
+    before = cell_fingerprint(config, cell)
+    monkeypatch.setattr("torchconn.sweep.config.__version__", "999.0")
+    after_upgrade = cell_fingerprint(config, cell)
+    monkeypatch.undo()
+    monkeypatch.setattr("torchconn.sweep.config.source_hash", lambda: "0" * 16)
+    assert len({before, after_upgrade, cell_fingerprint(config, cell)}) == 3
 
 
 def test_dask_backends_match_the_serial_run(tmp_path):
@@ -138,6 +151,7 @@ def test_bad_config_is_reported(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "x"\n[[experiment]]\nsystem = "4link"\nnoise_kind = "system"\n'
                    "levels = [1.0]\ntrials = 1\n")
-    with pytest.raises(SystemExit):
-        cli.main(["--config", str(bad), "--out", str(tmp_path / "o")])
-    assert "experiment system must be one of" in capsys.readouterr().err
+    assert cli.main(["--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "[[experiment]] 0" in err and "system must be one of" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()

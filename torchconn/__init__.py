@@ -11,7 +11,8 @@ The package's folders are the pipeline's stages:
 ``evaluation``    ground-truth / data-driven / analytic / template models and their errors
 ``sweep``         the paper's experiments: configs, resumable store, claims, figures
 ``discrepancy``   where simulator and data disagree, and which physical effect is missing
-``io``            trajectory files (CSV, NPZ)
+``io``            trajectory files (CSV, NPZ), tracking files (SLEAP, DeepLabCut, WCON,
+                  points) and their conversion, the checks before fitting
 ================  =====================================================================
 
 ``trajectory`` holds the :class:`Trajectory` container that flows through every stage.
@@ -28,6 +29,7 @@ from .regression import (
     ConnectionEstimator,
     EstimatorSettings,
     LocalConnectionModel,
+    NoiseAwareRegression,
     TubeRegression,
     estimator_from_settings,
 )
@@ -47,6 +49,6 @@ __all__ = [
     "Trajectory", "GroundTruth", "SmoothedState", "gaits", "se2",
     "simulate", "observe", "read_csv", "write_csv",
     "ConnectionEstimator", "LocalConnectionModel", "estimator_from_settings",
-    "RTSSmoother", "Phaser", "SelfConsistentCycle", "TubeRegression",
+    "RTSSmoother", "Phaser", "SelfConsistentCycle", "TubeRegression", "NoiseAwareRegression",
     "EstimatorSettings",
 ]

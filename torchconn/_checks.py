@@ -7,11 +7,21 @@ Each check names the function (``fn``, when given) and the argument, says what w
 
 A non-tensor or a tensor of the wrong dtype is a :class:`TypeError`; a wrong shape or value is
 a :class:`ValueError`.
+
+:func:`check_value` checks an option against its type annotation (``bool``, ``int``, ``float``,
+``Literal[...]``, ``X | None``) and bounds, the estimator stages' validation
+(:mod:`torchconn._options`); :func:`unknown_keys_message` words a rejected key with its closest
+valid one (:func:`did_you_mean`).
 """
 
 from __future__ import annotations
 
+import difflib
+import math
+import types
+import typing
 from collections.abc import Callable
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -19,7 +29,7 @@ from torch import Tensor
 
 __all__ = [
     "describe", "tensor", "last_dim", "finite", "integer", "check_shapes", "phase_samples",
-    "first_index",
+    "first_index", "check_value", "unknown_keys_message", "did_you_mean",
 ]
 
 
@@ -128,3 +138,66 @@ def phase_samples(phase: Tensor, r: Tensor, r_dot: Tensor, *, fn: str | None = N
 def first_index(mask: Tensor) -> tuple[int, ...]:
     """Index of the first ``True`` in ``mask`` (C order), to name an offending element."""
     return tuple(torch.nonzero(mask)[0].tolist())
+
+
+# ---------------------------------------------------------------------- option values
+def _annotation_text(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_annotation_text(a) for a in typing.get_args(tp))
+    if tp is type(None):
+        return "None"
+    if tp is float:
+        return "a finite number"
+    if tp is int:
+        return "an integer"
+    if tp is bool:
+        return "true or false"
+    return getattr(tp, "__name__", str(tp))
+
+
+def _matches(value: Any, tp: Any) -> bool:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        # 2 == 2.0 == True in Python: compare types too, so order=True is not order=1
+        return any(value == a and type(value) is type(a) for a in typing.get_args(tp))
+    if origin in (typing.Union, types.UnionType):
+        return any(_matches(value, a) for a in typing.get_args(tp))
+    if tp is type(None):
+        return value is None
+    if tp is bool:
+        return isinstance(value, bool)
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if tp is float:
+        return (isinstance(value, (int, float)) and not isinstance(value, bool)
+                and math.isfinite(value))
+    if tp is str:
+        return isinstance(value, str)
+    return True  # other annotations (objects) are checked by the owner
+
+
+def check_value(where: str, value: Any, tp: Any, bounds: dict | None = None) -> None:
+    """Raise ``ValueError`` naming ``where`` unless ``value`` fits annotation ``tp`` and ``bounds``."""
+    if not _matches(value, tp):
+        raise ValueError(f"{where} must be {_annotation_text(tp)}, got {value!r}")
+    if bounds and isinstance(value, (int, float)) and not isinstance(value, bool):
+        for key, limit in bounds.items():
+            ok = {"ge": value >= limit, "gt": value > limit, "le": value <= limit}[key]
+            if not ok:
+                rel = {"ge": ">=", "gt": ">", "le": "<="}[key]
+                raise ValueError(f"{where} must be {rel} {limit}, got {value!r}")
+
+
+def did_you_mean(word: str, choices) -> str:
+    """``" (did you mean 'x'?)"`` for the closest of ``choices``, or ``""``."""
+    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def unknown_keys_message(where: str, unknown, valid) -> str:
+    """``where: unknown key 'x' (did you mean 'y'?); valid keys are …`` (closest via difflib)."""
+    parts = [f"{key!r}{did_you_mean(key, valid)}" for key in sorted(map(str, unknown))]
+    return f"{where}: unknown key {', '.join(parts)}; valid keys are {', '.join(sorted(valid))}"

@@ -1,13 +1,22 @@
-"""``torchconn-fit DATA.csv [MORE.csv …] --links N --out DIR``: fit your recordings.
+"""``torchconn-fit DATA… --links N --out DIR``: fit your recordings (CSV or tracking files).
 
 Also runs as ``python -m torchconn.fit``. Reads trajectory CSV files (the format of
-docs/conventions.md, section "Trajectory file format"), estimates phase and limit cycle, fits the
+docs/conventions.md, section "Trajectory file format"), or tracking files (SLEAP, DeepLabCut,
+WCON, point arrays; docs/tracking.md) converted on the fly with the options of
+``torchconn-convert``; applies known conditions (``--known ambient_flow:u_x=…``); prints the
+checks before fitting (:mod:`torchconn.io.preflight`); estimates phase and limit cycle, fits the
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>,
 M_gamma_dot_<i>, power_on_cycle]``) and PNG plots with 95% confidence bands. ``M_gamma_dot``
 (``M̂γ̇``) and ``power_on_cycle`` (``γ̇ᵀM̂γ̇``) are what the gait itself identifies; the full
 ``M̂`` is only as good as the recording's off-cycle excitation (see the bands in ``metric.png``).
+``DIR/fit.json`` records the settings of every estimator stage, the data (and conversion)
+summary, the checks and the versions. Every estimator setting is reachable through ``--config``
+(an ``[estimator]`` table with stage sub-tables, read by
+:func:`~torchconn.regression.estimator.estimator_from_settings`) and
+``--set estimator.<stage>.<field>=value``. Exit codes: 0 done, 2 bad input or an unusable
+output folder (one line says what to fix), 1 an internal error.
 """
 
 from __future__ import annotations
@@ -16,18 +25,30 @@ import argparse
 import csv
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import torch
 
+from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
+from ._provenance import write_sidecar
+from .convert import add_conversion_arguments, config_tables, conversion_settings, load_recordings
+from .discrepancy.known import changes_data, parse_known, relative_to_known
+from .io.preflight import preflight
 from .io.trajectory_files import read_csv
-from .phase.phaser import Phaser
-from .regression.estimator import ConnectionEstimator
+from .physics.systems.swimmer import NLinkSwimmer
+from .regression.estimator import (
+    FLAT_KEYS,
+    ConnectionEstimator,
+    estimator_from_settings,
+    estimator_settings,
+)
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
-from .regression.tube import TubeRegression
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
+
+PROG = "torchconn-fit"
 
 
 def connection_table(model: LocalConnectionModel, n_points: int = 100):
@@ -54,73 +75,214 @@ def connection_table(model: LocalConnectionModel, n_points: int = 100):
 def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = 100) -> Path:
     """Write :func:`connection_table` to ``path`` (CSV with a header row)."""
     path = Path(path)
-    cols, rows = connection_table(model, n_points)
+    _write_table(path, *connection_table(model, n_points))
+    return path
+
+
+def _write_table(path: Path, cols, rows) -> None:
     with path.open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(cols)
         writer.writerows(rows)
-    return path
+
+
+#: shortcut flags -> the flat estimator settings they set (FLAT_KEYS maps them to a stage field)
+_FLAGS = {"n_bins": "n_bins", "fourier_order": "fourier_order", "window": "window",
+          "phase_order": "phase_order"}
+
+#: the estimator's stage names: ``--set regression.kernel=box`` means ``estimator.regression…``
+_STAGE_KEYS = ("smoother", "phaser", "cycle", "regression", "pool")
+
+
+def build_estimator(args, table: dict | None) -> ConnectionEstimator:
+    """The estimator of ``fit``: trials pooled by default, then the ``[estimator]`` table
+    (nested per stage, see :func:`estimator_from_settings`), then the shortcut flags."""
+    table = {"pool": True, **(table or {})}
+    if args.regression is not None:
+        table["regression"] = {**table.get("regression", {}), "method": args.regression}
+    if args.metric is not None:  # auto: fit the metric when there is a power column
+        table["regression"] = {**table.get("regression", {}),
+                               "metric": {"auto": None, "yes": True, "no": False}[args.metric]}
+    for flag, key in _FLAGS.items():
+        v = getattr(args, flag)
+        if v is not None:
+            stage, field = FLAT_KEYS[key]
+            table.pop(key, None)
+            table[stage] = {**table.get(stage, {}), field: v}
+    try:
+        return estimator_from_settings(table)
+    except ValueError as err:
+        raise InputError(f"estimator options: {err}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="torchconn-fit",
+        prog=PROG,
         description="Fit one local connection model (and the metric, when the files have a "
         "power column) to your recorded trials, pooled, and write DIR/model.npz, "
-        "DIR/connection.csv (one row per phase) and PNG plots with 95% bands. "
-        "Also runs as python -m torchconn.fit.",
+        "DIR/connection.csv (one row per phase), PNG plots with 95% bands and DIR/fit.json. "
+        "Reads trajectory CSVs or tracking files. Also runs as python -m torchconn.fit.",
     )
     p.add_argument("data", nargs="+", type=Path,
                    help="trajectory CSV files: columns t, x, y, theta, r1..rd[, power][, trial], "
                    'one trial per file or several with a trial column (format: '
-                   'docs/conventions.md, section "Trajectory file format")')
+                   'docs/conventions.md, section "Trajectory file format"); or tracking files '
+                   "(SLEAP, DeepLabCut, WCON, points: docs/tracking.md)")
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    defaults, phaser = TubeRegression(), Phaser()
-    p.add_argument("--n-bins", type=int, default=defaults.n_bins,
-                   help=f"phase bins (default {defaults.n_bins})")
-    p.add_argument("--fourier-order", type=int, default=defaults.fourier_order,
-                   help=f"Fourier order in phase (default {defaults.fourier_order})")
-    p.add_argument("--window", type=float, default=None,
+    p.add_argument("--config", type=Path,
+                   help="TOML file with an [estimator] table (stage sub-tables [estimator.phaser], "
+                   "[estimator.regression], ...) and a [convert] table")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a setting, e.g. --set estimator.regression.ridge=1e-6 or, "
+                   "for a stage, the short form --set regression.kernel=box (stages: smoother, "
+                   "phaser, cycle, regression; repeatable)")
+    p.add_argument("--n-bins", type=int, help="phase bins (estimator.regression.n_bins, default 48)")
+    p.add_argument("--fourier-order", type=int,
+                   help="Fourier order in phase (estimator.regression.fourier_order, default 12)")
+    p.add_argument("--window", type=float,
                    help="bin half-width in bin spacings (default: sized from the data)")
-    p.add_argument("--phase-order", type=int, default=phaser.order,
-                   help=f"Phaser correction order (default {phaser.order})")
-    p.add_argument("--grid", type=int, default=100, help="rows of connection.csv")
+    p.add_argument("--phase-order", type=int,
+                   help="Phaser correction order (estimator.phaser.order, default 3)")
+    p.add_argument("--regression", choices=("tube", "noise_aware"),
+                   help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
+                   "raw differences with the motion-capture noise removed (unbiased under noise)")
+    p.add_argument("--complexity", choices=("fixed", "cv"), default="fixed",
+                   help="fixed: --n-bins and --fourier-order as given (default); cv: bins, "
+                   "Fourier order and ridge chosen by held-out error over blocks of whole cycles")
+    p.add_argument("--folds", type=int, default=3,
+                   help="blocks of whole cycles for the held-out check and --complexity cv "
+                   "(default 3; 0 skips the check)")
+    p.add_argument("--metric", choices=("auto", "yes", "no"),
+                   help="estimate the dissipation metric: auto (default) when the files have a "
+                   "power column, yes to require one, no never")
+    p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
+                   help="a known condition, e.g. ambient_flow:u_x=0.01,u_y=0 (repeatable): the "
+                   "recording is modelled relative to it")
+    p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
+    p.add_argument("--no-figures", action="store_true", help="do not write PNG plots")
+    add_conversion_arguments(p)
+    add_threads(p)
     args = p.parse_args(argv)
-    if args.links < 2:
-        p.error(f"--links must be >= 2, got {args.links}")
 
-    try:
-        traj = read_csv(args.data, n_joints=args.links - 1)
-        est = ConnectionEstimator(
-            phaser=Phaser(order=args.phase_order),
-            regression=TubeRegression(n_bins=args.n_bins, fourier_order=args.fourier_order,
-                                      window=args.window),
-            pool=True,
-        ).fit(traj)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"torchconn-fit: error: {err}", file=sys.stderr)
-        return 2
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    model = est.model_
-    model.save(out / "model.npz")
-    write_connection_csv(model, out / "connection.csv", args.grid)
-    plot_connection(model, out / "connection.png")
-    plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
-    if model.M is not None:
-        plot_metric(model, out / "metric.png")
-    print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
-          f"samples (d = {traj.shape_dim})")
-    if model.M is not None:
-        noise = (model.meta or {}).get("metric_noise_std")
-        if noise is not None:
-            print("shape noise estimated for the metric (rad): "
-                  + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
-        print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; the "
-              "full M only as far as the data leave the cycle (see the bands in metric.png)")
-    print(f"wrote {out / 'model.npz'}, {out / 'connection.csv'} and plots")
-    return 0
+    def body() -> int:
+        set_threads(args.threads)
+        if args.links < 2:
+            raise InputError(f"--links must be >= 2, got {args.links}")
+        if args.grid < 2:
+            raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
+        if args.folds < 0 or args.folds == 1:
+            raise InputError(f"--folds must be 0 (no held-out check) or >= 2, got {args.folds}")
+        if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
+            raise InputError(f"--window must be a positive number, got {args.window}")
+        overrides = [f"estimator.{o}" if o.split(".", 1)[0] in _STAGE_KEYS else o
+                     for o in args.overrides]
+        tables = config_tables(args.config, overrides)
+        unknown = sorted(set(tables) - {"estimator", "convert"})
+        if unknown:
+            raise InputError(f"unknown config section(s) {unknown}; fit reads [estimator] and "
+                             "[convert]")
+        estimator = build_estimator(args, tables.get("estimator"))
+        def conv():  # conversion options matter (and are checked) for tracking files only
+            return conversion_settings(args, args.links, tables.get("convert"))
+
+        frame = args.frame or (tables.get("convert", {}).get("frame")
+                               or ("center" if args.links % 2 else "com-mean"))
+        swimmer = NLinkSwimmer(args.links, frame=frame)
+        known = [parse_known(k, swimmer) for k in args.known]
+        for k in known:
+            if not changes_data(k):
+                raise InputError(f"--known {k.name}: it changes only the simulator, and fit "
+                                 "estimates the model from the data without one; give it to "
+                                 "torchconn-discrepancy instead")
+        out = prepare_output(args.out)
+        rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
+                              settings=conv, read_csv=read_csv)
+        traj = relative_to_known(rec.trajectory, known, swimmer)
+        check = preflight(traj, body_length=rec.body_length)
+        print("\n".join(check.lines("fit")))
+        if not check.ready["fit"]:
+            raise InputError("the recording is not ready to fit: "
+                             + "; ".join(check.problems["fit"]))
+        if args.complexity == "cv":
+            est = estimator.select_complexity(traj, n_folds=max(args.folds, 2))
+        else:
+            est = estimator.fit(traj)
+        held_out = None
+        if args.folds:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # reported below
+                held_out = est.cross_validate(args.folds)
+        model = est.model_
+        # everything is computed before the first file is written: no partial outputs
+        cols, rows = connection_table(model, args.grid)
+        model.save(out / "model.npz")
+        _write_table(out / "connection.csv", cols, rows)
+        outputs = ["model.npz", "connection.csv"]
+        if not args.no_figures:
+            plot_connection(model, out / "connection.png")
+            plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
+            outputs += ["connection.png", "limit_cycle.png"]
+            if model.M is not None:
+                plot_metric(model, out / "metric.png")
+                outputs.append("metric.png")
+        write_sidecar(out / "fit.json", {
+            "command": PROG, "argv": sys.argv[1:] if argv is None else list(argv),
+            "settings": {"estimator": estimator_settings(estimator),
+                         "convert": rec.reports[0].settings if rec.reports else None},
+            "known": [k.to_dict() for k in known],
+            "data": {"sources": [str(x) for x in args.data],
+                     "n_trials": int(traj.batch_shape.numel()), "n_samples": traj.n_samples,
+                     "dt": traj.dt, "trials": traj.meta.get("trials"),
+                     "conversion": [r.to_dict() for r in rec.reports]},
+            "preflight": check.to_dict(),
+            "model": {"window": model.meta.get("window"), "metric": model.M is not None},
+            "complexity": (None if args.complexity != "cv" else
+                           {"n_bins": est.complexity_.n_bins,
+                            "fourier_order": est.complexity_.fourier_order,
+                            "ridge": est.complexity_.ridge}),
+            "held_out_skill": None if held_out is None else _skill_summary(held_out, args.folds),
+            "outputs": outputs,
+        })
+        print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
+              f"samples (d = {traj.shape_dim})")
+        if model.M is not None:
+            noise = (model.meta or {}).get("metric_noise_std")
+            if noise is not None:
+                print("shape noise estimated for the metric (rad): "
+                      + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
+            print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; "
+                  "the full M only as far as the data leave the cycle (see the bands in "
+                  "metric.png)")
+        if args.complexity == "cv":
+            c = est.complexity_
+            print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
+                  f"{c.fourier_order}, ridge {c.ridge:g}")
+        if held_out is not None:
+            print(f"held-out R² (v_x, v_y, omega), each of {args.folds} blocks of whole cycles "
+                  "left out in turn:")
+            for name, r2 in (("model", held_out.r2),
+                             ("phase-averaged velocity", held_out.r2_phase_average),
+                             ("template", held_out.r2_template)):
+                print(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
+            if bool(held_out.worse_than_phase_average.any()):
+                print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
+                      "velocity: it overfits this recording (try --complexity cv, fewer "
+                      "--n-bins, a lower --fourier-order or a wider --window, or record more "
+                      "cycles)")
+        print(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
+        return 0
+
+    return run_command(PROG, body)
+
+
+def _skill_summary(skill, n_folds: int) -> dict:
+    """Held-out R² per component (v_x, v_y, omega) of the model and its two baselines."""
+    return {"folds": n_folds, "components": ["v_x", "v_y", "omega"],
+            "model": skill.r2.reshape(-1).tolist(),
+            "phase_average": skill.r2_phase_average.reshape(-1).tolist(),
+            "template": skill.r2_template.reshape(-1).tolist(),
+            "worse_than_phase_average": skill.worse_than_phase_average.reshape(-1).tolist()}
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ shows the gap shrink::
     print(report.summary())
     report.save("out/")            # report.json, augmented_model.json, figures
 
-or from the shell: ``python -m torchconn.discrepancy DATA.csv --links 3 --out out/``.
+or from the shell: ``torchconn-discrepancy DATA.csv --links 3 --out out/``.
 
 Modules, one per step: :mod:`.effects` (the registry of named physical effects),
 :mod:`.simulate` (rollouts with effects on), :mod:`.forward` (the differentiable forward model

@@ -4,7 +4,8 @@ Also runs as ``python -m torchconn.discrepancy``. Reads the recordings (the form
 docs/conventions.md, section "Trajectory file format"), compares them with the nominal N-link swimmer,
 names the missing effect(s) and writes ``DIR/report.json``, ``DIR/augmented_model.json``,
 ``DIR/residual_profile.csv`` and the figures; prints a readable summary. Exit codes: 0 done,
-2 bad input (a message says what to fix).
+2 bad input or an unusable output folder (one line says what to fix), 1 an internal error.
+Unknown columns are warned about.
 """
 
 from __future__ import annotations
@@ -13,20 +14,24 @@ import argparse
 import sys
 import time
 import tomllib
-import warnings
+from dataclasses import replace
 from pathlib import Path
 
-import torch
-
+from .._cli import InputError, add_threads, check_keys, prepare_output, run_command, set_threads
+from ..convert import add_conversion_arguments, conversion_settings, load_recordings
+from ..io.preflight import preflight
 from ..io.trajectory_files import read_csv
 from ..physics.systems.swimmer import NLinkSwimmer
 from .effects import REGISTRY
+from .known import known_system, parse_known, relative_to_known
 from .workflow import DiscrepancySettings, diagnose
+
+PROG = "torchconn-discrepancy"
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="torchconn-discrepancy",
+        prog=PROG,
         description="Find where a recording and the nominal N-link swimmer disagree, name the "
         "missing physical effect, add it and report the gap before and after. Writes "
         "DIR/report.json, DIR/augmented_model.json, DIR/residual_profile.csv and figures. "
@@ -34,7 +39,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("data", nargs="+", type=Path,
                    help="trajectory CSV file(s): columns t, x, y, theta, r1..rd[, power][, trial] "
-                   '(format: docs/conventions.md, section "Trajectory file format")')
+                   '(format: docs/conventions.md, section "Trajectory file format"), or tracking '
+                   "files (converted as by torchconn-convert, same options)")
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--drag-ratio", type=float, default=2.0,
                    help="nominal lateral/longitudinal drag ratio (default 2)")
@@ -52,17 +58,38 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-terms", action="store_true",
                    help="skip the term-by-term comparison with the Stage 4 local model")
     p.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
+    p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
+                   help="a condition with known parameters, e.g. ambient_flow:u_x=0.01,u_y=0 "
+                   "(repeatable): the recording is modelled with it and it is not screened")
+    add_conversion_arguments(p, frame=False)
     p.add_argument("--quiet", action="store_true", help="print only the verdict line")
+    add_threads(p)
     return p
 
 
 def _settings(args) -> DiscrepancySettings:
     values = {}
     if args.config is not None:
-        with args.config.open("rb") as fh:
-            table = tomllib.load(fh)
-        values.update(table.get("discrepancy", table))
+        path = args.config
+        if path.is_dir():
+            raise InputError(f"--config {path} is a folder; expected a TOML file")
+        try:
+            table = tomllib.loads(path.read_bytes().decode("utf-8"))
+        except FileNotFoundError:
+            raise InputError(f"--config {path}: file not found") from None
+        except UnicodeDecodeError:
+            raise InputError(f"--config {path}: not UTF-8 text; TOML files must be UTF-8") \
+                from None
+        except tomllib.TOMLDecodeError as err:
+            raise InputError(f"--config {path}: invalid TOML: {err}") from None
+        section = table.get("discrepancy", table)
+        if not isinstance(section, dict):
+            raise InputError(f"--config {path}: [discrepancy] must be a table of settings")
+        values.update(section)
         if "candidates" in values and values["candidates"] is not None:
+            if not isinstance(values["candidates"], list):
+                raise InputError(f"--config {path}: candidates must be a list of effect names, "
+                                 f"got {values['candidates']!r}")
             values["candidates"] = tuple(values["candidates"])
     if args.candidates is not None:
         values["candidates"] = tuple(args.candidates)
@@ -72,50 +99,60 @@ def _settings(args) -> DiscrepancySettings:
         values["n_folds"] = args.folds
     if args.no_terms:
         values["compare_terms"] = False
-    known = set(DiscrepancySettings.__dataclass_fields__)
-    unknown = set(values) - known
-    if unknown:
-        raise ValueError(f"unknown setting(s) {sorted(unknown)}; known: {sorted(known)}")
-    return DiscrepancySettings(**values)
+    check_keys(values, DiscrepancySettings.__dataclass_fields__, "[discrepancy] settings")
+    try:
+        return DiscrepancySettings(**values)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"[discrepancy] settings: {err}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     say = (lambda *_: None) if args.quiet else (lambda msg: print(f"  {msg}", flush=True))
-    torch.set_num_threads(max(1, min(torch.get_num_threads(), 2)))
-    try:
+
+    def body() -> int:
+        set_threads(args.threads)
         if args.links < 2:
-            raise ValueError(f"--links must be at least 2, got {args.links}")
+            raise InputError(f"--links must be at least 2, got {args.links}")
         frame = args.frame or "center"
         system = NLinkSwimmer(args.links, drag_ratio=args.drag_ratio, frame=frame,
                               link_lengths=args.link_lengths)
         settings = _settings(args)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # unknown columns are reported by io
-            try:
-                traj = read_csv(args.data, n_joints=args.links - 1)
-            except ValueError as err:
-                if "expected n_joints" in str(err):
-                    raise ValueError(f"{err}: the data do not match --links {args.links} "
-                                     f"(an N-link swimmer has N - 1 joint columns)") from None
-                raise
+        known = [parse_known(k, system) for k in args.known]
+        def conv():  # conversion options matter (and are checked) for tracking files only
+            return conversion_settings(args, args.links)
+
+        out = prepare_output(args.out)
+        rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
+                              settings=conv, read_csv=read_csv)
+        traj = relative_to_known(rec.trajectory, known, system)
+        system = known_system(system, known)
+        if known:
+            names = [k.name for k in known]
+            pool = settings.candidates if settings.candidates is not None else tuple(REGISTRY)
+            settings = replace(settings, candidates=tuple(c for c in pool if c not in names))
+        check = preflight(traj, body_length=rec.body_length)
+        if not args.quiet:
+            print("\n".join(check.lines("discrepancy")))
+        if not check.periodic:  # the cycle rule itself is applied by diagnose()
+            raise InputError("the recording is not ready for the discrepancy workflow: "
+                             + "; ".join(check.problems["discrepancy"]))
         t0 = time.time()
         if not args.quiet:
             print(f"torchconn-discrepancy: {len(args.data)} file(s), {system}")
         report = diagnose(traj, system, settings, log=say)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    paths = report.save(args.out, figures=not args.no_figures)
-    if args.quiet:
-        names = ", ".join(e["name"] for e in report.effects)
-        print(f"verdict: {report.verdict}" + (f" ({names})" if names else ""))
-    else:
-        print(report.summary())
-        print(f"done in {time.time() - t0:.1f} s; wrote " + ", ".join(str(p) for p in
-                                                                      paths.values()))
-    return 0
+        paths = report.save(out, figures=not args.no_figures)
+        if args.quiet:
+            names = ", ".join(e["name"] for e in report.effects)
+            print(f"verdict: {report.verdict}" + (f" ({names})" if names else ""))
+        else:
+            print(report.summary())
+            print(f"done in {time.time() - t0:.1f} s; wrote " + ", ".join(str(p) for p in
+                                                                          paths.values()))
+        return 0
+
+    return run_command(PROG, body)
 
 
 if __name__ == "__main__":

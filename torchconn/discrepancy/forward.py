@@ -41,6 +41,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from ..io.preflight import CYCLE_RULES
 from ..phase.phaser import estimate_phase
 from ..phase.smoothing import noise_parameters, rts_smooth, smooth_trajectory, unwrap
 from ..physics import se2
@@ -59,10 +60,10 @@ __all__ = [
     "MIN_CYCLES",
 ]
 
-#: fewest whole gait cycles (over all trials) the discrepancy workflow accepts
-MIN_CYCLES = 10
-#: fewest cycles per trial (phase estimation needs a few)
-MIN_CYCLES_PER_TRIAL = 3.0
+#: fewest whole gait cycles (over all trials) the discrepancy workflow accepts, and per trial
+#: (phase estimation needs a few): the ``discrepancy`` rule of the one table of cycle rules
+MIN_CYCLES = CYCLE_RULES["discrepancy"].total
+MIN_CYCLES_PER_TRIAL = CYCLE_RULES["discrepancy"].per_trial
 #: relative size below which the smoothing kernel is cut
 _KERNEL_TOL = 1e-10
 #: extra samples left out at each end beyond the kernel's reach (room for shape shifts)

@@ -177,7 +177,7 @@ def simulate_with_effects(
         return (x[..., win, :] * w[:, None]).sum(-2)
 
     xi = fine.truth.xi[..., rows, :] if U % 2 else interval_mean(fine.truth.xi)
-    # power on the output samples' intervals (CONVENTIONS), from the true shapes at those samples
+    # power on the output samples' intervals (docs/conventions.md), from the true shapes at those samples
     power = interval_power(sys_eff, fine.r[..., rows, :], dt)
     half = U // 2
     r_dot = (fine.r[..., rows + half, :] - fine.r[..., rows - half, :]) / dt if U > 1 and \

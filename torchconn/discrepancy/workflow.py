@@ -397,7 +397,9 @@ def diagnose(
 
     while remaining and len(accepted) < s.max_effects:
         fits = {c: fit(accepted + [c], current) for c in remaining}
-        tests = {c: paired_gain(current.sse_cv, fits[c].sse_cv, n_entries) for c in remaining}
+        every = paired_gain(current.sse_cv, torch.stack([fits[c].sse_cv for c in remaining]),
+                            n_entries)  # all candidates' tests at once
+        tests = {c: {k: float(v[i]) for k, v in every.items()} for i, c in enumerate(remaining)}
         order = sorted(remaining, key=lambda c: -tests[c]["gain"])
         best = order[0]
         need = _required_gain(current.mse_cv, s)

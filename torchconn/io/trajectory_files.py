@@ -33,7 +33,7 @@ from torch import Tensor
 
 from ..trajectory import GroundTruth, SmoothedState, Trajectory
 
-__all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles"]
+__all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles", "principal_signal"]
 
 _POSE_COLUMNS = ("t", "x", "y", "theta")
 _JOINT = re.compile(r"^r(\d+)$")
@@ -42,25 +42,33 @@ MIN_SAMPLES = 2
 #: tolerated jitter of the sample spacing (fraction of dt), e.g. from rounded time stamps
 _DT_JITTER = 1e-2
 _NPZ_FORMAT = "torchconn.Trajectory/1"
+#: largest plausible magnitude per column, and what a larger value suggests; a value beyond it
+#: is an error naming file, line and column (one wild sample would otherwise wreck the
+#: smoother's noise estimate and surface far downstream as an unrelated failure)
+_PLAUSIBLE = {
+    "t": (1e15, "time stamps beyond 1e15 lose the resolution of the sampling interval"),
+    "x": (1e6, "positions are in body lengths"),
+    "y": (1e6, "positions are in body lengths"),
+    "theta": (1e6, "the heading is in radians"),
+    "joint": (4 * math.pi, "joint angles are in radians and a joint cannot turn twice around; "
+              "degrees?"),
+    "power": (1e15, "a corrupted sample?"),
+    "trial": (1e9, "trial ids are small integers"),
+}
 
 
 # ============================================================================ cycles
-def count_cycles(r: Tensor) -> Tensor:
-    """Rough number of gait cycles in each trial, from the dominant frequency of ``r``.
-
-    ``r`` is centred, projected onto its first principal component, and the peak of the
-    (zero-padded) spectrum of that signal, in cycles per sample, is multiplied by the span of
-    the trial's valid samples. NaN samples (drop-outs, padding) count as the mean.
+def principal_signal(r: Tensor) -> tuple[Tensor, Tensor]:
+    """The centred shapes projected on their leading principal component.
 
     Args:
-        r: ``(..., T, d)`` joint angles.
+        r: ``(..., T, d)`` joint angles; NaN samples (drop-outs, padding) count as the mean.
     Returns:
-        ``(...,)`` cycle counts (float, 0 for trials with fewer than 2 valid samples).
+        ``s (..., T)`` (0 at invalid samples) and ``valid (..., T)``.
     """
     if not isinstance(r, Tensor) or r.ndim < 2:
         raise ValueError(f"r must be a tensor of shape (..., T, d), got {getattr(r, 'shape', r)}")
     r = r.to(torch.float64) if not r.is_floating_point() else r
-    T = r.shape[-2]
     valid = torch.isfinite(r).all(-1)  # (..., T)
     n_valid = valid.sum(-1)
     x = torch.where(valid[..., None], r, torch.zeros((), dtype=r.dtype, device=r.device))
@@ -68,15 +76,31 @@ def count_cycles(r: Tensor) -> Tensor:
     x = torch.where(valid[..., None], x - mean, torch.zeros((), dtype=r.dtype, device=r.device))
     cov = x.transpose(-1, -2) @ x
     pc = torch.linalg.eigh(cov)[1][..., -1]  # (..., d) leading eigenvector
-    s = (x @ pc[..., None])[..., 0]  # (..., T)
+    return (x @ pc[..., None])[..., 0], valid
+
+
+def count_cycles(r: Tensor) -> Tensor:
+    """Rough number of gait cycles in each trial, from the dominant frequency of ``r``.
+
+    The peak of the (zero-padded) spectrum of :func:`principal_signal`, in cycles per sample,
+    is multiplied by the span of the trial's valid samples.
+
+    Args:
+        r: ``(..., T, d)`` joint angles.
+    Returns:
+        ``(...,)`` cycle counts (float, 0 for trials with fewer than 2 valid samples).
+    """
+    s, valid = principal_signal(r)
+    T = r.shape[-2]
+    n_valid = valid.sum(-1)
     n_fft = 1 << max(4, math.ceil(math.log2(8 * T)))
     power = torch.fft.rfft(s, n=n_fft).abs()
     power[..., 0] = 0.0
-    k = power.argmax(-1).to(r.dtype)
+    k = power.argmax(-1).to(s.dtype)
     idx = torch.arange(T, device=r.device)
     first = torch.where(valid, idx, T).amin(-1)
     last = torch.where(valid, idx, -1).amax(-1)
-    span = (last - first + 1).clamp_min(0).to(r.dtype)
+    span = (last - first + 1).clamp_min(0).to(s.dtype)
     return torch.where(n_valid >= 2, k / n_fft * span, torch.zeros_like(span))
 
 
@@ -116,17 +140,38 @@ def _parse_column(values: list[str], name: str, lines: list[int], file: str) -> 
         raise ValueError(
             f"{file}, line {lines[i]}, column {name!r}: infinite value {str(col[i])!r}"
         )
+    limit, why = _PLAUSIBLE["joint" if _JOINT.match(name) else name]
+    with np.errstate(invalid="ignore"):
+        bad = np.abs(out) > limit
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"{file}, line {lines[i]}, column {name!r}: implausible value {str(col[i])!r} "
+            f"(expected magnitude at most {limit:.4g}: {why})"
+        )
     return out
 
 
 def _read_rows(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder; expected a trajectory CSV file")
     try:
-        fh = path.open(newline="", encoding="utf-8-sig")
+        data = path.read_bytes()
     except OSError as err:
-        raise FileNotFoundError(f"cannot open trajectory file {path}: {err}") from err
-    with fh:
-        reader = csv.reader(fh)
-        header, rows, lines = None, [], []
+        raise FileNotFoundError(f"cannot open trajectory file {path}: {err.strerror}") from None
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise ValueError(f"{path}: the file is UTF-16 text; save it as UTF-8 (or ASCII) CSV")
+    if b"\0" in data[:4096]:
+        raise ValueError(f"{path}: the file holds binary data (NUL bytes), not CSV text")
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = data[:err.start].count(b"\n") + 1
+        raise ValueError(f"{path}, line {line}: not UTF-8 text (byte 0x{data[err.start]:02x}); "
+                         "save the file as UTF-8 (or ASCII) CSV") from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header, rows, lines = None, [], []
+    try:
         for row in reader:
             if not row or all(not c.strip() for c in row):
                 continue  # blank line
@@ -135,6 +180,8 @@ def _read_rows(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
                 continue
             rows.append(row)
             lines.append(reader.line_num)
+    except csv.Error as err:
+        raise ValueError(f"{path}, line {reader.line_num}: not valid CSV ({err})") from None
     if header is None:
         raise ValueError(f"{path}: the file is empty; expected a header row "
                          "'t, x, y, theta, r1, ..., rd[, power]' and one row per sample")
@@ -218,7 +265,7 @@ def _check_time(t: np.ndarray, lines: np.ndarray, label: str) -> None:
     if (steps <= 0).any():
         i = int(np.argmax(steps <= 0))
         raise ValueError(f"{label}, line {lines[i + 1]}: t must be strictly increasing, got "
-                         f"t={t[i + 1]!r} after t={t[i]!r}")
+                         f"t={float(t[i + 1])!r} after t={float(t[i])!r}")
     dt = (t[-1] - t[0]) / (len(t) - 1)
     jitter = np.abs(steps - dt)
     if (jitter > _DT_JITTER * dt).any():
@@ -365,7 +412,7 @@ def write_csv(traj: Trajectory, path: str | PathLike) -> Path:
     text = buf.getvalue()
     if traj.power is not None:
         # power is the last column; its missing cells (at least each trial's last row, whose
-        # interval ends after the recording) are written empty, as CONVENTIONS has it
+        # interval ends after the recording) are written empty, as docs/conventions.md has it
         text = re.sub(r",nan$", ",", text, flags=re.MULTILINE)
     path.write_text(text)
     return path

@@ -31,6 +31,7 @@ from __future__ import annotations
 import abc
 import copy
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -38,6 +39,7 @@ from torch import Tensor
 
 from .. import _checks
 from .._options import Options, option
+from ..io.preflight import CYCLE_RULES
 from .fourier import FourierSeries, fit_fourier, fourier_design
 from .smoothing import unwrap
 
@@ -237,7 +239,8 @@ class Phaser(PhaseEstimator):
 
     Attributes:
         order: harmonics in each series correction (2-4 robust; high orders fit the noise).
-        min_cycles: fewest cycles a trial must cover.
+        min_cycles: fewest cycles a trial must cover (default: the ``fit`` rule of
+            :data:`torchconn.io.preflight.CYCLE_RULES`).
         section_channel: the channel whose upward crossing of its mean defines phase 0.
         periodic_padding: extend each record by its periodic continuation before the Hilbert
             transform (see :func:`estimate_phase`).
@@ -249,7 +252,7 @@ class Phaser(PhaseEstimator):
     """
 
     order: int = option(3, ge=0)
-    min_cycles: float = option(3.0, gt=0)
+    min_cycles: float = option(CYCLE_RULES["fit"].per_trial, gt=0)
     section_channel: int = 0
     periodic_padding: bool = True
 
@@ -484,7 +487,11 @@ def _phaser(z: Tensor, order: int, period: Tensor | None):
     w = whole_cycle_weights(unwrap(theta))
     channel_correction = correction_series(theta, order, w)
     psi = theta + channel_correction(theta)
-    u = torch.polar(torch.ones_like(psi), psi).mT  # (..., T, C) unit phasors
+    # a channel whose protophase winds k >= 2 times per cycle of the others carries a harmonic
+    # of the oscillation (xy, x² − y² of a circle), or mostly noise: its phasor e^{ikφ} is
+    # incoherent with e^{iφ} and would pull the combination, so it gets no weight
+    fundamental = _fundamental_channels(theta)  # (..., C) bool
+    u = torch.polar(fundamental[..., None].to(psi), psi).mT  # (..., T, C) phasors, 0 if excluded
     # u_c ≈ e^{iφ} a_c with |a_c| = 1: the coherence uᴴu/T ≈ conj(a) aᵀ, whose top eigenvector
     # v ∝ conj(a) aligns the channels, so u v ∝ e^{iφ}
     _, vec = torch.linalg.eigh(u.mH @ u / T)
@@ -493,6 +500,31 @@ def _phaser(z: Tensor, order: int, period: Tensor | None):
     w = whole_cycle_weights(combined)
     correction = correction_series(combined, order, w)
     return channel_correction, weights, correction, combined + correction(combined)
+
+
+#: a channel winding at least this many times faster than the slowest is not a fundamental
+_HARMONIC_RATIO = 1.5
+
+
+def _fundamental_channels(theta: Tensor) -> Tensor:
+    """``(..., C)`` True for channels whose protophase ``theta (..., C, T)`` winds about as often
+    as the slowest channel (less than :data:`_HARMONIC_RATIO` times); warns when some do not
+    (the channels mix harmonics of the gait, so their combination was ambiguous)."""
+    turns = (unwrap(theta)[..., -1] - unwrap(theta)[..., 0]).abs() / (2 * math.pi)
+    slowest = turns.clamp_min(0.5).amin(-1, keepdim=True)
+    keep = turns < _HARMONIC_RATIO * slowest
+    if not bool(keep.all()):
+        ratio = (turns / slowest)[~keep]
+        warnings.warn(
+            f"Phaser: {int((~keep).sum())} channel(s) wind {float(ratio.min()):.1f}-"
+            f"{float(ratio.max()):.1f}x as often as the slowest (a harmonic of the gait, or "
+            "noise); combining them with the others would be ambiguous, so they are left out "
+            "of the phase", PhaseAmbiguityWarning, stacklevel=4)
+    return keep
+
+
+class PhaseAmbiguityWarning(UserWarning):
+    """Some channels wind at a multiple of the gait's rate and were left out of the phase."""
 
 
 def _period(phase: Tensor) -> Tensor:

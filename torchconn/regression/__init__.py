@@ -14,10 +14,12 @@ The hot path of the estimator, batched over leading dims ``...`` (noise levels �
    samples with kernel weights.
 2. :func:`connection_regression` -- ``ξ ≈ c + b δ + A δ̇ + ∂A/∂r (δ̇ ⊗ δ)`` per bin
    (eq. ``advancedregression``) → :class:`ConnectionFit`.
-3. :func:`metric_regression` -- ``P ≈ (γ̇+δ̇)ᵀ[M + ∂M/∂r δ](γ̇+δ̇)`` per bin
-   (eq. ``advancedmetricregression``) → :class:`MetricFit`.
+3. :func:`tied_metric_regression` -- ``P ≈ vᵀ[M(φ) + ∂M/∂r(φ) δ]v`` on the sample intervals
+   of the raw shapes, Fourier in phase, noise-corrected → :class:`MetricFit` (the default);
+   :func:`metric_regression` -- the paper's per-bin expansion
+   ``P ≈ (γ̇+δ̇)ᵀ[M + ∂M/∂r δ](γ̇+δ̇)`` (eq. ``advancedmetricregression``).
 
-Both regressions share one batched weighted least-squares solver (equilibrated normal equations,
+The bin regressions share one batched weighted least-squares solver (equilibrated normal equations,
 Cholesky, calibrated standard errors) and one policy for bins that cannot be fitted: too few
 samples or a numerically rank-deficient design raise (or warn / regularise), never a silent
 garbage estimate. Missing samples are NaN and are excluded automatically.
@@ -37,16 +39,31 @@ from .estimator import (
     fit_local_model,
     prepare,
 )
-from .metric import MetricFit, metric_design, metric_n_coef, metric_regression
+from .metric import (
+    IntervalSamples,
+    MetricFit,
+    interval_samples,
+    metric_design,
+    metric_n_coef,
+    metric_regression,
+    power_noise_variance,
+    tied_metric_n_coef,
+    tied_metric_predict,
+    tied_metric_regression,
+)
 from .model import BinEstimates, LocalConnectionModel
+from .noise_aware import NoiseAwareRegression
 from .tube import Regression, TubeRegression
 
 __all__ = [
     "assign_bins", "BinIndex", "KERNELS",
     "connection_regression", "ConnectionFit", "connection_design",
     "metric_regression", "MetricFit", "metric_design", "metric_n_coef",
+    "tied_metric_regression", "tied_metric_n_coef", "tied_metric_predict",
+    "interval_samples", "IntervalSamples", "power_noise_variance",
     "IllConditionedBinWarning",
     "LocalConnectionModel", "BinEstimates",
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
-    "Regression", "TubeRegression", "EstimatorSettings", "prepare", "fit_local_model",
+    "Regression", "TubeRegression", "NoiseAwareRegression", "EstimatorSettings", "prepare",
+    "fit_local_model",
 ]

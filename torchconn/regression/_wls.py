@@ -33,6 +33,14 @@ Design = Callable[[Tensor, Tensor, Tensor], list[Tensor]]
 _CHUNK_BYTES = 16 * 2**20
 #: the "ridge" policy regularises ill-conditioned bins down to this condition number
 _RIDGE_TARGET_CONDITION = 1e8
+#: errors-in-variables guard: the subtracted noise part may remove at most this fraction of the
+#: observed Gram matrix in any direction (beyond it the corrected matrix is near-singular or
+#: indefinite and the correction is scaled down)
+_MAX_CORRECTION = 0.9
+
+#: an errors-in-variables correction: (Gram matrix XᵀWX of the observed regressors (b, P, P),
+#: the bins it belongs to (a slice or index tensor into B·M)) -> its expected noise part (b, P, P)
+Correction = Callable[[Tensor, object], Tensor]
 _MODES = ("raise", "warn", "ridge")
 
 
@@ -74,6 +82,7 @@ class Solution:
     residual_rms: Tensor  # (B·M, K)
     condition: Tensor  # (B·M,)
     ridge: Tensor  # (B·M,)
+    eiv_scale: Tensor  # (B·M,) fraction of the errors-in-variables correction applied (1: all)
 
     def unflatten(self, batch_shape: torch.Size, n_bins: int) -> "Solution":
         def f(t: Tensor) -> Tensor:
@@ -176,9 +185,38 @@ def _chunk_design(s: BinnedSamples, sel, design: Design, delta_max: float | None
     return torch.cat(design(delta, delta_dot, sqrt_w) + [s.y[rows] * sqrt_w], -1), w
 
 
+def _guarded_correction(gram: Tensor, corr: Tensor) -> tuple[Tensor, Tensor]:
+    """``gram − κ·corr`` with the largest ``κ ≤ 1`` that removes at most :data:`_MAX_CORRECTION`
+    of ``gram`` in any direction; returns it and ``κ (b,)``.
+
+    ``κ = 1`` unless the noise part reaches the observed matrix's own size in some direction
+    (few samples, or more noise than signal there), where the full correction would leave an
+    indefinite matrix: the largest generalised eigenvalue ``λ`` of ``(corr, gram)`` gives
+    ``κ = min(1, _MAX_CORRECTION / λ)``.
+    """
+    p = gram.shape[-1]
+    eye = torch.eye(p, dtype=gram.dtype, device=gram.device)
+    diag = gram.diagonal(dim1=-2, dim2=-1)
+    # equilibrate and decouple all-zero columns so that the factorisation exists
+    scale = torch.where(diag > 0, diag.sqrt(), 1.0)
+    outer = scale.unsqueeze(-1) * scale.unsqueeze(-2)
+    g_s = gram / outer + torch.diag_embed((diag <= 0).to(gram))
+    chol, info = torch.linalg.cholesky_ex(g_s)
+    chol = torch.where((info != 0)[:, None, None], eye, chol)
+    l_inv = torch.linalg.solve_triangular(chol, eye.expand_as(gram), upper=False)
+    rel = l_inv @ (corr / outer) @ l_inv.mT
+    lam_max = torch.linalg.eigvalsh(0.5 * (rel + rel.mT))[..., -1]
+    kappa = torch.where(lam_max > _MAX_CORRECTION, _MAX_CORRECTION / lam_max, 1.0)
+    kappa = torch.where(info != 0, 0.0, kappa)  # already singular: left to the rank checks
+    return gram - kappa[:, None, None] * corr, kappa
+
+
 def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
-               tolerate_dead: bool):
+               tolerate_dead: bool, correction: Tensor | None = None):
     """Solve one chunk of bins from ``xy = √w [X | y]`` ``(b, n, P + K)``; ``lam (b,)`` ridge.
+
+    ``correction (b, P, P)``, when given, is the expected noise part of ``XᵀWX`` (errors in
+    the regressors); it is subtracted under the guard of :func:`_guarded_correction`.
 
     One batched matmul forms ``[X|y]ᵀW[X|y]``; Cholesky is invariant to diagonal scaling (van der
     Sluis), so the unscaled normal matrix is factorised and the equilibrated quantities --
@@ -190,6 +228,10 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     xw, yw = xy[..., :p], xy[..., p:]
     full = xy.mT @ xy
     gram, rhs = full[..., :p, :p], full[..., :p, p:]
+    if correction is None:
+        kappa = gram.new_ones(gram.shape[0])
+    else:
+        gram, kappa = _guarded_correction(gram, correction)
     d2 = gram.diagonal(dim1=-2, dim2=-1).clone()
     dead = d2 <= 0  # an all-zero column: its coefficient is not identified
     # a dead column is decoupled (unit pivot, zero coefficient, returned as NaN); unless
@@ -245,15 +287,19 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     beta = beta.masked_fill(dead.unsqueeze(-1), torch.nan)
     se = se.masked_fill(dead.unsqueeze(-1), torch.nan)
     rms = (rss / sum_w.unsqueeze(-1)).sqrt()
-    return beta, se, rms, condition, (w > 0).sum(-1)
+    return beta, se, rms, condition, (w > 0).sum(-1), kappa
 
 
 def _solve_bins(s: BinnedSamples, sel_list, design: Design, lam: Tensor, delta_max, binary,
-                tolerate_dead: bool):
+                tolerate_dead: bool, correction: Correction | None = None):
     outs = []
     for sel in sel_list:
         xy, w = _chunk_design(s, sel, design, delta_max)
-        outs.append(_fit_chunk(xy, w, lam[sel], binary, s.y.shape[-1], tolerate_dead))
+        corr = None
+        if correction is not None:
+            xw = xy[..., : xy.shape[-1] - s.y.shape[-1]]
+            corr = correction(xw.mT @ xw, sel)
+        outs.append(_fit_chunk(xy, w, lam[sel], binary, s.y.shape[-1], tolerate_dead, corr))
     return [torch.cat(parts) for parts in zip(*outs, strict=True)]
 
 
@@ -264,14 +310,15 @@ def _chunks(n_bins_total: int, bytes_per_bin: int) -> list[slice]:
 
 def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, ridge: float,
           min_samples: int | None, max_condition: float | None,
-          on_ill_conditioned: str) -> Solution:
+          on_ill_conditioned: str, correction: Correction | None = None) -> Solution:
     """Fit every bin of ``s`` with ``design`` (``n_coef`` columns, column 0 the intercept).
 
     Returns a flat :class:`Solution` over ``B·M`` bins. Standard errors are
     ``σ̂ √diag(Cov)``: for box weights and no ridge the OLS ``(XᵀWX)⁻¹`` with ``n − P`` dof; for
     kernel weights or a ridge the sandwich ``A⁻¹(XᵀW²X)A⁻¹`` with the effective dof, so they are
     calibrated for homoscedastic noise whatever the weights. Ill-conditioned bins are handled per
-    ``on_ill_conditioned``.
+    ``on_ill_conditioned``. ``correction`` (errors in variables) subtracts the regressors' expected
+    noise part from every bin's ``XᵀWX`` (see :func:`_guarded_correction`).
     """
     if on_ill_conditioned not in _MODES:
         raise ValueError(f"{fn}: on_ill_conditioned must be one of {_MODES}, "
@@ -295,10 +342,12 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
         beta = torch.full((total, p, s.y.shape[-1]), torch.nan, dtype=dtype, device=dev)
         zeros = torch.zeros(total, dtype=torch.int64, device=dev)
         nan = torch.full((total,), torch.nan, dtype=dtype, device=dev)
-        sol = [beta, beta.clone(), beta[:, 0].clone(), nan.clone().fill_(torch.inf), zeros]
+        sol = [beta, beta.clone(), beta[:, 0].clone(), nan.clone().fill_(torch.inf), zeros,
+               nan.clone().fill_(1.0)]
     else:
-        sol = _solve_bins(s, chunks, design, lam, delta_max, binary, tolerate_dead=ridge > 0)
-    beta, se, rms, cond, count = sol
+        sol = _solve_bins(s, chunks, design, lam, delta_max, binary, tolerate_dead=ridge > 0,
+                          correction=correction)
+    beta, se, rms, cond, count, kappa = sol
     few = count < min_samples
     ill = few | ~(cond <= max_condition)
     if bool(ill.any()):
@@ -311,7 +360,8 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
             fix = (ill & ~few).nonzero().flatten()
             if fix.numel():
                 lam, beta, se, rms, cond = _add_ridge(s, design, fix, lam, beta, se, rms, cond,
-                                                      delta_max, binary, max_condition)
+                                                      delta_max, binary, max_condition,
+                                                      correction)
             ill = few | ~(cond <= max_condition)
             report += (f"Added a ridge to {fix.numel()} ill-conditioned bin(s) (largest "
                        f"{float(lam.max()):.3g}, relative to the unit diagonal of the "
@@ -327,10 +377,11 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
         beta = torch.where(bad, torch.nan, beta)
         se = torch.where(bad, torch.nan, se)
         rms = torch.where(ill.view(-1, 1), torch.nan, rms)
-    return Solution(beta, se, count, rms, cond, lam)
+    return Solution(beta, se, count, rms, cond, lam, kappa)
 
 
-def _add_ridge(s, design, fix, lam, beta, se, rms, cond, delta_max, binary, max_condition):
+def _add_ridge(s, design, fix, lam, beta, se, rms, cond, delta_max, binary, max_condition,
+               correction=None):
     """Smallest ridge bringing each bin in ``fix`` to the target condition (a few tries)."""
     target = min(_RIDGE_TARGET_CONDITION, max_condition)
     xy, _ = _chunk_design(s, fix, design, delta_max)
@@ -347,7 +398,8 @@ def _add_ridge(s, design, fix, lam, beta, se, rms, cond, delta_max, binary, max_
     lam[fix] = torch.maximum(lam[fix], need * 1.01)
     for _ in range(6):  # the intercept is unpenalised, so the prediction can fall short
         chunks = [fix[i:i + 256] for i in range(0, fix.numel(), 256)]
-        b, e, r, c, _ = _solve_bins(s, chunks, design, lam, delta_max, binary, True)
+        b, e, r, c, _, _ = _solve_bins(s, chunks, design, lam, delta_max, binary, True,
+                                       correction)
         beta, se, rms, cond = beta.clone(), se.clone(), rms.clone(), cond.clone()
         beta[fix], se[fix], rms[fix], cond[fix] = b, e, r, c
         still = ~(cond[fix] <= max_condition)

@@ -40,6 +40,9 @@ class ConnectionFit:
         ridge: ``(..., M)`` ridge applied to each bin (relative to the standardised diagonal).
         coef, se_coef: ``(..., M, P, 3)`` raw coefficients in the column order of
             :func:`connection_design`, and their standard errors.
+        eiv_scale: ``(..., M)`` fraction of the errors-in-variables noise correction applied
+            (1: all of it, or no correction was asked for; below 1: the guard scaled it down
+            because the full correction would have left a non-positive-definite normal matrix).
     """
 
     c: Tensor
@@ -56,6 +59,7 @@ class ConnectionFit:
     ridge: Tensor
     coef: Tensor
     se_coef: Tensor
+    eiv_scale: Tensor | None = None
 
 
 def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:
@@ -121,7 +125,12 @@ def connection_regression(
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge,
                      min_samples=min_samples, max_condition=max_condition,
                      on_ill_conditioned=on_ill_conditioned)
-    sol = sol.unflatten(s.batch_shape, s.n_bins)
+    return _connection_fit(sol.unflatten(s.batch_shape, s.n_bins), d)
+
+
+def _connection_fit(sol: _wls.Solution, d: int) -> ConnectionFit:
+    """Name the coefficients of an unflattened solution ``(..., M, P, 3)`` of the design
+    ``[1, δ, δ̇, δ̇⊗δ]``."""
 
     def split(coef: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         # coef: (..., M, P, 3) -> c (..., M, 3), b (..., M, 3, d), A (..., M, 3, d), dA
@@ -136,5 +145,5 @@ def connection_regression(
     return ConnectionFit(
         c=c, b=b, A=a, dA=da, se_c=se_c, se_b=se_b, se_A=se_a, se_dA=se_da,
         n_samples=sol.n_samples, residual_rms=sol.residual_rms, condition=sol.condition,
-        ridge=sol.ridge, coef=sol.coef, se_coef=sol.se,
+        ridge=sol.ridge, coef=sol.coef, se_coef=sol.se, eiv_scale=sol.eiv_scale,
     )

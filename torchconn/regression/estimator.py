@@ -33,12 +33,15 @@ from typing import Any
 
 from torch import Tensor
 
-from .._options import Options, unknown_keys_message
+from .._checks import unknown_keys_message
+from .._options import Options
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
 from ..trajectory import Trajectory
+from . import skill
 from .model import LocalConnectionModel
+from .noise_aware import NoiseAwareRegression
 from .tube import Regression, TubeRegression
 
 __all__ = [
@@ -52,7 +55,7 @@ STAGES: dict[str, tuple[type, dict[str, type]]] = {
     "smoother": (Smoother, {"rts": RTSSmoother}),
     "phaser": (PhaseEstimator, {"phaser": Phaser}),
     "cycle": (CycleEstimator, {"self_consistent": SelfConsistentCycle}),
-    "regression": (Regression, {"tube": TubeRegression}),
+    "regression": (Regression, {"tube": TubeRegression, "noise_aware": NoiseAwareRegression}),
 }
 
 #: torchconn 0.1's flat settings (``EstimatorSettings``) -> (stage, field)
@@ -128,7 +131,7 @@ class ConnectionEstimator:
         self.cycle = cycle
         self.regression = regression
         self.pool = pool
-        self._validate()
+        _check_arguments(**self.get_params(deep=False))
 
     # ------------------------------------------------------------------ scikit-learn params
     def get_params(self, deep: bool = True) -> dict[str, Any]:
@@ -151,29 +154,18 @@ class ConnectionEstimator:
         unknown = set(params) - set(valid)
         if unknown:
             raise ValueError(unknown_keys_message("ConnectionEstimator.set_params", unknown, valid))
-        direct = {k: v for k, v in params.items() if "__" not in k}
-        for key, value in direct.items():
-            setattr(self, key, value)
+        new = {k: v for k, v in params.items() if "__" not in k}
         nested: dict[str, dict[str, Any]] = {}
         for key, value in params.items():
             if "__" in key:
                 stage, field = key.split("__", 1)
                 nested.setdefault(stage, {})[field] = value
         for stage, changes in nested.items():
-            setattr(self, stage, getattr(self, stage).replace(**changes))
-        self._validate()
+            new[stage] = new.get(stage, getattr(self, stage)).replace(**changes)
+        _check_arguments(**{**self.get_params(deep=False), **new})  # all or nothing
+        for key, value in new.items():
+            setattr(self, key, value)
         return self
-
-    def _validate(self) -> None:
-        for name, (base, methods) in STAGES.items():
-            value = getattr(self, name)
-            if not isinstance(value, base):
-                raise TypeError(
-                    f"ConnectionEstimator: {name} must be a {base.__name__} (e.g. "
-                    f"{next(iter(methods.values())).__name__}()), got {type(value).__name__}"
-                )
-        if not isinstance(self.pool, bool):
-            raise ValueError(f"ConnectionEstimator: pool must be true or false, got {self.pool!r}")
 
     # ------------------------------------------------------------------ fitting
     def fit(self, traj: Trajectory, phase: Tensor | None = None) -> "ConnectionEstimator":
@@ -191,7 +183,7 @@ class ConnectionEstimator:
                 "the regression asks for the metric (metric=True) but the data have no power "
                 "channel (CSV column 'power', or Trajectory.power): record the dissipated power "
                 "to estimate the metric, or use metric=None (fit it when power is present) / "
-                "False to fit the connection alone"
+                "False to fit the connection alone (torchconn-fit: --metric auto / no)"
             )
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
@@ -202,7 +194,54 @@ class ConnectionEstimator:
         self.model_ = dataclasses.replace(
             model, meta={**(model.meta or {}), "settings": estimator_settings(self)}
         )
+        view = skill.regression_view(traj, self.regression, self.model_, pool=self.pool)
+        self.phase_average_ = skill.phase_average(view, self.regression.fourier_order)
         return self
+
+    # ------------------------------------------------------------------ held-out skill
+    def score(self, traj: Trajectory, phase: Tensor | None = None) -> skill.Skill:
+        """Skill on recordings ``traj`` the fit did not see, beside the phase-averaged velocity
+        of the training data and the template (:class:`~torchconn.regression.skill.Skill`).
+
+        The target is the observed velocity the way the regression sees it. ``traj`` is
+        phased with the fitted phaser (same origin) unless ``phase`` is given.
+        """
+        model = self._fitted()
+        traj = self._prepare_new(traj, phase)
+        view = skill.regression_view(traj, self.regression, model, pool=self.pool)
+        return skill.skill(model, self.phase_average_, view)
+
+    def cross_validate(self, n_folds: int = 3) -> skill.Skill:
+        """Held-out skill on the training recordings over ``n_folds`` blocks of whole cycles
+        (:func:`~torchconn.regression.skill.cross_validate`)."""
+        self._fitted()
+        return skill.cross_validate(self.trajectory_, self.limit_cycle_, self.regression,
+                                    pool=self.pool, n_folds=n_folds)
+
+    def check_held_out(self, n_folds: int = 3) -> skill.Skill:
+        """:meth:`cross_validate`, warning (:class:`~torchconn.regression.skill.
+        PoorHeldOutSkillWarning`) where the model loses to the phase-averaged velocity."""
+        result = self.cross_validate(n_folds)
+        result.warn_if_poor(stacklevel=3)
+        self.held_out_skill_ = result
+        return result
+
+    def select_complexity(self, traj: Trajectory, phase: Tensor | None = None,
+                          n_folds: int = 3) -> "ConnectionEstimator":
+        """Choose the regression's bins, Fourier order and ridge by held-out error over
+        ``n_folds`` blocks of whole cycles, then fit with them; returns self.
+
+        The choice is in ``complexity_``
+        (:class:`~torchconn.regression.skill.ComplexityChoice`) and in ``regression``.
+        """
+        if not isinstance(traj, Trajectory):
+            raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
+        prepared, _ = _prepare(traj, phase, self.smoother, self.phaser)
+        cycle = self.cycle.fit(prepared, pool=self.pool)
+        chosen, self.complexity_ = skill.select_complexity(
+            prepared, cycle, self.regression, pool=self.pool, n_folds=n_folds)
+        self.regression = chosen
+        return self.fit(traj, phase)
 
     def prepare(self, traj: Trajectory, phase: Tensor | None = None) -> Trajectory:
         """:func:`prepare` with this estimator's smoother and phaser (smoothing, phase)."""
@@ -211,12 +250,28 @@ class ConnectionEstimator:
     def predict(self, traj: Trajectory) -> Tensor:
         """Body velocity ``(..., T, 3)`` the fitted model predicts for (prepared) recordings.
 
-        A trajectory without phase/smoothed state is prepared first with this estimator's
-        smoother and phaser.
+        A trajectory without smoothed state is smoothed with this estimator's smoother; one
+        without phase and with the training data's batch shape (the same trials, recorded
+        later) is phased by the *fitted* phaser (``phaser_.transform``: the training data's
+        phase origin and corrections, not a fresh estimate); other batches are phased afresh.
         """
         model = self._fitted()
-        traj = self.prepare(traj)
+        traj = self._prepare_new(traj, None)
         return model.predict(traj.phase, traj.smoothed.r, traj.smoothed.r_dot)
+
+    def _prepare_new(self, traj: Trajectory, phase: Tensor | None) -> Trajectory:
+        """New recordings smoothed and phased with the fitted phase model when there is one."""
+        fitted = getattr(self, "phaser_", None)
+        # one fitted phase model per training trial: it applies to recordings of the same
+        # batch shape (the same trials, later); other batches are phased afresh (Phaser's
+        # section puts phase 0 at the same place on the cycle)
+        same_batch = fitted is not None and tuple(fitted.phase_.shape[:-1]) == tuple(
+            traj.batch_shape)
+        if phase is None and traj.phase is None and same_batch:
+            if traj.smoothed is None:
+                traj = self.smoother.smooth(traj)
+            phase = fitted.transform(traj.smoothed.r)
+        return self.prepare(traj, phase)
 
     def _fitted(self) -> LocalConnectionModel:
         if not hasattr(self, "model_"):
@@ -228,6 +283,19 @@ class ConnectionEstimator:
         changed = [f"{k}={v!r}" for k, v in self.get_params(deep=False).items()
                    if v != getattr(default, k)]
         return "ConnectionEstimator(" + ", ".join(changed) + ")"
+
+
+def _check_arguments(*, pool: Any, **stages: Any) -> None:
+    """The constructor's arguments: each stage an instance of its kind's base, pool a bool."""
+    for name, (base, methods) in STAGES.items():
+        value = stages[name]
+        if not isinstance(value, base):
+            raise TypeError(
+                f"ConnectionEstimator: {name} must be a {base.__name__} (e.g. "
+                f"{next(iter(methods.values())).__name__}()), got {type(value).__name__}"
+            )
+    if not isinstance(pool, bool):
+        raise ValueError(f"ConnectionEstimator: pool must be true or false, got {pool!r}")
 
 
 # ---------------------------------------------------------------------- settings tables
@@ -420,17 +488,7 @@ class EstimatorSettings:
     pool: bool = False
 
     def __post_init__(self) -> None:
-        if not isinstance(self.n_bins, int) or self.n_bins < 3:
-            raise ValueError(f"n_bins must be an integer >= 3, got {self.n_bins!r}")
-        if not isinstance(self.fourier_order, int) or not 0 <= 2 * self.fourier_order < self.n_bins:
-            raise ValueError(
-                f"fourier_order must satisfy 0 <= 2*fourier_order < n_bins={self.n_bins} (the "
-                f"series is fitted to one value per bin), got {self.fourier_order!r}"
-            )
-        if self.window is not None and self.window <= 0:
-            raise ValueError(f"window must be positive or None (auto), got {self.window!r}")
+        estimator_from_settings(asdict(self), where="EstimatorSettings")  # the stages' checks
         warnings.warn("EstimatorSettings is deprecated: build the estimator from its stages, or "
                       "from a settings table with estimator_from_settings", DeprecationWarning,
                       stacklevel=3)
-
-

@@ -1,13 +1,25 @@
-"""Phase-centred regression of the dissipation metric (eq. ``advancedmetricregression``).
+"""Regression of the dissipation metric ``M`` from a recorded power channel.
 
-Within the bin of centre ``γ_m`` the measured power is modelled as
+Two models:
 
-    P ≈ (γ̇_m + δ̇)ᵀ [M + ∂M/∂r_k δᵏ] (γ̇_m + δ̇),
+- :func:`tied_metric_regression` (the estimator's default): on the sample intervals the power
+  channel belongs to (docs/conventions.md: ``power`` at row ``k`` is the mean over ``[t_k, t_{k+1})``),
+  one metric explains all of the power, ``P_k ≈ v_kᵀ [M(φ) + ∂M/∂r_k(φ) δ_k] v_k`` with
+  ``v_k = (r_{k+1} − r_k)/Δt`` the raw sample differences and ``M(φ)``, ``∂M/∂r(φ)`` Fourier
+  series in phase; the observation noise's known contribution to the normal equations is
+  removed (:func:`power_noise_variance` estimates its level from the power residuals).
+- :func:`metric_regression` (the paper's eq. ``advancedmetricregression``, torchconn 0.1):
+  within the bin of centre ``γ_m``,
 
-expanded into regressors ``[1, δ̇, δ̇⊗̂δ̇, δ, δ⊗δ̇, δ⊗(δ̇⊗̂δ̇)]`` where ``δ̇⊗̂δ̇`` holds the unique
-products ``δ̇_i δ̇_j``, ``i ≤ j`` (``M`` is symmetric, so the coefficient of ``δ̇_i δ̇_j`` is
-``M_ii`` on the diagonal and ``2 M_ij`` off it). The last block carries ``∂M/∂r`` and is third
-order in the offsets; it is fitted only when requested or when every bin has samples enough.
+      P ≈ (γ̇_m + δ̇)ᵀ [M + ∂M/∂r_k δᵏ] (γ̇_m + δ̇),
+
+  expanded into regressors ``[1, δ̇, δ̇⊗̂δ̇, δ, δ⊗δ̇, δ⊗(δ̇⊗̂δ̇)]`` where ``δ̇⊗̂δ̇`` holds the
+  unique products ``δ̇_i δ̇_j``, ``i ≤ j`` (``M`` is symmetric, so the coefficient of
+  ``δ̇_i δ̇_j`` is ``M_ii`` on the diagonal and ``2 M_ij`` off it). The last block carries
+  ``∂M/∂r`` and is third order in the offsets; it is fitted only when requested or when every
+  bin has samples enough. Its linear and quadratic terms are separate coefficients, so the
+  weakly identified ``M`` is not tied to the strongly identified ``2Mγ̇``; measured 100–250 %
+  off on the swimmer (README, "Known limits").
 """
 
 from __future__ import annotations
@@ -198,7 +210,7 @@ _ROW_CHUNK = 2048
 class IntervalSamples:
     """Recorded samples turned into the sample intervals the power channel belongs to.
 
-    Row ``k`` describes ``[t_k, t_{k+1})`` (CONVENTIONS); the last row is NaN.
+    Row ``k`` describes ``[t_k, t_{k+1})`` (docs/conventions.md); the last row is NaN.
 
     Attributes:
         r_mid: ``(..., T, d)`` the interval's mid-shape ``r̄_k = (r_k + r_{k+1})/2``.
@@ -427,7 +439,8 @@ def tied_metric_regression(
               "in every direction of shape space at every phase (noise on the gait over many "
               "cycles); a gait without noise, a joint held fixed or too few cycles leave M "
               "unidentified. Lower the Fourier orders, drop the derivative term "
-              "(derivative_order=None) or record more varied data"
+              "(derivative_order=None), record more varied data, or fit the connection alone "
+              "(TubeRegression(metric=False); torchconn-fit: --metric no)"
         )
     h = (rhs - shrink[..., None] * corr_h) * inv
     beta = torch.cholesky_solve(h.unsqueeze(-1), chol)[..., 0] * inv
@@ -592,7 +605,7 @@ def power_noise_variance(residual: Tensor, m_v: Tensor, dt: float) -> Tensor:
     ``E[res_k res_{k+1}] = −(4/Δt²) Σ_i (M̂v)_{k,i} (M̂v)_{k+1,i} ω_i²``, while a smooth model
     error contributes the same to lags 1 and 2. Regressing ``res_k (res_{k+1} − res_{k+2})`` on
     that feature gives ``ω²``. One level is fitted for all joints (the motion-capture noise of
-    every joint angle, as in CONVENTIONS): per-joint levels were measured too noisy to separate
+    every joint angle, as in docs/conventions.md): per-joint levels were measured too noisy to separate
     on the 5-link (0 to 1.5× the truth at ω = 0.002).
 
     Args:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import abc
 import math
+import warnings
 from dataclasses import asdict, dataclass
 from typing import Literal
 
@@ -31,12 +32,16 @@ from .metric import (
     metric_n_coef,
     metric_regression,
     power_noise_variance,
+    tied_metric_n_coef,
     tied_metric_predict,
     tied_metric_regression,
 )
 from .model import BinEstimates, LocalConnectionModel
 
 __all__ = ["Regression", "TubeRegression"]
+
+#: fewest usable power samples per coefficient of the tied metric model
+_MIN_SAMPLES_PER_COEF = 3.0
 
 
 class Regression(Options, abc.ABC):
@@ -80,7 +85,9 @@ class TubeRegression(Regression):
             separate linear and quadratic terms (torchconn 0.1's method, kept for comparison;
             it does not converge, see the README).
         metric_order, metric_derivative_order: Fourier orders in phase of the tied model's
-            ``M(φ)`` and ``∂M/∂r(φ)`` (None: no derivative term). Chosen by measurement on
+            ``M(φ)`` and ``∂M/∂r(φ)`` (None: no derivative term; it is also left out when the
+            data hold fewer than 3 usable samples per coefficient with it, e.g. a 9-link trial
+            of 30 cycles). Chosen by measurement on
             3- and 5-link gaits other than the benchmark's (README, "Known limits").
         metric_noise_correction: estimate the shapes' observation noise (from the uncorrected
             fit's power residuals) and remove its contribution to the tied model's normal
@@ -146,8 +153,8 @@ class TubeRegression(Regression):
                                                  self.samples_per_regressor)
             return assign_bins(phase, M, window=window, kernel=self.kernel), window
 
-        bins, window = bins_for(1 + 2 * d + d * d)
-        fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
+        fit, window, connection_meta = self._connection_fit(
+            traj, pool, (phase, r, r_dot, xi), gamma_m, gamma_dot_m, opts, bins_for)
         metric_fit, metric_window, noise = None, None, None
         if self.metric is not False and power is not None:
             if self.metric_method == "tied":
@@ -180,8 +187,20 @@ class TubeRegression(Regression):
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
                   "batch_shape": list(batch), "window": window, "metric_window": metric_window,
-                  "metric_noise_std": noise, "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
+                  "metric_noise_std": noise, **connection_meta,
+                  "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
+
+    def _connection_fit(self, traj: Trajectory, pool: bool, samples, gamma_m: Tensor,
+                        gamma_dot_m: Tensor, opts: dict, bins_for):
+        """The connection's per-bin regression on the smoothed ``samples`` (phase, r, ṙ, ξ,
+        pooled when ``pool``): returns the :class:`ConnectionFit`, the window and extra meta.
+        Subclasses regress differently (:class:`~torchconn.regression.NoiseAwareRegression`)."""
+        phase, r, r_dot, xi = samples
+        d = r.shape[-1]
+        bins, window = bins_for(1 + 2 * d + d * d)
+        fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
+        return fit, window, {}
 
     def _tied_metric(self, traj: Trajectory, cycle: LimitCycle, centres: Tensor,
                      gamma_dot_m: Tensor, pool: bool):
@@ -192,8 +211,8 @@ class TubeRegression(Regression):
         """
         if not bool(torch.isfinite(traj.power).any()):
             raise ValueError("the power column has no values (all empty or NaN): the metric "
-                             "cannot be estimated; pass TubeRegression(metric=False) to fit the "
-                             "connection alone")
+                             "cannot be estimated; fit the connection alone with "
+                             "TubeRegression(metric=False) (torchconn-fit: --metric no)")
         iv = interval_samples(traj.r, traj.power, traj.phase, traj.dt)
         phase = _unwrapped(iv.phase)
         offset = iv.r_mid - cycle.gamma_at(torch.nan_to_num(iv.phase)).to(iv.r_mid)
@@ -207,8 +226,23 @@ class TubeRegression(Regression):
                 phase.shape[:-1] + (1,))
             phase, offset, v, power = (pool_batch(x, k) for x, k in
                                        ((phase, 0), (offset, 1), (v, 1), (power, 0)))
-        orders = dict(order=self.metric_order, derivative_order=self.metric_derivative_order)
-        fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders)
+        derivative = self.metric_derivative_order
+        usable = (torch.isfinite(power) & torch.isfinite(v).all(-1)).sum(-1).min()
+        d = v.shape[-1]
+        if derivative is not None and int(usable) < _MIN_SAMPLES_PER_COEF * tied_metric_n_coef(
+                d, self.metric_order, derivative):
+            # ∂M/∂r only where the data identify it (many joints, short data)
+            warnings.warn(
+                f"metric: {int(usable)} usable power samples are too few for the ∂M/∂r term "
+                f"({tied_metric_n_coef(d, self.metric_order, derivative)} coefficients with it, "
+                f"{_MIN_SAMPLES_PER_COEF:g} samples each); it is left out, so M̂ also absorbs "
+                "how M varies off the cycle (measured on the 9-link, 2 trials x 30 cycles: "
+                "M̂γ̇ 30-40 % off, against 3 % with 4 trials). Pool more trials or cycles",
+                stacklevel=3)
+            derivative = None
+        orders = dict(order=self.metric_order, derivative_order=derivative)
+        fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders,
+                                     min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         noise = None
         if self.metric_noise_correction:
             # the noise from the uncorrected fit's residuals (the power channel is noise-free),
@@ -217,7 +251,8 @@ class TubeRegression(Regression):
             omega2 = power_noise_variance(power - predicted, m_v, traj.dt)  # (..., d)
             noise = omega2.sqrt().tolist()
             fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m,
-                                         **orders, noise_variance=2 * omega2 / traj.dt**2)
+                                         **orders, noise_variance=2 * omega2 / traj.dt**2,
+                                         min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         return fit, noise
 
 

@@ -30,7 +30,7 @@ Recording
     - ``truth.xi``: the mean body velocity, ``Σ_n twist_n / Δt`` over the interval's fine
       steps, ``twist_n = ½(A(r_n) + A(r_{n+1})) Δr_n (+ drift h)``, i.e. ``∫ g⁻¹∘dg / Δt``;
     - ``truth.r_dot``: the mean shape velocity ``(r(t_k + Δt/2) − r(t_k − Δt/2)) / Δt``;
-    - ``power``: on the observable sample interval (CONVENTIONS, "Trajectory data"): row ``k``
+    - ``power``: on the observable sample interval (docs/conventions.md, "Trajectory file format"): row ``k``
       holds the mean dissipated power over ``[t_k, t_{k+1})``, recorded as
       ``v_kᵀ M(r̄_k) v_k`` with ``v_k = (r_{k+1} − r_k)/Δt`` and ``r̄_k = (r_k + r_{k+1})/2`` from
       the recorded (true, noise-free) shapes at the sample times; the last row is NaN (its
@@ -293,7 +293,7 @@ def simulate(
 
 
 def interval_power(system: LocomotionSystem, r: Tensor, dt: float) -> Tensor:
-    """The power channel of recorded shapes, on the sample intervals (CONVENTIONS).
+    """The power channel of recorded shapes, on the sample intervals (docs/conventions.md).
 
     Row ``k`` is ``v_kᵀ M(r̄_k) v_k`` with ``v_k = (r_{k+1} − r_k)/Δt`` and
     ``r̄_k = (r_k + r_{k+1})/2``: the power of the interval's mean shape velocity, the quantity a

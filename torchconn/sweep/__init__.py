@@ -1,14 +1,17 @@
 """The sweep runner: the paper's accuracy-versus-noise experiments in one command.
 
-``python -m torchconn.sweep [--config configs/NAME.toml] [--out DIR] [--set key=value ...]``
+``torchconn-sweep [--config NAME|FILE.toml] [--out DIR] [--set key=value ...]`` (or
+``python -m torchconn.sweep``), ``NAME`` a packaged config (``quick``, ``fig4a``, ...).
 """
 
 from .config import DEFAULT_TOML, Experiment, SimulationSettings, SweepConfig, load_config
-from .experiment import ExperimentResult, run_experiment
-from .runner import run_sweep
-from .store import read_table
+from .experiment import Cell, ExperimentResult, experiment_cells, run_cell, run_experiment
+from .lock import FolderBusy, FolderLock
+from .runner import SweepSummary, run_sweep
+from .store import ResultStore, read_table
 
 __all__ = [
     "DEFAULT_TOML", "Experiment", "SimulationSettings", "SweepConfig", "load_config",
-    "ExperimentResult", "run_experiment", "run_sweep", "read_table",
+    "Cell", "ExperimentResult", "experiment_cells", "run_cell", "run_experiment",
+    "FolderBusy", "FolderLock", "SweepSummary", "run_sweep", "ResultStore", "read_table",
 ]

@@ -1,4 +1,9 @@
-"""``python -m torchconn.sweep``: run the paper's experiments and check its claims."""
+"""``torchconn-sweep`` (``python -m torchconn.sweep``): run the paper's experiments and check
+its claims.
+
+Exit codes: 0 done, 2 bad input or an unusable output folder (one line says what to fix),
+1 an internal error.
+"""
 
 from __future__ import annotations
 
@@ -6,15 +11,16 @@ import argparse
 import sys
 from pathlib import Path
 
-import torch
-
+from .._cli import InputError, add_threads, prepare_output, run_command, set_threads
 from .config import load_config, sweep_config_names
 from .runner import run_sweep
 
+PROG = "torchconn-sweep"
 
-def main(argv: list[str] | None = None) -> int:
+
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="torchconn-sweep",
+        prog=PROG,
         description="Batched sweeps over system and observation noise (the paper's Sec. 5). "
         "With no arguments, runs the packaged default sweep (about 80 s on 2 cores). "
         "Also runs as python -m torchconn.sweep.",
@@ -28,35 +34,40 @@ def main(argv: list[str] | None = None) -> int:
                    "--set simulation.n_cycles=10 (repeatable)")
     p.add_argument("--trials", type=int, help="shortcut for --set experiment.trials=N")
     p.add_argument("--cycles", type=int, help="shortcut for --set simulation.n_cycles=N")
+    p.add_argument("--block", type=int, help="shortcut for --set block_trials=N (trials per "
+                   "stored cell, a multiple of 4; the results do not depend on it)")
     p.add_argument("--workers", type=int, default=0,
-                   help="run experiments on a local Dask cluster with N workers")
+                   help="run cells on a local Dask cluster with N workers")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler, tcp://HOST:PORT")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch threads per process (default 1: the batched work is made of many "
-                   "small tensor ops, which extra threads slow down; use --workers for cores)")
+    p.add_argument("--wait", action="store_true",
+                   help="if another run is writing --out, wait for it instead of exiting")
+    add_threads(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    args = p.parse_args(argv)
+    return p
 
-    overrides = list(args.overrides)
-    if args.trials is not None:
-        overrides.append(f"experiment.trials={args.trials}")
-    if args.cycles is not None:
-        overrides.append(f"simulation.n_cycles={args.cycles}")
-    try:
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+
+    def body() -> int:
+        set_threads(args.threads)
+        overrides = list(args.overrides)
+        for flag, key in (("trials", "experiment.trials"), ("cycles", "simulation.n_cycles"),
+                          ("block", "block_trials")):
+            if getattr(args, flag) is not None:
+                overrides.append(f"{key}={getattr(args, flag)}")
         config = load_config(args.config, overrides)
-    except (ValueError, FileNotFoundError) as err:
-        p.error(str(err))
-    if args.threads < 1:
-        p.error(f"--threads must be >= 1, got {args.threads}")
-    torch.set_num_threads(args.threads)
-    out = args.out or Path("runs") / config.name
-    summary = run_sweep(config, out, workers=args.workers, scheduler=args.scheduler,
-                        quiet=args.quiet, figures=not args.no_figures)
-    if args.quiet:
+        if args.workers < 0:
+            raise InputError(f"--workers must be >= 0, got {args.workers}")
+        out = prepare_output(args.out or Path("runs") / config.name)
+        summary = run_sweep(config, out, workers=args.workers, scheduler=args.scheduler,
+                            quiet=args.quiet, figures=not args.no_figures, wait=args.wait)
+        if not args.quiet:
+            print(f"results in {summary.out}")
         return 0
-    print(f"results in {summary['out']}")
-    return 0
+
+    return run_command(PROG, body)
 
 
 if __name__ == "__main__":

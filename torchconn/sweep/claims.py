@@ -6,6 +6,7 @@ with ``holds = "n/a"``; a claim that fails is reported as failing, with its numb
 
 from __future__ import annotations
 
+import warnings
 from collections import defaultdict
 
 import numpy as np
@@ -57,13 +58,14 @@ def _claim_a(results, phase_errors, experiments):
             for r in phase_errors:
                 if (r["experiment"], r["level"], r["model"]) == (exp.name, level, model):
                     by_bin[(r["component"], r["phase"])].append(r["mean"])
-            z_crit = stats.t.ppf(1 - ALPHA / 2, exp.trials - 1)
-            sig = []
-            for means in by_bin.values():
-                m = np.asarray(means)
-                se = m.std(ddof=1) / np.sqrt(len(m))
-                sig.append(abs(m.mean()) > z_crit * se)
-            frac[model] = float(np.mean(sig)) if sig else float("nan")
+            if by_bin:
+                # (bins, trials), NaN-padded should a trial lack a bin; two-sided t-test per bin
+                n = max(len(v) for v in by_bin.values())
+                m = np.array([v + [np.nan] * (n - len(v)) for v in by_bin.values()])
+                p = _ttest_pvalues(m)
+                frac[model] = float(np.mean(p < ALPHA))
+            else:
+                frac[model] = float("nan")
             x_means = [np.mean(v) for (c, _), v in by_bin.items() if c == "x"]
             net[model] = (float(np.mean(x_means)), float(np.sqrt(np.mean(np.square(x_means)))))
         ok = frac["data_driven"] <= 0.1 and frac["analytic"] >= 0.25
@@ -74,6 +76,16 @@ def _claim_a(results, phase_errors, experiments):
                      f"bins): data-driven {net['data_driven'][0]:.2g}, {net['data_driven'][1]:.2g}; "
                      f"analytic {net['analytic'][0]:.2g}, {net['analytic'][1]:.2g}")
     return verdicts, parts
+
+
+def _ttest_pvalues(m: np.ndarray) -> np.ndarray:
+    """Two-sided p-values of one-sample t-tests of mean 0 along the last axis of ``m (..., n)``
+    (NaN: missing). Rows without spread get p = 0 if their mean is non-zero, else NaN (never
+    significant); scipy's warning about them is silenced."""
+    with warnings.catch_warnings(), np.errstate(divide="ignore", invalid="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        res = stats.ttest_1samp(m, 0.0, axis=-1, nan_policy="omit")
+    return np.asarray(res.pvalue, dtype=float)
 
 
 def _unit_noise_errors(results, exp):

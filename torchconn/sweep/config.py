@@ -12,36 +12,60 @@ Every field is documented in the packaged ``default.toml`` (the repository's
 ``configs/default.toml``, the sweep run with no config). The configs that ship with torchconn
 (``default``, ``quick``, ``fig3``, ``fig4a``, ``fig4b``) are named by their stem; a path names
 any other TOML file.
+
+:func:`load_config` validates the whole config before any work: unknown keys (listed with the
+valid ones and the closest match), types and ranges of every field, ``--set`` paths and
+indices, and TOML syntax (with file and line); every problem is an
+:class:`~torchconn._cli.InputError` naming the file and the key.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
-import hashlib
-import json
 import tomllib
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .. import __version__
+from .._cli import InputError, check_keys, did_you_mean
+from .._options import check_value
 from .._provenance import source_hash
 from .._resources import config_names, configs, read_config
 from ..regression.estimator import ConnectionEstimator, estimator_from_settings, estimator_settings
 
 __all__ = [
     "SimulationSettings", "Experiment", "SweepConfig", "load_config", "resolve_config",
-    "sweep_config_names",
-    "apply_overrides",
-    "DEFAULT_TOML", "SYSTEMS", "NOISE_KINDS",
+    "sweep_config_names", "apply_overrides", "DEFAULT_TOML", "SYSTEMS", "NOISE_KINDS",
+    "TRIAL_TILE",
 ]
 
 SYSTEMS = ("3link", "9link")
 NOISE_KINDS = ("system", "observation")
+PHASES = ("estimated", "true")
+#: block sizes are multiples of this: MKL's GEMM computes rows in tiles of 4, and a trial's
+#: numbers are bit-identical between blocks only when every block starts on a tile boundary
+TRIAL_TILE = 4
 
 #: the sweep ``torchconn-sweep`` runs with no ``--config`` (the packaged ``default.toml``,
 #: which documents every field; about 80 s on 2 cores)
 DEFAULT_TOML = configs().joinpath("default.toml").read_text(encoding="utf-8")
+
+_TOP = {"name": str, "seed": int, "phase": str, "error_bins": int, "block_trials": int,
+        "simulation": dict, "estimator": dict, "experiment": list}
+
+
+def _in_range(key: str, value, tp, low, high=None) -> None:
+    """``value`` is a ``tp`` (int or float) in ``[low, high]``, else a ``ValueError``."""
+    check_value(key, value, tp, {"ge": low, **({"le": high} if high is not None else {})})
+
+
+def _folder_name(key: str, value: str) -> None:
+    if not value or any(c in value for c in '/\\:*?"<>|\0') or value in (".", ".."):
+        raise InputError(f"{key} must be a non-empty name usable as a folder name (no / \\ : * ? "
+                         f'" < > |), got {value!r}')
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -54,6 +78,16 @@ class SimulationSettings:
     n_cycles: int = 30
     samples_per_cycle: int = 64
     substeps: int = 8
+
+    def __post_init__(self) -> None:
+        _in_range("alpha", self.alpha, float, 0.0)
+        _in_range("eta", self.eta, float, 0.0)
+        _in_range("n_cycles", self.n_cycles, int, 2, 100_000)
+        _in_range("samples_per_cycle", self.samples_per_cycle, int, 8, 100_000)
+        _in_range("substeps", self.substeps, int, 2, 1000)
+        if self.substeps % 2:
+            raise InputError(f"substeps must be even (each sample sits mid-way through its "
+                             f"fine steps), got {self.substeps}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -72,17 +106,23 @@ class Experiment:
 
     def __post_init__(self) -> None:
         if self.system not in SYSTEMS:
-            raise ValueError(f"experiment system must be one of {SYSTEMS}, got {self.system!r}")
+            raise InputError(f"system must be one of {SYSTEMS}, got {self.system!r}"
+                             + did_you_mean(self.system, SYSTEMS))
         if self.noise_kind not in NOISE_KINDS:
-            raise ValueError(
-                f"experiment noise_kind must be one of {NOISE_KINDS}, got {self.noise_kind!r}"
-            )
-        if not self.levels or any(v < 0 for v in self.levels):
-            raise ValueError(f"experiment levels must be non-empty and >= 0, got {self.levels}")
-        if self.trials < 1:
-            raise ValueError(f"experiment trials must be >= 1, got {self.trials}")
+            raise InputError(f"noise_kind must be one of {NOISE_KINDS}, got {self.noise_kind!r}"
+                             + did_you_mean(self.noise_kind, NOISE_KINDS))
+        if not self.levels:
+            raise InputError("levels must be a non-empty list of numbers >= 0")
+        for v in self.levels:
+            _in_range("levels", v, float, 0.0)
+        if len(set(self.levels)) != len(self.levels):
+            raise InputError(f"levels must be distinct, got {list(self.levels)}")
+        _in_range("trials", self.trials, int, 1, 100_000)
+        _in_range("omega", self.omega, float, 0.0)
+        _in_range("eta_factor", self.eta_factor, float, 0.0)
         if not self.name:
             object.__setattr__(self, "name", f"{self.system}-{self.noise_kind}")
+        _folder_name("name", self.name)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -93,6 +133,8 @@ class SweepConfig:
     :func:`~torchconn.regression.estimator.estimator_from_settings`), or a
     :class:`ConnectionEstimator`; it is validated and stored in full, normalised form, so equal
     estimators written differently (flat 0.1 keys, nested tables) hash alike.
+    ``block_trials`` is the number of trials per stored cell (a multiple of
+    :data:`TRIAL_TILE`); the results do not depend on it.
     """
 
     name: str
@@ -101,6 +143,7 @@ class SweepConfig:
     estimator: dict = field(default_factory=dict)
     phase: str = "estimated"
     error_bins: int = 16
+    block_trials: int = 20
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -108,83 +151,163 @@ class SweepConfig:
         if not isinstance(est, ConnectionEstimator):
             est = estimator_from_settings(est, where="[estimator]")
         object.__setattr__(self, "estimator", estimator_settings(est))
-        if self.phase not in ("estimated", "true"):
-            raise ValueError(f"phase must be 'estimated' (Phaser) or 'true', got {self.phase!r}")
+        _folder_name("name", self.name)
+        _in_range("seed", self.seed, int, 0, 2**63 - 1)
+        if self.phase not in PHASES:
+            raise InputError(f"phase must be one of {PHASES}, got {self.phase!r}"
+                             + did_you_mean(self.phase, PHASES))
+        _in_range("error_bins", self.error_bins, int, 2, 10_000)
+        _in_range("block_trials", self.block_trials, int, TRIAL_TILE, 100_000)
+        if self.block_trials % TRIAL_TILE:
+            raise InputError(f"block_trials must be a multiple of {TRIAL_TILE} (so that results "
+                             f"do not depend on it), got {self.block_trials}")
+        if not self.experiments:
+            raise InputError("the config defines no [[experiment]]")
         names = [e.name for e in self.experiments]
         if len(set(names)) != len(names):
-            raise ValueError(f"experiment names must be unique, got {names}")
+            raise InputError(f"experiment names must be unique, got {names}; give repeated "
+                             "systems a distinct name = \"...\"")
+        min_cycles = self.estimator["phaser"].get("min_cycles", 0.0)
+        for i, e in enumerate(self.experiments):
+            sim = e.simulation
+            if sim.n_cycles < min_cycles + 1:
+                raise InputError(
+                    f"experiment {i} ({e.name}): n_cycles = {sim.n_cycles} is too few; the "
+                    f"estimator needs at least min_cycles + 1 = {min_cycles + 1:g}")
+            if self.error_bins > sim.samples_per_cycle:
+                raise InputError(f"error_bins = {self.error_bins} exceeds samples_per_cycle = "
+                                 f"{sim.samples_per_cycle} of experiment {i} ({e.name}); some "
+                                 "bins would be empty")
 
-    def fingerprint(self, experiment: Experiment) -> str:
-        """Hash of everything that determines an experiment's results (for resuming safely),
-        the package's source code included."""
-        payload = {
-            "source": source_hash(),
+    def fingerprint(self, experiment: Experiment) -> dict:
+        """Everything that determines an experiment's results (for resuming safely),
+        torchconn's version and source code included."""
+        return {
+            "torchconn": __version__, "source": source_hash(),
             "experiment": dataclasses.asdict(experiment),
             "estimator": self.estimator,
             "seed": self.seed, "phase": self.phase, "error_bins": self.error_bins,
             "index": [e.name for e in self.experiments].index(experiment.name),
         }
-        text = json.dumps(payload, sort_keys=True, default=str)
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def make_estimator(self) -> ConnectionEstimator:
         """A fresh (unfitted) estimator with this sweep's settings."""
         return estimator_from_settings(self.estimator, where="[estimator]")
 
 
+def _check_type(value, tp, key: str):
+    """``value`` checked against the annotation ``tp`` (``tuple[float, ...]`` element-wise),
+    floats returned as ``float``."""
+    if typing.get_origin(tp) is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise InputError(f"{key} must be a list, got {value!r} ({type(value).__name__})")
+        return tuple(_check_type(v, typing.get_args(tp)[0], f"{key}[{i}]")
+                     for i, v in enumerate(value))
+    check_value(key, value, tp)
+    floats = tp is float or float in typing.get_args(tp)
+    return float(value) if floats and isinstance(value, int) and not isinstance(value, bool) \
+        else value
+
+
+def build_settings(cls, table, where: str, skip: tuple[str, ...] = ()):
+    """A frozen settings dataclass ``cls`` from a TOML table: unknown keys, types and the
+    class's own range checks reported with ``where`` (e.g. ``"[simulation]"``)."""
+    if not isinstance(table, dict):
+        raise InputError(f"{where} must be a table of settings, got {table!r}")
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls) if f.init and f.name not in skip]
+    check_keys(table, names, where)
+    try:
+        values = {k: _check_type(v, hints[k], k) for k, v in table.items()}
+        return cls(**values)
+    except ValueError as err:
+        raise InputError(f"{where} {err}") from None
+
+
 def _parse(raw: dict[str, Any]) -> SweepConfig:
     raw = copy.deepcopy(raw)
-    known = {"name", "seed", "phase", "error_bins", "simulation", "estimator", "experiment"}
-    unknown = set(raw) - known
-    if unknown:
-        raise ValueError(f"unknown top-level config keys {sorted(unknown)}; known: {sorted(known)}")
-    sim = SimulationSettings(**raw.get("simulation", {}))
+    check_keys(raw, _TOP, "top level")
+    for key, tp in _TOP.items():
+        if key in raw and tp in (dict, list) and not isinstance(raw[key], tp):
+            what = "a [section] table" if tp is dict else "an array of [[experiment]] tables"
+            raise InputError(f"{key} must be {what}, got {raw[key]!r}")
+    sim = build_settings(SimulationSettings, raw.get("simulation", {}), "[simulation]")
     experiments = []
     for i, exp in enumerate(raw.get("experiment", [])):
+        where = f"[[experiment]] {i}"
+        if not isinstance(exp, dict):
+            raise InputError(f"{where} must be a table, got {exp!r}")
         exp = dict(exp)
-        sim_exp = dataclasses.replace(sim, **exp.pop("simulation", {}))
-        try:
-            experiments.append(
-                Experiment(levels=tuple(float(v) for v in exp.pop("levels", ())),
-                           simulation=sim_exp, **exp)
-            )
-        except TypeError as err:
-            raise ValueError(f"experiment {i}: {err}") from None
-    if not experiments:
-        raise ValueError("the config defines no [[experiment]]")
-    return SweepConfig(
-        name=raw.get("name", "sweep"), seed=int(raw.get("seed", 0)),
-        experiments=tuple(experiments), estimator=raw.get("estimator", {}),
-        phase=raw.get("phase", "estimated"), error_bins=int(raw.get("error_bins", 16)), raw=raw,
-    )
+        check_keys(exp, [f.name for f in dataclasses.fields(Experiment)], where)
+        own = exp.pop("simulation", {})
+        if not isinstance(own, dict):
+            raise InputError(f"{where} simulation must be a table, got {own!r}")
+        sim_exp = build_settings(SimulationSettings, {**dataclasses.asdict(sim), **own},
+                                 f"{where} [simulation]")
+        for key in ("system", "noise_kind", "levels", "trials"):
+            if key not in exp:
+                raise InputError(f"{where}: missing required key {key!r}")
+        experiments.append(build_settings(Experiment, exp, where, skip=("simulation",)))
+        object.__setattr__(experiments[-1], "simulation", sim_exp)
+    values = {k: _check_type(raw[k], tp, k) for k, tp in _TOP.items()
+              if k in raw and tp not in (dict, list)}
+    try:
+        return SweepConfig(
+            name=values.get("name", "sweep"), seed=values.get("seed", 0),
+            experiments=tuple(experiments), estimator=raw.get("estimator", {}),
+            phase=values.get("phase", "estimated"), error_bins=values.get("error_bins", 16),
+            block_trials=values.get("block_trials", 20), raw=raw,
+        )
+    except InputError:
+        raise
+    except ValueError as err:  # from the estimator's own validation
+        raise InputError(str(err)) from None
 
 
 def apply_overrides(raw: dict, overrides: list[str]) -> dict:
     """Apply ``key.path=value`` overrides (value parsed as TOML, else a string).
 
     ``experiment.trials=2`` sets a key in every experiment; ``experiment.1.trials=2`` in one.
+    A path through a missing index or a non-table is an :class:`InputError`.
     """
     raw = copy.deepcopy(raw)
     for item in overrides:
+        where = f"--set {item}"
         if "=" not in item:
-            raise ValueError(f"override {item!r} must look like section.key=value")
+            raise InputError(f"{where}: expected section.key=value, e.g. "
+                             "--set simulation.n_cycles=10")
         path, text = item.split("=", 1)
         try:
             value = tomllib.loads(f"v = {text}")["v"]
         except tomllib.TOMLDecodeError:
             value = text
         keys = path.strip().split(".")
+        if not all(keys):
+            raise InputError(f"{where}: empty key in {path!r}")
         targets = [raw]
-        for key in keys[:-1]:
+        for depth, key in enumerate(keys[:-1]):
             nxt = []
             for t in targets:
                 if isinstance(t, list):
-                    nxt.extend([t[int(key)]] if key.isdigit() else [x.setdefault(key, {}) for x in t])
-                else:
+                    if key.lstrip("-").isdigit():
+                        k = int(key)
+                        if not 0 <= k < len(t):
+                            raise InputError(
+                                f"{where}: index {k} is out of range; the config has {len(t)} "
+                                f"[[{keys[depth - 1]}]] table(s), indices 0-{len(t) - 1}")
+                        nxt.append(t[k])
+                    else:
+                        nxt.extend(x.setdefault(key, {}) if isinstance(x, dict) else x
+                                   for x in t)
+                elif isinstance(t, dict):
                     nxt.append(t.setdefault(key, {}))
+                else:
+                    raise InputError(f"{where}: {'.'.join(keys[:depth])} is a value, not a table")
             targets = nxt
         for t in targets:
             for tt in (t if isinstance(t, list) else [t]):
+                if not isinstance(tt, dict):
+                    raise InputError(f"{where}: {'.'.join(keys[:-1])} is a value, not a table")
                 tt[keys[-1]] = value
     return raw
 
@@ -201,21 +324,36 @@ def resolve_config(config: str | Path) -> tuple[str, str]:
     ``"quick.toml"``); an existing file wins over a packaged name.
     """
     path = Path(config)
+    if path.is_dir():
+        raise InputError(f"config {path} is a folder; expected a TOML file or the name of a "
+                         f"packaged config ({', '.join(sweep_config_names())})")
     if path.is_file():
-        return path.read_text(encoding="utf-8"), str(path)
+        try:
+            return path.read_bytes().decode("utf-8"), str(path)
+        except UnicodeDecodeError:
+            raise InputError(f"config {path}: not UTF-8 text; TOML files must be UTF-8") \
+                from None
+        except OSError as err:
+            raise InputError(f"config {path}: cannot read it ({err.strerror})") from None
     name = str(config)
     stem = name[:-5] if name.endswith(".toml") else name
     if stem not in sweep_config_names():
-        raise FileNotFoundError(
-            f"config {name!r} is neither a TOML file nor a packaged sweep config; packaged: "
+        raise InputError(
+            f"config {name!r} not found: neither a TOML file nor a packaged sweep config"
+            f"{did_you_mean(stem, sweep_config_names())}; packaged: "
             f"{', '.join(sweep_config_names())}"
         )
     return configs().joinpath(f"{stem}.toml").read_text(encoding="utf-8"), f"{stem}.toml (packaged)"
 
 
 def load_config(config: str | Path | None = None, overrides: list[str] = ()) -> SweepConfig:
-    """Read a sweep config: a path to a TOML file, the name of a packaged config
-    (``"quick"``, ``"fig4a"``, ...), or None for the default sweep (``"default"``)."""
+    """Read and validate a sweep config: a path to a TOML file, the name of a packaged config
+    (``"quick"``, ``"fig4a"``, ...), or None for the default sweep (``"default"``).
+
+    Raises:
+        InputError: naming the file (and line, for TOML syntax), the key and what was
+            expected; ``--set`` problems name the override.
+    """
     if config is None:
         text, source = DEFAULT_TOML, "default.toml (packaged)"
     else:
@@ -223,5 +361,11 @@ def load_config(config: str | Path | None = None, overrides: list[str] = ()) -> 
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
-        raise ValueError(f"config {source} is not valid TOML: {err}") from None
-    return _parse(apply_overrides(raw, list(overrides)))
+        raise InputError(f"config {source}: invalid TOML: {err}") from None
+    raw = apply_overrides(raw, list(overrides))
+    try:
+        return _parse(raw)
+    except InputError as err:
+        sets = [o for o in overrides if "=" in o]
+        hint = f" (after --set {', '.join(sets)})" if sets else ""
+        raise InputError(f"{source}: {err}{hint}") from None

@@ -1,8 +1,8 @@
-"""Run one experiment of a sweep: all its noise levels × trials in one batched pipeline.
+"""Run a sweep's experiments cell by cell: one noise level × a block of trials, batched.
 
-simulate → observe → prepare (smooth, phase) → fit → reference models → tidy rows. The
-function is pure (inputs: the config and the experiment; output: tables of rows), so the
-serial runner and a Dask worker produce identical results for the same seeds.
+simulate → observe → prepare (smooth, phase) → fit → reference models → tidy rows. A cell is
+pure (inputs: the config and the cell; output: tables of rows) and every trial has its own
+seed, so the serial runner and Dask workers produce identical rows for any block size.
 """
 
 from __future__ import annotations
@@ -29,7 +29,10 @@ from ..simulation.observe import observe
 from ..simulation.rollout import simulate
 from .config import Experiment, SweepConfig
 
-__all__ = ["ExperimentResult", "run_experiment", "experiment_seeds", "make_system"]
+__all__ = [
+    "ExperimentResult", "Cell", "experiment_cells", "run_cell", "run_experiment",
+    "experiment_seeds", "make_system", "trace_level",
+]
 
 RESULT_COLUMNS = ("experiment", "system", "noise_kind", "level", "trial", "model", "component",
                   "metric", "value")
@@ -43,12 +46,46 @@ TRACE_CYCLES = (13, 18)
 
 @dataclass
 class ExperimentResult:
-    """Tidy rows of one experiment, and how long each stage took."""
+    """Tidy rows of one experiment (or one cell of it), and how long each stage took."""
 
     results: list[tuple] = field(default_factory=list)
     phase_errors: list[tuple] = field(default_factory=list)
     traces: list[tuple] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+
+    def extend(self, other: "ExperimentResult") -> None:
+        """Append another cell's rows and add its stage timings."""
+        self.results += other.results
+        self.phase_errors += other.phase_errors
+        self.traces += other.traces
+        for stage, seconds in other.timings.items():
+            self.timings[stage] = self.timings.get(stage, 0.0) + seconds
+
+
+@dataclass(frozen=True, kw_only=True)
+class Cell:
+    """The unit of storage and distribution: one noise level of one experiment, trials
+    ``[start, stop)``. Its rows do not depend on how the other trials are blocked."""
+
+    experiment: Experiment
+    level: int
+    start: int
+    stop: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.experiment.name}-L{self.level}-t{self.start}-{self.stop}"
+
+
+def experiment_cells(experiment: Experiment, block_trials: int) -> list[Cell]:
+    """An experiment's cells, level-major, ``block_trials`` trials each (the last may be
+    smaller). Concatenating their rows in this order gives the experiment's table."""
+    if block_trials < 1:
+        raise ValueError(f"block_trials must be >= 1, got {block_trials}")
+    return [Cell(experiment=experiment, level=i, start=s,
+                 stop=min(s + block_trials, experiment.trials))
+            for i in range(len(experiment.levels))
+            for s in range(0, experiment.trials, block_trials)]
 
 
 def make_system(name: str) -> NLinkSwimmer:
@@ -59,33 +96,51 @@ def experiment_seeds(config: SweepConfig, experiment: Experiment) -> np.ndarray:
     """Seeds ``(levels, trials)``: cell (i, j) of experiment e gets
     ``SeedSequence(root, spawn_key=(e, i, j))`` (:func:`torchconn._provenance.spawn_seeds`).
 
-    Keyed by position, so a cell's seed does not depend on which other cells run, in which
-    order, or on which backend.
+    Keyed by position, so a trial's seed does not depend on which other trials run, in which
+    order, in which cell, or on which backend.
     """
     e = [x.name for x in config.experiments].index(experiment.name)
     return spawn_seeds(config.seed, (len(experiment.levels), experiment.trials), key=(e,))
 
 
-def run_experiment(config: SweepConfig, experiment: Experiment) -> ExperimentResult:
-    """All levels × trials of one experiment, batched; returns its tidy rows."""
+def run_experiment(config: SweepConfig, experiment: Experiment,
+                   block_trials: int | None = None) -> ExperimentResult:
+    """All levels × trials of one experiment, cell by cell; returns its tidy rows.
+
+    ``block_trials`` (default: all trials of a level in one cell) does not change the rows.
+    """
+    out = ExperimentResult()
+    for cell in experiment_cells(experiment, block_trials or experiment.trials):
+        out.extend(run_cell(config, cell))
+    return out
+
+
+def run_cell(config: SweepConfig, cell: Cell) -> ExperimentResult:
+    """One cell's trials at one noise level, batched; returns its tidy rows.
+
+    Rows are ordered by trial, then model, component and metric (phase bin), so the rows of
+    an experiment are its cells' rows in :func:`experiment_cells` order for any block size.
+    """
+    experiment = cell.experiment
     out = ExperimentResult()
     clock = time.perf_counter
     sim = experiment.simulation
     system = make_system(experiment.system)
     gait = reference_gait(experiment.system)
-    levels = torch.tensor(experiment.levels, dtype=torch.float64)[:, None]  # (L, 1)
-    seeds = experiment_seeds(config, experiment)
+    level = torch.tensor([experiment.levels[cell.level]], dtype=torch.float64)[:, None]  # (1, 1)
+    seeds = experiment_seeds(config, experiment)[cell.level:cell.level + 1, cell.start:cell.stop]
     if experiment.noise_kind == "system":
-        eta, omega = sim.eta * levels, experiment.omega
+        eta, omega = sim.eta * level, experiment.omega
     else:
-        eta, omega = sim.eta * experiment.eta_factor, levels
+        eta, omega = sim.eta * experiment.eta_factor, level
 
     t0 = clock()
     traj = simulate(system, gait, eta=eta, alpha=sim.alpha, n_cycles=sim.n_cycles,
                     samples_per_cycle=sim.samples_per_cycle, substeps=sim.substeps, seeds=seeds)
     out.timings["rollout"] = clock() - t0
     t0 = clock()
-    if experiment.noise_kind == "observation" or experiment.omega > 0:
+    noisy = experiment.noise_kind == "observation" or experiment.omega > 0
+    if noisy:
         traj = observe(traj, omega, seeds=seeds)
     out.timings["observe"] = clock() - t0
 
@@ -101,58 +156,65 @@ def run_experiment(config: SweepConfig, experiment: Experiment) -> ExperimentRes
     out.timings["regression"] = clock() - t0
 
     t0 = clock()
-    noisy = experiment.noise_kind == "observation" or experiment.omega > 0
     clean = clean_trajectory(traj) if noisy else None
     preds = reference_models(system, estimator.model_, estimator.trajectory_, clean)
     observed = estimator.trajectory_.smoothed.xi
-    _collect(out, config, experiment, preds, observed, estimator.trajectory_)
+    _collect(out, config, cell, preds, observed, estimator.trajectory_)
     out.timings["evaluation"] = clock() - t0
     return out
 
 
-def _collect(out, config, experiment, preds, observed, traj) -> None:
+def _collect(out, config, cell, preds, observed, traj) -> None:
+    experiment = cell.experiment
     key = (experiment.name, experiment.system, experiment.noise_kind)
+    level = experiment.levels[cell.level]
     truth = preds["ground_truth"]
-    L, n = len(experiment.levels), experiment.trials
+    stats, bins = {}, {}
     for model in MODELS:
         p = preds[model]
-        stats = {
-            "rms_vs_ground_truth": error_summary(p, truth),
-            "rms_vs_observed": error_summary(p, observed),
-            "mean_vs_ground_truth": torch.nanmean(p - truth, dim=-2),
+        stats[model] = {
+            "rms_vs_ground_truth": error_summary(p, truth)[0].tolist(),
+            "rms_vs_observed": error_summary(p, observed)[0].tolist(),
+            "mean_vs_ground_truth": torch.nanmean(p - truth, dim=-2)[0].tolist(),
         }
-        for i in range(L):
-            for j in range(n):
-                for c, comp in enumerate(COMPONENTS):
-                    for metric, values in stats.items():
-                        out.results.append(key + (experiment.levels[i], j, model, comp, metric,
-                                                  float(values[i, j, c])))
-        if model == "ground_truth":
-            continue
-        centres, mean, rms, se = phase_bin_errors(p, truth, traj.phase, config.error_bins)
-        for i in range(L):
-            for j in range(n):
-                for c, comp in enumerate(COMPONENTS):
-                    for b in range(config.error_bins):
-                        out.phase_errors.append(key + (
-                            experiment.levels[i], j, model, comp, float(centres[b]),
-                            float(mean[i, j, b, c]), float(rms[i, j, b, c]),
-                            float(se[i, j, b, c])))
-    if experiment.traces:
+        if model != "ground_truth":
+            centres, mean, rms, se = phase_bin_errors(p, truth, traj.phase, config.error_bins)
+            bins[model] = (centres.tolist(), mean[0].tolist(), rms[0].tolist(), se[0].tolist())
+    for j in range(cell.stop - cell.start):
+        trial = cell.start + j
+        for model in MODELS:
+            for c, comp in enumerate(COMPONENTS):
+                for metric, values in stats[model].items():
+                    out.results.append(key + (level, trial, model, comp, metric, values[j][c]))
+        for model, (centres, mean, rms, se) in bins.items():
+            for c, comp in enumerate(COMPONENTS):
+                for b, centre in enumerate(centres):
+                    out.phase_errors.append(key + (level, trial, model, comp, centre,
+                                                   mean[j][b][c], rms[j][b][c], se[j][b][c]))
+    if experiment.traces and cell.level == trace_level(experiment) and cell.start == 0:
         _collect_traces(out, experiment, preds, observed, traj)
 
 
-def _collect_traces(out, experiment, preds, observed, traj) -> None:
-    """Body velocity over cycles 13-18 of trial 0 at the level closest to 1 (Fig. 3B)."""
+def trace_level(experiment: Experiment) -> int:
+    """Index of the level whose trial 0 is kept for Fig. 3B: the one closest to η (system
+    noise) or to no observation noise."""
     levels = np.asarray(experiment.levels)
-    i = int(np.argmin(np.abs(levels - (1.0 if experiment.noise_kind == "system" else 0.0))))
+    return int(np.argmin(np.abs(levels - (1.0 if experiment.noise_kind == "system" else 0.0))))
+
+
+def _collect_traces(out, experiment, preds, observed, traj) -> None:
+    """Body velocity over cycles 13-18 of trial 0 at :func:`trace_level` (Fig. 3B); the
+    trajectory holds that level only."""
+    level = experiment.levels[trace_level(experiment)]
     t = traj.t
     lo, hi = (2 * math.pi * c for c in TRACE_CYCLES)
     keep = torch.nonzero((t >= lo) & (t < hi)).flatten()
     series = dict(preds)
     series["observed"] = observed
+    times = t[keep].tolist()
     for model, values in series.items():
+        v = values[0, 0, keep].tolist()
         for c, comp in enumerate(COMPONENTS):
-            for k in keep.tolist():
-                out.traces.append((experiment.name, experiment.system, experiment.levels[i], 0,
-                                   float(t[k]), model, comp, float(values[i, 0, k, c])))
+            for k, tk in enumerate(times):
+                out.traces.append((experiment.name, experiment.system, level, 0, tk, model,
+                                   comp, v[k][c]))

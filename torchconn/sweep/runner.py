@@ -1,4 +1,11 @@
-"""Run a sweep: experiments in-process or on Dask, stored as they finish, then assembled.
+"""Run a sweep: cells in-process or on Dask, stored as they finish, then assembled.
+
+The unit of work and storage is a cell (one noise level of one experiment, ``block_trials``
+trials; see :class:`~torchconn.sweep.experiment.Cell`), so a killed run loses only the cells
+in flight and ``--workers`` spreads even a single experiment. Only one run writes a folder at
+a time (:class:`~torchconn.sweep.lock.FolderLock`); stored cells are checked on load and
+damaged ones recomputed (:class:`~torchconn.sweep.store.ResultStore`). Per-experiment
+summaries (claims, figures) are computed from all cells once they are loaded.
 
 Outputs in ``OUT/``: ``results.csv`` (tidy: experiment, system, noise_kind, level, trial, model,
 component, metric, value), ``phase_errors.csv`` (error per phase bin), ``traces.csv``
@@ -8,12 +15,16 @@ component, metric, value), ``phase_errors.csv`` (error per phase bin), ``traces.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from .._cli import InputError, prepare_output
 from .._provenance import write_sidecar
 from .claims import check_claims
 from .config import SweepConfig
@@ -21,13 +32,32 @@ from .experiment import (
     PHASE_COLUMNS,
     RESULT_COLUMNS,
     TRACE_COLUMNS,
+    Cell,
+    ExperimentResult,
+    experiment_cells,
     experiment_seeds,
-    run_experiment,
+    run_cell,
 )
 from .figures import make_figures
+from .lock import FolderLock
 from .store import ResultStore, write_csv
 
-__all__ = ["run_sweep", "Progress"]
+__all__ = ["run_sweep", "SweepSummary", "Progress", "cell_fingerprint"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class SweepSummary:
+    """What :func:`run_sweep` did: the output folder, the claims, the figures written, stage
+    timings per experiment, the cells computed by this run, how many stored cells were reused,
+    and the damaged cells that were recomputed, with the reason."""
+
+    out: Path
+    claims: list
+    figures: list
+    timings: dict
+    computed: tuple[str, ...]
+    reused: int
+    damaged: tuple[tuple[str, str], ...]
 
 
 class Progress:
@@ -51,10 +81,26 @@ class Progress:
               f"left ~{remaining:4.0f}s", file=sys.stderr, flush=True)
 
 
-def _in_worker(config: SweepConfig, experiment, threads: int):
+def cell_fingerprint(config: SweepConfig, cell: Cell) -> str:
+    """Hash of everything that determines a cell's rows, torchconn's code included."""
+    payload = {**config.fingerprint(cell.experiment), "cell": [cell.level, cell.start, cell.stop]}
+    text = json.dumps(payload, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _in_worker(config: SweepConfig, cell: Cell, threads: int) -> ExperimentResult:
     """Dask task: the same computation as the serial run, with the same thread count."""
     torch.set_num_threads(threads)
-    return run_experiment(config, experiment)
+    return run_cell(config, cell)
+
+
+def _dask():
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise InputError("--workers/--scheduler need Dask, which is not installed: "
+                         "pip install 'torchconn[dask]' (or run without them)") from None
+    return Client, LocalCluster, as_completed
 
 
 def run_sweep(
@@ -65,72 +111,95 @@ def run_sweep(
     scheduler: str | None = None,
     quiet: bool = False,
     figures: bool = True,
-) -> dict:
-    """Run (or resume) a sweep and write its outputs; returns a summary dict.
+    wait: bool = False,
+) -> SweepSummary:
+    """Run (or resume) a sweep and write its outputs.
 
     Args:
         config: the sweep.
-        out_dir: output directory; finished experiments already stored there are skipped.
-        workers: > 0 runs experiments on a local Dask cluster with that many worker processes.
+        out_dir: output folder; intact cells already stored there are reused, damaged ones
+            recomputed (each reported on stderr with the reason).
+        workers: > 0 runs cells on a local Dask cluster with that many worker processes.
         scheduler: address of an existing Dask scheduler (``tcp://HOST:PORT``).
         quiet: no progress bar or log lines.
         figures: write the PNG figures.
+        wait: when another run holds ``out_dir``, wait for it instead of raising
+            :class:`~torchconn.sweep.lock.FolderBusy`.
     """
-    out = Path(out_dir)
-    store = ResultStore(out)
-    plan = [(exp, config.fingerprint(exp)) for exp in config.experiments]
-    pending = [(e, fp) for e, fp in plan if not store.is_done(e.name, fp)]
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        raise InputError(f"--workers must be an integer >= 0, got {workers!r}")
+    if workers and scheduler:
+        raise InputError("give either --workers (a local cluster) or --scheduler, not both")
+    dask = _dask() if (workers or scheduler) else None
+    out = prepare_output(out_dir)
     log = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
-    log(f"sweep {config.name!r}: {len(plan)} experiments, {len(plan) - len(pending)} already "
-        f"done in {out}")
-    progress = Progress(len(plan), len(plan) - len(pending), quiet)
-    t0 = time.perf_counter()
-    if pending and (workers or scheduler):
-        _run_dask(config, pending, store, progress, workers, scheduler)
-    else:
-        for exp, fp in pending:
-            store.save(exp.name, fp, run_experiment(config, exp))
-            progress.update(exp.name)
-    wall = time.perf_counter() - t0
-    return _assemble(config, out, store, plan, wall, figures, log)
+    with FolderLock(out, wait=wait, log=log):
+        store = ResultStore(out)
+        plan = [(cell, cell_fingerprint(config, cell)) for exp in config.experiments
+                for cell in experiment_cells(exp, config.block_trials)]
+        done, pending, damaged = {}, [], []
+        for cell, fp in plan:
+            result, problem = store.load(cell, fp)
+            if result is not None:
+                done[cell.name] = result
+                continue
+            pending.append((cell, fp))
+            if problem:
+                damaged.append((cell.name, problem))
+                log(f"recomputing cell {cell.name}: {problem}")
+        log(f"sweep {config.name!r}: {len(config.experiments)} experiments in {len(plan)} cells, "
+            f"{len(done)} already done in {out}")
+        progress = Progress(len(plan), len(done), quiet)
+        t0 = time.perf_counter()
+        if pending and dask:
+            _run_dask(dask, config, pending, store, done, progress, workers, scheduler)
+        else:
+            for cell, fp in pending:
+                done[cell.name] = run_cell(config, cell)
+                store.save(cell, fp, done[cell.name])
+                progress.update(cell.name)
+        wall = time.perf_counter() - t0
+        return _assemble(config, out, done, plan, wall, figures, log,
+                         computed=tuple(c.name for c, _ in pending), damaged=tuple(damaged))
 
 
-def _run_dask(config, pending, store, progress, workers, scheduler) -> None:
-    try:
-        from distributed import Client, LocalCluster, as_completed
-    except ImportError as err:  # pragma: no cover - depends on the environment
-        raise RuntimeError(
-            "--workers/--scheduler need Dask: pip install 'torchconn[dask]'"
-        ) from err
+def _run_dask(dask, config, pending, store, done, progress, workers, scheduler) -> None:
+    Client, LocalCluster, as_completed = dask
     threads = torch.get_num_threads()
     cluster = None
     if scheduler:
-        client = Client(scheduler)
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, ValueError, TypeError) as err:
+            raise InputError(f"--scheduler {scheduler}: cannot connect ({err})") from None
     else:
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                dashboard_address=None)
         client = Client(cluster)
     try:
-        futures = {client.submit(_in_worker, config, exp, threads, pure=False): (exp, fp)
-                   for exp, fp in pending}
+        futures = {client.submit(_in_worker, config, cell, threads, pure=False): (cell, fp)
+                   for cell, fp in pending}
         for fut in as_completed(futures):
-            exp, fp = futures[fut]
-            store.save(exp.name, fp, fut.result())
-            progress.update(exp.name)
+            cell, fp = futures[fut]
+            done[cell.name] = fut.result()
+            store.save(cell, fp, done[cell.name])
+            progress.update(cell.name)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
 
 
-def _assemble(config, out, store, plan, wall, figures, log) -> dict:
+def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged) -> SweepSummary:
+    per_experiment = {e.name: ExperimentResult() for e in config.experiments}
+    for cell, _ in plan:  # plan order: experiment, level, trials -- independent of block size
+        per_experiment[cell.experiment.name].extend(done[cell.name])
     results, phase_errors, traces, timings = [], [], [], {}
-    for exp, fp in plan:
-        res = store.load(exp.name, fp)
+    for name, res in per_experiment.items():
         results += res.results
         phase_errors += res.phase_errors
         traces += res.traces
-        timings[exp.name] = res.timings
+        timings[name] = res.timings
     write_csv(out / "results.csv", RESULT_COLUMNS, results)
     write_csv(out / "phase_errors.csv", PHASE_COLUMNS, phase_errors)
     write_csv(out / "traces.csv", TRACE_COLUMNS, traces)
@@ -149,8 +218,11 @@ def _assemble(config, out, store, plan, wall, figures, log) -> dict:
         "config": config.raw,
         "estimator": config.estimator,
         "root_seed": config.seed,
-        "seeds": {e.name: experiment_seeds(config, e).tolist() for e, _ in plan},
-        "fingerprints": {e.name: fp for e, fp in plan},
+        "seeds": {e.name: experiment_seeds(config, e).tolist() for e in config.experiments},
+        "block_trials": config.block_trials,
+        "cells": {cell.name: fp for cell, fp in plan},
+        "cells_computed_this_run": list(computed),
+        "cells_damaged_and_recomputed": [{"cell": c, "reason": r} for c, r in damaged],
         "timings_s": timings,
         "wall_time_s_this_run": wall,
         "torch_threads": torch.get_num_threads(),
@@ -160,4 +232,5 @@ def _assemble(config, out, store, plan, wall, figures, log) -> dict:
         log(f"{'HOLDS' if holds is True else 'FAILS' if holds is False else 'n/a  '}  {claim}\n"
             f"       {evidence}")
     log(f"wrote {out}/results.csv, claims.csv, run.json and {len(made)} figures")
-    return {"out": out, "claims": claims, "figures": made, "timings": timings}
+    return SweepSummary(out=out, claims=claims, figures=made, timings=timings, computed=computed,
+                        reused=len(plan) - len(computed), damaged=damaged)

@@ -1,33 +1,54 @@
-"""Resumable storage of finished experiments.
+"""Resumable, checked storage of finished cells.
 
-Each experiment's tables go to ``OUT/cells/<name>-<fingerprint>/`` and a ``done.json`` written
-last (atomically) marks it complete. The fingerprint hashes everything that determines the
-results, so re-running the same command skips finished experiments, an interrupted run loses
-nothing already stored, and a changed config never reuses stale results.
+Each cell's tables go to ``OUT/cells/<cell>-<fingerprint>/`` and a ``cell.json`` written last
+(atomically) records the fingerprint and a SHA-256 checksum of every table. The fingerprint
+hashes everything that determines the cell's rows -- the experiment, the estimator, the seeds'
+root, the cell's level and trials, and torchconn's version and source code -- so re-running
+the same command skips finished cells, an interrupted run loses only the cells in flight, and
+a changed config or a code change never reuses stale results. On load a missing, truncated or
+edited file, or one that does not parse, makes :meth:`ResultStore.load` report the cell as
+damaged (with the reason); the runner recomputes it.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
+import io
 import json
 import os
 from pathlib import Path
 
-from .experiment import PHASE_COLUMNS, RESULT_COLUMNS, TRACE_COLUMNS, ExperimentResult
+from .experiment import PHASE_COLUMNS, RESULT_COLUMNS, TRACE_COLUMNS, Cell, ExperimentResult
 
 __all__ = ["ResultStore", "write_csv", "read_csv_rows", "read_table"]
 
 _TABLES = {"results": RESULT_COLUMNS, "phase_errors": PHASE_COLUMNS, "traces": TRACE_COLUMNS}
+_MANIFEST = "cell.json"
+_FORMAT = "torchconn.sweep.cell/1"
+
+
+def _csv_bytes(columns, rows) -> bytes:
+    buf = io.StringIO(newline="")
+    writer = csv.writer(buf)
+    writer.writerow(columns)
+    writer.writerows(rows)
+    return buf.getvalue().encode()
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to a temporary file, flush it to disk and rename it into place."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with tmp.open("wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
 
 
 def write_csv(path: Path, columns, rows) -> None:
     """Write rows atomically (a temporary file renamed into place)."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with tmp.open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(columns)
-        writer.writerows(rows)
-    os.replace(tmp, path)
+    _write_atomic(Path(path), _csv_bytes(columns, rows))
 
 
 def _parse(value: str):
@@ -40,12 +61,24 @@ def _parse(value: str):
     return value
 
 
-def read_csv_rows(path: Path) -> list[tuple]:
-    """Rows of a table written by :func:`write_csv`, numbers parsed back."""
-    with path.open(newline="") as fh:
-        reader = csv.reader(fh)
-        next(reader)
-        return [tuple(_parse(v) for v in row) for row in reader]
+def read_csv_rows(path: Path, columns=None) -> list[tuple]:
+    """Rows of a table written by :func:`write_csv`, numbers parsed back. With ``columns``,
+    the header must match and every row must have that many fields (else ``ValueError``)."""
+    return _rows(Path(path).read_bytes(), columns)
+
+
+def _rows(data: bytes, columns=None) -> list[tuple]:
+    reader = csv.reader(io.StringIO(data.decode("utf-8"), newline=""))
+    header = next(reader, None)
+    if columns is not None and tuple(header or ()) != tuple(columns):
+        raise ValueError(f"header {header} is not {list(columns)}")
+    rows = []
+    for row in reader:
+        if columns is not None and len(row) != len(columns):
+            raise ValueError(f"line {reader.line_num} has {len(row)} fields, expected "
+                             f"{len(columns)}")
+        rows.append(tuple(_parse(v) for v in row))
+    return rows
 
 
 def read_table(path: Path | str) -> list[dict]:
@@ -56,27 +89,57 @@ def read_table(path: Path | str) -> list[dict]:
 
 
 class ResultStore:
+    """Finished cells under ``OUT/cells/``; see the module docstring."""
+
     def __init__(self, out_dir: Path | str):
         self.root = Path(out_dir)
         (self.root / "cells").mkdir(parents=True, exist_ok=True)
 
-    def cell_dir(self, name: str, fingerprint: str) -> Path:
-        return self.root / "cells" / f"{name}-{fingerprint}"
+    def cell_dir(self, cell: Cell, fingerprint: str) -> Path:
+        return self.root / "cells" / f"{cell.name}-{fingerprint}"
 
-    def is_done(self, name: str, fingerprint: str) -> bool:
-        return (self.cell_dir(name, fingerprint) / "done.json").exists()
-
-    def save(self, name: str, fingerprint: str, result: ExperimentResult) -> None:
-        d = self.cell_dir(name, fingerprint)
+    def save(self, cell: Cell, fingerprint: str, result: ExperimentResult) -> None:
+        """Write the cell's tables, then its ``cell.json`` (checksums, fingerprint) last."""
+        d = self.cell_dir(cell, fingerprint)
         d.mkdir(parents=True, exist_ok=True)
+        sums = {}
         for table, columns in _TABLES.items():
-            write_csv(d / f"{table}.csv", columns, getattr(result, table))
-        tmp = d / "done.json.tmp"
-        tmp.write_text(json.dumps({"timings": result.timings}, indent=2))
-        os.replace(tmp, d / "done.json")
+            data = _csv_bytes(columns, getattr(result, table))
+            _write_atomic(d / f"{table}.csv", data)
+            sums[f"{table}.csv"] = hashlib.sha256(data).hexdigest()
+        manifest = {"format": _FORMAT, "cell": cell.name, "fingerprint": fingerprint,
+                    "sha256": sums, "timings": result.timings}
+        _write_atomic(d / _MANIFEST, json.dumps(manifest, indent=2).encode())
 
-    def load(self, name: str, fingerprint: str) -> ExperimentResult:
-        d = self.cell_dir(name, fingerprint)
-        timings = json.loads((d / "done.json").read_text())["timings"]
-        tables = {t: read_csv_rows(d / f"{t}.csv") for t in _TABLES}
-        return ExperimentResult(timings=timings, **tables)
+    def load(self, cell: Cell, fingerprint: str) -> tuple[ExperimentResult | None, str | None]:
+        """The stored cell, checked: ``(result, None)`` when intact, ``(None, None)`` when not
+        stored, ``(None, reason)`` when damaged or incomplete."""
+        d = self.cell_dir(cell, fingerprint)
+        if not d.exists():
+            return None, None
+        path = d / _MANIFEST
+        if not path.exists():
+            return None, f"incomplete: no {_MANIFEST} (the run writing it was interrupted)"
+        try:
+            manifest = json.loads(path.read_text(encoding="utf-8"))
+            sums, timings = manifest["sha256"], manifest["timings"]
+            if manifest.get("format") != _FORMAT or manifest.get("fingerprint") != fingerprint:
+                return None, f"{_MANIFEST} belongs to another cell or format"
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            return None, f"{_MANIFEST} unreadable ({type(err).__name__}: {err})"
+        tables = {}
+        for table, columns in _TABLES.items():
+            name = f"{table}.csv"
+            try:
+                data = (d / name).read_bytes()
+            except FileNotFoundError:
+                return None, f"{name} is missing"
+            except OSError as err:
+                return None, f"{name} unreadable ({err.strerror})"
+            if not isinstance(sums, dict) or hashlib.sha256(data).hexdigest() != sums.get(name):
+                return None, f"{name} does not match its checksum (truncated or edited)"
+            try:
+                tables[table] = _rows(data, columns)
+            except (ValueError, UnicodeDecodeError, csv.Error) as err:
+                return None, f"{name} does not parse ({err})"
+        return ExperimentResult(timings=dict(timings), **tables), None

@@ -1,0 +1,122 @@
+"""Plumbing shared by every command (``sweep``, ``fit``, ``discrepancy``, ...).
+
+- :func:`add_threads` adds ``--threads`` (default 1) and :func:`set_threads` applies it: the
+  work is many small tensor operations, and torch's default of one thread per core
+  oversubscribes a machine that is busy with other work (measured: a diagnosis 10x slower).
+- :func:`prepare_output` creates an output folder and proves it writable *before* any work.
+- :func:`run_command` runs a command's body and turns expected errors (bad input, unreadable
+  or unwritable files) into one clear line on stderr and exit code 2, never a traceback;
+  warnings are printed as ``prog: warning: ...`` lines.
+- :func:`check_keys` reports unknown keys of a settings table with the valid ones and the
+  closest match ("did you mean ...").
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import traceback
+import uuid
+import warnings
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+from ._checks import did_you_mean, unknown_keys_message
+
+__all__ = ["InputError", "add_threads", "set_threads", "prepare_output", "run_command",
+           "check_keys", "did_you_mean"]
+
+#: set to 1 to see the traceback of an unexpected error
+DEBUG_ENV = "TORCHCONN_DEBUG"
+
+
+class InputError(ValueError):
+    """Bad input a user can fix: the message names the input and what was expected."""
+
+
+def check_keys(table: dict, known: Iterable[str], where: str) -> None:
+    """Raise :class:`InputError` listing ``table``'s keys that are not in ``known``, with the
+    closest valid key and all of them."""
+    known = [str(k) for k in known]
+    unknown = [k for k in table if k not in known]
+    if unknown:
+        raise InputError(unknown_keys_message(where, unknown, known))
+
+
+def add_threads(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--threads", type=int, default=1,
+        help="torch threads (default 1: the work is many small tensor operations, which extra "
+        "threads slow down, badly on a busy machine)")
+
+
+def set_threads(n: int) -> None:
+    """Set torch's intra-op thread count (``--threads``)."""
+    import torch
+
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise InputError(f"--threads must be an integer >= 1, got {n!r}")
+    torch.set_num_threads(n)
+
+
+def prepare_output(path: Path | str, flag: str = "--out") -> Path:
+    """Create the output folder ``path`` and check that files can be written in it.
+
+    Raises:
+        InputError: naming ``flag`` and the path, when it is a file, lies under a file, or is
+            not writable.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{flag} {path}: is a file, expected a folder for the outputs")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"{flag} {path}: cannot create the output folder ({_reason(err)})") \
+            from None
+    probe = path / f".write-test-{uuid.uuid4().hex}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise InputError(f"{flag} {path}: the output folder is not writable ({_reason(err)})") \
+            from None
+    return path
+
+
+def _reason(err: OSError) -> str:
+    return err.strerror or type(err).__name__
+
+
+def run_command(prog: str, body: Callable[[], int]) -> int:
+    """Run ``body()`` and return its exit code; expected errors become ``prog: error: ...`` on
+    stderr and exit code 2, an interrupt exit code 130, and an unexpected error one line
+    (exit code 1; the traceback with ``TORCHCONN_DEBUG=1``)."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"{prog}: warning: {message}", file=sys.stderr, flush=True)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        try:
+            return body()
+        except KeyboardInterrupt:
+            print(f"{prog}: interrupted", file=sys.stderr)
+            return 130
+        except (ValueError, OSError) as err:  # InputError, parse errors, file errors
+            print(f"{prog}: error: {_message(err)}", file=sys.stderr)
+            return 2
+        except Exception as err:
+            if os.environ.get(DEBUG_ENV):
+                traceback.print_exc()
+            print(f"{prog}: internal error ({type(err).__name__}): {err}\n"
+                  f"This is a bug in torchconn, not in your input; set {DEBUG_ENV}=1 for the "
+                  "traceback and report it.", file=sys.stderr)
+            return 1
+
+
+def _message(err: BaseException) -> str:
+    if isinstance(err, OSError) and err.filename is not None and str(err.filename) not in str(
+            err.args[-1] if err.args else ""):
+        return f"{err.filename}: {_reason(err)}"
+    return str(err)

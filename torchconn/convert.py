@@ -1,0 +1,231 @@
+"""``torchconn-convert SOURCE… --links N --out DIR``: tracked video to trajectory CSVs.
+
+Reads SLEAP (analysis .h5/.csv), DeepLabCut (.csv/.h5), WCON (.wcon/.json/.zip) or plain point
+arrays (.csv/.npz), fits a curve through each frame's keypoints, resamples it to an N-link
+chain and writes one trajectory CSV per trial (``DIR/<file>.csv``, or
+``DIR/<file>_trial<k>.csv`` when gaps split the recording) and ``DIR/convert.json``: every
+setting as resolved (per-format defaults included), what was found in each file (missing
+keypoints, head/tail flips, gaps, body-length spread, scale) and the checks before fitting
+(:mod:`torchconn.io.preflight`) for every command. Exit codes: 0 done, 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
+from ._provenance import write_sidecar
+from .io.preflight import preflight
+from .io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
+from .io.trajectory_files import read_csv, write_csv
+from .trajectory import Trajectory
+
+__all__ = ["main", "add_conversion_arguments", "conversion_settings", "load_recordings",
+           "Recordings", "config_tables"]
+
+
+# ============================================================================ shared CLI parts
+def add_conversion_arguments(p: argparse.ArgumentParser, *, frame: bool = True) -> None:
+    """The tracking-conversion options (shared by ``convert``, ``fit`` and ``discrepancy``;
+    ``frame=False`` when the command has its own ``--frame``)."""
+    g = p.add_argument_group("tracking files (see torchconn.io.tracking.ConversionSettings)")
+    g.add_argument("--format", choices=("auto",) + FORMATS, default="auto",
+                   help="input format (default: from the suffix and the first lines)")
+    g.add_argument("--fps", type=float, help="frame rate (default: the file's time stamps)")
+    if frame:
+        g.add_argument("--frame", choices=("center", "com-mean"),
+                       help="body frame (default center)")
+    g.add_argument("--curve", choices=("spline", "polyline"),
+                   help="curve through the keypoints (default spline; polyline for robots)")
+    g.add_argument("--head", choices=("first", "last"),
+                   help="which end of the keypoint list is the head (default first)")
+    g.add_argument("--flip-y", action=argparse.BooleanOptionalAction, default=None,
+                   help="flip the image y axis (default: on for SLEAP/DeepLabCut pixels)")
+    g.add_argument("--scale", type=float, help="file units per body length (default: median)")
+    g.add_argument("--min-score", type=float,
+                   help="confidence threshold (default: 0.6 for DeepLabCut, none otherwise)")
+    g.add_argument("--max-gap", type=float,
+                   help="split trials at gaps longer than this many seconds (default: never)")
+    g.add_argument("--keypoints", help="comma-separated keypoints to use, head to tail")
+    g.add_argument("--track", help="animal to use (track / individual / worm id)")
+
+
+_FLAG_FIELDS = ("fps", "frame", "curve", "head", "flip_y", "scale", "min_score", "max_gap",
+                "keypoints", "track")
+
+
+def config_tables(path: Path | None, overrides: list[str]) -> dict:
+    """A TOML config (``[estimator]``, ``[convert]``, ...) with ``--set section.key=value``
+    overrides applied (the sweep's parser)."""
+    from .sweep.config import apply_overrides
+
+    raw = {}
+    if path is not None:
+        if not Path(path).exists():
+            raise InputError(f"config file {path} not found")
+        try:
+            with Path(path).open("rb") as fh:
+                raw = tomllib.load(fh)
+        except tomllib.TOMLDecodeError as err:
+            raise ValueError(f"{path}: not valid TOML ({err})") from None
+    for item in overrides:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise ValueError(f"--set {item!r} must look like section.key=value, e.g. "
+                             "estimator.ridge=1e-6 or convert.max_gap=0.5")
+    return apply_overrides(raw, list(overrides))
+
+
+def conversion_settings(args, n_links: int, table: dict | None = None) -> ConversionSettings:
+    """:class:`ConversionSettings` from a ``[convert]`` table, then the command-line flags."""
+    values = dict(table or {})
+    known = {f.name for f in dataclasses.fields(ConversionSettings)} - {"n_links"}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(f"unknown [convert] setting(s) {unknown}; known: {sorted(known)}")
+    for name in _FLAG_FIELDS:
+        v = getattr(args, name, None)
+        if v is not None:
+            values[name] = v
+    if isinstance(values.get("keypoints"), str):
+        values["keypoints"] = tuple(k.strip() for k in values["keypoints"].split(",") if k.strip())
+    if values.get("keypoints") is not None:
+        values["keypoints"] = tuple(values["keypoints"])
+    return ConversionSettings(n_links=n_links, **values)
+
+
+@dataclass(frozen=True, eq=False)
+class Recordings:
+    """Trials read from trajectory CSVs or converted from tracking files.
+
+    Attributes:
+        trajectory: all trials, batch ``(n_trials,)``.
+        reports: one :class:`ConversionReport` per tracking file (empty for CSVs).
+        body_length: ``(F,)`` chain length of every converted frame (None for CSVs).
+        trials: per trial its own :class:`Trajectory` on its own time grid (tracking only).
+        sources: ``(file, n_trials)`` per input.
+    """
+
+    trajectory: Trajectory
+    reports: tuple[ConversionReport, ...]
+    body_length: torch.Tensor | None
+    trials: tuple[tuple[Path, int, Trajectory], ...]
+
+
+def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
+                    settings=None, read_csv=read_csv) -> Recordings:
+    """Trajectory CSVs (docs/conventions.md) or tracking files, all of one kind.
+
+    ``settings`` may be a function returning them, called only when there are tracking files
+    (so that CSV input never depends on conversion options); ``read_csv`` reads the CSVs.
+    """
+    kinds = {}
+    for p in paths:
+        if not Path(p).exists():
+            raise FileNotFoundError(f"input file {p} not found")
+        kinds[p] = detect_format(p) if fmt == "auto" else fmt
+    if all(k == "torchconn" for k in kinds.values()):
+        try:
+            traj = read_csv(paths, n_joints=n_links - 1)
+        except ValueError as err:
+            if "expected n_joints" in str(err):
+                raise InputError(f"{err}: the data do not match --links {n_links} (an N-link "
+                                 "swimmer has N - 1 joint columns)") from None
+            raise
+        return Recordings(trajectory=traj, reports=(), body_length=None, trials=())
+    if any(k == "torchconn" for k in kinds.values()):
+        csvs = [str(p) for p, k in kinds.items() if k == "torchconn"]
+        raise ValueError(f"trajectory CSVs ({', '.join(csvs)}) mixed with tracking files; "
+                         "convert the tracking files first or pass one kind")
+    settings = settings() if callable(settings) else settings
+    settings = settings or ConversionSettings(n_links=n_links)
+    convs = [convert_file(p, settings, format=kinds[p]) for p in paths]
+    dt = convs[0].report.dt
+    for c in convs[1:]:
+        if abs(c.report.dt - dt) > 1e-3 * dt:
+            raise ValueError(f"{c.report.source} is sampled every {c.report.dt:g} s but "
+                             f"{convs[0].report.source} every {dt:g} s; files fitted together "
+                             "must share one frame rate")
+    n_max = max(c.trajectory.n_samples for c in convs)
+
+    def pad(x: torch.Tensor) -> torch.Tensor:
+        out = torch.full((x.shape[0], n_max) + tuple(x.shape[2:]), float("nan"), dtype=x.dtype)
+        out[:, : x.shape[1]] = x
+        return out
+
+    t0 = convs[0].trajectory.t[0]
+    traj = Trajectory(
+        t=t0 + torch.arange(n_max, dtype=torch.float64) * dt,
+        pose=torch.cat([pad(c.trajectory.pose) for c in convs]),
+        r=torch.cat([pad(c.trajectory.r) for c in convs]),
+        meta={"source": [str(p) for p in paths], "dt": dt,
+              "trials": [tr for c in convs for tr in c.report.trials]},
+    )
+    trials = tuple((Path(p), k, c.trial(k)) for p, c in zip(paths, convs, strict=True)
+                   for k in range(c.trajectory.batch_shape[0]))
+    return Recordings(trajectory=traj, reports=tuple(c.report for c in convs),
+                      body_length=torch.cat([c.body_length for c in convs]), trials=trials)
+
+
+# ============================================================================ the command
+PROG = "torchconn-convert"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
+    p.add_argument("sources", nargs="+", type=Path, help="tracking files")
+    p.add_argument("--links", type=int, required=True, help="number of links N (odd for the "
+                   "center frame)")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    add_conversion_arguments(p)
+    p.add_argument("--config", type=Path, help="TOML file with a [convert] table")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value, e.g. --set convert.max_gap=0.5")
+    add_threads(p)
+    args = p.parse_args(argv)
+
+    def body() -> int:
+        set_threads(args.threads)
+        tables = config_tables(args.config, args.overrides)
+        unknown = sorted(set(tables) - {"convert"})
+        if unknown:
+            raise InputError(f"unknown config section(s) {unknown}; convert reads [convert]")
+        settings = conversion_settings(args, args.links, tables.get("convert"))
+        out = prepare_output(args.out)
+        rec = load_recordings(args.sources, fmt=args.format, n_links=args.links,
+                              settings=settings)
+        if not rec.reports:
+            raise InputError("the inputs are already trajectory CSVs; nothing to convert")
+        check = preflight(rec.trajectory, body_length=rec.body_length)
+        print("\n".join(check.lines()))
+        files = []
+        for rep in rec.reports:
+            stem = Path(rep.source).name.rsplit(".", 1)[0]
+            mine = [tr for (path, _, tr) in rec.trials if str(path) == rep.source]
+            outs = []
+            for k, tr in enumerate(mine):
+                name = f"{stem}.csv" if len(mine) == 1 else f"{stem}_trial{k}.csv"
+                outs.append(str(write_csv(tr, out / name)))
+            files.append({"source": rep.source, "outputs": outs, "report": rep.to_dict()})
+            how = "given" if rep.scale_source == "given" else "median chain length"
+            print(f"{rep.source}: {rep.n_valid}/{rep.n_frames} frames, {len(outs)} trial(s), "
+                  f"{rep.scale:.4g} units per body length ({how}) -> {', '.join(outs)}")
+        write_sidecar(out / "convert.json", {
+            "command": PROG, "argv": sys.argv[1:] if argv is None else list(argv),
+            "settings": dataclasses.asdict(settings), "files": files,
+            "preflight": check.to_dict(),
+        })
+        print(f"wrote {out / 'convert.json'}")
+        return 0
+
+    return run_command(PROG, body)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
