@@ -54,7 +54,8 @@ def test_dependencies_are_ranges_and_the_constraints_pin_the_tested_torch():
     assert pins["torch"] == torch.__version__.split("+")[0]
     assert pins["numpy"] == numpy.__version__ and pins["scipy"] == scipy.__version__
     assert set(PYPROJECT["project"]["scripts"]) == {
-        "torchconn-sweep", "torchconn-fit", "torchconn-discrepancy", "torchconn-convert"}
+        "torchconn-sweep", "torchconn-fit", "torchconn-discrepancy", "torchconn-convert",
+        "torchconn-improve"}
     assert {"jupytext", "ipykernel"} <= {re.split("[<>=]", d)[0]
                                          for d in PYPROJECT["project"]["optional-dependencies"]["notebooks"]}
 

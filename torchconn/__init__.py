@@ -11,6 +11,7 @@ The package's folders are the pipeline's stages:
 ``evaluation``    ground-truth / data-driven / analytic / template models and their errors
 ``sweep``         the paper's experiments: configs, resumable store, claims, figures
 ``discrepancy``   where simulator and data disagree, and which physical effect is missing
+``improve``       better gaits from data: propose and verify gait improvements with the model
 ``io``            trajectory files (CSV, NPZ), tracking files (SLEAP, DeepLabCut, WCON,
                   points) and their conversion, the checks before fitting
 ================  =====================================================================

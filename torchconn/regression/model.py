@@ -24,6 +24,7 @@ from torch import Tensor
 
 from .. import _checks
 from ..phase.fourier import FourierSeries
+from .gait_prediction import GaitPrediction, predict_gait
 
 __all__ = ["LocalConnectionModel", "BinEstimates"]
 
@@ -156,6 +157,20 @@ class LocalConnectionModel:
         """Power ``ṙᵀ M̂(φ) ṙ``: ``(..., P)``."""
         self._check_samples(phase, r, r_dot)
         return torch.einsum("...i,...ij,...j->...", r_dot, self.metric(phase), r_dot)
+
+    def evaluate_gait(self, gait, **options) -> GaitPrediction:
+        """Displacement, cost and efficiency per cycle of a *nearby* gait, from this model alone.
+
+        First-order model ``A(γ') ≈ Â(φ) + ∂Â/∂r(φ) δ`` around the fitted cycle, integrated
+        over one cycle like :func:`torchconn.physics.gaits.evaluate` (the reference on a known
+        system), with standard errors from the per-bin standard errors and the gait's distance
+        from the data in tube radii (warns, then refuses, past it). See
+        :func:`torchconn.regression.gait_prediction.predict_gait` for ``options``.
+
+        Returns:
+            a :class:`~torchconn.regression.gait_prediction.GaitPrediction`, batch dims ``...``.
+        """
+        return predict_gait(self, gait, **options)
 
     def _check_samples(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> None:
         d = self.shape_dim

@@ -186,7 +186,8 @@ class TubeRegression(Regression):
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
                   "batch_shape": list(batch), "window": window, "metric_window": metric_window,
-                  "metric_noise_std": noise, **connection_meta},
+                  "metric_noise_std": noise, **connection_meta,
+                  "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
 
     def _connection_fit(self, traj: Trajectory, pool: bool, samples, gamma_m: Tensor,
@@ -267,6 +268,13 @@ def _unwrapped(phase: Tensor) -> Tensor:
     first = torch.nan_to_num(phase[..., :1])
     out = first + torch.cat([torch.zeros_like(first), torch.nan_to_num(step).cumsum(-1)], -1)
     return torch.where(torch.isnan(phase), torch.nan, out)
+
+
+def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:
+    """Per-joint RMS of the offsets ``δ = r − γ(φ)`` over every sample of every trial: the
+    width of the tube the data covered (``(d,)`` as a list, for the JSON-able ``meta``)."""
+    delta = (r - gamma).reshape(-1, r.shape[-1])
+    return [float(v) for v in delta.pow(2).nanmean(0).sqrt()]
 
 
 def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:

@@ -19,7 +19,8 @@ from .. import se2
 from ..systems.base import LocomotionSystem
 from .gait import as_gait
 
-__all__ = ["GaitMetrics", "evaluate", "displacement"]
+__all__ = ["GaitMetrics", "evaluate", "displacement", "gauss_phases", "magnus_displacement",
+           "gauss_cost"]
 
 _GAUSS = (0.5 - math.sqrt(3) / 6, 0.5 + math.sqrt(3) / 6)
 
@@ -33,10 +34,20 @@ class GaitMetrics:
     efficiency: Tensor
 
 
-def _gauss_samples(system: LocomotionSystem, gait, n_steps: int, with_metric: bool):
+def gauss_phases(n_steps: int, dtype=torch.float64, device=None) -> tuple[float, Tensor]:
+    """Step ``h = 2π/n_steps`` and the two Gauss–Legendre phases of every step, ``(n_steps, 2)``.
+
+    Evaluate the body velocity there and pass it to :func:`magnus_displacement`.
+    """
+    if not isinstance(n_steps, int) or n_steps < 1:
+        raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
     h = 2 * math.pi / n_steps
-    start = torch.arange(n_steps, dtype=torch.float64) * h
-    phi = torch.stack([start + c * h for c in _GAUSS], -1)  # (n, 2)
+    start = torch.arange(n_steps, dtype=dtype, device=device) * h
+    return h, torch.stack([start + c * h for c in _GAUSS], -1)
+
+
+def _gauss_samples(system: LocomotionSystem, gait, n_steps: int, with_metric: bool):
+    h, phi = gauss_phases(n_steps)  # (n, 2)
     r, r_dot = gait(phi), gait.velocity(phi)
     if with_metric:
         a, m = system.connection_and_metric(r)
@@ -50,14 +61,29 @@ def displacement(system: LocomotionSystem, gait, n_steps: int = 256) -> Tensor:
     """Net displacement ``(3,)`` of one cycle, ``g(2π)`` for ``g(0) = e``."""
     gait = as_gait(gait)
     h, xi, _, _ = _gauss_samples(system, gait, n_steps, with_metric=False)
-    return _magnus(xi, h)
+    return magnus_displacement(xi, h)
 
 
-def _magnus(xi: Tensor, h: float) -> Tensor:
+def magnus_displacement(xi: Tensor, h: float) -> Tensor:
+    """One cycle's net displacement from body velocities at the Gauss phases of each step.
+
+    Args:
+        xi: ``(..., n_steps, 2, 3)`` body velocity ``dg/dφ`` (body frame) at the phases
+            :func:`gauss_phases` returns; leading dims are batch dims.
+        h: the step ``2π / n_steps``.
+    Returns:
+        ``(..., 3)``: the final pose ``g(2π)`` for ``g(0) = e``.
+    """
     x1, x2 = xi[..., 0, :], xi[..., 1, :]
     omega = 0.5 * h * (x1 + x2) + (math.sqrt(3) / 12) * h * h * se2.bracket(x1, x2)
     steps = se2.exp(omega)
-    return se2.accumulate(steps, torch.zeros(3, dtype=xi.dtype))[-1]
+    zero = torch.zeros(3, dtype=xi.dtype, device=xi.device)
+    return se2.accumulate(steps, zero)[..., -1, :]
+
+
+def gauss_cost(power: Tensor, h: float) -> Tensor:
+    """One cycle's cost ``∫√P dφ`` from the power ``(..., n_steps, 2)`` at the Gauss phases."""
+    return 0.5 * h * power.clamp_min(0).sqrt().sum((-2, -1))
 
 
 def evaluate(system: LocomotionSystem, gait, n_steps: int = 256) -> GaitMetrics:
@@ -74,7 +100,7 @@ def evaluate(system: LocomotionSystem, gait, n_steps: int = 256) -> GaitMetrics:
             f"gait has {gait.shape_dim} joints but the system has {system.shape_dim}"
         )
     h, xi, r_dot, m = _gauss_samples(system, gait, n_steps, with_metric=True)
-    disp = _magnus(xi, h)
+    disp = magnus_displacement(xi, h)
     power = torch.einsum("...i,...ij,...j->...", r_dot, m, r_dot)
-    cost = 0.5 * h * power.clamp_min(0).sqrt().sum()
+    cost = gauss_cost(power, h)
     return GaitMetrics(disp, cost, torch.linalg.vector_norm(disp[:2]) / cost)

@@ -52,11 +52,12 @@ def optimise_gait(
     radius: float = 1.0,
     max_radius: float = math.pi,
     direction: int = 1,
-    component: int = 0,
+    component: int | str = 0,
     n_steps: int = 128,
     max_iter: int = 300,
 ) -> OptimisedGait:
-    """Maximise one component (0 = x) of a cycle's displacement over simple planar loops.
+    """Maximise one component (0 = x; "planar": |(x, y)|) of a cycle's displacement over simple
+    planar loops.
 
     The gait is a :class:`PolarGait` centred on the straight shape (radius a bounded Fourier
     series of ``order``, at most ``max_radius``) in the shape plane (``d = 2``) or in the
@@ -90,15 +91,25 @@ def optimise_gait(
 
     def closure() -> Tensor:
         opt.zero_grad()
-        loss = -displacement(system, _build(params, direction, modes, max_radius), n_steps)[component]
+        loss = -_component(displacement(system, _build(params, direction, modes, max_radius),
+                                        n_steps), component)
         loss.backward()
         count[0] += 1
         return loss
 
     opt.step(closure)
     best = _build(params.detach(), direction, modes, max_radius)
-    value = float(displacement(system, best, 4 * n_steps)[component])
+    value = float(_component(displacement(system, best, 4 * n_steps), component))
     return OptimisedGait(best, value, count[0])
+
+
+def _component(disp: Tensor, component: int | str) -> Tensor:
+    """One displacement component, or ``"planar"``: the distance ``|(x, y)|`` moved per cycle."""
+    if component == "planar":
+        return torch.linalg.vector_norm(disp[:2])
+    if component in (0, 1, 2):
+        return disp[component]
+    raise ValueError(f"component must be 0, 1, 2 or 'planar', got {component!r}")
 
 
 def polar_params(gait: PolarGait | ModalGait) -> dict:

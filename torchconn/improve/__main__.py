@@ -1,0 +1,121 @@
+"""Better gaits from data: run the improvement loop on a simulator, or propose the next gait
+from recordings.
+
+    python -m torchconn.improve simulate --links 3 --rounds 8 --out runs/improve3
+    python -m torchconn.improve propose trial1.csv trial2.csv --links 3 --out next/
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import warnings
+from pathlib import Path
+
+from .._provenance import write_sidecar
+from ..io.trajectory_files import read_csv
+from ..physics.systems import NLinkSwimmer
+from ..regression.estimator import ConnectionEstimator
+from .export import write_gait
+from .loop import LoopSettings, circle_gait, improve
+from .measure import measure_cycles
+from .propose import OBJECTIVES, TrustRegion, propose_gait
+
+
+def _simulate(args) -> int:
+    system = NLinkSwimmer(args.links)
+    settings = LoopSettings(
+        rounds=args.rounds, trials=args.trials, cycles=args.cycles, omega=args.omega,
+        objective=args.objective, trust_region=TrustRegion(scale=args.scale), seed=args.seed,
+    )
+    start = circle_gait(args.links - 1, args.radius)
+
+    def report(r):
+        print(f"round {r.index}: {r.cycles_used} cycles, measured {r.measured:.4f} ± "
+              f"{r.measured_se:.4f} (true {r.true:.4f}){'' if r.accepted else ' rejected'}; "
+              f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, "
+              f"{r.predicted_high:.4f}], realised {r.realised:.4f}", flush=True)
+
+    result = improve(system, start, settings, progress=report)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    rows = [r.as_row() for r in result.rounds]
+    keys = list(rows[0])
+    lines = [",".join(keys)] + [",".join(str(row[k]) for k in keys) for row in rows]
+    (out / "rounds.csv").write_text("\n".join(lines) + "\n")
+    write_sidecar(out / "run.json", {
+        "command": "simulate", "links": args.links, "start_radius": args.radius,
+        "settings": dataclasses.asdict(settings), "start_true": result.start_true,
+        "coverage": result.coverage, "rounds": rows,
+    })
+    write_gait(result.rounds[-1].proposal, out / "next_gait")
+    from .plots import plot_gaits, plot_rounds
+
+    plot_gaits(result, system, out / "gaits.png")
+    plot_rounds(result, out / "objective.png")
+    print(f"start {result.start_true:.4f} -> last proposal {result.rounds[-1].realised:.4f}; "
+          f"intervals covered {result.coverage:.0%}; wrote {out}")
+    return 0
+
+
+def _propose(args) -> int:
+    try:
+        traj = read_csv(args.data, n_joints=args.links - 1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = ConnectionEstimator(pool=True).fit(traj).model_
+        prop = propose_gait(model, args.objective, TrustRegion(scale=args.scale))
+        meas, meas_se = measure_cycles(traj, period=2 * math.pi / float(model.phase_rate))\
+            .objective(args.objective)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"python -m torchconn.improve propose: error: {err}", file=sys.stderr)
+        return 2
+    period = 2 * math.pi / float(model.phase_rate)
+    lo, hi = prop.gain_interval()
+    summary = {
+        "objective": args.objective, "measured": meas, "measured_se": meas_se,
+        "predicted_gain": prop.gain, "gain_interval_95": [lo, hi],
+        "model_current": prop.current, "model_predicted": prop.predicted,
+        "trust_radius_rad": prop.radius, "step_rad": prop.step,
+    }
+    paths = write_gait(prop.gait, args.out / "next_gait", period=period,
+                       extra={"prediction": summary})
+    write_sidecar(args.out / "report.json", {
+        "command": "propose", "data": [str(p) for p in args.data], "links": args.links,
+        "scale": args.scale, **summary,
+    })
+    print(f"measured {args.objective} {meas:.4g} ± {meas_se:.2g} per cycle; the next gait is "
+          f"predicted to gain {prop.gain:.3g} [{lo:.3g}, {hi:.3g}]")
+    print(f"wrote {paths['csv']} (joint angles over one cycle) and {paths['json']}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m torchconn.improve",
+                                description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    sim = sub.add_parser("simulate", help="run the loop on the N-link swimmer simulator")
+    sim.add_argument("--links", type=int, default=3)
+    sim.add_argument("--rounds", type=int, default=8)
+    sim.add_argument("--trials", type=int, default=4)
+    sim.add_argument("--cycles", type=int, default=20)
+    sim.add_argument("--radius", type=float, default=0.5, help="start circle radius (rad)")
+    sim.add_argument("--omega", type=float, default=0.0, help="observation noise")
+    sim.add_argument("--seed", type=int, default=0)
+    rec = sub.add_parser("propose", help="the next gait to try, from recordings")
+    rec.add_argument("data", nargs="+", type=Path, help="trajectory CSV files")
+    rec.add_argument("--links", type=int, required=True)
+    for q in (sim, rec):
+        q.add_argument("--objective", choices=OBJECTIVES, default="displacement")
+        q.add_argument("--scale", type=float, default=3.0, help="trust radius in tube radii")
+        q.add_argument("--out", type=Path, required=True)
+    args = p.parse_args(argv)
+    if args.links < 3:
+        p.error(f"--links must be >= 3, got {args.links}")
+    return _simulate(args) if args.command == "simulate" else _propose(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,263 @@
+"""The loop on a simulator: record → fit → propose → record the proposal → …
+
+Every round records ``trials × cycles`` of the current gait with the paper's SDE (α, η) and the
+observation model (ω), measures its objective from the recordings alone, fits a pooled local
+model and proposes the next gait (:func:`~torchconn.improve.propose.propose_gait`). The
+proposal's predicted objective is the *measured* objective of the current gait plus the model's
+predicted gain (the model's errors common to both gaits cancel in the gain), with an interval
+from both standard errors. The trust region adapts: it grows when the next recording lands in
+the predicted interval, shrinks when not, and a proposal whose recording measures worse than
+its start by more than the noise is rejected -- the loop returns to the previous gait and
+proposes again with half the radius. The simulator's exact objective of every gait
+(:func:`torchconn.physics.gaits.evaluate`) is recorded for judging, never used by the loop.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..physics.gaits.evaluate import evaluate
+from ..physics.gaits.gait import FourierGait, as_gait
+from ..physics.systems.base import LocomotionSystem
+from ..regression.estimator import estimator_from_settings
+from ..regression.gait_prediction import normal_quantile
+from ..simulation import observe, simulate
+from .measure import measure_cycles
+from .propose import TrustRegion, objective_value, propose_gait
+
+__all__ = ["LoopSettings", "Round", "LoopResult", "improve", "circle_gait", "true_objective"]
+
+
+def circle_gait(shape_dim: int, radius: float = 0.5, direction: int = -1) -> FourierGait:
+    """A start gait: a circle of ``radius`` about the straight shape.
+
+    For 2 joints ``r = radius (cos φ, direction · sin φ)``; for ``d > 2`` joints the travelling
+    wave ``r_k = radius · sin(φ + direction · 2πk/d)``, k = 1..d (for 8 joints the circle of that
+    radius in the 9-link's two-mode plane). ``direction = −1`` swims towards +x for the swimmers
+    of CONVENTIONS.
+    """
+    if direction not in (1, -1):
+        raise ValueError(f"direction must be +1 or -1, got {direction!r}")
+    if not radius > 0:
+        raise ValueError(f"radius must be positive, got {radius!r}")
+    coeffs = torch.zeros(3, shape_dim, dtype=torch.float64)
+    if shape_dim == 2:
+        coeffs[1, 0], coeffs[2, 1] = radius, direction * radius
+    else:
+        k = torch.arange(1, shape_dim + 1, dtype=torch.float64)
+        lag = -direction * 2 * math.pi * k / shape_dim
+        # sin(φ − lag) = cos(lag) sin φ − sin(lag) cos φ
+        coeffs[1], coeffs[2] = -radius * torch.sin(lag), radius * torch.cos(lag)
+    return FourierGait(coeffs)
+
+
+def true_objective(system: LocomotionSystem, gait, objective: str, n_steps: int = 256) -> float:
+    """The simulator's exact objective of ``gait`` (:func:`gaits.evaluate`), for judging."""
+    m = evaluate(system, gait, n_steps)
+    return float(objective_value(objective, m.displacement, m.cost))
+
+
+@dataclass(frozen=True, kw_only=True)
+class LoopSettings:
+    """Settings of :func:`improve`.
+
+    Attributes:
+        rounds: K rounds (each records one gait, then proposes the next).
+        trials, cycles: recordings per round (``trials × cycles`` recorded cycles).
+        eta, alpha: the shape SDE (CONVENTIONS: η = 0.025, α = 0.05).
+        omega: observation noise on every recorded pose and joint sample.
+        objective: see :data:`~torchconn.improve.propose.OBJECTIVES`.
+        trust_region: the first round's trust region; ``scale`` then adapts.
+        grow, shrink, good_ratio, poor_ratio, max_scale, min_scale: trust-radius adaptation
+            (in tube radii): the radius grows when the measured gain of a step is more than
+            ``good_ratio`` of the predicted one, shrinks below ``poor_ratio`` or when the
+            recording measures worse than its start by more than the noise (rejected).
+        gain_error: prior relative error of a predicted gain for a step of
+            ``trust_region.scale`` tube radii (the first-order model's truncation and the
+            estimator's bias; it scales with the step). Every measured step updates the mean
+            relative error per tube radius, which corrects the next predicted gain, and its
+            spread, which widens the interval. 0.15: measured on 3-link circle gaits, seeds
+            outside the tests.
+        level: central level of the prediction intervals.
+        estimator: the estimator's settings table (:func:`estimator_from_settings`) for the
+            pooled fit each round.
+        seed: root seed (per-round seeds from ``numpy.random.SeedSequence``).
+    """
+
+    rounds: int = 8
+    trials: int = 4
+    cycles: int = 20
+    eta: float = 0.025
+    alpha: float = 0.05
+    omega: float = 0.0
+    objective: str = "displacement"
+    trust_region: TrustRegion = field(default_factory=lambda: TrustRegion(scale=3.0))
+    grow: float = 1.5
+    shrink: float = 0.5
+    good_ratio: float = 0.75
+    poor_ratio: float = 0.25
+    max_scale: float = 6.0
+    min_scale: float = 0.5
+    gain_error: float = 0.15
+    level: float = 0.95
+    estimator: dict = field(default_factory=lambda: {"pool": True})
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("rounds", "trials", "cycles"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"LoopSettings.{name} must be a positive integer, got {value!r}")
+        if not estimator_from_settings(self.estimator, where="LoopSettings.estimator").pool:
+            raise ValueError("LoopSettings.estimator must pool the trials (pool=True): a "
+                             "proposal needs one model")
+        if not (0 < self.min_scale <= self.trust_region.scale <= self.max_scale):
+            raise ValueError("need min_scale <= trust_region.scale <= max_scale")
+
+
+@dataclass(frozen=True)
+class Round:
+    """One round of the loop.
+
+    Attributes:
+        index: round number (0 records the start gait).
+        cycles_used: recorded cycles so far, this round's included.
+        gait: the gait recorded this round.
+        measured, measured_se: its objective from the recordings.
+        true: its exact objective (simulator, for judging only).
+        accepted: False when the recording measured worse than the gait it was proposed from
+            (by more than the noise); the loop then proposed again from that gait.
+        scale: trust radius (tube radii) used for this round's proposal.
+        proposal: the gait proposed from this round's base gait.
+        predicted, predicted_low, predicted_high: the proposal's predicted objective (measured
+            base + model gain) and interval.
+        model_predicted: the model's own prediction of the proposal's objective.
+        gain, gain_se: the model's predicted gain.
+        realised: the proposal's exact objective (simulator).
+    """
+
+    index: int
+    cycles_used: int
+    gait: FourierGait
+    measured: float
+    measured_se: float
+    true: float
+    accepted: bool
+    scale: float
+    proposal: FourierGait
+    predicted: float
+    predicted_low: float
+    predicted_high: float
+    model_predicted: float
+    gain: float
+    gain_se: float
+    realised: float
+
+    @property
+    def covered(self) -> bool:
+        return self.predicted_low <= self.realised <= self.predicted_high
+
+    def as_row(self) -> dict:
+        """The JSON/CSV row (no gaits)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                if f.name not in ("gait", "proposal")} | {"covered": self.covered}
+
+
+@dataclass(frozen=True)
+class LoopResult:
+    """The rounds of one loop, the start gait's exact objective and the best accepted gait."""
+
+    rounds: tuple[Round, ...]
+    start_true: float
+    settings: LoopSettings
+
+    @property
+    def best(self) -> Round:
+        return max((r for r in self.rounds if r.accepted), key=lambda r: r.measured)
+
+    @property
+    def coverage(self) -> float:
+        return float(np.mean([r.covered for r in self.rounds]))
+
+
+def _record(system, gait, s: LoopSettings, seed: np.random.SeedSequence):
+    seeds = seed.generate_state(2 * s.trials, dtype=np.uint32).astype(np.int64)
+    traj = simulate(system, gait, eta=s.eta, alpha=s.alpha, n_cycles=s.cycles,
+                    seeds=seeds[: s.trials])
+    if s.omega > 0:
+        traj = observe(traj, s.omega, seeds=seeds[s.trials:])
+    return traj
+
+
+def improve(system: LocomotionSystem, start, settings: LoopSettings | None = None,
+            *, progress=None) -> LoopResult:
+    """Run the improvement loop on a simulator from the ``start`` gait.
+
+    Args:
+        system: the simulator (e.g. ``NLinkSwimmer(3)``).
+        start: the start gait (gait object or callable ``φ -> r``).
+        settings: :class:`LoopSettings`.
+        progress: optional callable ``(Round) -> None`` called after each round.
+    """
+    s = LoopSettings() if settings is None else settings
+    start = as_gait(start)
+    if start.shape_dim != system.shape_dim:
+        raise ValueError(f"start gait has {start.shape_dim} joints, the system {system.shape_dim}")
+    seeds = np.random.SeedSequence(s.seed).spawn(s.rounds)
+    z = normal_quantile(s.level)
+    scale = s.trust_region.scale
+    gait, rounds, base, errors = start, [], None, []
+    for k in range(s.rounds):
+        traj = _record(system, gait, s, seeds[k])
+        meas, meas_se = measure_cycles(traj).objective(s.objective)
+        accepted = True
+        if base is not None:
+            # the trust-region test: measured against predicted gain, both from data
+            predicted_gain, measured_gain = base["gain"], meas - base["measured"]
+            ratio = measured_gain / predicted_gain if predicted_gain > 0 else 0.0
+            if meas < base["measured"] - z * math.hypot(meas_se, base["measured_se"]):
+                accepted = False
+            if predicted_gain > 0:  # relative error per tube radius of the step
+                errors.append((ratio - 1.0) / base["reach"])
+            if not accepted or ratio < s.poor_ratio:
+                scale = max(scale * s.shrink, s.min_scale)
+            elif ratio > s.good_ratio:
+                scale = min(scale * s.grow, s.max_scale)
+        if accepted:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # e.g. no power channel: metric not estimated
+                model = estimator_from_settings(s.estimator).fit(traj).model_
+            base = {"model": model, "measured": meas, "measured_se": meas_se, "gait": gait}
+        tr = dataclasses.replace(s.trust_region, scale=scale)
+        prop = propose_gait(base["model"], s.objective, tr, seed=k)
+        # The first-order model's error in A grows as (step)², so the relative error of a gain
+        # grows as the step: learn it per tube radius of step. Its mean (a prior of 0 worth one
+        # step) corrects the gain, its spread (prior gain_error) widens the interval.
+        reach = prop.step / prop.radius * scale  # the step in tube radii
+        bias = sum(errors) / (1 + len(errors))
+        prior = s.gain_error / s.trust_region.scale
+        spread = math.sqrt((prior ** 2 + sum((e - bias) ** 2 for e in errors)) / (1 + len(errors)))
+        gain = prop.gain * (1 + bias * reach)
+        predicted = base["measured"] + gain
+        half = z * math.sqrt(base["measured_se"] ** 2 + prop.gain_se ** 2
+                             + (spread * reach * gain) ** 2)
+        base.update(gain=prop.gain, reach=reach)
+        rnd = Round(
+            index=k, cycles_used=(k + 1) * s.trials * s.cycles, gait=gait, measured=meas,
+            measured_se=meas_se, true=true_objective(system, gait, s.objective),
+            accepted=accepted, scale=scale, proposal=prop.gait, predicted=predicted,
+            predicted_low=predicted - half, predicted_high=predicted + half,
+            model_predicted=prop.predicted, gain=prop.gain, gain_se=prop.gain_se,
+            realised=true_objective(system, prop.gait, s.objective),
+        )
+        rounds.append(rnd)
+        if progress is not None:
+            progress(rnd)
+        gait = prop.gait
+    return LoopResult(tuple(rounds), true_objective(system, start, s.objective), s)

@@ -1,0 +1,255 @@
+"""One improvement step: the best nearby gait the local model can vouch for.
+
+The proposal is ``γ'(φ) = γ̂(φ) + Δ(φ)``: the fitted cycle plus a change ``Δ``, a Fourier series
+in the model's phase, bounded by a trust region ``max_φ |Δ(φ)| ≤ ρ``. ``ρ`` defaults to a multiple
+of the tube radius the data covered (the first-order model is fitted there), so noisier data --
+a wider tube -- allows longer steps, and the predicted gain comes with the interval the model's
+standard errors give (:func:`torchconn.regression.gait_prediction.sample_models`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..physics.gaits.evaluate import gauss_phases
+from ..physics.gaits.gait import FourierGait
+from ..regression.gait_prediction import (
+    GaitPrediction,
+    normal_quantile,
+    predict_cycle,
+    predict_gait,
+    sample_models,
+    tube_radius,
+)
+from ..regression.model import LocalConnectionModel
+
+__all__ = ["OBJECTIVES", "TrustRegion", "Proposal", "propose_gait", "objective_value",
+           "check_trust_region"]
+
+#: what a proposal maximises: |(x, y)| per cycle, |(x, y)| / cost, |θ| per cycle
+OBJECTIVES = ("displacement", "efficiency", "turning")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrustRegion:
+    """Where a proposal may go.
+
+    Attributes:
+        radius: largest change ``max_φ |Δ(φ)|`` (rad); None: ``scale`` tube radii.
+        scale: the trust radius in tube radii when ``radius`` is None.
+        order: Fourier order of the change ``Δ``.
+        shape_bound: every shape of the proposal keeps ``|r| ≤ shape_bound`` (rad; joint limits,
+            None: unbounded). π keeps a 3-link loop within the joint limits the gait optimiser
+            uses, and a 9-link within its modal radius π/2 (``|r| = 2 × modal radius``).
+        max_turn: for the displacement and efficiency objectives, the net rotation per cycle
+            a proposal may have (rad, None: any). Without it |(x, y)| per cycle is maximised by
+            gaits that also turn (the chord of a screw motion), which make no progress over
+            many cycles; 0.05 rad (3°) per cycle keeps proposals going straight.
+        steps, lr: projected Adam ascent (step ``lr × radius``).
+    """
+
+    radius: float | None = None
+    scale: float = 2.0
+    order: int = 3
+    shape_bound: float | None = math.pi
+    max_turn: float | None = 0.05
+    steps: int = 200
+    lr: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.radius is not None and not self.radius > 0:
+            raise ValueError(f"TrustRegion.radius must be positive or None, got {self.radius!r}")
+        if not self.scale > 0:
+            raise ValueError(f"TrustRegion.scale must be positive, got {self.scale!r}")
+        if not isinstance(self.order, int) or self.order < 0:
+            raise ValueError(f"TrustRegion.order must be an integer >= 0, got {self.order!r}")
+        if self.shape_bound is not None and not self.shape_bound > 0:
+            raise ValueError(f"TrustRegion.shape_bound must be positive or None, got "
+                             f"{self.shape_bound!r}")
+
+    def radius_for(self, model: LocalConnectionModel) -> float:
+        """The trust radius (rad) for ``model``."""
+        if self.radius is not None:
+            return float(self.radius)
+        tube = tube_radius(model)
+        if tube is None:
+            raise ValueError(
+                "the model does not record its tube (meta['tube_rms']): pass "
+                "TrustRegion(radius=...) in rad"
+            )
+        return self.scale * tube
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """The next gait to try, with what the model predicts for it.
+
+    Attributes:
+        gait: the proposed gait, a :class:`FourierGait` in the model's phase.
+        objective: one of :data:`OBJECTIVES`.
+        current, predicted: the objective of the fitted cycle and of the proposal (model).
+        gain, gain_se: ``predicted − current`` and its standard error (model draws; the two
+            predictions share the model, so their common errors cancel).
+        radius, step: the trust radius and the largest change ``max_φ |Δ|`` taken (rad).
+        prediction: the model's :class:`GaitPrediction` of the proposal.
+    """
+
+    gait: FourierGait
+    objective: str
+    current: float
+    predicted: float
+    gain: float
+    gain_se: float
+    radius: float
+    step: float
+    prediction: GaitPrediction
+
+    def gain_interval(self, level: float = 0.95) -> tuple[float, float]:
+        z = normal_quantile(level)
+        return self.gain - z * self.gain_se, self.gain + z * self.gain_se
+
+
+def objective_value(objective: str, displacement: Tensor, cost: Tensor | None) -> Tensor:
+    """The objective from a displacement ``(..., 3)`` and cost ``(...)``: ``(...)``."""
+    planar = torch.linalg.vector_norm(displacement[..., :2], dim=-1)
+    if objective == "displacement":
+        return planar
+    if objective == "turning":
+        return displacement[..., 2].abs()
+    if objective == "efficiency":
+        if cost is None:
+            raise ValueError("objective 'efficiency' needs a cost, i.e. the model's metric M̂")
+        return planar / cost
+    raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+
+
+def propose_gait(
+    model: LocalConnectionModel,
+    objective: str = "displacement",
+    trust_region: TrustRegion | None = None,
+    *,
+    n_steps: int = 128,
+    n_draws: int = 64,
+    seed: int = 0,
+) -> Proposal:
+    """Maximise the model's predicted ``objective`` over gaits within the trust region.
+
+    Args:
+        model: a fitted model without batch dims (fit with ``pool=True``, or pick one trial).
+        objective: ``"displacement"`` (|(x, y)| per cycle), ``"efficiency"`` (|(x, y)| / cost;
+            needs the metric, i.e. recordings with a ``power`` column) or ``"turning"`` (|θ|).
+        trust_region: a :class:`TrustRegion` (default: 2 tube radii, order-3 change, |r| ≤ π).
+        n_steps: Magnus steps per cycle; n_draws, seed: redrawn models for the gain's interval.
+
+    Raises:
+        ValueError: an unknown objective; efficiency without a metric; a batched model; a model
+            without ``∂Â/∂r``.
+    """
+    tr = TrustRegion() if trust_region is None else trust_region
+    if not isinstance(tr, TrustRegion):
+        raise TypeError(f"trust_region must be a TrustRegion, got {type(tr).__name__}")
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    if objective == "efficiency" and model.M is None:
+        raise ValueError(
+            "objective 'efficiency' needs the metric M̂, and this model has none: record a "
+            "'power' column (see the data format) and fit with metric=True"
+        )
+    if len(model.batch_shape):
+        raise ValueError(
+            f"propose_gait needs one model, got batch dims {tuple(model.batch_shape)}: fit with "
+            "ConnectionEstimator(pool=True) or pick one trial, model[i]"
+        )
+    if model.dA is None or not bool(torch.isfinite(model.dA.coeffs).all()):
+        raise ValueError("propose_gait needs the model's shape derivative ∂Â/∂r (model.dA), "
+                         "but it is missing or non-finite")
+    radius = tr.radius_for(model)
+    with_cost = objective == "efficiency"
+    h, theta = gauss_phases(n_steps)
+    theta = theta.reshape(-1)
+    base = FourierGait(model.gamma.coeffs.detach())
+    base_r, base_v = base(theta), base.velocity(theta)
+
+    gen = torch.Generator().manual_seed(seed)
+    k = tr.order
+    u = 1e-3 * torch.randn(2 * k + 1, model.shape_dim, generator=gen, dtype=torch.float64)
+    u.requires_grad_(True)
+    grid = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
+
+    def change(u: Tensor) -> FourierGait:
+        raw = FourierGait(u)
+        peak = torch.linalg.vector_norm(raw(grid), dim=-1).amax()
+        return FourierGait(u * torch.clamp(radius / peak, max=1.0))
+
+    def value(u: Tensor) -> Tensor:
+        delta = change(u)
+        r, v = base_r + delta(theta), base_v + delta.velocity(theta)
+        disp, cost = predict_cycle(model, theta, r, v, n_steps, with_cost)
+        f = objective_value(objective, disp, cost)
+        if tr.max_turn is not None and objective != "turning":
+            f = f - 1e3 * torch.relu(disp[..., 2].abs() - tr.max_turn).pow(2)
+        if tr.shape_bound is not None:
+            excess = torch.relu(torch.linalg.vector_norm(r, dim=-1) - tr.shape_bound)
+            f = f - 1e3 * excess.pow(2).mean()
+        return f
+
+    opt = torch.optim.Adam([u], lr=tr.lr * radius)
+    for _ in range(tr.steps):
+        opt.zero_grad()
+        (-value(u)).backward()
+        opt.step()
+    u = u.detach()
+    delta = change(u)
+    coeffs = model.gamma.coeffs.detach().clone()
+    pad = delta.coeffs
+    if pad.shape[0] > coeffs.shape[0]:
+        coeffs = torch.cat([coeffs, coeffs.new_zeros(pad.shape[0] - coeffs.shape[0], coeffs.shape[1])])
+    coeffs[: pad.shape[0]] += pad
+    proposal = FourierGait(coeffs)
+    step = float(torch.linalg.vector_norm(delta(grid), dim=-1).amax())
+
+    # objective and gain under the fitted model and its redraws
+    sampled = sample_models(model, n_draws, seed=seed) if n_draws > 0 else None
+    values = []
+    for gait in (base, proposal):
+        r, v = gait(theta), gait.velocity(theta)
+        disp, cost = predict_cycle(model, theta, r, v, n_steps, with_cost)
+        draws = None
+        if sampled is not None:
+            draws = objective_value(objective, *predict_cycle(sampled, theta, r, v, n_steps,
+                                                              with_cost))
+        values.append((float(objective_value(objective, disp, cost)), draws))
+    (current, d0), (predicted, d1) = values
+    gain_se = float((d1 - d0).std()) if sampled is not None else float("nan")
+    prediction = predict_gait(model, proposal, phase_offset=0.0, n_steps=n_steps,
+                              n_draws=n_draws, seed=seed, warn_excursion=math.inf,
+                              max_excursion=math.inf)
+    return Proposal(
+        gait=proposal, objective=objective, current=current, predicted=predicted,
+        gain=predicted - current, gain_se=gain_se, radius=radius, step=step,
+        prediction=prediction,
+    )
+
+
+def check_trust_region(model: LocalConnectionModel, gait, trust_region: TrustRegion,
+                       *, phase_offset: float | None = 0.0) -> float:
+    """The largest change ``max_φ |γ'(φ) − γ̂(φ + φ₀)|`` of ``gait`` from the model's cycle (rad);
+    raises ``ValueError`` when it exceeds the trust radius (e.g. a hand-edited proposal).
+
+    ``phase_offset``: ``φ₀`` (0 for gaits in the model's phase, None to align them).
+    """
+    pred = predict_gait(model, gait, phase_offset=phase_offset, n_draws=0,
+                        warn_excursion=math.inf, max_excursion=math.inf)
+    radius = trust_region.radius_for(model)
+    step = float(pred.max_offset.max())
+    if step > radius * (1 + 1e-6):
+        raise ValueError(
+            f"the gait leaves the trust region: it comes {step:.3g} rad from the fitted cycle, "
+            f"the trust radius is {radius:.3g} rad; the model's prediction does not cover it. "
+            "Take a shorter step, or record this gait first"
+        )
+    return step
