@@ -446,22 +446,8 @@ class EstimatorSettings:
     field (:data:`FLAT_KEYS`), and ``estimator_from_settings(asdict(settings))`` converts.
 
     Attributes:
-        n_bins: phase bins M (regression centres φ_m = 2πm/M).
-        fourier_order: order of the Fourier series interpolating the per-bin estimates
-            (at most (M−1)/2). ``A(γ(φ))`` is nonlinear in the gait, so it carries harmonics
-            well above the gait's own; a low order biases the model.
-        window: half-width of a bin's phase window in units of the bin spacing (0.5: each
-            sample in exactly one bin; larger: overlapping windows, more samples per bin).
-            None (default) sizes it from the data: wide enough that a window holds about
-            ``samples_per_regressor`` samples per regressor, and at least 1.
-        samples_per_regressor: the data-size rule behind ``window=None``.
-        kernel: sample weights within a window, ``"box"`` or ``"tricube"`` (weights fall
-            smoothly to zero at the window's edge, which lowers the bias from the gait's
-            curvature within a window).
-        delta_max: only samples with ``|δ| < delta_max`` enter a bin's regression (None: all).
-        ridge: Tikhonov penalty on the scaled regressors (0: ordinary least squares).
-        on_ill_conditioned: ``"raise"`` | ``"warn"`` | ``"ridge"`` for bins with too few samples
-            or a rank-deficient design.
+        n_bins, fourier_order, window, samples_per_regressor, kernel, delta_max, ridge,
+            on_ill_conditioned, metric: the fields of :class:`TubeRegression` (see there).
         phase_order: Phaser's correction order (2-4 robust).
         cycle_order: Fourier order of the limit cycle γ(φ).
         smoother_order: Kalman smoother model order (2: white acceleration).
