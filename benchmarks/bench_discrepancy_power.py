@@ -9,9 +9,15 @@ hidden, runs :func:`torchconn.discrepancy.diagnose` blind, and records
   one, said ``none`` or ``unexplained``;
 - the relative error of the fitted parameters and whether the 95% intervals cover the truth.
 
-Effect-free datasets measure false discoveries, and datasets with an effect outside the
-registry (an unmodelled lateral slip) measure confident wrong names: there "correct" means not
-naming a registered effect (the workflow should say ``unexplained``). On the *same* datasets,
+Effect-free datasets (at every noise level, at the sampling rates and link counts of the
+``[clean]`` table) measure false discoveries, and datasets with an effect outside the registry
+measure confident wrong names: there "correct" means ``unexplained`` (possibly beside a partial
+effect), never a clean ``effect``. The unregistered effects: an unmodelled lateral slip
+(``ΔA_vy = ε (r2, r1)``), a first-order inertial relaxation of the body velocity
+(:func:`~torchconn.discrepancy.simulate.simulate_inertial_relaxation`, which a registered time
+lag imitates only with a negative lag), and a lag of the *pose* stream behind the shapes (a
+negative ``time_lag``, outside its physical range). Coverage: the fraction of named effects whose
+nominal 95% intervals contain the truth (every parameter). On the *same* datasets,
 the field's standard tool: a PySINDy sparse regression (STLSQ) of the nominal residual on a
 library of the effects' linearised signatures -- the columns of the forward model's Jacobian in
 each effect's parameters at zero (absent) -- with its threshold calibrated on the clean datasets
@@ -40,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy import stats
 
 from torchconn._provenance import write_sidecar
 from torchconn.discrepancy import (
@@ -49,7 +56,7 @@ from torchconn.discrepancy import (
     effect_parameters,
     simulate_with_effects,
 )
-from torchconn.discrepancy.simulate import LateralSlipSwimmer
+from torchconn.discrepancy.simulate import LateralSlipSwimmer, simulate_inertial_relaxation
 from torchconn.physics.gaits import reference_gait
 from torchconn.physics.systems import NLinkSwimmer
 
@@ -59,7 +66,22 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "discrepancy_
 
 
 
-UNREGISTERED = "unregistered_slip"
+#: effects outside the registry, by name in the [unregistered] table
+UNREGISTERED = ("unregistered_slip", "inertial_relaxation", "pose_lag")
+
+
+def simulate_case(name, vals, factor, sw, gait, st, seeds, omega, spc=64):
+    """One dataset: ``(recording, hidden registered effects)``."""
+    kw = dict(eta=st["eta"], alpha=st["alpha"], n_cycles=int(st["n_cycles"]), seeds=seeds,
+              omega=omega)
+    if name == "unregistered_slip":
+        return simulate_with_effects(LateralSlipSwimmer(factor * vals), gait, {}, **kw), {}
+    if name == "inertial_relaxation":
+        return simulate_inertial_relaxation(sw, gait, factor * vals, **kw), {}
+    if name == "pose_lag":  # the poses lag the shapes: a negative time_lag
+        return simulate_with_effects(sw, gait, {"time_lag": {"tau": -factor * vals}}, **kw), {}
+    hidden = {} if vals is None else {name: {k: factor * v for k, v in vals.items()}}
+    return simulate_with_effects(sw, gait, hidden, samples_per_cycle=spc, **kw), hidden
 
 
 def load_config(path: Path, overrides: list[str]) -> dict:
@@ -76,8 +98,8 @@ def load_config(path: Path, overrides: list[str]) -> dict:
 
 
 def outcome(report, truth: str) -> str:
-    names = [e["name"] for e in report.effects]
-    groups = [set(c["effects"]) for c in report.confounded_with]
+    names = [e.name for e in report.effects]
+    groups = [set(c.effects) for c in report.confounded_with]
     if report.verdict == "effect":
         if names == [truth]:
             return "confounded" if any(truth in g for g in groups) else "correct"
@@ -140,57 +162,72 @@ def main(argv: list[str] | None = None) -> int:
     names = list(REGISTRY)
     settings = DiscrepancySettings(compare_terms=False, experiments=False)
     root = np.random.SeedSequence(int(st["root_seed"]))
-    jobs = [("clean", None, 0.0, om, i) for om in st["omegas"] for i in range(st["clean_seeds"])]
-    jobs += [(name, vals, f, om, i) for name, vals in effects.items() for f in st["factors"]
-             for om in st["omegas"] for i in range(st["seeds"])]
-    if "unregistered" in cfg and (args.effects is None or UNREGISTERED in args.effects):
-        jobs += [(UNREGISTERED, {"eps": cfg["unregistered"]["slip_eps"]}, f, om, i)
-                 for f in st["factors"] for om in st["omegas"] for i in range(st["seeds"])]
+    clean = cfg.get("clean", {})
+    jobs = [("clean", None, 0.0, om, i, nl, spc) for nl in clean.get("n_links", [st["n_links"]])
+            for spc in clean.get("samples_per_cycle", [64]) for om in st["omegas"]
+            for i in range(st["clean_seeds"] if nl == st["n_links"] and spc == 64
+                           else clean.get("seeds", 1))]
+    jobs += [(name, vals, f, om, i, st["n_links"], 64) for name, vals in effects.items()
+             for f in st["factors"] for om in st["omegas"] for i in range(st["seeds"])]
+    unreg = cfg.get("unregistered", {})
+    jobs += [(name, unreg[name], f, om, i, st["n_links"], 64) for name in UNREGISTERED
+             if name in unreg and (args.effects is None or name in args.effects)
+             for f in st["factors"] for om in st["omegas"] for i in range(st["seeds"])]
     seqs = root.spawn(len(jobs))
 
     args.out.mkdir(parents=True, exist_ok=True)
     rows, reports, t0 = [], [], time.time()
-    for j, ((name, vals, factor, omega, rep_i), seq) in enumerate(zip(jobs, seqs, strict=True)):
+    for j, ((name, vals, factor, omega, rep_i, nl, spc), seq) in enumerate(
+            zip(jobs, seqs, strict=True)):
         seeds = [int(s) for s in seq.generate_state(int(st["trials"]))]
-        if name == UNREGISTERED:
-            hidden, truth_sys = {}, LateralSlipSwimmer(factor * vals["eps"])
-        else:
-            hidden = {} if vals is None else {name: {k: factor * v for k, v in vals.items()}}
-            truth_sys = sw
-        traj = simulate_with_effects(truth_sys, gait, hidden, eta=st["eta"], alpha=st["alpha"],
-                                     n_cycles=int(st["n_cycles"]), seeds=seeds, omega=omega)
-        report = diagnose(traj, sw, settings)
-        if name == UNREGISTERED:
+        sys_j = sw if nl == st["n_links"] else NLinkSwimmer(int(nl), frame="com-mean")
+        gait_j = gait if nl == st["n_links"] else reference_gait(f"{nl}link")
+        traj, hidden = simulate_case(name, vals, factor, sys_j, gait_j, st, seeds, omega,
+                                     spc=spc)
+        cpu = time.process_time()
+        report = diagnose(traj, sys_j, settings)
+        cpu = time.process_time() - cpu
+        if name in UNREGISTERED:
             res = report.verdict if report.verdict != "effect" else "wrong"
         else:
             res = outcome(report, name) if vals is not None else report.verdict
         row = {"effect": name, "factor": factor, "omega": omega, "replicate": rep_i,
+               "n_links": nl, "samples_per_cycle": spc,
                "method": "workflow", "outcome": res,
-               "named": "+".join(e["name"] for e in report.effects) or report.verdict,
+               "named": "+".join(e.name for e in report.effects) or report.verdict,
+               "partial": "+".join(e.name for e in report.partial_effects),
                "correct": int(res == "correct" or (vals is None and res == "none")
-                              or (name == UNREGISTERED and res == "unexplained")),
-               "param_rel_error": math.nan, "covered": math.nan}
-        if vals is not None and name != UNREGISTERED:
+                              or (name in UNREGISTERED and res == "unexplained")),
+               "param_rel_error": math.nan, "covered": math.nan, "covered_noise_only": math.nan,
+               "cpu_seconds": cpu}
+        if vals is not None and name not in UNREGISTERED:
             p_true = effect_parameters(hidden, sw)[name].numpy()
-            entry = next((e for e in report.effects if e["name"] == name), None)
+            entry = next((e for e in report.effects if e.name == name), None)
             if entry is not None:
-                p_hat = np.array(list(entry["fitted"].values()))
+                p_hat = np.array(list(entry.fitted.values()))
                 row["param_rel_error"] = float(np.linalg.norm(p_hat - p_true)
                                                / np.linalg.norm(p_true))
                 truth = {k: float(v) for k, v in REGISTRY[name].physical(
                     torch.as_tensor(p_true), sw).items()}
-                row["covered"] = int(all(entry["ci"][k][0] <= v <= entry["ci"][k][1]
+                row["covered"] = int(all(entry.ci[k][0] <= v <= entry.ci[k][1]
                                          for k, v in truth.items()))
+                # the interval from the noise alone (before the twin's bias and lack of fit)
+                q = float(stats.t.ppf(0.5 + entry.ci_level / 2,
+                                      df=max(report.data["n_cycles"] - 1, 1)))
+                row["covered_noise_only"] = int(all(
+                    abs(entry.parameters[k] - v) <= q * entry.se[k] for k, v in truth.items()))
         rows.append(row)
         reports.append((name, vals, factor, omega, rep_i, report, hidden))
-        print(f"[{j + 1}/{len(jobs)}] {name:13s} x{factor:<4g} omega={omega:<6g} -> {res:13s} "
-              f"({time.time() - t0:.0f} s)", flush=True)
+        print(f"[{j + 1}/{len(jobs)}] {name:19s} x{factor:<4g} omega={omega:<6g} links={nl} "
+              f"spc={spc:<4d} -> {res:13s} ({cpu:.1f} s CPU; {time.time() - t0:.0f} s)",
+              flush=True)
 
     if have_sindy:
         # threshold per noise level from the clean datasets
         thresholds = {}
         for om in st["omegas"]:
-            clean = [r[5] for r in reports if r[0] == "clean" and r[3] == om]
+            clean = [r[5] for r in reports if r[0] == "clean" and r[3] == om
+                     and r[5].fits["problem"].fm.system.n_links == st["n_links"]]
             thresholds[om] = cfg["sindy"]["margin"] * max(ols_normalised_max(r, names)
                                                            for r in clean)
         for name, vals, factor, omega, rep_i, report, hidden in reports:
@@ -198,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
             named = sorted({o for o, c in zip(owner, coef, strict=True) if c != 0.0})
             if vals is None:
                 res = "none" if not named else "wrong"
-            elif name == UNREGISTERED:  # it cannot say "unexplained": abstaining is its best
+            elif name in UNREGISTERED:  # it cannot say "unexplained": abstaining is its best
                 res = "none" if not named else "wrong"
             elif named == [name]:
                 res = "correct"
@@ -207,10 +244,12 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 res = "none" if not named else "wrong"
             row = {"effect": name, "factor": factor, "omega": omega, "replicate": rep_i,
+                   "n_links": st["n_links"], "samples_per_cycle": 64, "partial": "",
                    "method": "pysindy", "outcome": res, "named": "+".join(named) or "none",
                    "correct": int(res == "correct" or (vals is None and res == "none")
-                                  or (name == UNREGISTERED and res == "none")),
-                   "param_rel_error": math.nan, "covered": math.nan}
+                                  or (name in UNREGISTERED and res == "none")),
+                   "param_rel_error": math.nan, "covered": math.nan,
+                   "covered_noise_only": math.nan, "cpu_seconds": math.nan}
             if vals is not None and name in named:
                 p_true = effect_parameters(hidden, sw)[name].numpy()
                 p_hat = coef[owner == name]
@@ -231,8 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         "sindy_thresholds": thresholds if have_sindy else None,
         "summary": summary, "seconds": time.time() - t0,
     })
-    shown = list(effects) + ([UNREGISTERED] if any(r["effect"] == UNREGISTERED for r in rows)
-                             else [])
+    shown = list(effects) + [u for u in UNREGISTERED if any(r["effect"] == u for r in rows)]
     plot(summary, st, shown, args.out / "power.png")
     print(f"wrote {args.out / 'power.csv'}, power.json, power.png in {time.time() - t0:.0f} s")
     return 0
@@ -250,12 +288,14 @@ def _pysindy_version():
 def summarise(rows: list[dict]) -> list[dict]:
     keys = sorted({(r["method"], r["effect"], r["factor"], r["omega"]) for r in rows},
                   key=lambda k: (k[1], k[0], k[3], k[2]))
+    # (clean rows of other link counts and sampling rates pool with their noise level)
     out = []
     for method, effect, factor, omega in keys:
         sel = [r for r in rows if (r["method"], r["effect"], r["factor"], r["omega"])
                == (method, effect, factor, omega)]
         err = [r["param_rel_error"] for r in sel if not math.isnan(r["param_rel_error"])]
         cov = [r["covered"] for r in sel if not math.isnan(r["covered"])]
+        cov0 = [r["covered_noise_only"] for r in sel if not math.isnan(r["covered_noise_only"])]
         out.append({
             "method": method, "effect": effect, "factor": factor, "omega": omega, "n": len(sel),
             "p_correct": sum(r["correct"] for r in sel) / len(sel),
@@ -263,17 +303,20 @@ def summarise(rows: list[dict]) -> list[dict]:
                          sorted({r["outcome"] for r in sel})},
             "median_param_rel_error": float(np.median(err)) if err else math.nan,
             "ci_coverage": float(np.mean(cov)) if cov else math.nan,
+            "ci_coverage_noise_only": float(np.mean(cov0)) if cov0 else math.nan,
+            "median_cpu_seconds": float(np.nanmedian([r["cpu_seconds"] for r in sel])),
         })
     return out
 
 
 def format_table(summary: list[dict]) -> str:
     lines = [f"{'effect':14s} {'factor':>6s} {'omega':>7s} {'method':9s} {'P(correct)':>10s} "
-             f"{'rel.err':>8s} {'CI cov':>6s}  outcomes"]
+             f"{'rel.err':>8s} {'CI cov':>6s} {'(noise)':>7s} {'CPU s':>6s}  outcomes"]
     for s in summary:
         lines.append(f"{s['effect']:14s} {s['factor']:6g} {s['omega']:7g} {s['method']:9s} "
                      f"{s['p_correct']:10.2f} {s['median_param_rel_error']:8.3f} "
-                     f"{s['ci_coverage']:6.2f}  {s['outcomes']}")
+                     f"{s['ci_coverage']:6.2f} {s['ci_coverage_noise_only']:7.2f} "
+                     f"{s['median_cpu_seconds']:6.1f}  {s['outcomes']}")
     return "\n".join(lines)
 
 
@@ -283,7 +326,10 @@ def plot(summary: list[dict], st: dict, effects: list[str], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, len(effects), figsize=(2.6 * len(effects), 5.2),
+    if len(st["factors"]) == 1:
+        return plot_one_magnitude(summary, st, effects, path, plt)
+
+    fig, axes = plt.subplots(3, len(effects), figsize=(2.6 * len(effects), 7.4),
                              constrained_layout=True, squeeze=False)
     for j, effect in enumerate(effects):
         for i, om in enumerate(st["omegas"]):
@@ -297,6 +343,9 @@ def plot(summary: list[dict], st: dict, effects: list[str], path: Path) -> None:
                                 label=f"{method}, ω={om:g}")
                 axes[1, j].plot(f, [s["median_param_rel_error"] for s in sel], ls, marker="o",
                                 color=f"C{i}")
+                if method == "workflow":
+                    axes[2, j].plot(f, [s["ci_coverage"] for s in sel], ls, marker="o",
+                                    color=f"C{i}")
         axes[0, j].set_title(effect, fontsize=9)
         axes[0, j].set_ylim(-0.05, 1.05)
         for a in axes[:, j]:
@@ -308,10 +357,46 @@ def plot(summary: list[dict], st: dict, effects: list[str], path: Path) -> None:
         else:
             axes[1, j].text(0.5, 0.5, "no parameters\n(not in the registry)", ha="center",
                             va="center", transform=axes[1, j].transAxes, fontsize=8)
-        axes[1, j].set_xlabel("magnitude (x reference)")
-    axes[0, 0].set_ylabel("P(named right effect)\n(unregistered: P(no wrong name))")
+        axes[2, j].axhline(0.95, color="k", lw=0.8, ls=":")
+        axes[2, j].set_ylim(-0.05, 1.05)
+        axes[2, j].set_xlabel("magnitude (x reference)")
+    axes[0, 0].set_ylabel("P(named right effect)\n(unregistered: P(unexplained))")
+    axes[2, 0].set_ylabel("95% interval coverage")
     axes[1, 0].set_ylabel("median relative parameter error")
     axes[0, 0].legend(fontsize=6)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_one_magnitude(summary: list[dict], st: dict, effects: list[str], path: Path,
+                       plt) -> None:
+    """A study at one magnitude: bars per effect and noise level -- named right (unregistered
+    effects: called unexplained; clean data: none) and 95% interval coverage."""
+    shown = ["clean"] + list(effects)
+    fig, axes = plt.subplots(2, 1, figsize=(1.0 * len(shown) + 2, 5.4), constrained_layout=True,
+                             sharex=True)
+    width = 0.8 / len(st["omegas"])
+    for i, om in enumerate(st["omegas"]):
+        rows = {s["effect"]: s for s in summary if s["omega"] == om and s["method"] == "workflow"}
+        x = np.arange(len(shown)) + (i - (len(st["omegas"]) - 1) / 2) * width
+        axes[0].bar(x, [rows[e]["p_correct"] if e in rows else np.nan for e in shown], width,
+                    color=f"C{i}", label=f"ω = {om:g}")
+        axes[1].bar(x, [rows[e]["ci_coverage"] if e in rows else np.nan for e in shown], width,
+                    color=f"C{i}")
+        for xx, e in zip(x, shown, strict=True):
+            if e in rows:
+                axes[0].text(xx, 0.02, f"n={rows[e]['n']}", ha="center", fontsize=6,
+                             rotation=90, color="w")
+    axes[0].set_ylabel("P(right answer)\n(clean: none; unregistered:\nunexplained)")
+    axes[1].set_ylabel("95% interval coverage\n(named effects)")
+    axes[1].axhline(0.95, color="k", lw=0.8, ls=":")
+    axes[1].axhline(0.90, color="k", lw=0.8, ls="--")
+    for a in axes:
+        a.set_ylim(0, 1.05)
+    axes[1].set_xticks(np.arange(len(shown)), shown, rotation=30, ha="right", fontsize=8)
+    axes[0].legend(fontsize=7, loc="lower right")
+    axes[0].set_title(f"{st['n_links']}-link, {st['trials']} trials x {st['n_cycles']} cycles, "
+                      f"reference magnitudes x{st['factors'][0]:g}", fontsize=9)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

@@ -298,7 +298,20 @@ def test_fit_pure_noise_is_not_a_gait(tmp_path, capsys):
     path = tmp_path / "noise.csv"
     np.savetxt(path, table, delimiter=",", header="t,x,y,theta,r1,r2", comments="")
     code = fit.main([str(path), "--links", "3", "--out", str(tmp_path / "o")])
-    _assert_clean_failure(code, capsys.readouterr().err, ["cycle"], tmp_path / "o")
+    _assert_clean_failure(code, capsys.readouterr().err, ["no periodic gait found"],
+                          tmp_path / "o")
+
+
+def test_discrepancy_pure_noise_is_not_a_gait(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("torchconn.discrepancy.__main__.diagnose", _must_not_run)
+    rng = np.random.default_rng(1)
+    n = 600
+    table = np.column_stack([np.arange(n) * 0.1, rng.normal(size=(n, 5)) * 0.1])
+    path = tmp_path / "noise.csv"
+    np.savetxt(path, table, delimiter=",", header="t,x,y,theta,r1,r2", comments="")
+    code = discrepancy_cli.main([str(path), "--links", "3", "--out", str(tmp_path / "o")])
+    _assert_clean_failure(code, capsys.readouterr().err, ["no periodic gait found"],
+                          tmp_path / "o")
 
 
 @pytest.mark.parametrize("argv,fragments", [

@@ -11,7 +11,7 @@ import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
 from torchconn.physics.gaits import FourierGait
-from torchconn.regression.metric import interval_samples, tied_metric_regression
+from torchconn.regression.metric import tied_metric_regression
 from torchconn.regression.tube import TubeRegression
 
 F64 = torch.float64
@@ -30,23 +30,6 @@ def rel_rms(est: torch.Tensor, true: torch.Tensor, value_dims: int) -> float:
     num = ((est - true) ** 2).sum(dims) if dims else (est - true) ** 2
     den = (true**2).sum(dims) if dims else true**2
     return float((num.mean() / den.mean()).sqrt())
-
-
-# ----------------------------------------------------------------------------- intervals
-def test_interval_samples_follow_the_power_convention():
-    r = torch.tensor([[0.0, 1.0], [0.2, 1.4], [0.6, 1.6], [float("nan"), 2.0], [1.0, 2.2]],
-                     dtype=F64)
-    power = torch.tensor([1.0, 2.0, 3.0, 4.0, float("nan")], dtype=F64)
-    phase = torch.tensor([6.0, 6.2, 0.12, 0.3, 0.5], dtype=F64)  # wraps after the 2nd sample
-    iv = interval_samples(r, power, phase, dt=0.5)
-    torch.testing.assert_close(iv.velocity[:2], torch.tensor([[0.4, 0.8], [0.8, 0.4]],
-                                                             dtype=F64))
-    torch.testing.assert_close(iv.r_mid[0], torch.tensor([0.1, 1.2], dtype=F64))
-    # mid-phase across the wrap: 6.2 + (0.12 + 2π − 6.2)/2
-    assert float(iv.phase[1]) == pytest.approx(6.2 + (0.12 + 2 * math.pi - 6.2) / 2)
-    # a missing shape blanks both intervals it bounds; the last row has no interval
-    assert torch.isnan(iv.power[2:]).all() and torch.isfinite(iv.power[:2]).all()
-    assert torch.isnan(iv.velocity[-1]).all()
 
 
 # ----------------------------------------------------------------------------- EIV correction

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from torchconn._resources import config_names, configs, read_config
+from torchconn.convert import main as convert_main
 from torchconn.discrepancy.__main__ import main as discrepancy_main
 from torchconn.fit import main as fit_main
 from torchconn.physics.gaits import optimize
@@ -108,7 +109,8 @@ def test_no_file_points_outside_the_repository():
     assert hits == []
 
 
-@pytest.mark.parametrize("main", [fit_main, discrepancy_main], ids=["fit", "discrepancy"])
+@pytest.mark.parametrize("main", [fit_main, discrepancy_main, convert_main],
+                         ids=["fit", "discrepancy", "convert"])
 def test_cli_help_names_the_data_format_section_in_plain_text(main, capsys):
     with pytest.raises(SystemExit) as err:
         main(["--help"])

@@ -178,8 +178,16 @@ PROG = "torchconn-convert"
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
-    p.add_argument("sources", nargs="+", type=Path, help="tracking files")
+    p = argparse.ArgumentParser(
+        prog=PROG,
+        description="Convert tracked video (SLEAP, DeepLabCut, WCON or plain point arrays) to "
+        "trajectory CSV files for torchconn-fit and torchconn-discrepancy: one CSV per trial "
+        '(format: docs/conventions.md, section "Trajectory file format") and DIR/convert.json '
+        "with the resolved settings and what was found in each file.",
+    )
+    p.add_argument("sources", nargs="+", type=Path,
+                   help="tracking files: SLEAP analysis .h5/.csv, DeepLabCut .csv/.h5, WCON "
+                   ".wcon/.json/.zip, or point arrays .csv/.npz")
     p.add_argument("--links", type=int, required=True, help="number of links N (odd for the "
                    "center frame)")
     p.add_argument("--out", type=Path, required=True, help="output directory")

@@ -15,7 +15,8 @@ Modules, one per step: :mod:`.effects` (the registry of named physical effects),
 :mod:`.simulate` (rollouts with effects on), :mod:`.forward` (the differentiable forward model
 and the measurement it compares with), :mod:`.residuals` (residual profiles, the term-by-term
 comparison), :mod:`.fitting` (autograd fits, cross-validation over cycles),
-:mod:`.confounding` (collinearity, separating experiments), :mod:`.workflow` (:func:`diagnose`),
+:mod:`.confounding` (collinearity, separating experiments), :mod:`.workflow` (:func:`diagnose`,
+its named stages), :mod:`.report` (the stages' typed results and the report),
 :mod:`.model` (the augmented model), :mod:`.figures`.
 """
 
@@ -36,9 +37,10 @@ from .effects import (
 )
 from .forward import ForwardModel, Measurement, prepare_measurement
 from .model import AugmentedModel, load_augmented
+from .report import VERDICTS, DiscrepancyReport
 from .residuals import compare_terms, phase_profile
 from .simulate import effect_parameters, simulate_with_effects
-from .workflow import VERDICTS, DiscrepancyReport, DiscrepancySettings, diagnose
+from .workflow import DiscrepancySettings, diagnose
 
 __all__ = [
     "Effect", "Param", "REGISTRY", "register", "get_effect",

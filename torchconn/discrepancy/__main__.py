@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         report = diagnose(traj, system, settings, log=say)
         paths = report.save(out, figures=not args.no_figures)
         if args.quiet:
-            names = ", ".join(e["name"] for e in report.effects)
+            names = ", ".join(e.name for e in report.effects)
             print(f"verdict: {report.verdict}" + (f" ({names})" if names else ""))
         else:
             print(report.summary())

@@ -19,6 +19,10 @@ each a no-op by default:
 ``observe(p, pose)``
     what the tracker records instead of the body-frame origin (``marker_offset``).
 
+An effect also declares the physical range of its values (:meth:`Effect.physical_range`: a time
+lag is not negative, a length is positive); a fit outside it is reported as a look-alike of
+something else, never as the effect.
+
 Effects are looked up by name in :data:`REGISTRY`. A new effect is one small subclass and one
 call to :func:`register`; the forward model, the fitting, the simulator wrapper and the CLI pick
 it up from there. Example::
@@ -37,6 +41,7 @@ it up from there. Example::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -133,6 +138,19 @@ class Effect:
     def physical_units(self, system) -> dict[str, str]:
         return {spec.name: spec.unit for spec in self.param_specs(system)}
 
+    def physical_range(self, system) -> dict[str, tuple[float, float]]:
+        """Closed ranges ``(lo, hi)`` of the :meth:`physical` values that the effect can take
+        (default: unbounded). A fit outside them is a look-alike of some other discrepancy,
+        never this effect (a negative time lag, a negative length)."""
+        return {}
+
+    def out_of_range(self, p: Tensor, system) -> dict[str, float]:
+        """The physical values of ``p`` outside :meth:`physical_range` (empty when in range)."""
+        ranges = self.physical_range(system)
+        values = {k: float(v) for k, v in self.physical(p.detach(), system).items()}
+        return {k: v for k, v in values.items()
+                if k in ranges and not ranges[k][0] <= v <= ranges[k][1]}
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"
 
@@ -194,6 +212,9 @@ class DragRatio(Effect):
     def physical_units(self, system):
         return {"drag_ratio": "1 (lateral / longitudinal drag per unit length)"}
 
+    def physical_range(self, system):
+        return {"drag_ratio": (0.0, math.inf)}
+
 
 class LinkLength(Effect):
     name = "link_length"
@@ -224,6 +245,9 @@ class LinkLength(Effect):
 
     def physical_units(self, system):
         return {f"l{i + 1}": "body lengths" for i in range(system.n_links)}
+
+    def physical_range(self, system):
+        return {f"l{i + 1}": (0.0, math.inf) for i in range(system.n_links)}
 
 
 class MarkerOffset(Effect):
@@ -271,6 +295,10 @@ class TimeLag(Effect):
 
     def recorded_shapes(self, p, read, dt):
         return lambda s: read(s - p[0].to(s.dtype))
+
+    def physical_range(self, system):
+        # a lag, not a lead: the shapes cannot be recorded before they happen
+        return {"tau": (0.0, math.inf)}
 
 
 REGISTRY: dict[str, Effect] = {}

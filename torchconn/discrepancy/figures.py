@@ -30,7 +30,7 @@ def plot_residual_profiles(report, path: str | Path) -> Path:
     plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
     styles = {"before": ("tab:red", "nominal simulator"),
-              "after": ("tab:blue", "with " + (", ".join(e["name"] for e in report.effects)
+              "after": ("tab:blue", "with " + (", ".join(e.name for e in report.effects)
                                               or "no effect added"))}
     for k, comp in enumerate(COMPONENTS):
         ax = axes[k]

@@ -86,6 +86,15 @@ class CycleStats:
         return out, torch.stack(steps)
 
 
+    def held_out_rows(self, rho: Tensor, J: Tensor, row_fold: Tensor) -> Tensor:
+        """Held-out residual of every row: ``ρ + J δ_k`` with ``δ_k`` the step fitted without
+        the row's fold. ``rho (n,)``, ``J (n, P)``, ``row_fold (n,)`` -> ``(n,)``."""
+        if self.n_params == 0:
+            return rho.clone()
+        _, steps = self.held_out()
+        return rho + (J * steps[row_fold]).sum(-1)
+
+
 def fold_of_cycles(cycle_trial: Tensor, cycle_index: Tensor, n_folds: int) -> Tensor:
     """Blocks of whole, contiguous cycles: within each trial, the cycles in time order are split
     into ``n_folds`` consecutive blocks; fold ``k`` is the ``k``-th block of every trial."""

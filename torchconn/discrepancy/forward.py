@@ -68,6 +68,9 @@ MIN_CYCLES_PER_TRIAL = CYCLE_RULES["discrepancy"].per_trial
 _KERNEL_TOL = 1e-10
 #: extra samples left out at each end beyond the kernel's reach (room for shape shifts)
 _EDGE_EXTRA = 8
+#: smoothing kernels at least this half-width are applied by FFT (measured on 2 trials, float64,
+#: one thread: 1.15x faster than the direct correlation at 20, 3x at 64, 4-9x at 120-211)
+_FFT_HALF_WIDTH = 20
 
 
 # ============================================================================ helpers
@@ -192,13 +195,23 @@ class Measurement:
         return (self.kernel.shape[-1] - 1) // 2
 
     def smooth_velocity(self, poses: Tensor) -> Tensor:
-        """``body(S_d poses)``: world poses ``(B, T, 3)`` -> body velocities ``(B, T, 3)``."""
+        """``body(S_d poses)``: world poses ``(B, T, 3)`` -> body velocities ``(B, T, 3)``.
+
+        Long kernels (dense sampling) are applied by FFT, short ones directly; both are the
+        same zero-padded correlation."""
         B, T, _ = poses.shape
         W = self.half_width
-        out = torch.nn.functional.conv1d(
-            poses.transpose(1, 2).reshape(1, B * 3, T),
-            self.kernel.to(poses.dtype).reshape(B * 3, 1, -1), padding=W, groups=B * 3,
-        ).reshape(B, 3, T).transpose(1, 2)
+        x = poses.transpose(1, 2)  # (B, 3, T)
+        kernel = self.kernel.to(device=poses.device, dtype=poses.dtype)
+        if W >= _FFT_HALF_WIDTH:
+            n = T + 2 * W
+            spec = torch.fft.rfft(x, n=n) * torch.fft.rfft(kernel.flip(-1), n=n)
+            out = torch.fft.irfft(spec, n=n)[..., W: W + T]
+        else:
+            out = torch.nn.functional.conv1d(
+                x.reshape(1, B * 3, T), kernel.reshape(B * 3, 1, -1), padding=W, groups=B * 3,
+            ).reshape(B, 3, T)
+        out = out.transpose(1, 2)
         v = _rotate(self.heading.to(poses.dtype), out[..., :2], transpose=True)
         return torch.cat([v, out[..., 2:]], -1)
 

@@ -16,6 +16,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
+from ..physics import se2
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..simulation.observe import observe
@@ -24,7 +25,8 @@ from ..trajectory import GroundTruth, Trajectory
 from .effects import Effect, get_effect
 from .forward import _swimmer_kwargs, cubic_interp
 
-__all__ = ["simulate_with_effects", "effect_parameters", "EffectDrift", "LateralSlipSwimmer"]
+__all__ = ["simulate_with_effects", "effect_parameters", "EffectDrift", "LateralSlipSwimmer",
+           "simulate_inertial_relaxation"]
 
 
 def effect_parameters(effects: Mapping | None, system: LocomotionSystem) -> dict[str, Tensor]:
@@ -220,3 +222,41 @@ class LateralSlipSwimmer(NLinkSwimmer):
     def _connection_and_metric(self, r: Tensor) -> tuple[Tensor, Tensor]:
         a, m = super()._connection_and_metric(r)
         return a + self._slip(r), m
+
+
+def simulate_inertial_relaxation(
+    system: LocomotionSystem,
+    gait,
+    tau: float,
+    *,
+    eta,
+    alpha=0.05,
+    n_cycles: int = 20,
+    samples_per_cycle: int = 64,
+    upsample: int = 4,
+    seeds,
+    omega: float = 0.0,
+) -> Trajectory:
+    """Recordings with a physical effect that is NOT in the registry, for validation: the body
+    velocity follows ``A(r)ṙ`` through a first-order relaxation of time constant ``tau``
+    (inertia), ``τ ξ̇ = A(r)ṙ − ξ``. A short ``tau`` looks partly like a negative time lag.
+
+    The rollout runs ``upsample`` times finer than the output; the relaxed velocity (exact
+    recursion for a piecewise-constant input) is integrated on SE(2) and sampled.
+    Returns the recording ``(len(seeds), T, ...)`` with observation noise ``omega``.
+    """
+    from scipy.signal import lfilter
+
+    fine = simulate(system, gait, eta=eta, alpha=alpha, n_cycles=n_cycles,
+                    samples_per_cycle=samples_per_cycle * upsample, substeps=2, seeds=list(seeds))
+    xi, dtf = fine.truth.xi, fine.dt
+    a = 1 - math.exp(-dtf / tau)
+    x = xi.detach().cpu().numpy()
+    lagged = lfilter([a], [1.0, a - 1.0], x, axis=-2, zi=(1 - a) * x[..., :1, :])[0]
+    lagged = torch.as_tensor(lagged, dtype=xi.dtype, device=xi.device)
+    pose = se2.integrate(lagged, dtf, method="exp")[..., :-1, :]
+    rows = torch.arange(0, xi.shape[-2], upsample, device=xi.device)
+    rec = Trajectory(t=fine.t[rows], pose=pose[..., rows, :], r=fine.r[..., rows, :],
+                     meta={"source": "torchconn.discrepancy.simulate_inertial_relaxation",
+                           "tau": float(tau)})
+    return observe(rec, omega, seeds=list(seeds)) if omega else rec

@@ -40,9 +40,7 @@ from .estimator import (
     prepare,
 )
 from .metric import (
-    IntervalSamples,
     MetricFit,
-    interval_samples,
     metric_design,
     metric_n_coef,
     metric_regression,
@@ -60,7 +58,7 @@ __all__ = [
     "connection_regression", "ConnectionFit", "connection_design",
     "metric_regression", "MetricFit", "metric_design", "metric_n_coef",
     "tied_metric_regression", "tied_metric_n_coef", "tied_metric_predict",
-    "interval_samples", "IntervalSamples", "power_noise_variance",
+    "power_noise_variance",
     "IllConditionedBinWarning",
     "LocalConnectionModel", "BinEstimates",
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",

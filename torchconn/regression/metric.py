@@ -3,8 +3,9 @@
 Two models:
 
 - :func:`tied_metric_regression` (the estimator's default): on the sample intervals the power
-  channel belongs to (docs/conventions.md: ``power`` at row ``k`` is the mean over ``[t_k, t_{k+1})``),
-  one metric explains all of the power, ``P_k ≈ v_kᵀ [M(φ) + ∂M/∂r_k(φ) δ_k] v_k`` with
+  channel belongs to (docs/conventions.md: ``power`` at row ``k`` is the mean over
+  ``[t_k, t_{k+1})``), one metric explains all of the power,
+  ``P_k ≈ v_kᵀ [M(φ) + ∂M/∂r_k(φ) δ_k] v_k`` with
   ``v_k = (r_{k+1} − r_k)/Δt`` the raw sample differences and ``M(φ)``, ``∂M/∂r(φ)`` Fourier
   series in phase; the observation noise's known contribution to the normal equations is
   removed (:func:`power_noise_variance` estimates its level from the power residuals).
@@ -37,7 +38,7 @@ from .binning import BinIndex
 
 __all__ = ["MetricFit", "metric_regression", "metric_design", "metric_n_coef",
            "tied_metric_regression", "tied_metric_n_coef", "tied_metric_predict",
-           "interval_samples", "IntervalSamples", "power_noise_variance"]
+           "power_noise_variance"]
 
 
 @dataclass(frozen=True)
@@ -206,58 +207,6 @@ _CORRECTION_STEPS = (1.0, 0.9, 0.75, 0.5, 0.25, 0.0)
 _ROW_CHUNK = 2048
 
 
-@dataclass(frozen=True)
-class IntervalSamples:
-    """Recorded samples turned into the sample intervals the power channel belongs to.
-
-    Row ``k`` describes ``[t_k, t_{k+1})`` (docs/conventions.md); the last row is NaN.
-
-    Attributes:
-        r_mid: ``(..., T, d)`` the interval's mid-shape ``r̄_k = (r_k + r_{k+1})/2``.
-        velocity: ``(..., T, d)`` its mean shape velocity ``v_k = (r_{k+1} − r_k)/Δt``.
-        phase: ``(..., T)`` its mid-phase (unwrapped when the input phase is).
-        power: ``(..., T)`` the power channel (NaN where either end of the interval is missing).
-    """
-
-    r_mid: Tensor
-    velocity: Tensor
-    phase: Tensor
-    power: Tensor
-
-
-def interval_samples(r: Tensor, power: Tensor, phase: Tensor, dt: float) -> IntervalSamples:
-    """Sample intervals from recorded shapes ``r (..., T, d)``, ``power (..., T)``,
-    ``phase (..., T)`` at sampling interval ``dt``. Raw (unsmoothed) shapes: the metric
-    regression removes their noise's known contribution instead of smoothing it away.
-    """
-    fn = "interval_samples"
-    if not isinstance(r, Tensor) or r.ndim < 2 or not r.is_floating_point():
-        raise TypeError(f"{fn}: r must be a floating-point tensor (..., T, d)")
-    batch_t = tuple(r.shape[:-1])
-    for name, x in (("power", power), ("phase", phase)):
-        if not isinstance(x, Tensor) or tuple(x.shape) != batch_t:
-            got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-            raise ValueError(f"{fn}: {name} must have shape (..., T) = {batch_t}, got {got}")
-    if not dt > 0:
-        raise ValueError(f"{fn}: dt must be positive, got {dt!r}")
-    nan = float("nan")
-
-    def pad(x: Tensor, axis: int) -> Tensor:
-        shape = list(x.shape)
-        shape[axis] = 1
-        return torch.cat([x, x.new_full(shape, nan)], axis)
-
-    step = torch.remainder(phase[..., 1:] - phase[..., :-1] + math.pi, 2 * math.pi) - math.pi
-    diff = r[..., 1:, :] - r[..., :-1, :]
-    missing = torch.isnan(pad(diff, -2)).any(-1)
-    return IntervalSamples(
-        r_mid=pad(0.5 * (r[..., 1:, :] + r[..., :-1, :]), -2),
-        velocity=pad(diff / dt, -2),
-        phase=pad(phase[..., :-1] + 0.5 * step.to(phase), -1),
-        power=torch.where(missing, nan, power.to(r)),
-    )
-
-
 def tied_metric_n_coef(d: int, order: int, derivative_order: int | None) -> int:
     """Coefficients of the tied model: ``(2K+1)·q`` for ``M(φ)`` plus ``(2K_d+1)·d·q`` for
     ``∂M/∂r(φ)``, ``q = d(d+1)/2``."""
@@ -309,7 +258,9 @@ def tied_metric_regression(
     Args:
         offset: ``(..., N, d)`` ``δ = r̄ − γ(φ)``, the interval's offset from the cycle at its
             own phase; velocity: ``(..., N, d)`` ``v``; power: ``(..., N)``; phase: ``(..., N)``
-            unwrapped (:func:`interval_samples`). Samples with any NaN are excluded.
+            unwrapped (one-sample intervals of
+            :func:`~torchconn.regression.noise_aware.interval_samples`). Samples with any NaN
+            are excluded.
         phase_m: ``(M,)`` phases at which to report (bin centres).
         gamma_dot_m: ``(..., M, d)`` ``γ̇`` there, for ``M̂γ̇`` and the on-cycle power.
         order, derivative_order: Fourier orders of ``M(φ)`` and ``∂M/∂r(φ)``.

@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass
 from typing import Literal
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .._options import Options, option
 from ..phase.fourier import fit_fourier
@@ -28,7 +28,6 @@ from ..trajectory import Trajectory, pool_batch
 from .binning import assign_bins
 from .connection import connection_regression
 from .metric import (
-    interval_samples,
     metric_n_coef,
     metric_regression,
     power_noise_variance,
@@ -213,10 +212,17 @@ class TubeRegression(Regression):
             raise ValueError("the power column has no values (all empty or NaN): the metric "
                              "cannot be estimated; fit the connection alone with "
                              "TubeRegression(metric=False) (torchconn-fit: --metric no)")
-        iv = interval_samples(traj.r, traj.power, traj.phase, traj.dt)
-        phase = _unwrapped(iv.phase)
-        offset = iv.r_mid - cycle.gamma_at(torch.nan_to_num(iv.phase)).to(iv.r_mid)
-        v, power = iv.velocity, iv.power
+        from .noise_aware import interval_samples  # noise_aware builds on this module
+
+        # one-sample intervals; power k belongs to [t_k, t_{k+1}) (docs/conventions.md). A NaN
+        # row closes each trial, so pooled trials stay apart in the residuals' lag structure.
+        iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt, 1)
+        nan = float("nan")
+        phase = nn.functional.pad(_unwrapped(iv.phase), (0, 1), value=nan)
+        offset = nn.functional.pad(iv.r - cycle.gamma_at(torch.nan_to_num(iv.phase)).to(iv.r),
+                                   (0, 0, 0, 1), value=nan)
+        v = nn.functional.pad(iv.r_dot, (0, 0, 0, 1), value=nan)
+        power = nn.functional.pad(traj.power[..., :-1].to(v), (0, 1), value=nan)
         if pool:
             # distinct cycle numbers per trial, so that each trial's cycles are their own clusters
             span = float(torch.nan_to_num(phase).abs().amax()) + 4 * math.pi

@@ -121,7 +121,7 @@ def run_sweep(
             recomputed (each reported on stderr with the reason).
         workers: > 0 runs cells on a local Dask cluster with that many worker processes.
         scheduler: address of an existing Dask scheduler (``tcp://HOST:PORT``).
-        quiet: no progress bar or log lines.
+        quiet: no progress bar or log lines (damaged cells are still reported).
         figures: write the PNG figures.
         wait: when another run holds ``out_dir``, wait for it instead of raising
             :class:`~torchconn.sweep.lock.FolderBusy`.
@@ -145,8 +145,8 @@ def run_sweep(
                 continue
             pending.append((cell, fp))
             if problem:
-                damaged.append((cell.name, problem))
-                log(f"recomputing cell {cell.name}: {problem}")
+                damaged.append((cell.name, problem))  # reported even when quiet
+                print(f"recomputing cell {cell.name}: {problem}", file=sys.stderr, flush=True)
         log(f"sweep {config.name!r}: {len(config.experiments)} experiments in {len(plan)} cells, "
             f"{len(done)} already done in {out}")
         progress = Progress(len(plan), len(done), quiet)
