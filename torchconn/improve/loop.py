@@ -70,7 +70,7 @@ class LoopSettings:
     Attributes:
         rounds: K rounds (each records one gait, then proposes the next).
         trials, cycles: recordings per round (``trials × cycles`` recorded cycles).
-        eta, alpha: the shape SDE (docs/conventions.md: η = 0.025, α = 0.05).
+        eta, alpha: the shape SDE (the paper's η = 0.025, α = 0.05).
         omega: observation noise on every recorded pose and joint sample.
         objective: see :data:`~torchconn.improve.propose.OBJECTIVES`.
         trust_region: the first round's trust region; ``scale`` then adapts.
