@@ -105,3 +105,14 @@ def test_no_tensor_is_made_on_the_default_device():
         traj = observe(traj, 0.002, seeds=SEEDS)
         out = _pipeline(traj, system)
     assert all(v.device.type == "cpu" for v in out.values())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_sweep_cell_runs_on_cuda():
+    from torchconn.sweep.config import load_config
+    from torchconn.sweep.experiment import experiment_cells, run_cell
+
+    config = load_config("quick", ["simulation.n_cycles=8", "experiment.trials=4"])
+    cell = experiment_cells(config.experiments[0], 4)[0]
+    rows = run_cell(config, cell, device="cuda").results
+    assert rows and all(np.isfinite(row[-1]) for row in rows)
