@@ -40,7 +40,7 @@ def circle_gait(shape_dim: int, radius: float = 0.5, direction: int = -1) -> Fou
     For 2 joints ``r = radius (cos φ, direction · sin φ)``; for ``d > 2`` joints the travelling
     wave ``r_k = radius · sin(φ + direction · 2πk/d)``, k = 1..d (for 8 joints the circle of that
     radius in the 9-link's two-mode plane). ``direction = −1`` swims towards +x for the swimmers
-    of CONVENTIONS.
+    of docs/conventions.md.
     """
     if direction not in (1, -1):
         raise ValueError(f"direction must be +1 or -1, got {direction!r}")
@@ -70,7 +70,7 @@ class LoopSettings:
     Attributes:
         rounds: K rounds (each records one gait, then proposes the next).
         trials, cycles: recordings per round (``trials × cycles`` recorded cycles).
-        eta, alpha: the shape SDE (CONVENTIONS: η = 0.025, α = 0.05).
+        eta, alpha: the shape SDE (docs/conventions.md: η = 0.025, α = 0.05).
         omega: observation noise on every recorded pose and joint sample.
         objective: see :data:`~torchconn.improve.propose.OBJECTIVES`.
         trust_region: the first round's trust region; ``scale`` then adapts.

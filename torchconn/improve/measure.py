@@ -63,7 +63,7 @@ def measure_cycles(traj: Trajectory, period: float = 2 * math.pi) -> CycleMeasur
 
     Args:
         traj: recordings, poses ``(..., T, 3)``; periods containing a missing pose are skipped.
-        period: the gait period in time units (2π in CONVENTIONS units).
+        period: the gait period in time units (2π in the units of docs/conventions.md).
     """
     s = round(period / traj.dt)
     if s < 2:
