@@ -2,10 +2,12 @@
 
 The paper's 9-link scale: d = 8 joints (P = 81 regressors), 160 trials × 30 cycles × 64 samples
 per cycle, M = 16 (and 32) phase bins. Prints both times, their ratio, the achieved GFLOP/s of
-the batched solver and this machine's float64 matmul peak.
+the batched solver and this machine's float64 matmul peak (measured in the same run).
+``--kernel tricube`` (the estimator's default bins) times the weighted path, whose standard
+errors are sandwich estimates, against a weighted lstsq loop.
 
     python benchmarks/bench_regression.py [--trials 160] [--bins 16 32] [--loop-trials 20]
-                                          [--threads 2]
+                                          [--threads 2] [--kernel tricube]
 
 One trial holds 30 × 64 = 1920 samples, so at M = 32 a half-spacing window leaves 60 samples per
 bin for 81 regressors; the bins are widened to ``window = 0.5 · M / 16`` (overlapping, ~120
@@ -56,8 +58,9 @@ def make_data(n_trials: int, n_cycles: int, per_cycle: int, d: int, seed: int = 
     return phase, r, r_dot, xi, gamma, gamma_dot
 
 
-def loop_reference(phase, r, r_dot, xi, gm, gdm, n_bins, window):
-    """The plain way: for each trial, for each bin, select rows, build X, ``np.linalg.lstsq``."""
+def loop_reference(phase, r, r_dot, xi, gm, gdm, n_bins, window, kernel="box"):
+    """The plain way: for each trial, for each bin, select rows, build X, ``np.linalg.lstsq``
+    (rows scaled by √w for the tricube kernel: weighted least squares)."""
     phase, r, r_dot, xi = (x.numpy() for x in (phase, r, r_dot, xi))
     gm, gdm = gm.numpy(), gdm.numpy()
     h = 2 * math.pi / n_bins
@@ -70,15 +73,23 @@ def loop_reference(phase, r, r_dot, xi, gm, gdm, n_bins, window):
             delta_dot = r_dot[trial, sel] - gdm[m]
             cross = (delta_dot[:, :, None] * delta[:, None, :]).reshape(len(delta), -1)
             x = np.concatenate([np.ones((len(delta), 1)), delta, delta_dot, cross], 1)
-            out.append(np.linalg.lstsq(x, xi[trial, sel], rcond=None)[0])
+            sw = np.ones((len(delta), 1))
+            if kernel == "tricube":
+                sw = np.sqrt((1 - np.minimum(np.abs(off[sel]) / (window * h), 1) ** 3) ** 3)
+                sw = sw[:, None]
+            out.append(np.linalg.lstsq(sw * x, sw * xi[trial, sel], rcond=None)[0])
     return out
 
 
-def flops(n_rows_padded: int, p: int, k: int, n_systems: int) -> float:
+def flops(n_rows_padded: int, p: int, k: int, n_systems: int, weighted: bool = False) -> float:
     """Useful flops of the batched solver per the algorithm: ``[X|y]ᵀW[X|y]`` on the padded rows,
-    Cholesky ``P³/3``, ``cholesky_solve`` ``2P²K``, triangular inverse ``P³/3``, residuals."""
+    Cholesky ``P³/3``, ``cholesky_solve`` ``2P²K``, triangular inverse ``P³/3``, residuals; with
+    kernel weights also the sandwich standard errors: ``A⁻¹ = L⁻ᵀL⁻¹`` ``2P³`` (a full GEMM)
+    and ``Q = (W X) A⁻¹`` ``2nP²``."""
     n = n_rows_padded
     per = 2 * n * (p + k) ** 2 + p**3 / 3 + 2 * p * p * k + p**3 / 3 + 2 * n * p * k
+    if weighted:
+        per += 2 * p**3 + 2 * n * p * p
     return per * n_systems
 
 
@@ -115,11 +126,15 @@ def main(argv=None) -> int:
     ap.add_argument("--bins", type=int, nargs="+", default=[16, 32])
     ap.add_argument("--loop-trials", type=int, default=20)
     ap.add_argument("--window", type=float, default=None)
+    ap.add_argument("--kernel", default="box",
+                    help="bin kernel: box (0/1 weights) or tricube (the estimator's default)")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.kernel not in ("box", "tricube"):
+        ap.error(f"--kernel must be box or tricube, got {args.kernel!r}")
 
     a = torch.randn(2048, 2048, dtype=torch.float64)
     a @ a
@@ -134,29 +149,29 @@ def main(argv=None) -> int:
           f"{args.per_cycle} samples = {r.shape[0] * r.shape[1]} samples")
     for n_bins in args.bins:
         window = args.window or 0.5 * max(1.0, n_bins / 16)
-        bins = assign_bins(phase, n_bins, window=window)
+        bins = assign_bins(phase, n_bins, window=window, kernel=args.kernel)
         centres = bins.centres()
         gm, gdm = gamma(centres), gamma_dot(centres)
 
         def batched(n_bins=n_bins, gm=gm, gdm=gdm, window=window):
-            b = assign_bins(phase, n_bins, window=window)
+            b = assign_bins(phase, n_bins, window=window, kernel=args.kernel)
             return connection_regression(r, r_dot, xi, b, gm, gdm)
 
         fit = batched()
         t_batched = best_of(batched, args.repeat)
-        t_bin = best_of(lambda n_bins=n_bins, window=window: assign_bins(phase, n_bins,
-                                                                         window=window),
-                        args.repeat)
+        t_bin = best_of(lambda n_bins=n_bins, window=window: assign_bins(
+            phase, n_bins, window=window, kernel=args.kernel), args.repeat)
 
         lt = min(args.loop_trials, args.trials)
         sl = slice(0, lt)
         t0 = time.perf_counter()
-        ref = loop_reference(phase[sl], r[sl], r_dot[sl], xi[sl], gm, gdm, n_bins, window)
+        ref = loop_reference(phase[sl], r[sl], r_dot[sl], xi[sl], gm, gdm, n_bins, window,
+                             args.kernel)
         t_loop = (time.perf_counter() - t0) * args.trials / lt
         ref = torch.from_numpy(np.stack(ref)).reshape(lt, n_bins, p, 3)
         err = ((fit.coef[sl] - ref).abs().max() / ref.abs().max()).item()
 
-        gflop = flops(bins.max_count, p, 3, args.trials * n_bins) / 1e9
+        gflop = flops(bins.max_count, p, 3, args.trials * n_bins, args.kernel != "box") / 1e9
         print(f"\nM = {n_bins} bins, window {window:g}: Nmax = {bins.max_count}, "
               f"mean bin count {bins.count.double().mean():.1f}")
         print(f"  batched (binning + regression + SEs): {t_batched * 1e3:8.1f} ms "

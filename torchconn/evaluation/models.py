@@ -138,5 +138,5 @@ def phase_bin_errors(
     mean = (ok.transpose(-1, -2) @ e0) / count.clamp_min(1)
     second = (ok.transpose(-1, -2) @ (e0 * e0)) / count.clamp_min(1)
     var = (second - mean * mean).clamp_min(0) * count / (count - 1).clamp_min(1)
-    centres = torch.arange(n_bins, dtype=err.dtype) * width
+    centres = torch.arange(n_bins, dtype=err.dtype, device=err.device) * width
     return centres, mean, second.sqrt(), (var / count.clamp_min(1)).sqrt()

@@ -102,9 +102,12 @@ class FourierSeries:
         """Evaluate at phases ``phi (..., P)`` -> ``(..., P, *value_shape)``.
 
         The leading dims of ``phi`` broadcast against :attr:`batch_shape`. A 0-d ``phi`` gives
-        ``(*batch_shape, *value_shape)``.
+        ``(*batch_shape, *value_shape)``. A tensor ``phi`` sets the device of the result (the
+        coefficients are moved to it); a float is evaluated on the coefficients' device.
         """
         c = self.coeffs
+        if isinstance(phi, Tensor) and phi.device != c.device:
+            c = c.to(phi.device)
         phi = torch.as_tensor(phi, dtype=c.dtype, device=c.device)
         scalar = phi.ndim == 0
         if scalar:

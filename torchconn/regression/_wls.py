@@ -228,6 +228,11 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     xw, yw = xy[..., :p], xy[..., p:]
     full = xy.mT @ xy
     gram, rhs = full[..., :p, :p], full[..., :p, p:]
+    no_ridge = not bool((lam > 0).any())
+    plain = correction is None and no_ridge  # A = XᵀWX (+ unit pivots of dead columns)
+    general = not (binary and no_ridge) and not plain
+    # the general sandwich needs the observed XᵀWX; the normal matrix is changed in place
+    unpen = gram.clone() if general else None
     if correction is None:
         kappa = gram.new_ones(gram.shape[0])
     else:
@@ -265,14 +270,23 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
 
     rss = (yw - xw @ beta).square().sum(-2)  # (b, K)
     sum_w = w.sum(-1)
-    if binary and not bool((lam > 0).any()):
+    if binary and no_ridge:
         dof = sum_w - p
         cov_diag = l_inv.square().sum(-2)  # diag(A⁻¹)
+    elif plain:
+        # kernel weights, no ridge, no correction: A = G = XᵀWX (dead columns aside, where
+        # G₂ is 0 too), so the sandwich Cov = σ² A⁻¹G₂A⁻¹ with G₂ = XᵀW²X and the dof
+        # Σw − 2 tr(A⁻¹G₂) + tr(A⁻¹G A⁻¹G₂) = Σw − tr(A⁻¹G₂) come from Q = (W X) A⁻¹ (n × P)
+        # alone: diag(A⁻¹G₂A⁻¹) = Σ_rows Q², tr(A⁻¹G₂) = Σ Q ∘ (W X) -- one n·P² product
+        # instead of forming G₂ and two P³ products with it
+        xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w
+        q = xww @ (l_inv.mT @ l_inv)
+        dof = sum_w - (q * xww).sum((-2, -1))
+        cov_diag = q.square().sum(-2)
     else:
         # sandwich for kernel weights / ridge: Cov = σ² A⁻¹ (XᵀW²X) A⁻¹, and the effective
         # residual dof  Σw − 2 tr(A⁻¹G₂) + tr(A⁻¹G A⁻¹G₂)  that makes σ̂² unbiased
         a_inv = l_inv.mT @ l_inv
-        unpen = xw.mT @ xw
         if binary:
             g2 = unpen
         else:
@@ -280,7 +294,8 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
             g2 = xww.mT @ xww
         s_mat = a_inv @ g2
         trace = s_mat.diagonal(dim1=-2, dim2=-1).sum(-1)
-        dof = sum_w - 2 * trace + ((a_inv @ unpen) * s_mat.mT).sum((-2, -1))
+        a_g = s_mat if binary else a_inv @ unpen  # G₂ = G for 0/1 weights
+        dof = sum_w - 2 * trace + (a_g * s_mat.mT).sum((-2, -1))
         cov_diag = (s_mat * a_inv.mT).sum(-1)
     sigma2 = torch.where(dof.unsqueeze(-1) > 0, rss / dof.unsqueeze(-1), torch.nan)
     se = (cov_diag.clamp(min=0).unsqueeze(-1) * sigma2.unsqueeze(-2)).sqrt()

@@ -117,7 +117,7 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] = NOISE_BAND,
     u = torch.where(finite, u, 0.0)
     u = torch.where(finite, u - u.sum(-2, keepdim=True) / (frac * n), 0.0)
     power = torch.fft.rfft(u, dim=-2).abs().square() / (frac * n)  # (..., F, C)
-    f = torch.fft.rfftfreq(n, dtype=x.dtype).to(x.device)
+    f = torch.fft.rfftfreq(n, dtype=x.dtype, device=x.device)
     keep = (f >= lo) & (f <= hi)
     if int(keep.sum()) < 4:
         raise ValueError(f"estimate_noise: the band {band} holds fewer than 4 frequencies of a "
@@ -337,7 +337,8 @@ class NoiseAwareRegression(TubeRegression):
         h_flat, ratio_flat = h.reshape(-1), ratio.reshape(-1)
         windows = torch.tensor([self.window or self._window(flat.phase[b:b + 1], d,
                                                             float(ratio_flat[b]))
-                                for b in range(n)], dtype=torch.float64)
+                                for b in range(n)], dtype=torch.float64,
+                               device=flat.phase.device)
         windows = torch.round(windows * 2) / 2  # half spacings: few distinct groups
         groups, inverse = torch.unique(torch.stack([h_flat.to(windows), windows], -1), dim=0,
                                        return_inverse=True)
@@ -374,7 +375,7 @@ class NoiseAwareRegression(TubeRegression):
         q2 = q2.mean(tuple(range(n_pool))) if n_pool else q2
         ratio = noise_ratio(var, q2)
         if self.velocity_interval:
-            h = torch.full(ratio.shape, self.velocity_interval, dtype=torch.long)
+            h = torch.full(ratio.shape, self.velocity_interval, dtype=torch.long, device=ratio.device)
         else:
             h = velocity_interval_for(ratio, per_cycle)
         return var, ratio, h

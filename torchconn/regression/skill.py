@@ -107,7 +107,8 @@ def regression_view(traj: Trajectory, regression: Regression, model: LocalConnec
     """Samples ``(..., N, ·)`` as ``regression`` sees them (pooled to ``(N,)`` when ``pool``
     and ``flatten``); the interval of a noise-aware model comes from its ``meta``."""
     if isinstance(regression, NoiseAwareRegression):
-        iv = interval_view(traj, torch.as_tensor(model.meta["velocity_interval"]))
+        iv = interval_view(traj, torch.as_tensor(model.meta["velocity_interval"],
+                                                 device=traj.r.device))
         view = _View(iv.phase, iv.r, iv.r_dot, iv.xi)
     else:
         sm = traj.smoothed
@@ -168,8 +169,9 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
 def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):
     """Noise variances of the view's ``δ`` and ``δ̇`` from a noise-aware model's ``meta``,
     shaped to broadcast against the view's ``(..., N, d)``."""
-    sigma2 = torch.as_tensor(model.meta["noise_r"], dtype=torch.float64).square()
-    h = torch.as_tensor(model.meta["velocity_interval"], dtype=torch.float64)
+    kw = dict(dtype=model.phase_rate.dtype, device=model.phase_rate.device)
+    sigma2 = torch.as_tensor(model.meta["noise_r"], **kw).square()
+    h = torch.as_tensor(model.meta["velocity_interval"], **kw)
     var_rate = 2 * sigma2 / (h[..., None] * dt) ** 2
     var_delta = sigma2 / 2
     if not pool:

@@ -104,30 +104,42 @@ def experiment_seeds(config: SweepConfig, experiment: Experiment) -> np.ndarray:
 
 
 def run_experiment(config: SweepConfig, experiment: Experiment,
-                   block_trials: int | None = None) -> ExperimentResult:
+                   block_trials: int | None = None, *,
+                   device: torch.device | str = "cpu") -> ExperimentResult:
     """All levels × trials of one experiment, cell by cell; returns its tidy rows.
 
-    ``block_trials`` (default: all trials of a level in one cell) does not change the rows.
+    ``block_trials`` (default: all trials of a level in one cell) does not change the rows;
+    ``device`` is passed to :func:`run_cell`.
     """
     out = ExperimentResult()
     for cell in experiment_cells(experiment, block_trials or experiment.trials):
-        out.extend(run_cell(config, cell))
+        out.extend(run_cell(config, cell, device=device))
     return out
 
 
-def run_cell(config: SweepConfig, cell: Cell) -> ExperimentResult:
+def run_cell(config: SweepConfig, cell: Cell, *,
+             device: torch.device | str = "cpu") -> ExperimentResult:
     """One cell's trials at one noise level, batched; returns its tidy rows.
 
     Rows are ordered by trial, then model, component and metric (phase bin), so the rows of
     an experiment are its cells' rows in :func:`experiment_cells` order for any block size.
+    The cell is simulated and fitted on ``device``; CPU and CUDA draw different random
+    numbers from the same seeds, so their rows are different samples of the same experiment.
     """
     experiment = cell.experiment
     out = ExperimentResult()
-    clock = time.perf_counter
+    device = torch.device(device)
+
+    def clock() -> float:  # stage timings: wait for the device's queued work first
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        return time.perf_counter()
+
     sim = experiment.simulation
     system = make_system(experiment.system)
     gait = reference_gait(experiment.system)
-    level = torch.tensor([experiment.levels[cell.level]], dtype=torch.float64)[:, None]  # (1, 1)
+    level = torch.tensor([experiment.levels[cell.level]], dtype=torch.float64,
+                         device=device)[:, None]  # (1, 1)
     seeds = experiment_seeds(config, experiment)[cell.level:cell.level + 1, cell.start:cell.stop]
     if experiment.noise_kind == "system":
         eta, omega = sim.eta * level, experiment.omega

@@ -85,10 +85,10 @@ class ModalGait:
         self.shape_dim = modes.shape[0]
 
     def __call__(self, phi: Tensor) -> Tensor:
-        return self.plane_gait(phi) @ self.modes.to(phi.dtype).T
+        return self.plane_gait(phi) @ self.modes.to(dtype=phi.dtype, device=phi.device).T
 
     def velocity(self, phi: Tensor) -> Tensor:
-        return self.plane_gait.velocity(phi) @ self.modes.to(phi.dtype).T
+        return self.plane_gait.velocity(phi) @ self.modes.to(dtype=phi.dtype, device=phi.device).T
 
     def __repr__(self) -> str:
         return f"ModalGait(d={self.shape_dim}, plane={self.plane_gait!r})"
@@ -132,7 +132,7 @@ class PolarGait:
     def __call__(self, phi: Tensor) -> Tensor:
         phi = torch.as_tensor(phi, dtype=torch.float64)
         rho, unit, _ = self._polar(phi)
-        return self.center.to(phi.dtype) + rho[..., None] * unit
+        return self.center.to(dtype=phi.dtype, device=phi.device) + rho[..., None] * unit
 
     def velocity(self, phi: Tensor) -> Tensor:
         phi = torch.as_tensor(phi, dtype=torch.float64)
