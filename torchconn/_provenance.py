@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["versions", "source_hash", "spawn_seeds", "jsonable", "write_json", "write_sidecar"]
+__all__ = ["versions", "source_hash", "spawn_seeds", "jsonable", "write_bytes_atomic",
+           "write_json", "write_sidecar"]
 
 
 def versions() -> dict[str, str]:
@@ -93,21 +94,29 @@ def jsonable(x):
     return str(x)
 
 
-def write_json(path: str | Path, obj) -> Path:
-    """Write ``jsonable(obj)`` to ``path`` atomically (temporary file in the same folder, then
-    :func:`os.replace`); creates the folder. Returns the path."""
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically: a temporary file in the same folder, flushed to
+    disk, then :func:`os.replace` -- a crash never leaves a half-written file behind. Creates
+    the folder. Returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(jsonable(obj), indent=2, allow_nan=False)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text + "\n")
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def write_json(path: str | Path, obj) -> Path:
+    """Write ``jsonable(obj)`` to ``path`` atomically (:func:`write_bytes_atomic`)."""
+    text = json.dumps(jsonable(obj), indent=2, allow_nan=False)
+    return write_bytes_atomic(path, (text + "\n").encode())
 
 
 def write_sidecar(path: str | Path, fields: Mapping) -> Path:

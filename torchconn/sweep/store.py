@@ -16,9 +16,9 @@ import csv
 import hashlib
 import io
 import json
-import os
 from pathlib import Path
 
+from .._provenance import write_bytes_atomic
 from .experiment import PHASE_COLUMNS, RESULT_COLUMNS, TRACE_COLUMNS, Cell, ExperimentResult
 
 __all__ = ["ResultStore", "write_csv", "read_csv_rows", "read_table"]
@@ -36,19 +36,9 @@ def _csv_bytes(columns, rows) -> bytes:
     return buf.getvalue().encode()
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to a temporary file, flush it to disk and rename it into place."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with tmp.open("wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
 def write_csv(path: Path, columns, rows) -> None:
     """Write rows atomically (a temporary file renamed into place)."""
-    _write_atomic(Path(path), _csv_bytes(columns, rows))
+    write_bytes_atomic(Path(path), _csv_bytes(columns, rows))
 
 
 def _parse(value: str):
@@ -105,11 +95,11 @@ class ResultStore:
         sums = {}
         for table, columns in _TABLES.items():
             data = _csv_bytes(columns, getattr(result, table))
-            _write_atomic(d / f"{table}.csv", data)
+            write_bytes_atomic(d / f"{table}.csv", data)
             sums[f"{table}.csv"] = hashlib.sha256(data).hexdigest()
         manifest = {"format": _FORMAT, "cell": cell.name, "fingerprint": fingerprint,
                     "sha256": sums, "timings": result.timings}
-        _write_atomic(d / _MANIFEST, json.dumps(manifest, indent=2).encode())
+        write_bytes_atomic(d / _MANIFEST, json.dumps(manifest, indent=2).encode())
 
     def load(self, cell: Cell, fingerprint: str) -> tuple[ExperimentResult | None, str | None]:
         """The stored cell, checked: ``(result, None)`` when intact, ``(None, None)`` when not
