@@ -153,8 +153,8 @@ def main(argv=None) -> None:
         worst = max(worst, ratio)
         t_ratio = sum(by["snr/auto"][1]) / sum(by["coherence/3"][1])
         om = "" if omega is None else f"{omega:g}"
-        print(f"{case:<20} {om:>6} " + " ".join(cells) + f"  {ratio:12.2f}  {t_ratio:4.1f}")
-    print(f"worst after/before ratio: {worst:.2f}")
+        print(f"{case:<20} {om:>6} " + " ".join(cells) + f"  {ratio:12.3f}  {t_ratio:4.1f}")
+    print(f"worst after/before ratio: {worst:.3f}")
 
 
 if __name__ == "__main__":

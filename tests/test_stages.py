@@ -68,7 +68,9 @@ def _previous_defaults(traj):
 
 
 def test_default_stages_reproduce_the_previous_defaults(recording):
-    est = ConnectionEstimator().fit(recording)
+    # the phase's default is now order "auto" with SNR weights: 0.1's is a named option
+    old_phaser = Phaser(order=3, weighting="coherence")
+    est = ConnectionEstimator(phaser=old_phaser).fit(recording)
     phase, gamma, coeffs, se_A = _previous_defaults(recording)
     model = est.model_
     torch.testing.assert_close(est.trajectory_.phase, phase, rtol=0, atol=1e-12)
@@ -78,7 +80,8 @@ def test_default_stages_reproduce_the_previous_defaults(recording):
             torch.testing.assert_close(getattr(model, name).coeffs, expected, rtol=0, atol=1e-12)
     torch.testing.assert_close(model.bins.A_se, se_A, rtol=0, atol=1e-12)
     # except the metric, whose default is now the tied model: the old one is a named option
-    paper = ConnectionEstimator(regression=TubeRegression(metric_method="paper")).fit(recording)
+    paper = ConnectionEstimator(phaser=old_phaser,
+                                regression=TubeRegression(metric_method="paper")).fit(recording)
     torch.testing.assert_close(paper.model_.M.coeffs, coeffs["M"], rtol=0, atol=1e-12)
     # and the estimates are real ones: A within a few per cent of the swimmer's exact A
     A_true = NLinkSwimmer(3).connection(model.bins.gamma)
@@ -129,7 +132,7 @@ def test_get_and_set_params_follow_scikit_learn_without_it():
     shallow = est.get_params(deep=False)
     assert set(shallow) == {"smoother", "phaser", "cycle", "regression", "pool"}
     deep = est.get_params(deep=True)
-    assert deep["regression__n_bins"] == 24 and deep["phaser__order"] == 3
+    assert deep["regression__n_bins"] == 24 and deep["phaser__order"] == "auto"
     assert deep["smoother__order"] == 2 and deep["cycle__order"] == 8 and deep["pool"] is True
     shared = est.regression
     assert est.set_params(regression__n_bins=32, phaser__order=4, pool=False) is est
