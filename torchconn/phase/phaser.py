@@ -56,10 +56,12 @@ __all__ = [
     "analytic_signal",
     "protophase",
     "correction_series",
+    "correction_order",
     "whole_cycle_weights",
     "estimate_phase",
     "hilbert_phase_pc1",
     "circular_rms",
+    "PhaseAmbiguityWarning",
 ]
 
 # channels whose standard deviation is below this fraction of their magnitude are constant
