@@ -26,7 +26,7 @@ from torchconn.evaluation.models import (
     phase_bin_errors,
     reference_models,
 )
-from torchconn.improve import LoopSettings, circle_gait, improve
+from torchconn.improve import LoopSettings, TrustRegion, circle_gait, improve
 from torchconn.physics.gaits import FourierGait, reference_gait
 
 DEVICES = [
@@ -197,7 +197,9 @@ def test_no_tensor_is_made_on_the_default_device_in_a_diagnosis():
 
 
 def test_no_tensor_is_made_on_the_default_device_in_an_improvement_round():
-    settings = LoopSettings(rounds=1, trials=2, cycles=12, seed=3)
+    # every step of a round (record, measure, fit, propose, predict), with a short optimisation
+    settings = LoopSettings(rounds=1, trials=2, cycles=12, seed=3,
+                            trust_region=TrustRegion(scale=3.0, steps=20))
     system, start = NLinkSwimmer(3), circle_gait(2, 0.5)
     with torch.device("meta"), _NoDefaultDevice():
         res = improve(system, start, settings)
