@@ -70,9 +70,9 @@ DEVICE_NAMES = "cpu, cuda, cuda:N or mps"
 def add_device(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--device", default="cpu", metavar="DEVICE",
-        help="where the tensors live: cpu (default), cuda, cuda:N or mps. The data are read on "
-        "the CPU, moved once, and the outputs written from CPU copies. CPU and CUDA draw "
-        "different random numbers from the same seeds")
+        help="where the tensors live: cpu (default), cuda or cuda:N (mps is refused: it has no "
+        "float64). The data are read on the CPU, moved once, and the outputs written from CPU "
+        "copies. CPU and CUDA draw different random numbers from the same seeds")
 
 
 def resolve_device(name, where: str = "--device"):
