@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from ..physics.gaits.evaluate import gauss_phases
+from ..phase.fourier import FourierSeries
 from ..physics.gaits.gait import FourierGait
 from ..regression.gait_prediction import (
     GaitPrediction,
@@ -58,7 +59,7 @@ class TrustRegion:
     shape_bound: float | None = math.pi
     max_turn: float | None = 0.05
     steps: int = 200
-    lr: float = 0.05
+    lr: float = 0.02
 
     def __post_init__(self) -> None:
         if self.radius is not None and not self.radius > 0:
@@ -91,9 +92,15 @@ class Proposal:
     Attributes:
         gait: the proposed gait, a :class:`FourierGait` in the model's phase.
         objective: one of :data:`OBJECTIVES`.
-        current, predicted: the objective of the fitted cycle and of the proposal (model).
-        gain, gain_se: ``predicted − current`` and its standard error (model draws; the two
-            predictions share the model, so their common errors cancel).
+        current: the objective of the fitted cycle (model).
+        predicted: ``current + gain``.
+        gain, gain_se: the predicted gain, corrected for the optimiser's selection bias, and its
+            standard error (model draws; the two predictions share the model, so their common
+            errors cancel; the bias estimate's own error included).
+        raw_gain: the model's objective of the proposal minus ``current``: what the ascent
+            found, biased high because the ascent also follows the model's errors.
+        selection_bias: ``raw_gain − gain``, estimated by a parametric bootstrap (NaN without
+            draws, then ``gain = raw_gain``).
         radius, step: the trust radius and the largest change ``max_φ |Δ|`` taken (rad).
         prediction: the model's :class:`GaitPrediction` of the proposal.
     """
@@ -104,6 +111,8 @@ class Proposal:
     predicted: float
     gain: float
     gain_se: float
+    raw_gain: float
+    selection_bias: float
     radius: float
     step: float
     prediction: GaitPrediction
@@ -143,7 +152,8 @@ def propose_gait(
         objective: ``"displacement"`` (|(x, y)| per cycle), ``"efficiency"`` (|(x, y)| / cost;
             needs the metric, i.e. recordings with a ``power`` column) or ``"turning"`` (|θ|).
         trust_region: a :class:`TrustRegion` (default: 2 tube radii, order-3 change, |r| ≤ π).
-        n_steps: Magnus steps per cycle; n_draws, seed: redrawn models for the gain's interval.
+        n_steps: Magnus steps per cycle; n_draws, seed: redrawn models for the gain's interval
+            and its selection bias (each redrawn model runs its own ascent, batched).
 
     Raises:
         ValueError: an unknown objective; efficiency without a metric; a batched model; a model
@@ -173,36 +183,61 @@ def propose_gait(
     theta = theta.reshape(-1)
     base = FourierGait(model.gamma.coeffs.detach())
     base_r, base_v = base(theta), base.velocity(theta)
-
-    gen = torch.Generator().manual_seed(seed)
-    k = tr.order
-    u = 1e-3 * torch.randn(2 * k + 1, model.shape_dim, generator=gen, dtype=torch.float64)
-    u.requires_grad_(True)
     grid = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
+    gen = torch.Generator().manual_seed(seed)
+    init = 1e-3 * torch.randn(2 * tr.order + 1, model.shape_dim, generator=gen,
+                              dtype=torch.float64)
 
-    def change(u: Tensor) -> FourierGait:
-        raw = FourierGait(u)
-        peak = torch.linalg.vector_norm(raw(grid), dim=-1).amax()
-        return FourierGait(u * torch.clamp(radius / peak, max=1.0))
+    def change(u: Tensor) -> FourierSeries:
+        """The change ``Δ`` of coefficients ``u (..., 2k+1, d)``, scaled into the trust region."""
+        peak = torch.linalg.vector_norm(FourierSeries(u, value_ndim=1)(grid), dim=-1).amax(-1)
+        return FourierSeries(u * torch.clamp(radius / peak, max=1.0)[..., None, None],
+                             value_ndim=1)
 
-    def value(u: Tensor) -> Tensor:
-        delta = change(u)
-        r, v = base_r + delta(theta), base_v + delta.velocity(theta)
-        disp, cost = predict_cycle(model, theta, r, v, n_steps, with_cost)
-        f = objective_value(objective, disp, cost)
+    def predicted(m: LocalConnectionModel, u: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Objective ``(...)`` and displacement ``(..., 3)`` of ``γ̂ + Δ(u)`` under ``m``."""
+        r, v = base_r, base_v
+        if u is not None:
+            delta = change(u)
+            r, v = r + delta(theta), v + delta.derivative()(theta)
+        disp, cost = predict_cycle(m, theta, r, v, n_steps, with_cost)
+        return objective_value(objective, disp, cost), disp
+
+    def ascend(m: LocalConnectionModel) -> Tensor:
+        """Projected Adam ascent, one change per model of the batch ``m`` (Adam is elementwise:
+        summing the batch's objectives optimises each independently). The step length decays
+        linearly to a tenth, and the best iterate is kept: the penalties (joint limits, turning)
+        make the ascent oscillate, and the start (no change) is always a candidate."""
+        u = init.expand(m.batch_shape + init.shape).clone().requires_grad_(True)
+        opt = torch.optim.Adam([u], lr=tr.lr * radius)
+        sched = torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda i: 1 - 0.9 * i / max(tr.steps, 1))
+        zero = torch.zeros_like(u)
+        best_u, best_f = zero, penalised(m, zero).detach()
+        for _ in range(tr.steps):
+            opt.zero_grad()
+            f = penalised(m, u)
+            better = f.detach() > best_f
+            best_f = torch.where(better, f.detach(), best_f)
+            best_u = torch.where(better[..., None, None], u.detach(), best_u)
+            (-f.sum()).backward()
+            opt.step()
+            sched.step()
+        f = penalised(m, u).detach()
+        return torch.where((f > best_f)[..., None, None], u.detach(), best_u)
+
+    def penalised(m: LocalConnectionModel, u: Tensor) -> Tensor:
+        """The predicted objective ``(...)`` less the turning and joint-limit penalties."""
+        f, disp = predicted(m, u)
         if tr.max_turn is not None and objective != "turning":
             f = f - 1e3 * torch.relu(disp[..., 2].abs() - tr.max_turn).pow(2)
         if tr.shape_bound is not None:
+            r = base_r + change(u)(theta)
             excess = torch.relu(torch.linalg.vector_norm(r, dim=-1) - tr.shape_bound)
-            f = f - 1e3 * excess.pow(2).mean()
+            f = f - 1e3 * excess.pow(2).mean(-1)
         return f
 
-    opt = torch.optim.Adam([u], lr=tr.lr * radius)
-    for _ in range(tr.steps):
-        opt.zero_grad()
-        (-value(u)).backward()
-        opt.step()
-    u = u.detach()
+    u = ascend(model)
     delta = change(u)
     coeffs = model.gamma.coeffs.detach().clone()
     pad = delta.coeffs
@@ -212,25 +247,30 @@ def propose_gait(
     proposal = FourierGait(coeffs)
     step = float(torch.linalg.vector_norm(delta(grid), dim=-1).amax())
 
-    # objective and gain under the fitted model and its redraws
-    sampled = sample_models(model, n_draws, seed=seed) if n_draws > 0 else None
-    values = []
-    for gait in (base, proposal):
-        r, v = gait(theta), gait.velocity(theta)
-        disp, cost = predict_cycle(model, theta, r, v, n_steps, with_cost)
-        draws = None
-        if sampled is not None:
-            draws = objective_value(objective, *predict_cycle(sampled, theta, r, v, n_steps,
-                                                              with_cost))
-        values.append((float(objective_value(objective, disp, cost)), draws))
-    (current, d0), (predicted, d1) = values
-    gain_se = float((d1 - d0).std()) if sampled is not None else float("nan")
+    current = float(predicted(model, None)[0])
+    raw_gain = float(predicted(model, u)[0]) - current
+    gain_se = bias = bias_se = float("nan")
+    if n_draws > 0:
+        # The gain's spread under redrawn models, and the optimiser's curse: the ascent follows
+        # the model's errors too, so the model's gain of its own optimum is biased high. The
+        # parametric bootstrap measures it: each redrawn model proposes its own change, whose
+        # gain under the redrawn model exceeds its gain under the fitted one by ~ the bias.
+        sampled = sample_models(model, n_draws, seed=seed)
+        start_s = predicted(sampled, None)[0]
+        gain_se = float((predicted(sampled, u)[0] - start_s).std())
+        u_s = ascend(sampled)
+        own = predicted(sampled, u_s)[0] - start_s
+        under_fit = predicted(model, u_s)[0] - current
+        excess = own - under_fit
+        bias, bias_se = float(excess.mean()), float(excess.std() / math.sqrt(n_draws))
+    gain = raw_gain - (bias if n_draws > 0 else 0.0)
     prediction = predict_gait(model, proposal, phase_offset=0.0, n_steps=n_steps,
                               n_draws=n_draws, seed=seed, warn_excursion=math.inf,
                               max_excursion=math.inf)
     return Proposal(
-        gait=proposal, objective=objective, current=current, predicted=predicted,
-        gain=predicted - current, gain_se=gain_se, radius=radius, step=step,
+        gait=proposal, objective=objective, current=current, predicted=current + gain,
+        gain=gain, gain_se=math.hypot(gain_se, bias_se) if n_draws > 0 else gain_se,
+        raw_gain=raw_gain, selection_bias=bias, radius=radius, step=step,
         prediction=prediction,
     )
 
