@@ -238,3 +238,14 @@ def test_efficiency_proposal_improves_true_efficiency_with_exact_model():
     # the model holds M̂ on the cycle only (no ∂M/∂r), so the predicted cost is first-order
     # accurate in ṙ' but zeroth-order in δ: the gain is right in sign and size, not in digits
     assert 0.5 < prop.gain / (after - before) < 2.0
+
+
+
+def test_ascent_never_proposes_worse_than_the_fitted_cycle(fitted_3link):
+    """The penalties make the projected ascent oscillate: with a step far too long it must still
+    return its best iterate -- at worst no change -- never a gait the model predicts worse."""
+    _, _, model = fitted_3link
+    prop = propose_gait(model, "displacement", TrustRegion(scale=2.0, lr=2.0, steps=15),
+                        n_draws=0)
+    assert prop.gain >= -1e-12
+    assert prop.step <= prop.radius * (1 + 1e-9)

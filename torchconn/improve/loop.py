@@ -105,7 +105,7 @@ class LoopSettings:
     shrink: float = 0.5
     good_ratio: float = 0.75
     poor_ratio: float = 0.25
-    max_scale: float = 6.0
+    max_scale: float = 4.5
     min_scale: float = 0.5
     truncation: float = 0.5
     truncation_spread: float = 0.35
