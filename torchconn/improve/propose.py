@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..physics.gaits.evaluate import gauss_phases
 from ..phase.fourier import FourierSeries
+from ..physics.gaits.evaluate import gauss_phases
 from ..physics.gaits.gait import FourierGait
 from ..regression.gait_prediction import (
     GaitPrediction,
