@@ -249,3 +249,21 @@ def test_ascent_never_proposes_worse_than_the_fitted_cycle(fitted_3link):
                         n_draws=0)
     assert prop.gain >= -1e-12
     assert prop.step <= prop.radius * (1 + 1e-9)
+
+
+def test_optimiser_respects_the_turning_limit():
+    """The ceiling of the loop's own objective: |(x, y)| per cycle of gaits turning at most
+    max_turn per cycle. Unconstrained, the 3-link's best planar gaits turn by ~1 rad."""
+    from torchconn.physics.gaits.optimize import optimise_gait
+
+    system = NLinkSwimmer(3)
+    free = optimise_gait(system, order=2, radius=1.0, component="planar", max_iter=60)
+    straight = optimise_gait(system, order=2, radius=1.0, component="planar", max_turn=0.05,
+                             max_iter=60)
+    turn_free = abs(float(evaluate(system, free.gait).displacement[2]))
+    turn = abs(float(evaluate(system, straight.gait).displacement[2]))
+    assert turn_free > 0.5
+    assert turn < 0.055
+    assert straight.x_displacement < free.x_displacement
+    with pytest.raises(ValueError, match="max_turn"):
+        optimise_gait(system, max_turn=-1.0)
