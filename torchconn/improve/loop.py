@@ -9,8 +9,9 @@ first-order model's truncation error, which grows as the step² and is learned f
 steps; the interval holds both standard errors and that error's spread. The trust region
 adapts: it grows when a step's measured gain is near the predicted one, shrinks when far below,
 and a proposal whose recording measures worse than its start by more than the noise is
-rejected -- the loop returns to the previous gait and proposes again with half the radius. The simulator's exact objective of every gait
-(:func:`torchconn.physics.gaits.evaluate`) is recorded for judging, never used by the loop.
+rejected -- the loop returns to the previous gait and proposes again with half the radius.
+The simulator's exact objective of every gait (:func:`torchconn.physics.gaits.evaluate`) is
+recorded for judging, never used by the loop.
 """
 
 from __future__ import annotations
