@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .._cli import resolve_device
 from ..physics.gaits.evaluate import evaluate
 from ..physics.gaits.gait import FourierGait, as_gait
 from ..physics.systems.base import LocomotionSystem
@@ -99,6 +100,8 @@ class LoopSettings:
             of 3-link circles its ``∂Â/∂r`` is off by 6-9 % against 40-200 % for
             ``TubeRegression`` (the predicted gains by 0-3 % against 15-75 %).
         seed: root seed (per-round seeds from ``numpy.random.SeedSequence``).
+        device: where the recordings are simulated and the models fitted (``cpu``, ``cuda``,
+            ``cuda:N``); CPU and CUDA draw different random numbers from the same seed.
     """
 
     rounds: int = 8
@@ -121,8 +124,10 @@ class LoopSettings:
     estimator: dict = field(default_factory=lambda: {"pool": True,
                                                       "regression": {"method": "noise_aware"}})
     seed: int = 0
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
+        resolve_device(self.device, "LoopSettings.device")
         for name in ("rounds", "trials", "cycles"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
@@ -204,7 +209,8 @@ class LoopResult:
 
 def _record(system, gait, s: LoopSettings, seed: np.random.SeedSequence):
     seeds = seed.generate_state(2 * s.trials, dtype=np.uint32).astype(np.int64)
-    traj = simulate(system, gait, eta=s.eta, alpha=s.alpha, n_cycles=s.cycles,
+    eta = torch.tensor(s.eta, dtype=torch.float64, device=s.device)  # sets the device
+    traj = simulate(system, gait, eta=eta, alpha=s.alpha, n_cycles=s.cycles,
                     seeds=seeds[: s.trials])
     if s.omega > 0:
         traj = observe(traj, s.omega, seeds=seeds[s.trials:])

@@ -177,14 +177,14 @@ def propose_gait(
                          "but it is missing or non-finite")
     radius = tr.radius_for(model)
     with_cost = objective == "efficiency"
-    h, theta = gauss_phases(n_steps)
+    h, theta = gauss_phases(n_steps, device=model.device)
     theta = theta.reshape(-1)
     base = FourierGait(model.gamma.coeffs.detach())
     base_r, base_v = base(theta), base.velocity(theta)
-    grid = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
-    gen = torch.Generator().manual_seed(seed)
-    init = 1e-3 * torch.randn(2 * tr.order + 1, model.shape_dim, generator=gen,
-                              dtype=torch.float64)
+    kw = dict(dtype=torch.float64, device=model.device)
+    grid = torch.arange(256, **kw) * (2 * math.pi / 256)
+    gen = torch.Generator(device=model.device).manual_seed(seed)
+    init = 1e-3 * torch.randn(2 * tr.order + 1, model.shape_dim, generator=gen, **kw)
 
     def change(u: Tensor) -> FourierSeries:
         """The change ``Δ`` of coefficients ``u (..., 2k+1, d)``, scaled into the trust region."""
