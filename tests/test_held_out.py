@@ -12,15 +12,18 @@ from torchconn import (
     ConnectionEstimator,
     NLinkSwimmer,
     NoiseAwareRegression,
-    Phaser,
     SelfConsistentCycle,
     TubeRegression,
     observe,
     simulate,
 )
 from torchconn.physics.gaits import FourierGait
-from torchconn.regression import IllConditionedBinWarning, assign_bins, connection_regression
-from torchconn.regression import skill
+from torchconn.regression import (
+    IllConditionedBinWarning,
+    assign_bins,
+    connection_regression,
+    skill,
+)
 from torchconn.regression.noise_aware import IntervalSamples, noise_aware_regression
 from torchconn.regression.skill import PoorHeldOutSkillWarning
 
@@ -101,3 +104,38 @@ def test_cross_validate_matches_the_refitting_one_when_nothing_is_rechosen(eight
     refit = skill.cross_validate(traj, cycle, reg, pool=False, refit=True)
     torch.testing.assert_close(down.r2, refit.r2, rtol=0, atol=1e-9)
     torch.testing.assert_close(down.r2_phase_average, refit.r2_phase_average)
+
+
+@pytest.fixture(scope="module")
+def short():
+    """One trial of the 5-link, 4 cycles, ω = 0.005: the default complexity overfits it."""
+    return _recording(4, seed=3)
+
+
+def test_the_fit_warns_by_itself_and_auto_complexity_stops_the_overfit(short):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        with pytest.warns(PoorHeldOutSkillWarning, match="worse than their phase-averaged"):
+            fixed = ConnectionEstimator(complexity="fixed").fit(short)
+        assert bool(fixed.held_out_skill_.worse_than_phase_average.any())
+        assert fixed.complexity_ is None
+        warnings.simplefilter("error", PoorHeldOutSkillWarning)
+        off = ConnectionEstimator(complexity="fixed", held_out_folds=0).fit(short)  # no check
+        assert off.held_out_skill_ is None
+        warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
+        auto = ConnectionEstimator().fit(short)
+    # the default chose a simpler model; the fit's settings record what was fitted
+    assert auto.complexity_ is not None and auto.regression.n_bins == 48
+    assert auto.regression_.n_bins == auto.complexity_.n_bins
+    assert auto.model_.meta["settings"]["regression"]["n_bins"] == auto.complexity_.n_bins
+    gain = auto.held_out_skill_.r2 - fixed.held_out_skill_.r2
+    assert bool((gain > 0).all())
+
+
+def test_a_complexity_the_recording_cannot_carry_is_reported(short):
+    # a window just wide enough for the whole recording's bins (30 samples for 25 regressors)
+    # leaves too few once a third of the cycles is held out
+    reg = TubeRegression(metric=False, window=1.8)
+    with pytest.warns(PoorHeldOutSkillWarning, match="cannot be fitted when one block"):
+        est = ConnectionEstimator(regression=reg, complexity="fixed").fit(short)
+    assert bool(est.held_out_skill_.unscored.all())

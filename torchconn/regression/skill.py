@@ -81,8 +81,23 @@ class Skill:
         (``R² > 0``)."""
         return (self.r2 < self.r2_phase_average) & (self.r2_phase_average > 0)
 
-    def warn_if_poor(self, stacklevel: int = 3) -> None:
-        """Warn (:class:`PoorHeldOutSkillWarning`) where :attr:`worse_than_phase_average`."""
+    def warn_if_poor(self, stacklevel: int = 3, choice: "ComplexityChoice | None" = None
+                     ) -> None:
+        """Warn (:class:`PoorHeldOutSkillWarning`) where :attr:`worse_than_phase_average` or
+        :attr:`unscored`; ``choice``: the complexity chosen by held-out error, if any (the
+        advice then is more cycles, not fewer bins)."""
+        fix = ("record more cycles (the complexity was already chosen by held-out error: "
+               f"{choice.n_bins} bins, Fourier order {choice.fourier_order}, ridge "
+               f"{choice.ridge:g})" if choice is not None else
+               "choose the complexity by held-out error (ConnectionEstimator(complexity='cv'), "
+               "torchconn-fit --complexity cv), or use fewer bins / a lower Fourier order / a "
+               "ridge, or record more cycles")
+        if bool(self.unscored.any()):
+            warnings.warn(
+                "held-out check: some phase bins cannot be fitted when one block of whole "
+                "cycles is left out, so the model has too many coefficients for this "
+                f"recording; {fix}", PoorHeldOutSkillWarning, stacklevel=stacklevel)
+            return
         worse = self.worse_than_phase_average.reshape(-1, 3).any(0)
         if not bool(worse.any()):
             return
@@ -90,9 +105,9 @@ class Skill:
         warnings.warn(
             f"the model predicts held-out cycles worse than their phase-averaged velocity for "
             f"{', '.join(names)} (held-out R² {_fmt(self.r2)} vs phase average "
-            f"{_fmt(self.r2_phase_average)}): it overfits this recording; use fewer bins / a "
-            "lower Fourier order / a wider window (ConnectionEstimator.select_complexity), or "
-            "record more cycles", PoorHeldOutSkillWarning, stacklevel=stacklevel)
+            f"{_fmt(self.r2_phase_average)}): its shape terms do not help predict these "
+            f"components on this recording; {fix}", PoorHeldOutSkillWarning,
+            stacklevel=stacklevel)
 
 
 @dataclass(frozen=True)
@@ -446,5 +461,5 @@ def _from_sums(sse_model, sse_base, sse_template, sy, syy, n) -> Skill:
 
 def _fmt(x: Tensor) -> str:
     flat = x.reshape(-1, 3)
-    worst = "[" + ", ".join(f"{float(v):.2f}" for v in flat.min(0).values) + "]"
+    worst = "[" + ", ".join(f"{float(v):.3f}" for v in flat.min(0).values) + "]"
     return worst + (" (worst trial)" if flat.shape[0] > 1 else "")
