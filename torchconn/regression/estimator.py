@@ -25,7 +25,9 @@ functions: :func:`prepare` (smooth, phase) and :func:`fit_local_model` (the regr
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 import warnings
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
@@ -214,18 +216,30 @@ class ConnectionEstimator:
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
         regression, choice = self.regression, None
-        if self.complexity == "cv":
-            regression, choice = skill.select_complexity(traj, cycle, regression, pool=self.pool,
-                                                         n_folds=self._folds())
-        model = regression.fit(traj, cycle, pool=self.pool)
-        held = self._held_out(traj, cycle, regression, model)
-        if (self.complexity == "auto" and held is not None
-                and bool((held.worse_than_phase_average | held.unscored[..., None]).any())):
-            # the given complexity overfits this recording: choose it by held-out error
-            regression, choice = skill.select_complexity(traj, cycle, regression, pool=self.pool,
-                                                         n_folds=self._folds())
-            model = regression.fit(traj, cycle, pool=self.pool)
-            held = self._held_out(traj, cycle, regression, model)
+        with _cycles_in_errors(traj, regression, self.complexity):
+            if self.complexity == "cv":
+                regression, choice = skill.select_complexity(traj, cycle, regression,
+                                                             pool=self.pool, n_folds=self._folds())
+            try:
+                model = regression.fit(traj, cycle, pool=self.pool)
+            except ValueError:
+                if self.complexity != "auto" or not skill.downdates(regression):
+                    raise
+                model = None  # too many coefficients for this recording: choose them below
+            held = None if model is None else self._held_out(traj, cycle, regression, model)
+            if self.complexity == "auto" and (model is None or (held is not None and bool(
+                    (held.worse_than_phase_average | held.unscored[..., None]).any()))):
+                # the given complexity overfits this recording: choose it by held-out error
+                try:
+                    regression, choice = skill.select_complexity(
+                        traj, cycle, regression, pool=self.pool, n_folds=self._folds())
+                except ValueError:
+                    if model is None:
+                        raise
+                    # no candidate fits 2 of 3 blocks: keep the given one (the check warns)
+                else:
+                    model = regression.fit(traj, cycle, pool=self.pool)
+                    held = self._held_out(traj, cycle, regression, model)
         self.trajectory_ = traj
         self.phaser_ = fitted_phaser
         self.limit_cycle_ = cycle
@@ -363,6 +377,41 @@ def _check_arguments(*, pool: Any, complexity: Any, held_out_folds: Any, **stage
             or held_out_folds < 0 or held_out_folds == 1):
         raise ValueError("ConnectionEstimator: held_out_folds must be 0 (no held-out check) or "
                          f"an integer >= 2, got {held_out_folds!r}")
+
+
+@contextlib.contextmanager
+def _cycles_in_errors(traj: Trajectory, regression: Regression, complexity: str):
+    """Add to a "bins cannot be fitted" error how many cycles the recording has and how many
+    the regression's complexity asks for."""
+    try:
+        yield
+    except ValueError as err:
+        text = str(err)
+        if "cannot be fitted" not in text and "no candidate could be fitted" not in text:
+            raise
+        advice = ("; complexity='auto' or 'cv' (torchconn-fit --complexity) chooses fewer "
+                  "coefficients" if complexity == "fixed" else "")
+        raise ValueError(f"{text} [{_cycles_note(traj, regression)}{advice}]") from None
+
+
+def _cycles_note(traj: Trajectory, regression: Regression) -> str:
+    """The recording's cycles per trial against those the bins' window rule needs: a window
+    holds ``samples_per_regressor`` samples per regressor and spans at most half a cycle
+    (:func:`~torchconn.regression.tube._auto_window`; a tricube window of half a cycle
+    carries the weight of 0.3 cycles), so ``P`` regressors per bin need
+    ``P · samples_per_regressor / 0.3`` samples per trial."""
+    span = traj.phase.nan_to_num(nan=0.0).amax(-1) - traj.phase.nan_to_num(
+        nan=float("inf")).amin(-1)
+    cycles = float(span.min()) / (2 * math.pi)
+    per_cycle = (traj.n_samples - 1) / max(float(span.max()) / (2 * math.pi), 1e-9)
+    d = traj.shape_dim
+    p = 1 + 2 * d + d * d
+    spr = getattr(regression, "samples_per_regressor", 2.5)
+    need = p * spr / 0.3 / per_cycle
+    return (f"this recording has {cycles:.1f} cycles per trial at {per_cycle:.0f} samples per "
+            f"cycle; {p} regressors per bin (d = {d} joints) at {spr:g} samples per regressor "
+            f"need at least {need:.1f} cycles per trial (1.5x that to choose the complexity "
+            "on 2 of 3 blocks of cycles)")
 
 
 # ---------------------------------------------------------------------- settings tables

@@ -106,7 +106,8 @@ class Skill:
             f"the model predicts held-out cycles worse than their phase-averaged velocity for "
             f"{', '.join(names)} (held-out R² {_fmt(self.r2)} vs phase average "
             f"{_fmt(self.r2_phase_average)}): its shape terms do not help predict these "
-            f"components on this recording; {fix}", PoorHeldOutSkillWarning,
+            f"components on this recording (too few cycles for its coefficients, or joint-"
+            f"angle noise that swamps the shape deviations); {fix}", PoorHeldOutSkillWarning,
             stacklevel=stacklevel)
 
 
