@@ -2,11 +2,9 @@
 
 The paper's 9-link scale: d = 8 joints (P = 81 regressors), 160 trials × 30 cycles × 64 samples
 per cycle, M = 16 (and 32) phase bins. Prints both times, their ratio, the achieved GFLOP/s of
-the batched solver and this machine's float64 matmul peak (measured in the same run), and the
-same solver fed the explicitly formed design ``X`` (the previous way of forming the normal
-equations, an ``(P+3)²`` Gram per bin, instead of the ``45 × 72`` moments of the factors
-``[1, δ̇]`` and ``[1, δ]``). ``--kernel tricube`` (the estimator's default bins) times the
-weighted path, whose standard errors are sandwich estimates, against a weighted lstsq loop.
+the batched solver and this machine's float64 matmul peak (measured in the same run).
+``--kernel tricube`` (the estimator's default bins) times the weighted path, whose standard
+errors are sandwich estimates, against a weighted lstsq loop.
 
     python benchmarks/bench_regression.py [--trials 160] [--bins 16 32] [--loop-trials 20]
                                           [--threads 2] [--kernel tricube]
@@ -34,7 +32,6 @@ import torch  # noqa: E402
 
 from torchconn.physics.systems import AffineConnectionSystem  # noqa: E402
 from torchconn.regression import _wls, assign_bins, connection_regression  # noqa: E402
-from torchconn.regression.connection import _column_blocks  # noqa: E402
 
 
 def make_data(n_trials: int, n_cycles: int, per_cycle: int, d: int, seed: int = 0):
@@ -84,49 +81,33 @@ def loop_reference(phase, r, r_dot, xi, gm, gdm, n_bins, window, kernel="box"):
     return out
 
 
-def flops(n_rows_padded: int, d: int, k: int, n_systems: int, weighted: bool = False) -> float:
-    """Useful flops of the batched solver per the algorithm, per bin: the moments
-    ``ũᵀ[Wṽ | W(v⊗y)]`` of the factors ``u = [1, δ̇]``, ``v = [1, δ]`` (``a = d + 1`` columns,
-    ``a(a+1)/2`` pairs) on the padded rows, Cholesky ``P³/3``, ``cholesky_solve`` ``2P²K``,
-    triangular inverse ``P³/3``, residuals ``2naPK``-ish; with kernel weights also the
-    ``ũᵀW²ṽ`` moments and the sandwich ``A⁻¹ = L⁻ᵀL⁻¹`` and ``A⁻¹G₂`` (``2P³`` each, full GEMMs).
-    """
-    n, a = n_rows_padded, d + 1
-    p, pairs = a * a, a * (a + 1) // 2
-    per = 2 * n * pairs * (pairs + a * k) + p**3 / 3 + 2 * p * p * k + p**3 / 3 \
-        + 2 * n * a * a * k
+def flops(n_rows_padded: int, p: int, k: int, n_systems: int, weighted: bool = False) -> float:
+    """Useful flops of the batched solver per the algorithm: ``[X|y]ᵀW[X|y]`` on the padded rows,
+    Cholesky ``P³/3``, ``cholesky_solve`` ``2P²K``, triangular inverse ``P³/3``, residuals; with
+    kernel weights also the sandwich standard errors: ``A⁻¹ = L⁻ᵀL⁻¹`` ``2P³`` (a full GEMM)
+    and ``Q = (W X) A⁻¹`` ``2nP²``."""
+    n = n_rows_padded
+    per = 2 * n * (p + k) ** 2 + p**3 / 3 + 2 * p * p * k + p**3 / 3 + 2 * n * p * k
     if weighted:
-        per += 2 * n * pairs * pairs + 4 * p**3
+        per += 2 * p**3 + 2 * n * p * p
     return per * n_systems
 
 
-def primitive_floor(n_systems: int, n_rows: int, d: int, k: int, repeat: int) -> dict:
-    """Per-bin time (µs) of the dense kernels every bin needs, on the real shapes."""
-    b = min(n_systems, 128)  # one cache-sized chunk, as the solver runs them
-    a = d + 1
-    pairs, p = a * (a + 1) // 2, a * a
-    u_pairs = torch.randn(b, n_rows, pairs, dtype=torch.float64)
-    right = torch.randn(b, n_rows, pairs + a * k, dtype=torch.float64)
+def primitive_floor(n_systems: int, n_rows: int, p: int, k: int, repeat: int) -> dict:
+    """Per-bin time (µs) of the three dense kernels every bin needs, on the real shapes."""
+    b = min(n_systems, 256)  # one cache-sized chunk, as the solver runs them
     xy = torch.randn(b, n_rows, p + k, dtype=torch.float64)
     gram = (xy.mT @ xy)[:, :p, :p].contiguous()
     chol = torch.linalg.cholesky(gram)
+    eye = torch.eye(p, dtype=torch.float64).expand(b, p, p)
     kernels = {
-        "moments ũᵀ[Wṽ|W(v⊗y)]": lambda: u_pairs.mT @ right,
+        "Gram [X|y]ᵀ[X|y]": lambda: xy.mT @ xy,
         "Cholesky": lambda: torch.linalg.cholesky_ex(gram),
         "triangular inverse": lambda: _wls._triangular_inverse(chol),
-        "(previous Gram [X|y]ᵀ[X|y])": lambda: xy.mT @ xy,
+        "(one triangular solve against I, before)":
+            lambda: torch.linalg.solve_triangular(chol, eye, upper=False),
     }
     return {name: best_of(fn, repeat) / b * 1e6 for name, fn in kernels.items()}
-
-
-def explicit_design_regression(r, r_dot, xi, bins, gm, gdm):
-    """The same solver with the design ``X`` formed and its ``[X|y]ᵀW[X|y]`` Gram (the
-    previous way of forming the normal equations; factorisation and errors are shared)."""
-    s = _wls.prepare("bench", r, r_dot, xi, "xi", 3, bins, gm, gdm)
-    d = r.shape[-1]
-    return _wls.solve(s, _column_blocks, 1 + 2 * d + d * d, fn="bench", delta_max=None,
-                      ridge=0.0, min_samples=None, max_condition=None,
-                      on_ill_conditioned="raise")
 
 
 def best_of(fn, repeat: int) -> float:
@@ -184,8 +165,6 @@ def main(argv=None) -> int:
         t_batched = best_of(batched, args.repeat)
         t_bin = best_of(lambda n_bins=n_bins, window=window: assign_bins(
             phase, n_bins, window=window, kernel=args.kernel), args.repeat)
-        t_explicit = best_of(lambda b=bins, gm=gm, gdm=gdm: explicit_design_regression(
-            r, r_dot, xi, b, gm, gdm), args.repeat) + t_bin
 
         lt = min(args.loop_trials, args.trials)
         sl = slice(0, lt)
@@ -196,19 +175,17 @@ def main(argv=None) -> int:
         ref = torch.from_numpy(np.stack(ref)).reshape(lt, n_bins, p, 3)
         err = ((fit.coef[sl] - ref).abs().max() / ref.abs().max()).item()
 
-        gflop = flops(bins.max_count, args.d, 3, args.trials * n_bins, args.kernel != "box") / 1e9
+        gflop = flops(bins.max_count, p, 3, args.trials * n_bins, args.kernel != "box") / 1e9
         print(f"\nM = {n_bins} bins, window {window:g}: Nmax = {bins.max_count}, "
               f"mean bin count {bins.count.double().mean():.1f}")
         print(f"  batched (binning + regression + SEs): {t_batched * 1e3:8.1f} ms "
               f"(binning {t_bin * 1e3:.1f} ms)")
-        print(f"  same, design X formed (previous):     {t_explicit * 1e3:8.1f} ms "
-              f"({t_explicit / t_batched:.2f}x the time)")
         print(f"  lstsq loop (scaled from {lt} trials): {t_loop * 1e3:8.1f} ms")
         print(f"  speed-up: {t_loop / t_batched:.1f}x;  max rel. diff vs lstsq: {err:.2e}")
         print(f"  batched: {gflop:.2f} GFLOP -> {gflop / t_batched:.1f} GFLOP/s "
               f"({100 * gflop / t_batched / peak:.0f}% of matmul peak)")
         n_sys = args.trials * n_bins
-        floor = primitive_floor(n_sys, bins.max_count, args.d, 3, args.repeat)
+        floor = primitive_floor(n_sys, bins.max_count, p, 3, args.repeat)
         per_bin = f"batched {t_batched / n_sys * 1e6:.0f} µs, loop {t_loop / n_sys * 1e6:.0f} µs"
         print(f"  per bin: {per_bin}; dense kernels alone: "
               + ", ".join(f"{k} {v:.0f} µs" for k, v in floor.items()))

@@ -25,12 +25,12 @@ from .binning import BinIndex
 __all__ = ["IllConditionedBinWarning"]
 
 #: a design callable: (delta (b, n, d), delta_dot (b, n, d), row_scale (b, n, 1)) -> the column
-#: blocks of row_scale · X, X (b, n, P) (scaling the small factors saves a pass over X); or a
-#: :class:`ProductDesign`, whose normal equations are formed from moments without building X
+#: blocks of row_scale · X, X (b, n, P) (scaling the small factors saves a pass over X)
 Design = Callable[[Tensor, Tensor, Tensor], list[Tensor]]
 
-#: bytes of design matrix (or its factors) built at once; bounds memory and keeps each chunk hot in
-#: cache between forming XᵀWX and the residuals (8 MiB measured ~10 % faster than 16 and 2).
+#: bytes of design matrix built at once; bounds memory and keeps each chunk's design hot in
+#: cache between forming XᵀWX and the residuals (measured faster than one huge chunk; 8 MiB
+#: measured faster than 16 and than 2 on a loaded machine, one thread).
 _CHUNK_BYTES = 8 * 2**20
 #: the "ridge" policy regularises ill-conditioned bins down to this condition number
 _RIDGE_TARGET_CONDITION = 1e8
@@ -47,37 +47,6 @@ _MODES = ("raise", "warn", "ridge")
 
 class IllConditionedBinWarning(RuntimeWarning):
     """Some phase bins had too few samples or a rank-deficient design (see the message)."""
-
-
-@dataclass(frozen=True)
-class ProductDesign:
-    """A design whose every row is a row-wise product of two small factor rows ``u`` and ``v``.
-
-    Column ``p`` of ``X`` is ``u_{i_p} · v_{j_p}`` with ``u = left(δ, δ̇) (b, n, a)`` and
-    ``v = right(δ, δ̇) (b, n, c)``. Then ``XᵀWX[p, q] = Σ w u_{i_p} u_{i_q} v_{j_p} v_{j_q}``
-    is an entry of the moment matrix ``ũᵀ W ṽ`` of the factors' pairwise products ``ũ (b, n,
-    a(a+1)/2)`` and ``ṽ (b, n, c(c+1)/2)``: for the connection design ``[1, δ, δ̇, δ̇⊗δ] =
-    [1, δ̇] ⊗ [1, δ]`` (``d = 8``: ``P = 81``, ``a = c = 9``) a ``45 × 45`` product per bin
-    instead of ``81 × 81``, with the same rounding (every entry is a weighted sum of the same
-    four-factor products), and ``X`` itself is never formed. The solver uses it for kernel
-    weights (see :func:`_normal_equations`).
-
-    Attributes:
-        left, right: ``(delta, delta_dot) -> (b, n, a)``, ``(b, n, c)``.
-        columns: ``d -> (i, j)``, two ``(P,)`` lists of the factor of each column.
-
-    Both factors begin with the constant 1 (``u₀ = v₀ = 1``), so ``X`` holds the intercept,
-    and ``X`` has all ``P = a·c`` products, each once.
-        blocks: the plain :data:`Design` of the same ``X`` (``connection_design`` builds it).
-    """
-
-    left: Callable[[Tensor, Tensor], Tensor]
-    right: Callable[[Tensor, Tensor], Tensor]
-    columns: Callable[[int], tuple[list[int], list[int]]]
-    blocks: Design
-
-    def __call__(self, delta: Tensor, delta_dot: Tensor, row_scale: Tensor) -> list[Tensor]:
-        return self.blocks(delta, delta_dot, row_scale)
 
 
 @dataclass(frozen=True)
@@ -201,133 +170,20 @@ def prepare(fn: str, r, r_dot, y, y_name: str, y_width: int, bins: BinIndex,
 
 
 # ---------------------------------------------------------------------------------- solver
-@dataclass(frozen=True)
-class _NormalEquations:
-    """One chunk of ``b`` bins' weighted normal equations (``P`` coefficients, ``K`` outputs).
+def _chunk_design(s: BinnedSamples, sel, design: Design, delta_max: float | None):
+    """``[X | y]`` of the bins ``sel`` (a slice or index tensor into ``B·M``), rows scaled by √w.
 
-    ``gram (b, P, P)`` ``XᵀWX``; ``rhs (b, P, K)`` ``XᵀWy``; ``gram2 (b, P, P)`` ``XᵀW²X`` for
-    kernel weights (None for 0/1 weights, where it equals ``gram``); ``w (b, n)`` the weights;
-    ``rss(beta (b, P, K)) -> (b, K)`` the weighted residual sum of squares ``Σ w (y − Xβ)²``.
+    Returns ``xy (b, n, P + K)`` and the weights ``w (b, n)`` (0 on padding, NaN samples and,
+    with ``delta_max``, samples outside the tube).
     """
-
-    gram: Tensor
-    rhs: Tensor
-    gram2: Tensor | None
-    w: Tensor
-    rss: Callable[[Tensor], Tensor]
-
-
-def _chunk_rows(s: BinnedSamples, sel, delta_max: float | None):
-    """Offsets ``δ, δ̇ (b, n, d)``, responses ``y (b, n, K)`` and weights ``w (b, n)`` of the
-    bins ``sel`` (a slice or index tensor into ``B·M``); ``w`` is 0 on padding, NaN samples and,
-    with ``delta_max``, samples outside the tube."""
     rows = s.rows[sel]
     delta = s.r[rows] - s.gamma[sel].unsqueeze(-2)
     delta_dot = s.r_dot[rows] - s.gamma_dot[sel].unsqueeze(-2)
     w = s.weight[sel]
     if delta_max is not None:
         w = w * (delta.norm(dim=-1) < delta_max)
-    return delta, delta_dot, s.y[rows], w
-
-
-def _normal_equations(s: BinnedSamples, sel, design: Design, delta_max: float | None,
-                      binary: bool) -> _NormalEquations:
-    """The normal equations of the bins ``sel``: from ``√w [X | y]`` and one batched matmul,
-    or, for a :class:`ProductDesign` with kernel weights, from the factors' moments.
-
-    The moments pay off where ``XᵀW²X`` is needed too (kernel weights: one ``45 × 117``
-    product instead of two ``84 × 84``-sized ones at ``d = 8``; normal equations ~20 % faster,
-    measured, one thread); with 0/1 weights the single ``[X|y]ᵀ[X|y]`` runs closer to the
-    matmul peak than the narrower moment product, and building ``X`` measured ~15 % faster.
-    """
-    delta, delta_dot, y, w = _chunk_rows(s, sel, delta_max)
-    if isinstance(design, ProductDesign) and not binary:
-        return _product_equations(design, delta, delta_dot, y, w)
     sqrt_w = w.sqrt().unsqueeze(-1)
-    xy = torch.cat(design(delta, delta_dot, sqrt_w) + [y * sqrt_w], -1)
-    p = xy.shape[-1] - y.shape[-1]
-    full = xy.mT @ xy
-    xw, yw = xy[..., :p], xy[..., p:]
-    gram2 = None
-    if not binary:
-        xww = xw * sqrt_w  # rows scaled by w: XᵀW²X
-        gram2 = xww.mT @ xww
-    return _NormalEquations(full[..., :p, :p], full[..., :p, p:], gram2, w,
-                            lambda beta: (yw - xw @ beta).square().sum(-2))
-
-
-def _pair_numbers(n: int, device) -> Tensor:
-    """``(n, n)`` number of the pair ``(min(i, k), max(i, k))`` in the order of :func:`_pairs`."""
-    i, k = torch.triu_indices(n, n, device=device)
-    number = torch.empty(n, n, dtype=torch.int64, device=device)
-    number[i, k] = number[k, i] = torch.arange(i.numel(), device=device)
-    return number
-
-
-def _pairs(u: Tensor, scale: Tensor | None = None, out: Tensor | None = None) -> Tensor:
-    """Pairwise products ``u_i u_k`` (``i ≤ k``, row-major): ``(b, n, a) -> (b, n, a(a+1)/2)``,
-    times ``scale (b, n, 1)`` when given, written into ``out`` when given (slices of the small
-    factor: advanced indexing on the last axis was measured several times slower)."""
-    a = u.shape[-1]
-    if out is None:
-        out = u.new_empty(u.shape[:-1] + (a * (a + 1) // 2,))
-    left = u if scale is None else u * scale
-    start = 0
-    for i in range(a):  # a loop over the factor's few columns, not over bins or samples
-        torch.mul(left[..., i:i + 1], u[..., i:], out=out[..., start:start + a - i])
-        start += a - i
-    return out
-
-
-def _product_equations(design: ProductDesign, delta: Tensor, delta_dot: Tensor, y: Tensor,
-                       w: Tensor) -> _NormalEquations:
-    """Normal equations of a :class:`ProductDesign` from the factors' moments.
-
-    One matmul ``ũᵀ [W ṽ | W (v ⊗ y) | W² ṽ]`` holds every entry of ``XᵀWX``, ``XᵀWy`` (``u``
-    is the first ``a`` columns of ``ũ``, its products with ``u₀ = 1``) and ``XᵀW²X``; the
-    residuals come from ``u``, ``v`` and the coefficients arranged as ``(a, c, K)``. ``X (b, n,
-    P)`` is never built, and one wider product runs closer to the matmul peak than three narrow
-    ones.
-    """
-    u, v = design.left(delta, delta_dot), design.right(delta, delta_dot)
-    n_a, n_c, n_out, dev = u.shape[-1], v.shape[-1], y.shape[-1], u.device
-    col_u, col_v = (torch.tensor(c, dtype=torch.int64, device=dev)
-                    for c in design.columns(delta.shape[-1]))
-    p, n_pv = col_u.numel(), n_c * (n_c + 1) // 2
-    width = 2 * n_pv + n_c * n_out
-    w1 = w.unsqueeze(-1)
-    right = u.new_empty(u.shape[:-1] + (width,))
-    _pairs(v, w1, out=right[..., :n_pv])
-    torch.mul((w1 * v).unsqueeze(-1), y.unsqueeze(-2), out=right[..., n_pv:n_pv + n_c * n_out]
-              .unflatten(-1, (n_c, n_out)))
-    torch.mul(right[..., :n_pv], w1, out=right[..., n_pv + n_c * n_out:])
-    moments = (_pairs(u).mT @ right).flatten(-2)  # (b, a(a+1)/2 · width)
-    # entry (p, q) of XᵀWX is moment (pair of u_{i_p}, u_{i_q}), (pair of v_{j_p}, v_{j_q})
-    pair_u, pair_v = _pair_numbers(n_a, dev), _pair_numbers(n_c, dev)
-    flat = (pair_u[col_u.unsqueeze(-1), col_u] * width
-            + pair_v[col_v.unsqueeze(-1), col_v]).flatten()  # (P·P,)
-    # XᵀWy[p, k] = Σ w u_{i_p} v_{j_p} y_k: row i_p (the pair (0, i_p)), column j_p·K + k
-    flat_rhs = ((col_u * width + n_pv + col_v * n_out).unsqueeze(-1)
-                + torch.arange(n_out, device=dev)).flatten()  # (P·K,)
-
-    def entries(index: Tensor, shape: tuple[int, int]) -> Tensor:
-        # gather with an expanded index: measured ~8x faster than index_select on this axis
-        return moments.gather(-1, index.expand(moments.shape[:-1] + index.shape)).unflatten(
-            -1, shape)
-
-    gram, rhs = entries(flat, (p, p)), entries(flat_rhs, (p, n_out))
-    gram2 = entries(flat + n_pv + n_c * n_out, (p, p))
-
-    # the design's columns in the order (j, i) of v_j u_i, for Xβ = Σ_i u_i Σ_j v_j β_(i,j)
-    by_v = torch.empty(p, dtype=torch.int64, device=dev)
-    by_v[col_v * n_a + col_u] = torch.arange(p, device=dev)
-
-    def rss(beta: Tensor) -> Tensor:
-        coef = beta.index_select(-2, by_v).unflatten(-2, (n_c, n_a)).flatten(-2)  # (b, c, a·K)
-        fitted = ((v @ coef).unflatten(-1, (n_a, n_out)) * u.unsqueeze(-1)).sum(-2)
-        return (w.unsqueeze(-1) * (y - fitted).square()).sum(-2)
-
-    return _NormalEquations(gram, rhs, gram2, w, rss)
+    return torch.cat(design(delta, delta_dot, sqrt_w) + [s.y[rows] * sqrt_w], -1), w
 
 
 def _guarded_correction(gram: Tensor, corr: Tensor) -> tuple[Tensor, Tensor]:
@@ -356,26 +212,28 @@ def _guarded_correction(gram: Tensor, corr: Tensor) -> tuple[Tensor, Tensor]:
     return gram - kappa[:, None, None] * corr, kappa
 
 
-def _fit_chunk(ne: _NormalEquations, lam: Tensor, binary: bool, tolerate_dead: bool,
-               correction: Tensor | None = None):
-    """Solve one chunk of bins' normal equations ``ne``; ``lam (b,)`` ridge.
+def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
+               tolerate_dead: bool, correction: Tensor | None = None):
+    """Solve one chunk of bins from ``xy = √w [X | y]`` ``(b, n, P + K)``; ``lam (b,)`` ridge.
 
     ``correction (b, P, P)``, when given, is the expected noise part of ``XᵀWX`` (errors in
     the regressors); it is subtracted under the guard of :func:`_guarded_correction`.
 
-    Cholesky is invariant to diagonal scaling (van der Sluis), so the unscaled normal matrix is
-    factorised and the equilibrated quantities -- ridge ``λ`` on the unit diagonal of every
-    column but the intercept, condition number -- are expressed through the column scales
-    ``dⱼ = √(XᵀWX)ⱼⱼ`` (each column's weighted RMS · √Σw), so the condition number measures
-    collinearity, not units.
+    One batched matmul forms ``[X|y]ᵀW[X|y]``; Cholesky is invariant to diagonal scaling (van der
+    Sluis), so the unscaled normal matrix is factorised and the equilibrated quantities --
+    ridge ``λ`` on the unit diagonal of every column but the intercept, condition number -- are
+    expressed through the column scales ``dⱼ = √(XᵀWX)ⱼⱼ`` (each column's weighted RMS ·
+    √Σw), so the condition number measures collinearity, not units.
     """
-    gram, rhs, w = ne.gram, ne.rhs, ne.w
-    p = gram.shape[-1]
+    p = xy.shape[-1] - n_out
+    xw, yw = xy[..., :p], xy[..., p:]
+    full = xy.mT @ xy
+    gram, rhs = full[..., :p, :p], full[..., :p, p:]
     no_ridge = not bool((lam > 0).any())
     plain = correction is None and no_ridge  # A = XᵀWX (+ unit pivots of dead columns)
-    ols = binary and no_ridge
-    # the sandwich needs the observed XᵀWX; the normal matrix is changed in place
-    unpen = None if ols else gram.clone()
+    general = not (binary and no_ridge) and not plain
+    # the general sandwich needs the observed XᵀWX; the normal matrix is changed in place
+    unpen = gram.clone() if general else None
     if correction is None:
         kappa = gram.new_ones(gram.shape[0])
     else:
@@ -390,7 +248,7 @@ def _fit_chunk(ne: _NormalEquations, lam: Tensor, binary: bool, tolerate_dead: b
     scale = torch.where(dead, 1.0, d2.sqrt())
     chol, info = torch.linalg.cholesky_ex(gram)
     failed = info != 0
-    eye = torch.eye(p, dtype=gram.dtype, device=gram.device)
+    eye = torch.eye(p, dtype=xy.dtype, device=xy.device)
     if bool(failed.any()):
         chol = torch.where(failed[:, None, None], eye, chol)
     beta = torch.cholesky_solve(rhs, chol)
@@ -410,24 +268,34 @@ def _fit_chunk(ne: _NormalEquations, lam: Tensor, binary: bool, tolerate_dead: b
     rank_deficient = failed | (dead.any(-1) & (not tolerate_dead))
     condition = torch.where(rank_deficient, torch.inf, bound)
 
-    rss = ne.rss(beta)  # (b, K)
+    rss = (yw - xw @ beta).square().sum(-2)  # (b, K)
     sum_w = w.sum(-1)
-    if ols:
+    if binary and no_ridge:
         dof = sum_w - p
         cov_diag = l_inv.square().sum(-2)  # diag(A⁻¹)
+    elif plain:
+        # kernel weights, no ridge, no correction: A = G = XᵀWX (dead columns aside, where
+        # G₂ is 0 too), so the sandwich Cov = σ² A⁻¹G₂A⁻¹ with G₂ = XᵀW²X and the dof
+        # Σw − 2 tr(A⁻¹G₂) + tr(A⁻¹G A⁻¹G₂) = Σw − tr(A⁻¹G₂) come from Q = (W X) A⁻¹ (n × P)
+        # alone: diag(A⁻¹G₂A⁻¹) = Σ_rows Q², tr(A⁻¹G₂) = Σ Q ∘ (W X) -- one n·P² product
+        # instead of forming G₂ and two P³ products with it
+        xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w
+        q = xww @ (l_inv.mT @ l_inv)
+        dof = sum_w - (q * xww).sum((-2, -1))
+        cov_diag = q.square().sum(-2)
     else:
-        # sandwich for kernel weights / ridge: Cov = σ² A⁻¹ G₂ A⁻¹ (G₂ = XᵀW²X, = G for 0/1
-        # weights), and the effective residual dof  Σw − 2 tr(A⁻¹G₂) + tr(A⁻¹G A⁻¹G₂)  that
-        # makes σ̂² unbiased; with A = G (no ridge, no correction; dead columns aside, where G₂
-        # is 0 too) it is Σw − tr(A⁻¹G₂)
+        # sandwich for kernel weights / ridge: Cov = σ² A⁻¹ (XᵀW²X) A⁻¹, and the effective
+        # residual dof  Σw − 2 tr(A⁻¹G₂) + tr(A⁻¹G A⁻¹G₂)  that makes σ̂² unbiased
         a_inv = l_inv.mT @ l_inv
-        s_mat = a_inv @ (unpen if ne.gram2 is None else ne.gram2)
-        trace = s_mat.diagonal(dim1=-2, dim2=-1).sum(-1)
-        if plain:
-            dof = sum_w - trace
+        if binary:
+            g2 = unpen
         else:
-            a_g = s_mat if ne.gram2 is None else a_inv @ unpen
-            dof = sum_w - 2 * trace + (a_g * s_mat.mT).sum((-2, -1))
+            xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w: XᵀW²X
+            g2 = xww.mT @ xww
+        s_mat = a_inv @ g2
+        trace = s_mat.diagonal(dim1=-2, dim2=-1).sum(-1)
+        a_g = s_mat if binary else a_inv @ unpen  # G₂ = G for 0/1 weights
+        dof = sum_w - 2 * trace + (a_g * s_mat.mT).sum((-2, -1))
         cov_diag = (s_mat * a_inv.mT).sum(-1)
     sigma2 = torch.where(dof.unsqueeze(-1) > 0, rss / dof.unsqueeze(-1), torch.nan)
     se = (cov_diag.clamp(min=0).unsqueeze(-1) * sigma2.unsqueeze(-2)).sqrt()
@@ -442,20 +310,22 @@ def _triangular_inverse(chol: Tensor) -> Tensor:
 
         [L₁₁ 0; L₂₁ L₂₂]⁻¹ = [L₁₁⁻¹ 0; −L₂₂⁻¹ L₂₁ L₁₁⁻¹ L₂₂⁻¹]
 
-    torch's triangular solve against the identity costs ``P³`` (it does not know the right
-    side is triangular) and runs one matrix at a time; the split halves that work and moves
-    the rest into two batched matmuls (measured ~1.4x faster at P = 81, one thread; deeper
-    splits were slower). A triangular inverse is ~2x cheaper on CPU than cholesky_inverse.
+    torch's triangular solve against the identity costs ``P³`` (it does not know that the
+    right side is triangular) and runs one matrix at a time; the split halves that work and
+    moves the rest into two batched matmuls: ~1.4x faster at P = 81 on one thread (39 -> 28 µs
+    per matrix; deeper splits measured slower). A triangular inverse is ~2x cheaper on CPU than
+    cholesky_inverse.
     """
     p = chol.shape[-1]
     eye = torch.eye(p, dtype=chol.dtype, device=chol.device)
     if p < 32:
         return torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
     h = p // 2
-    top = torch.linalg.solve_triangular(chol[..., :h, :h], eye[:h, :h].expand(
-        chol.shape[:-2] + (h, h)), upper=False)
-    bottom = torch.linalg.solve_triangular(chol[..., h:, h:], eye[h:, h:].expand(
-        chol.shape[:-2] + (p - h, p - h)), upper=False)
+    batch = chol.shape[:-2]
+    top = torch.linalg.solve_triangular(chol[..., :h, :h], eye[:h, :h].expand(batch + (h, h)),
+                                        upper=False)
+    bottom = torch.linalg.solve_triangular(
+        chol[..., h:, h:], eye[h:, h:].expand(batch + (p - h, p - h)), upper=False)
     out = torch.zeros_like(chol)
     out[..., :h, :h] = top
     out[..., h:, h:] = bottom
@@ -467,11 +337,13 @@ def _solve_bins(s: BinnedSamples, sel_list, design: Design, lam: Tensor, delta_m
                 tolerate_dead: bool, correction: Correction | None = None):
     outs = []
     for sel in sel_list:
-        ne = _normal_equations(s, sel, design, delta_max, binary)
-        corr = None if correction is None else correction(ne.gram, sel)
-        outs.append(_fit_chunk(ne, lam[sel], binary, tolerate_dead, corr))
+        xy, w = _chunk_design(s, sel, design, delta_max)
+        corr = None
+        if correction is not None:
+            xw = xy[..., : xy.shape[-1] - s.y.shape[-1]]
+            corr = correction(xw.mT @ xw, sel)
+        outs.append(_fit_chunk(xy, w, lam[sel], binary, s.y.shape[-1], tolerate_dead, corr))
     return [torch.cat(parts) for parts in zip(*outs, strict=True)]
-
 
 
 def _chunks(n_bins_total: int, bytes_per_bin: int) -> list[slice]:
@@ -555,7 +427,9 @@ def _add_ridge(s, design, fix, lam, beta, se, rms, cond, delta_max, binary, max_
                correction=None):
     """Smallest ridge bringing each bin in ``fix`` to the target condition (a few tries)."""
     target = min(_RIDGE_TARGET_CONDITION, max_condition)
-    gram = _normal_equations(s, fix, design, delta_max, binary=True).gram
+    xy, _ = _chunk_design(s, fix, design, delta_max)
+    xw = xy[..., : xy.shape[-1] - s.y.shape[-1]]
+    gram = xw.mT @ xw
     diag = gram.diagonal(dim1=-2, dim2=-1)
     dead = diag <= 0  # decoupled in the re-solve: they need no ridge
     scale = torch.where(dead, 1.0, diag.sqrt())

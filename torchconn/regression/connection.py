@@ -70,34 +70,11 @@ def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:
     return torch.cat(_blocks(delta, delta_dot, torch.ones_like(delta[..., :1])), -1)
 
 
-def _column_blocks(delta: Tensor, delta_dot: Tensor, row_scale: Tensor) -> list[Tensor]:
+def _blocks(delta: Tensor, delta_dot: Tensor, row_scale: Tensor) -> list[Tensor]:
     """The column blocks of ``row_scale · [1, δ, δ̇, δ̇⊗δ]``, scaled through the small factors."""
     scaled_dot = row_scale * delta_dot
     cross = (scaled_dot.unsqueeze(-1) * delta.unsqueeze(-2)).flatten(-2)
     return [row_scale, row_scale * delta, scaled_dot, cross]
-
-
-def _with_one(x: Tensor) -> Tensor:
-    """``(..., d) -> (..., 1 + d)``: ``[1, x]``."""
-    out = x.new_empty(x.shape[:-1] + (1 + x.shape[-1],))
-    out[..., 0] = 1
-    out[..., 1:] = x
-    return out
-
-
-def _product_columns(d: int) -> tuple[list[int], list[int]]:
-    """Factors of each column of ``[1, δ, δ̇, δ̇⊗δ]`` as ``u_i v_j``, ``u = [1, δ̇]``,
-    ``v = [1, δ]``."""
-    dots = [1 + i for i in range(d) for _ in range(d)]
-    deltas = [1 + j for _ in range(d) for j in range(d)]
-    return [0] * (1 + d) + list(range(1, d + 1)) + dots, \
-        [0] + list(range(1, d + 1)) + [0] * d + deltas
-
-
-#: the connection design: ``[1, δ, δ̇, δ̇⊗δ]`` is the row-wise product ``[1, δ̇] ⊗ [1, δ]``
-_blocks = _wls.ProductDesign(left=lambda delta, delta_dot: _with_one(delta_dot),
-                             right=lambda delta, delta_dot: _with_one(delta),
-                             columns=_product_columns, blocks=_column_blocks)
 
 
 def connection_regression(
