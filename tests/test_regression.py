@@ -157,9 +157,9 @@ def test_connection_matches_per_bin_lstsq(window, kernel):
 
 @pytest.mark.parametrize("kernel", ["box", "tricube"])
 def test_connection_matches_lstsq_at_many_regressors(kernel):
-    # d = 5: P = 36 regressors (L⁻¹ by a block split, see _wls._triangular_inverse), with
+    # d = 6: P = 49 regressors (L⁻¹ by a block split, see _wls._triangular_inverse), with
     # dropped samples and a tube radius that removes rows
-    d = 5
+    d = 6
     system = AffineConnectionSystem.random(d, seed=6)
     phi, r, r_dot, gen = tube_samples((2,), 2400, d, seed=6)
     xi = system.body_velocity(r, r_dot) + 0.2 * torch.cos(2 * r[..., 2:3]) * r_dot[..., :1] \

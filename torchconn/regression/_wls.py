@@ -312,13 +312,14 @@ def _triangular_inverse(chol: Tensor) -> Tensor:
 
     torch's triangular solve against the identity costs ``P³`` (it does not know that the
     right side is triangular) and runs one matrix at a time; the split halves that work and
-    moves the rest into two batched matmuls: ~1.4x faster at P = 81 on one thread (39 -> 28 µs
-    per matrix; deeper splits measured slower). A triangular inverse is ~2x cheaper on CPU than
-    cholesky_inverse.
+    moves the rest into two batched matmuls. Measured per matrix, one thread, timed alone:
+    P = 81 39 -> 28 µs (load ~7) and 41 -> 35 µs (load ~18), P = 49 10 -> 6.5 µs; slower
+    below P ≈ 40 (P = 36: 3.5 -> 4.2 µs), and deeper splits were slower at P = 81. A triangular
+    inverse is ~2x cheaper on CPU than cholesky_inverse.
     """
     p = chol.shape[-1]
     eye = torch.eye(p, dtype=chol.dtype, device=chol.device)
-    if p < 32:
+    if p < 48:
         return torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
     h = p // 2
     batch = chol.shape[:-2]
