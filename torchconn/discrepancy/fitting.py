@@ -204,7 +204,6 @@ class Problem:
         m = fm.m
         self.fm = fm
         self.mask = m.mask
-        self._rows = tuple(torch.nonzero(m.mask).unbind(1))  # the mask as indices (vmap-able)
         self.weight = 1.0 / fm.floor if weight is None else weight  # (3,)
         cyc = m.cycle[m.mask]  # (N,)
         self.cycle = cyc.repeat_interleave(3)  # rows ordered sample-major, component-minor
@@ -216,7 +215,7 @@ class Problem:
 
     def flat(self, res: Tensor) -> Tensor:
         """``(B, T, 3)`` residual -> whitened ``(n,)`` over usable samples."""
-        return (res[self._rows] * self.weight.to(res.dtype)).reshape(-1)
+        return (res[self.mask] * self.weight.to(res.dtype)).reshape(-1)
 
     def specs(self, names: list[str]) -> tuple[dict[str, slice], Tensor]:
         slices, scales, i = {}, [], 0
@@ -249,9 +248,6 @@ class Problem:
         cols = []
         for n in names:
             s = slices[n]
-            if n in twist_names and _shape_only(get_effect(n)) and s.stop - s.start > 1:
-                cols.extend(self._shape_columns(names, p, slices, twist_names, s).unbind(1))
-                continue
             for j in range(s.start, s.stop):
                 tangent = torch.zeros_like(p)
                 tangent[j] = 1.0
@@ -265,41 +261,6 @@ class Problem:
                     out = fm.residual_from_twist(tw, dparams)
                     cols.append(self.flat(fwAD.unpack_dual(out).tangent))
         return rho, torch.stack(cols, 1)
-
-
-    def _shape_columns(self, names: list[str], p: Tensor, slices: dict[str, slice],
-                       twist_names: list[str], cols: slice) -> Tensor:
-        """Jacobian columns ``(n, k)`` of the parameters in ``cols`` of a shape effect, all in
-        one vectorised forward-mode pass (:func:`torch.func.jvp` under :func:`torch.func.vmap`:
-        the primal is computed once, the ``k`` tangents together; a joint bias has one per
-        joint). Chunked so that a batch of tangents stays near ``_VMAP_ELEMENTS`` numbers per
-        intermediate of the connection."""
-        fm = self.fm
-
-        def residual(q: Tensor) -> Tensor:
-            params = {k: q[sl] for k, sl in slices.items()}
-            twist = fm._twist({k: params[k] for k in twist_names})
-            return self.flat(fm.residual_from_twist(twist, params))
-
-        k = cols.stop - cols.start
-        basis = torch.zeros(k, p.numel(), dtype=p.dtype, device=p.device)
-        basis[torch.arange(k), torch.arange(cols.start, cols.stop)] = 1.0
-        m = fm.m
-        per_tangent = m.n_trials * fm._s_fine.numel() * m.shape_dim * (m.shape_dim + 1)
-        chunk = max(1, min(k, _VMAP_ELEMENTS // max(per_tangent, 1)))
-        tangents = torch.func.vmap(lambda v: torch.func.jvp(residual, (p,), (v,))[1],
-                                   chunk_size=chunk)(basis)  # (k, n)
-        return tangents.T
-
-
-#: numbers per intermediate of one vectorised batch of tangents (64 MB in float64)
-_VMAP_ELEMENTS = 2 ** 23
-
-
-def _shape_only(effect: Effect) -> bool:
-    """The effect changes the twist only through the shapes (a fixed swimmer)."""
-    return (type(effect).true_shapes is not Effect.true_shapes
-            and type(effect).system_kwargs is Effect.system_kwargs)
 
 
 def _changes_twist(effect: Effect) -> bool:
