@@ -9,15 +9,18 @@ hidden, runs :func:`torchconn.discrepancy.diagnose` blind, and records
   one, said ``none`` or ``unexplained``;
 - the relative error of the fitted parameters and whether the 95% intervals cover the truth.
 
-Effect-free datasets (at every noise level, at the sampling rates and link counts of the
-``[clean]`` table) measure false discoveries, and datasets with an effect outside the registry
-measure confident wrong names: there "correct" means ``unexplained`` (possibly beside a partial
+Effect-free datasets (the study's own swimmer at its noise levels, and the ``[clean]`` grid of
+link counts, sampling rates, noise levels and drop-out fractions) measure false discoveries,
+and datasets with an effect outside the registry measure confident wrong names:
+there "correct" means ``unexplained`` (possibly beside a partial
 effect), never a clean ``effect``. The unregistered effects: an unmodelled lateral slip
 (``ΔA_vy = ε (r2, r1)``), a first-order inertial relaxation of the body velocity
 (:func:`~torchconn.discrepancy.simulate.simulate_inertial_relaxation`, which a registered time
 lag imitates only with a negative lag), and a lag of the *pose* stream behind the shapes (a
 negative ``time_lag``, outside its physical range). Coverage: the fraction of named effects whose
-nominal 95% intervals contain the truth (every parameter). On the *same* datasets,
+95% intervals (simultaneous over the effect's parameters) contain the truth (every parameter);
+``covered_marginal`` the same with per-parameter 95% quantiles, ``covered_noise_only`` with the
+standard error alone. On the *same* datasets,
 the field's standard tool: a PySINDy sparse regression (STLSQ) of the nominal residual on a
 library of the effects' linearised signatures -- the columns of the forward model's Jacobian in
 each effect's parameters at zero (absent) -- with its threshold calibrated on the clean datasets
@@ -28,7 +31,7 @@ Writes ``OUT/power.csv`` (tidy: one row per dataset and method), ``OUT/power.jso
 versions, seeds, the summary table) and ``OUT/power.png``; prints the summary table.
 
     python benchmarks/bench_discrepancy_power.py --out runs/power [--config FILE]
-        [--set study.seeds=4] [--effects ambient_flow drag_ratio]
+        [--set study.seeds=4] [--effects ambient_flow drag_ratio] [--workers 2]
 
 pysindy is an optional benchmark dependency (``pip install pysindy``); without it the SINDy
 columns are skipped with a note.
