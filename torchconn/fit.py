@@ -30,7 +30,15 @@ from pathlib import Path
 
 import torch
 
-from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
+from ._cli import (
+    InputError,
+    add_device,
+    add_threads,
+    prepare_output,
+    resolve_device,
+    run_command,
+    set_threads,
+)
 from ._provenance import write_sidecar
 from .convert import add_conversion_arguments, config_tables, conversion_settings, load_recordings
 from .discrepancy.known import changes_data, parse_known, relative_to_known
@@ -45,6 +53,7 @@ from .regression.estimator import (
 )
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
+from .regression.skill import PoorHeldOutSkillWarning
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
@@ -52,11 +61,13 @@ PROG = "torchconn-fit"
 
 
 def connection_table(model: LocalConnectionModel, n_points: int = 100):
-    """Columns and rows of ``connection.csv`` for an unbatched model, on a uniform phase grid."""
+    """Columns and rows of ``connection.csv`` for an unbatched model, on a uniform phase grid
+    (computed from a CPU copy of the model)."""
     if model.batch_shape:
         raise ValueError(f"connection_table needs one model, got batch {tuple(model.batch_shape)}")
+    model = model.to("cpu")
     d = model.shape_dim
-    phi = torch.arange(n_points, dtype=torch.float64) * (2 * math.pi / n_points)
+    phi = torch.arange(n_points, dtype=torch.float64, device=model.device) * (2 * math.pi / n_points)
     cols = ["phase"] + [f"r{i + 1}" for i in range(d)]
     blocks = [phi[:, None], model.gamma_at(phi)]
     cols += [f"A_{k}_{i + 1}" for k in ROWS for i in range(d)]
@@ -91,13 +102,18 @@ _FLAGS = {"n_bins": "n_bins", "fourier_order": "fourier_order", "window": "windo
           "phase_order": "phase_order"}
 
 #: the estimator's stage names: ``--set regression.kernel=box`` means ``estimator.regression…``
-_STAGE_KEYS = ("smoother", "phaser", "cycle", "regression", "pool")
+_STAGE_KEYS = ("smoother", "phaser", "cycle", "regression", "pool", "complexity",
+               "held_out_folds")
 
 
 def build_estimator(args, table: dict | None) -> ConnectionEstimator:
     """The estimator of ``fit``: trials pooled by default, then the ``[estimator]`` table
     (nested per stage, see :func:`estimator_from_settings`), then the shortcut flags."""
     table = {"pool": True, **(table or {})}
+    if args.complexity is not None:
+        table["complexity"] = args.complexity
+    if args.folds is not None:
+        table["held_out_folds"] = args.folds
     if args.regression is not None:
         table["regression"] = {**table.get("regression", {}), "method": args.regression}
     if args.metric is not None:  # auto: fit the metric when there is a power column
@@ -147,12 +163,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--regression", choices=("tube", "noise_aware"),
                    help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
                    "raw differences with the motion-capture noise removed (unbiased under noise)")
-    p.add_argument("--complexity", choices=("fixed", "cv"), default="fixed",
-                   help="fixed: --n-bins and --fourier-order as given (default); cv: bins, "
-                   "Fourier order and ridge chosen by held-out error over blocks of whole cycles")
-    p.add_argument("--folds", type=int, default=3,
-                   help="blocks of whole cycles for the held-out check and --complexity cv "
-                   "(default 3; 0 skips the check)")
+    p.add_argument("--complexity", choices=("auto", "fixed", "cv"),
+                   help="auto (default): --n-bins and --fourier-order as given unless the model "
+                   "then predicts held-out cycles worse than their phase-averaged velocity, "
+                   "then as cv; fixed: as given; cv: bins, Fourier order and ridge chosen by "
+                   "held-out error over blocks of whole cycles (estimator.complexity)")
+    p.add_argument("--folds", type=int,
+                   help="blocks of whole cycles for the held-out check and the complexity "
+                   "choice (estimator.held_out_folds, default 3; 0 skips the check)")
     p.add_argument("--metric", choices=("auto", "yes", "no"),
                    help="estimate the dissipation metric: auto (default) when the files have a "
                    "power column, yes to require one, no never")
@@ -163,15 +181,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-figures", action="store_true", help="do not write PNG plots")
     add_conversion_arguments(p)
     add_threads(p)
+    add_device(p)
     args = p.parse_args(argv)
 
     def body() -> int:
         set_threads(args.threads)
+        device = resolve_device(args.device)
         if args.links < 2:
             raise InputError(f"--links must be >= 2, got {args.links}")
         if args.grid < 2:
             raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
-        if args.folds < 0 or args.folds == 1:
+        if args.folds is not None and (args.folds < 0 or args.folds == 1):
             raise InputError(f"--folds must be 0 (no held-out check) or >= 2, got {args.folds}")
         if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
             raise InputError(f"--window must be a positive number, got {args.window}")
@@ -204,16 +224,12 @@ def main(argv: list[str] | None = None) -> int:
         if not check.ready["fit"]:
             raise InputError("the recording is not ready to fit: "
                              + "; ".join(check.problems["fit"]))
-        if args.complexity == "cv":
-            est = estimator.select_complexity(traj, n_folds=max(args.folds, 2))
-        else:
+        traj = traj.to(device)  # read and checked on the CPU, moved once
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoorHeldOutSkillWarning)  # reported below
             est = estimator.fit(traj)
-        held_out = None
-        if args.folds:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # reported below
-                held_out = est.cross_validate(args.folds)
-        model = est.model_
+        held_out, folds = est.held_out_skill_, est.held_out_folds
+        model = est.model_.to("cpu")  # outputs are written from CPU copies
         # everything is computed before the first file is written: no partial outputs
         cols, rows = connection_table(model, args.grid)
         model.save(out / "model.npz")
@@ -221,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
         outputs = ["model.npz", "connection.csv"]
         if not args.no_figures:
             plot_connection(model, out / "connection.png")
-            plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
+            plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r.cpu())
             outputs += ["connection.png", "limit_cycle.png"]
             if model.M is not None:
                 plot_metric(model, out / "metric.png")
@@ -237,12 +253,13 @@ def main(argv: list[str] | None = None) -> int:
                      "conversion": [r.to_dict() for r in rec.reports]},
             "preflight": check.to_dict(),
             "model": {"window": model.meta.get("window"), "metric": model.M is not None},
-            "complexity": (None if args.complexity != "cv" else
+            "complexity": (None if est.complexity_ is None else
                            {"n_bins": est.complexity_.n_bins,
                             "fourier_order": est.complexity_.fourier_order,
                             "ridge": est.complexity_.ridge}),
-            "held_out_skill": None if held_out is None else _skill_summary(held_out, args.folds),
+            "held_out_skill": None if held_out is None else _skill_summary(held_out, folds),
             "outputs": outputs,
+            "device": str(device),
         })
         print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
               f"samples (d = {traj.shape_dim})")
@@ -254,22 +271,28 @@ def main(argv: list[str] | None = None) -> int:
             print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; "
                   "the full M only as far as the data leave the cycle (see the bands in "
                   "metric.png)")
-        if args.complexity == "cv":
+        if est.complexity_ is not None:
             c = est.complexity_
             print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
                   f"{c.fourier_order}, ridge {c.ridge:g}")
         if held_out is not None:
-            print(f"held-out R² (v_x, v_y, omega), each of {args.folds} blocks of whole cycles "
+            print(f"held-out R² (v_x, v_y, omega), each of {folds} blocks of whole cycles "
                   "left out in turn:")
             for name, r2 in (("model", held_out.r2),
                              ("phase-averaged velocity", held_out.r2_phase_average),
                              ("template", held_out.r2_template)):
                 print(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
-            if bool(held_out.worse_than_phase_average.any()):
+            if bool(held_out.unscored.any()):
+                print("WARNING: some phase bins cannot be fitted when a block of cycles is "
+                      "left out: the model has too many coefficients for this recording "
+                      "(record more cycles, or use fewer --n-bins)")
+            elif bool(held_out.worse_than_phase_average.any()):
                 print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
-                      "velocity: it overfits this recording (try --complexity cv, fewer "
-                      "--n-bins, a lower --fourier-order or a wider --window, or record more "
-                      "cycles)")
+                      "velocity: its shape terms do not help predict those components on this "
+                      "recording (" + ("record more cycles; the complexity was already chosen "
+                      "by held-out error)" if est.complexity_ is not None else "try --complexity "
+                      "cv, fewer --n-bins, a lower --fourier-order or a wider --window, or "
+                      "record more cycles)"))
         print(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
         return 0
 

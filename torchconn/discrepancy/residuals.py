@@ -68,9 +68,10 @@ def phase_profile(
     mask = m.mask
     phase = torch.remainder(m.phase[mask], 2 * math.pi)
     width = 2 * math.pi / n_bins
-    idx = (torch.round(phase / width).long() % n_bins).numpy()
-    cyc = m.cycle[mask].numpy()
-    res = residual[mask].detach().numpy()  # (N, 3)
+    # a report's summary, bootstrapped in NumPy: one copy to the CPU
+    idx = (torch.round(phase / width).long() % n_bins).cpu().numpy()
+    cyc = m.cycle[mask].cpu().numpy()
+    res = residual[mask].detach().cpu().numpy()  # (N, 3)
     C = m.n_cycles
     sums = np.zeros((C, n_bins, 3))
     counts = np.zeros((C, n_bins))
@@ -123,7 +124,7 @@ def compare_terms(
     def fit(recording):
         est = ConnectionEstimator(
             regression=TubeRegression(n_bins=n_bins, fourier_order=fourier_order, metric=False),
-            pool=True,
+            pool=True, complexity="fixed", held_out_folds=0,  # the workflow cross-validates
         )
         return est.fit(recording, phase=phase).model_.bins
 
