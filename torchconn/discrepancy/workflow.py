@@ -50,7 +50,7 @@ import torch
 from scipy import stats
 from torch import Tensor
 
-from ..phase.smoothing import smooth_trajectory
+from ..phase.smoothing import smooth_trajectory, unwrap
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..regression.noise_aware import estimate_noise
@@ -509,7 +509,8 @@ def _twin_bias(job: _Job, fit: EffectFit, max_cycles: float = 8.0,
     eps = torch.cat([eps, -eps])  # antithetic pairs
     R = 2 * n_pairs
     twin = measurement_from_clean(t, pose + eps[..., :3], shapes + eps[..., 3:],
-                                  phase.expand(R, T), kernel, m.dt, heading=pose[..., 2])
+                                  phase.expand(R, T), kernel, m.dt,
+                                  heading=unwrap(pose[..., 2], dim=-1))
     pb = Problem(ForwardModel(twin, fm.system, upsample=fm.upsample), n_folds=2,
                  weight=job.pb.weight)
     refit = fit_effects(pb, list(fit.names), fit.p, abs_tol=1e-6, max_iter=2 * job.s.max_iter)
