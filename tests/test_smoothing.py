@@ -307,3 +307,14 @@ def test_algorithm_is_checked_and_reaches_the_smoother():
     with pytest.raises(ValueError, match="RTSSmoother.algorithm"):
         RTSSmoother(algorithm="fft")
     assert RTSSmoother(algorithm="loop").get_params()["algorithm"] == "loop"
+
+
+def test_auto_picks_the_faster_algorithm_on_the_cpu():
+    from torchconn.phase.smoothing import _SCAN_MAX_ROWS_CPU
+
+    kw = dict(process_noise=1.0, measurement_noise=0.01)
+    for order, rows in _SCAN_MAX_ROWS_CPU.items():
+        for n, want in ((rows, "scan"), (rows + 1, "loop")):
+            y = torch.randn(n, 12, 1, dtype=DT, generator=torch.Generator().manual_seed(n))
+            auto = rts_smooth(y, 0.1, order=order, **kw)[1]
+            assert torch.equal(auto, rts_smooth(y, 0.1, order=order, algorithm=want, **kw)[1])

@@ -4,7 +4,14 @@ Each channel of ``y (..., T, C)`` is smoothed on its own with a linear Gaussian 
 2-state (position, velocity) constant-velocity model driven by white acceleration
 (``order=2``), or a 3-state (position, velocity, acceleration) model driven by white jerk
 (``order=3``), observed in position with white noise. All batch elements and channels run
-through one vectorised filter; only the time loop is in Python.
+through one vectorised filter, over time in one of two ways that give the same result:
+
+- a parallel scan (Särkkä & García-Fernández, "Temporal parallelization of Bayesian smoothers",
+  IEEE TAC 2021): filter and smoother as associative scans of log depth in the number of
+  samples (:mod:`torchconn.phase._scan`) -- a few large tensor operations per round, for GPUs
+  and, on a CPU, for a few hundred rows or fewer;
+- the sequential loop, one Python step per sample, kept as the reference and used on the CPU
+  for many rows, where its per-step cost is shared by all of them.
 
 Noise parameters, when not given, are estimated per channel (see :func:`rts_smooth`).
 Missing samples (NaN) are predicted through, so outputs are finite everywhere.
