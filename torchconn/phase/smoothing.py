@@ -205,6 +205,8 @@ def _filter_combine(first, then):
     """
     Ai, bi, Ci, ei, Ji = first
     Aj, bj, Cj, ej, Jj = then
+    # the plain inverse is accurate here: a composed element's C is process noise accumulated
+    # over its samples, never the vague prior, which only enters through the state (_filter_apply)
     Minv = _scan.inv(_eye(Ai.shape[1], Ai) + _scan.mm(Ci, Jj))  # (I + C_i J_j)⁻¹
     S = _scan.mm(Minv, Ci)
     T1 = _scan.mm(Minv, Ai)
