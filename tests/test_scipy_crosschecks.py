@@ -3,7 +3,8 @@
 - the FFT Hilbert transform against :func:`scipy.signal.hilbert`;
 - the order-2 RTS smoother at a fixed noise ratio against the cubic smoothing spline
   :func:`scipy.interpolate.make_smoothing_spline` (the white-acceleration smoother's posterior
-  mean *is* that spline with ``λ = R / q``, given a diffuse prior on the initial state);
+  mean *is* that spline with ``λ = R / q``, given a diffuse prior on the initial state), run
+  both sequentially and as a parallel scan;
 - a Levenberg–Marquardt fit of the discrepancy workflow against
   :func:`scipy.optimize.least_squares` (``method="lm"``);
 - the paired t-test of the workflow and the per-bin t-tests of the claims against the
@@ -41,7 +42,8 @@ def test_analytic_signal_is_scipy_hilbert(n):
     np.testing.assert_allclose(z, signal.hilbert(x.swapaxes(-1, -2), axis=-2), rtol=0, atol=1e-12)
 
 
-def test_rts_smoother_is_the_cubic_smoothing_spline():
+@pytest.mark.parametrize("algorithm", ["loop", "scan"])
+def test_rts_smoother_is_the_cubic_smoothing_spline(algorithm):
     """Order 2 (white acceleration, spectral density q) with measurement variance R minimises
     ``Σ (y_k − f(t_k))² / R + ∫ f''² / q``: the cubic smoothing spline with ``λ = R / q``.
 
@@ -58,7 +60,7 @@ def test_rts_smoother_is_the_cubic_smoothing_spline():
     R = np.array([0.0025, 0.0025])
     q = np.array([1.0, 0.1])  # two noise ratios, one per channel
     val, der = rts_smooth(torch.from_numpy(y), dt, process_noise=torch.from_numpy(q),
-                          measurement_noise=torch.from_numpy(R))
+                          measurement_noise=torch.from_numpy(R), algorithm=algorithm)
     for c in range(2):
         spline = make_smoothing_spline(t, y[:, c], lam=R[c] / q[c])
         err = np.abs(val[:, c].numpy() - spline(t))
