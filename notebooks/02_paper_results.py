@@ -137,8 +137,10 @@ else:
 # Everything below uses only the files in the sweep directory:
 #
 # * `results.csv` — one row per (experiment, level, trial, model, component, metric), tidy;
-#   metrics `rms_vs_ground_truth`, `rms_vs_observed` (against the smoothed recorded
-#   $g^{-1}\dot g$) and `mean_vs_ground_truth`;
+#   metrics `rms_vs_ground_truth`, `rms_vs_observed` (against the observed body velocity the
+#   way the regression sees it: for the default regression the raw differences of the noisy
+#   poses over its velocity interval, every model evaluated on the same intervals) and
+#   `mean_vs_ground_truth`;
 # * `phase_errors.csv` — error statistics per phase bin (mean, RMS, standard error);
 # * `traces.csv` — body-velocity traces of trial 0 over cycles 13–18 (Fig. 3B);
 # * `claims.csv` — the claims with their verdict and the numbers behind it;
@@ -276,11 +278,12 @@ if phase_errors and sys_exps:
 # **(B) Observation noise.** The paper reports that the data-driven model, although fitted
 # to the noisy observed body velocities, stays closer to the ground truth than to those
 # observations, since the structure of the regression ($\xi$ linear in $\dot r$, smooth in
-# phase) averages out much of the measurement noise — claim (d). Compare the two curves on
-# your sweep: in the runs we made with this version the error against the ground truth grows
-# *faster* beyond $\omega \approx 0.01$, and claim (d) fails. One likely reason is that the
-# model is evaluated at the noisy recorded shapes, so the measurement noise enters its inputs
-# as well as its target.
+# phase) averages out much of the measurement noise — claim (d). "Observed" is what the
+# regression is fitted to: the raw differences of the noisy poses over the regression's
+# velocity interval (torchconn 0.1 compared with the Kalman-smoothed velocity instead, which
+# loses most of its noise, and the claim then failed). The ground-truth curve still grows with
+# the noise: the model is evaluated at the noisy recorded shapes, so the measurement noise
+# enters its inputs as well as its target.
 
 # %%
 def band(ax, rows, color, label):
