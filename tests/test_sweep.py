@@ -70,8 +70,10 @@ def test_default_sweep_runs_small(tmp_path):
 def test_quick_config_runs(tmp_path):
     out = tmp_path / "quick"
     assert cli.main(["--config", str(ROOT / "configs" / "quick.toml"), "--out", str(out),
-                     "--cycles", "8", "--quiet"]) == 0
+                     "--cycles", "8", "--quiet", "--device", "cpu"]) == 0
     _check_outputs(out, n_experiments=2)
+    assert json.loads((out / "run.json").read_text())["device"] == {"device": "cpu",
+                                                                    "type": "cpu"}
 
 
 def test_every_paper_config_parses():

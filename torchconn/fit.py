@@ -30,7 +30,15 @@ from pathlib import Path
 
 import torch
 
-from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
+from ._cli import (
+    InputError,
+    add_device,
+    add_threads,
+    prepare_output,
+    resolve_device,
+    run_command,
+    set_threads,
+)
 from ._provenance import write_sidecar
 from .convert import add_conversion_arguments, config_tables, conversion_settings, load_recordings
 from .discrepancy.known import changes_data, parse_known, relative_to_known
@@ -52,11 +60,13 @@ PROG = "torchconn-fit"
 
 
 def connection_table(model: LocalConnectionModel, n_points: int = 100):
-    """Columns and rows of ``connection.csv`` for an unbatched model, on a uniform phase grid."""
+    """Columns and rows of ``connection.csv`` for an unbatched model, on a uniform phase grid
+    (computed from a CPU copy of the model)."""
     if model.batch_shape:
         raise ValueError(f"connection_table needs one model, got batch {tuple(model.batch_shape)}")
+    model = model.to("cpu")
     d = model.shape_dim
-    phi = torch.arange(n_points, dtype=torch.float64) * (2 * math.pi / n_points)
+    phi = torch.arange(n_points, dtype=torch.float64, device=model.device) * (2 * math.pi / n_points)
     cols = ["phase"] + [f"r{i + 1}" for i in range(d)]
     blocks = [phi[:, None], model.gamma_at(phi)]
     cols += [f"A_{k}_{i + 1}" for k in ROWS for i in range(d)]
@@ -165,10 +175,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-figures", action="store_true", help="do not write PNG plots")
     add_conversion_arguments(p)
     add_threads(p)
+    add_device(p)
     args = p.parse_args(argv)
 
     def body() -> int:
         set_threads(args.threads)
+        device = resolve_device(args.device)
         if args.links < 2:
             raise InputError(f"--links must be >= 2, got {args.links}")
         if args.grid < 2:
@@ -206,6 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         if not check.ready["fit"]:
             raise InputError("the recording is not ready to fit: "
                              + "; ".join(check.problems["fit"]))
+        traj = traj.to(device)  # read and checked on the CPU, moved once
         if args.complexity == "cv":
             est = estimator.select_complexity(traj, n_folds=max(args.folds, 2))
         else:
@@ -215,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # reported below
                 held_out = est.cross_validate(args.folds)
-        model = est.model_
+        model = est.model_.to("cpu")  # outputs are written from CPU copies
         # everything is computed before the first file is written: no partial outputs
         cols, rows = connection_table(model, args.grid)
         model.save(out / "model.npz")
@@ -223,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         outputs = ["model.npz", "connection.csv"]
         if not args.no_figures:
             plot_connection(model, out / "connection.png")
-            plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r)
+            plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r.cpu())
             outputs += ["connection.png", "limit_cycle.png"]
             if model.M is not None:
                 plot_metric(model, out / "metric.png")
@@ -245,6 +258,7 @@ def main(argv: list[str] | None = None) -> int:
                             "ridge": est.complexity_.ridge}),
             "held_out_skill": None if held_out is None else _skill_summary(held_out, args.folds),
             "outputs": outputs,
+            "device": str(device),
         })
         print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
               f"samples (d = {traj.shape_dim})")

@@ -17,7 +17,16 @@ import tomllib
 from dataclasses import replace
 from pathlib import Path
 
-from .._cli import InputError, add_threads, check_keys, prepare_output, run_command, set_threads
+from .._cli import (
+    InputError,
+    add_device,
+    add_threads,
+    check_keys,
+    prepare_output,
+    resolve_device,
+    run_command,
+    set_threads,
+)
 from ..convert import add_conversion_arguments, conversion_settings, load_recordings
 from ..io.preflight import preflight
 from ..io.trajectory_files import read_csv
@@ -64,6 +73,7 @@ def _parser() -> argparse.ArgumentParser:
     add_conversion_arguments(p, frame=False)
     p.add_argument("--quiet", action="store_true", help="print only the verdict line")
     add_threads(p)
+    add_device(p)
     return p
 
 
@@ -113,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def body() -> int:
         set_threads(args.threads)
+        device = resolve_device(args.device)
         if args.links < 2:
             raise InputError(f"--links must be at least 2, got {args.links}")
         frame = args.frame or "center"
@@ -138,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         if not check.periodic:  # the cycle rule itself is applied by diagnose()
             raise InputError("the recording is not ready for the discrepancy workflow: "
                              + "; ".join(check.problems["discrepancy"]))
+        traj = traj.to(device)  # read and checked on the CPU, moved once
         t0 = time.time()
         if not args.quiet:
             print(f"torchconn-discrepancy: {len(args.data)} file(s), {system}")

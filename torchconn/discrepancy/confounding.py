@@ -101,8 +101,9 @@ def _experiment_measurement(name: str, gait: FourierGait, system: LocomotionSyst
     g = {"as_recorded": gait, "reversed": gait.reversed(),
          "larger_amplitude": _scaled(gait, 1.5), "smaller_amplitude": _scaled(gait, 0.6),
          "turning": _offset(gait, 0.5), "two_headings": gait}[name]
-    traj = simulate(system, g, eta=0.0, n_cycles=n_cycles, samples_per_cycle=spc, substeps=8,
-                    seeds=[0], stationary_start=False)
+    # eta = 0 as a tensor on the recording's device: the experiment is simulated there
+    traj = simulate(system, g, eta=m.pose.new_zeros(()), n_cycles=n_cycles,
+                    samples_per_cycle=spc, substeps=8, seeds=[0], stationary_start=False)
     pose, r, phase = traj.pose, traj.r, traj.truth.phase
     if name == "two_headings":
         c, s = 0.0, 1.0  # rotate the world by 90°

@@ -104,9 +104,9 @@ class Effect:
     def n_params(self, system) -> int:
         return len(self.param_specs(system))
 
-    def absent(self, system, dtype=torch.float64) -> Tensor:
+    def absent(self, system, dtype=torch.float64, device=None) -> Tensor:
         """Parameters of the absent effect (zeros)."""
-        return torch.zeros(self.n_params(system), dtype=dtype)
+        return torch.zeros(self.n_params(system), dtype=dtype, device=device)
 
     # ------------------------------------------------------------------ hooks (no-ops)
     def system_kwargs(self, p: Tensor, kwargs: dict) -> dict:
@@ -175,7 +175,7 @@ class AmbientFlow(Effect):
                 Param("u_y", "body lengths / time", 0.01))
 
     def body_velocity(self, p, heading):
-        u = p.to(heading.dtype).expand(heading.shape + (2,))
+        u = p.to(heading).expand(heading.shape + (2,))
         return torch.cat([_rot(heading, u, transpose=True), torch.zeros_like(u[..., :1])], -1)
 
 
@@ -192,7 +192,7 @@ class BodyDrift(Effect):
                 Param("omega", "rad / time", 0.005))
 
     def body_velocity(self, p, heading):
-        return p.to(heading.dtype).expand(heading.shape + (3,))
+        return p.to(heading).expand(heading.shape + (3,))
 
 
 class DragRatio(Effect):
@@ -203,7 +203,7 @@ class DragRatio(Effect):
         return (Param("delta_k", "1 (change of the drag ratio)", 0.2),)
 
     def system_kwargs(self, p, kwargs):
-        k0 = torch.as_tensor(kwargs["drag_ratio"], dtype=p.dtype)
+        k0 = torch.as_tensor(kwargs["drag_ratio"], dtype=p.dtype, device=p.device)
         return {**kwargs, "drag_ratio": k0 + p[0]}
 
     def physical(self, p, system):
@@ -228,19 +228,20 @@ class LinkLength(Effect):
         return tuple(Param(n, "1 (fraction of the nominal lengths)", 0.05) for n in names)
 
     def system_kwargs(self, p, kwargs):
-        l0 = torch.as_tensor(kwargs["link_lengths"], dtype=p.dtype)
-        basis = self._basis_n(l0.shape[0], p.dtype)
+        l0 = torch.as_tensor(kwargs["link_lengths"], dtype=p.dtype, device=p.device)
+        basis = self._basis_n(l0.shape[0], p)
         return {**kwargs, "link_lengths": l0 * (1 + basis @ p)}
 
     @staticmethod
-    def _basis_n(n: int, dtype) -> Tensor:
-        """``(N, m)`` modes: constant, linear and quadratic in the link's position."""
-        x = torch.linspace(-1.0, 1.0, n, dtype=dtype)
+    def _basis_n(n: int, like: Tensor) -> Tensor:
+        """``(N, m)`` modes: constant, linear and quadratic in the link's position, on
+        ``like``'s dtype and device."""
+        x = torch.linspace(-1.0, 1.0, n, dtype=like.dtype, device=like.device)
         return torch.stack([torch.ones_like(x), x, 0.5 * (3 * x * x - 1)][: min(3, n)], -1)
 
     def physical(self, p, system):
-        l0 = system.link_lengths.detach().to(p.dtype)
-        lengths = l0 * (1 + self._basis_n(l0.shape[0], p.dtype) @ p)
+        l0 = system.link_lengths.detach().to(p)
+        lengths = l0 * (1 + self._basis_n(l0.shape[0], p) @ p)
         return {f"l{i + 1}": lengths[i] for i in range(l0.shape[0])}
 
     def physical_units(self, system):
@@ -261,7 +262,7 @@ class MarkerOffset(Effect):
         return (Param("o_x", "body lengths", 0.02), Param("o_y", "body lengths", 0.02))
 
     def observe(self, p, pose):
-        off = _rot(pose[..., 2], p.to(pose.dtype).expand(pose.shape[:-1] + (2,)))
+        off = _rot(pose[..., 2], p.to(pose).expand(pose.shape[:-1] + (2,)))
         return torch.cat([pose[..., :2] + off, pose[..., 2:]], -1)
 
 
@@ -274,10 +275,10 @@ class JointBias(Effect):
         return tuple(Param(f"b{i + 1}", "rad", 0.05) for i in range(system.shape_dim))
 
     def true_shapes(self, p, read, dt):
-        return lambda s: read(s) - p.to(s.dtype)
+        return lambda s: read(s) - p.to(s)
 
     def recorded_shapes(self, p, read, dt):
-        return lambda s: read(s) + p.to(s.dtype)
+        return lambda s: read(s) + p.to(s)
 
 
 class TimeLag(Effect):
@@ -291,10 +292,10 @@ class TimeLag(Effect):
         return (Param("tau", "time units", 0.05),)
 
     def true_shapes(self, p, read, dt):
-        return lambda s: read(s + p[0].to(s.dtype))
+        return lambda s: read(s + p[0].to(s))
 
     def recorded_shapes(self, p, read, dt):
-        return lambda s: read(s - p[0].to(s.dtype))
+        return lambda s: read(s - p[0].to(s))
 
     def physical_range(self, system):
         # a lag, not a lead: the shapes cannot be recorded before they happen

@@ -73,7 +73,7 @@ class CycleStats:
         G_all, g_all = self.G.sum(0), self.g.sum(0)
         out = self.sse.clone()
         steps = []
-        eye = torch.eye(P, dtype=self.G.dtype)
+        eye = torch.eye(P, dtype=self.G.dtype, device=self.G.device)
         for k in range(K):
             sel = self.fold == k
             G = G_all - self.G[sel].sum(0)
@@ -103,7 +103,7 @@ def fold_of_cycles(cycle_trial: Tensor, cycle_index: Tensor, n_folds: int) -> Te
         sel = torch.nonzero(cycle_trial == b).flatten()
         order = sel[torch.argsort(cycle_index[sel])]
         n = order.numel()
-        fold[order] = (torch.arange(n) * n_folds) // max(n, 1)
+        fold[order] = (torch.arange(n, device=fold.device) * n_folds) // max(n, 1)
     return fold
 
 
@@ -111,11 +111,10 @@ def cycle_stats(rho: Tensor, J: Tensor, cycle: Tensor, n_cycles: int, fold: Tens
     """Per-cycle sums of a whitened residual ``rho (n,)`` and Jacobian ``J (n, P)``."""
     P = J.shape[1]
     idx = cycle
-    sse = torch.zeros(n_cycles, dtype=rho.dtype).index_add_(0, idx, rho * rho)
-    g = torch.zeros(n_cycles, P, dtype=rho.dtype).index_add_(0, idx, J * rho[:, None])
-    G = torch.zeros(n_cycles, P, P, dtype=rho.dtype).index_add_(
-        0, idx, J[:, :, None] * J[:, None, :])
-    n = torch.zeros(n_cycles, dtype=rho.dtype).index_add_(0, idx, torch.ones_like(rho))
+    sse = rho.new_zeros(n_cycles).index_add_(0, idx, rho * rho)
+    g = rho.new_zeros(n_cycles, P).index_add_(0, idx, J * rho[:, None])
+    G = rho.new_zeros(n_cycles, P, P).index_add_(0, idx, J[:, :, None] * J[:, None, :])
+    n = rho.new_zeros(n_cycles).index_add_(0, idx, torch.ones_like(rho))
     return CycleStats(sse=sse, g=g, G=G, n=n, fold=fold)
 
 
@@ -224,7 +223,7 @@ class Problem:
             slices[n] = slice(i, i + len(sp))
             scales.extend(s.scale for s in sp)
             i += len(sp)
-        return slices, torch.tensor(scales, dtype=torch.float64)
+        return slices, torch.tensor(scales, dtype=torch.float64, device=self.fm.m.device)
 
     def evaluate(self, names: list[str], p: Tensor, jacobian: bool = True
                  ) -> tuple[Tensor, Tensor | None]:
@@ -286,7 +285,7 @@ def fit_effects(
     """
     slices, scale = problem.specs(names)
     P = int(scale.numel())
-    p = torch.zeros(P, dtype=torch.float64) if p0 is None else p0.clone().to(torch.float64)
+    p = torch.zeros_like(scale) if p0 is None else p0.to(scale, copy=True)
     rho, J = problem.evaluate(names, p, jacobian=P > 0)
     costs = [float(rho @ rho)]
     fresh = True  # J is the exact Jacobian at p (not a Broyden update)
@@ -338,7 +337,7 @@ def fit_effects(
     st = cycle_stats(rho, J if P > 0 else rho.new_zeros(rho.numel(), 0), problem.cycle,
                      problem.n_cycles, problem.fold)
     sse_cv, _ = st.held_out()
-    cov = _sandwich(st) if P > 0 else torch.zeros(0, 0, dtype=torch.float64)
+    cov = _sandwich(st) if P > 0 else rho.new_zeros(0, 0)
     return EffectFit(names=list(names), slices=slices, p=p, cov=cov, rho=rho,
                      J=J if P > 0 else rho.new_zeros(rho.numel(), 0), stats=st, sse_cv=sse_cv,
                      cost_history=costs)
@@ -364,11 +363,11 @@ def fourier_columns(problem: Problem, order: int) -> Tensor:
     """
     m = problem.fm.m
     phi = m.phase[m.mask]  # (N,)
-    k = torch.arange(1, order + 1, dtype=phi.dtype)
+    k = torch.arange(1, order + 1, dtype=phi.dtype, device=phi.device)
     basis = torch.cat([torch.ones_like(phi)[:, None], torch.cos(phi[:, None] * k),
                        torch.sin(phi[:, None] * k)], 1)  # (N, 2K+1)
     N, F = basis.shape
-    out = torch.zeros(N, 3, 3 * F, dtype=phi.dtype)
+    out = phi.new_zeros(N, 3, 3 * F)
     for c in range(3):
         out[:, c, c * F:(c + 1) * F] = basis
     return out.reshape(N * 3, 3 * F)

@@ -179,6 +179,11 @@ class Measurement:
         return self.pose.shape[0]
 
     @property
+    def device(self) -> torch.device:
+        """The device of the recording's tensors (everything derived from it follows)."""
+        return self.pose.device
+
+    @property
     def n_samples(self) -> int:
         return self.pose.shape[1]
 
@@ -277,7 +282,7 @@ def prepare_measurement(
                 ) from None
             raise
     else:
-        phase = torch.as_tensor(phase, dtype=torch.float64).reshape(B, T)
+        phase = torch.as_tensor(phase, dtype=torch.float64, device=pose.device).reshape(B, T)
 
     # smoothing kernels: the GCV noise ratios of the recorded channels; x and y share one
     q, R = noise_parameters(pose, dt)
@@ -288,7 +293,7 @@ def prepare_measurement(
     W = (kernel.shape[-1] - 1) // 2
 
     # usable samples: inside each trial's recorded span, clear of the kernel's reach
-    idx = torch.arange(T)
+    idx = torch.arange(T, device=pose.device)
     first = torch.where(finite, idx, T).amin(-1)
     last = torch.where(finite, idx, -1).amax(-1)
     margin = W + _EDGE_EXTRA
@@ -314,7 +319,7 @@ def prepare_measurement(
             nxt += 1
     # whole cycles in total (partial ones at the ends still serve as data)
     span = torch.stack([(phase[b][mask[b]].max() - phase[b][mask[b]].min()) / (2 * math.pi)
-                        if mask[b].any() else torch.zeros((), dtype=phase.dtype)
+                        if mask[b].any() else phase.new_zeros(())
                         for b in range(B)])
     total = float(torch.floor(span).sum())
     if total < min_cycles:
@@ -328,8 +333,8 @@ def prepare_measurement(
     m = Measurement(
         dt=dt, t=traj.t.to(torch.float64), pose=pose_f, r=r_f, heading=heading, phase=phase,
         kernel=kernel, mask=mask, cycle=cycle,
-        cycle_trial=torch.tensor(trials, dtype=torch.long),
-        cycle_index=torch.tensor(index, dtype=torch.long),
+        cycle_trial=torch.tensor(trials, dtype=torch.long, device=pose.device),
+        cycle_index=torch.tensor(index, dtype=torch.long, device=pose.device),
         xi=torch.zeros_like(pose_f), batch_shape=batch_shape,
     )
     return _with_xi(m)
@@ -344,7 +349,7 @@ def measurement_from_clean(t: Tensor, pose: Tensor, r: Tensor, phase: Tensor, ke
     """
     B, T, _ = pose.shape
     W = (kernel.shape[-1] - 1) // 2
-    idx = torch.arange(T)
+    idx = torch.arange(T, device=pose.device)
     margin = W + _EDGE_EXTRA
     if T <= 2 * margin + 8:
         raise ValueError(f"a simulated experiment of {T} samples is too short for the smoothing "
@@ -365,8 +370,8 @@ def measurement_from_clean(t: Tensor, pose: Tensor, r: Tensor, phase: Tensor, ke
         dt=float(dt), t=t.to(torch.float64), pose=pose.to(torch.float64),
         r=r.to(torch.float64), heading=pose[..., 2].to(torch.float64),
         phase=phase.to(torch.float64), kernel=kernel.expand(B, 3, -1).clone(), mask=mask,
-        cycle=cycle, cycle_trial=torch.tensor(trials, dtype=torch.long),
-        cycle_index=torch.tensor(index, dtype=torch.long),
+        cycle=cycle, cycle_trial=torch.tensor(trials, dtype=torch.long, device=pose.device),
+        cycle_index=torch.tensor(index, dtype=torch.long, device=pose.device),
         xi=torch.zeros_like(pose, dtype=torch.float64), batch_shape=(B,),
     )
     return _with_xi(m)
@@ -398,8 +403,9 @@ class ForwardModel:
         self.system = system
         self.upsample = upsample
         T, U = measurement.n_samples, upsample
-        self._s_fine = torch.arange((T - 1) * U + 1, dtype=torch.float64) / U
-        self._s_mid = (torch.arange((T - 1) * U, dtype=torch.float64) + 0.5) / U
+        kw = dict(dtype=torch.float64, device=measurement.device)
+        self._s_fine = torch.arange((T - 1) * U + 1, **kw) / U
+        self._s_mid = (torch.arange((T - 1) * U, **kw) + 0.5) / U
         self._heading_mid = cubic_interp(measurement.heading[..., None], self._s_mid)[..., 0]
         self._nominal_twist = None
         self.min_relative_floor = float(min_relative_floor)

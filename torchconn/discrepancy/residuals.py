@@ -68,9 +68,10 @@ def phase_profile(
     mask = m.mask
     phase = torch.remainder(m.phase[mask], 2 * math.pi)
     width = 2 * math.pi / n_bins
-    idx = (torch.round(phase / width).long() % n_bins).numpy()
-    cyc = m.cycle[mask].numpy()
-    res = residual[mask].detach().numpy()  # (N, 3)
+    # a report's summary, bootstrapped in NumPy: one copy to the CPU
+    idx = (torch.round(phase / width).long() % n_bins).cpu().numpy()
+    cyc = m.cycle[mask].cpu().numpy()
+    res = residual[mask].detach().cpu().numpy()  # (N, 3)
     C = m.n_cycles
     sums = np.zeros((C, n_bins, 3))
     counts = np.zeros((C, n_bins))

@@ -29,8 +29,10 @@ __all__ = ["simulate_with_effects", "effect_parameters", "EffectDrift", "Lateral
            "simulate_inertial_relaxation"]
 
 
-def effect_parameters(effects: Mapping | None, system: LocomotionSystem) -> dict[str, Tensor]:
-    """Normalise ``{name: values}`` to ``{name: (n_params,) float64 tensor}``.
+def effect_parameters(effects: Mapping | None, system: LocomotionSystem, *,
+                      device: torch.device | str | None = None) -> dict[str, Tensor]:
+    """Normalise ``{name: values}`` to ``{name: (n_params,) float64 tensor}`` on ``device``
+    (default: torch's default device, or a tensor's own).
 
     ``values`` is a mapping from the effect's parameter names (see
     :meth:`Effect.param_specs`) to numbers -- missing ones are 0 (absent) -- or a sequence /
@@ -46,9 +48,10 @@ def effect_parameters(effects: Mapping | None, system: LocomotionSystem) -> dict
             if unknown:
                 raise ValueError(f"effect {effect.name!r} has parameters {names}, got "
                                  f"{sorted(unknown)}")
-            p = torch.tensor([float(values.get(n, 0.0)) for n in names], dtype=torch.float64)
+            p = torch.tensor([float(values.get(n, 0.0)) for n in names], dtype=torch.float64,
+                             device=device)
         else:
-            p = torch.as_tensor(values, dtype=torch.float64).reshape(-1)
+            p = torch.as_tensor(values, dtype=torch.float64, device=device).reshape(-1)
             if p.numel() != len(specs):
                 raise ValueError(f"effect {effect.name!r} takes {len(specs)} parameter(s) "
                                  f"{[s.name for s in specs]}, got {p.numel()}")
@@ -72,7 +75,7 @@ class EffectDrift:
         heading = pose[..., 2]
         total = torch.zeros(heading.shape + (3,), dtype=heading.dtype, device=heading.device)
         for name, p in self.params.items():
-            total = total + get_effect(name).body_velocity(p.to(heading.dtype), heading)
+            total = total + get_effect(name).body_velocity(p.to(heading), heading)
         return total
 
     def __repr__(self) -> str:
@@ -117,7 +120,8 @@ def simulate_with_effects(
             ``{"ambient_flow": {"u_x": 0.01}}``; None or ``{}`` for the nominal model.
         eta, alpha, n_cycles, samples_per_cycle, substeps, seeds, phase0: as in
             :func:`torchconn.simulation.rollout.simulate` (``substeps`` even; the rollout records every
-            other fine step so recording effects can read between samples).
+            other fine step so recording effects can read between samples); everything is
+            made on ``eta``'s device when it is a tensor (CPU otherwise).
         omega: observation-noise standard deviation (:func:`torchconn.simulation.observe.observe`).
         dropout: probability of a lost sample.
 
@@ -126,7 +130,10 @@ def simulate_with_effects(
         true (noise-free, effect-free recording) pose, shapes and body velocity, and
         ``meta["effects"]`` the effects' parameters.
     """
-    params = effect_parameters(effects, system)
+    # on the rollout's device: eta's, as in simulate()
+    like = isinstance(eta, Tensor) and eta.is_floating_point()
+    device = eta.device if like else torch.device("cpu")
+    params = effect_parameters(effects, system, device=device)
     if substeps % 2 or substeps < 2:
         raise ValueError(f"substeps must be even and >= 2, got {substeps}")
     U = substeps // 2  # recorded fine samples per output sample
@@ -143,7 +150,8 @@ def simulate_with_effects(
     batch = tuple(fine.batch_shape)
     T = n_cycles * samples_per_cycle
     start = pad * samples_per_cycle * U
-    rows = start + U * torch.arange(T)
+    device = fine.pose.device
+    rows = start + U * torch.arange(T, device=device)
     dt = 2 * math.pi / samples_per_cycle
 
     def fine_flat(x: Tensor) -> Tensor:
@@ -168,10 +176,10 @@ def simulate_with_effects(
             pose_rec = effect.observe(p, pose_rec)
 
     # the truth per output sample: means over its recording interval (half fine cells at ends)
-    w = torch.ones(U + 1, dtype=torch.float64)
+    w = torch.ones(U + 1, dtype=torch.float64, device=device)
     w[0] = w[-1] = 0.5
     w = w / U
-    win = rows[:, None] + torch.arange(-(U // 2), U // 2 + 1)  # (T, U+1) for even U
+    win = rows[:, None] + torch.arange(-(U // 2), U // 2 + 1, device=device)  # (T, U+1) for even U
 
     def interval_mean(x: Tensor) -> Tensor:  # (..., T_fine, C) -> (..., T, C)
         if U == 1:

@@ -506,7 +506,7 @@ def _estimates(job: _Job, sel: _Selection, fit: EffectFit) -> list[EffectEstimat
         p, cov, bias = fit.p[sl].detach(), fit.cov[sl, sl], bias_all[sl]
 
         def phys(x, e=e):
-            return torch.stack([torch.as_tensor(v, dtype=x.dtype) for v in
+            return torch.stack([torch.as_tensor(v, dtype=x.dtype, device=x.device) for v in
                                 e.physical(x, system).values()])
 
         values = phys(p)
@@ -585,7 +585,7 @@ def _flexible_columns(problem: Problem, order: int) -> Tensor:
     extra += [(trial == b).to(th.dtype) for b in range(1, m.n_trials)]
     E = torch.stack(extra, -1)  # (N, e)
     N, ne = E.shape
-    out = torch.zeros(N, 3, 3 * ne, dtype=th.dtype)
+    out = th.new_zeros(N, 3, 3 * ne)
     for c in range(3):
         out[:, c, c * ne:(c + 1) * ne] = E
     cols = torch.cat([F, out.reshape(N * 3, 3 * ne)], 1)
@@ -597,7 +597,7 @@ def _flexible_columns(problem: Problem, order: int) -> Tensor:
 def _component_sse(rows: Tensor, pb: Problem) -> Tensor:
     """Held-out squared error per cycle and component: whitened rows ``(n,)`` -> ``(C, 3)``."""
     r2 = (rows * rows).reshape(-1, 3)
-    return torch.zeros(pb.n_cycles, 3, dtype=rows.dtype).index_add_(0, pb.cycle[::3], r2)
+    return rows.new_zeros(pb.n_cycles, 3).index_add_(0, pb.cycle[::3], r2)
 
 
 def _flexible_residual_test(job: _Job, fit: EffectFit) -> FlexibleTest:
@@ -652,7 +652,7 @@ def _gaps(job: _Job, base: EffectFit, final: EffectFit) -> _Gaps:
 
 
 def _scatter(values: Tensor, m: Measurement) -> Tensor:
-    out = torch.zeros(m.n_trials, m.n_samples, 3, dtype=values.dtype)
+    out = values.new_zeros(m.n_trials, m.n_samples, 3)
     out[m.mask] = values
     return out
 
@@ -728,8 +728,9 @@ def _twin(fm: ForwardModel, seed: int) -> Trajectory:
     """The nominal simulator's own recording of the measured shapes: poses integrated from
     them, plus white noise of the level measured in the recording's poses."""
     m = fm.m
-    gen = torch.Generator().manual_seed(int(seed))
-    noise = torch.randn(m.pose.shape, generator=gen, dtype=torch.float64)
+    # drawn on the recording's device: CPU and CUDA give different (equally valid) twins
+    gen = torch.Generator(device=m.device).manual_seed(int(seed))
+    noise = torch.randn(m.pose.shape, generator=gen, dtype=torch.float64, device=m.device)
     pose = fm.integrate_poses() + noise * fm.noise_variance.sqrt()[:, None, :]
     return Trajectory(t=m.t, pose=pose, r=m.r, phase=m.phase)
 
@@ -739,7 +740,7 @@ def _data_summary(job: _Job, base: EffectFit, final: EffectFit, flex: FlexibleTe
     return {
         "n_trials": m.n_trials, "n_cycles": m.n_cycles, "n_samples": m.n_samples, "dt": m.dt,
         "usable_samples": int(m.mask.sum()), "smoothing_half_width": m.half_width,
-        "upsample": fm.upsample,
+        "upsample": fm.upsample, "device": str(m.device),
         "noise_std": {ch: float(v) for ch, v in zip(
             ("x", "y", "theta"), fm.noise_variance.mean(0).sqrt().tolist(), strict=True)},
         "noise_floor_nominal": dict(zip(COMPONENTS, fm.floor.tolist(), strict=True)),

@@ -3,6 +3,9 @@ from recordings.
 
     python -m torchconn.improve simulate --links 3 --rounds 8 --out runs/improve3
     python -m torchconn.improve propose trial1.csv trial2.csv --links 3 --out next/
+
+Both take ``--device`` (cpu, cuda, cuda:N): the recordings are simulated (or read on the CPU and
+moved once) and the models fitted there; the outputs are written from CPU copies.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import sys
 import warnings
 from pathlib import Path
 
+from .._cli import InputError, add_device, resolve_device
 from .._provenance import write_sidecar
 from ..io.trajectory_files import read_csv
 from ..physics.systems import NLinkSwimmer
@@ -29,6 +33,7 @@ def _simulate(args) -> int:
     settings = LoopSettings(
         rounds=args.rounds, trials=args.trials, cycles=args.cycles, omega=args.omega,
         objective=args.objective, trust_region=TrustRegion(scale=args.scale), seed=args.seed,
+        device=args.device,
     )
     start = circle_gait(args.links - 1, args.radius)
 
@@ -62,7 +67,7 @@ def _simulate(args) -> int:
 
 def _propose(args) -> int:
     try:
-        traj = read_csv(args.data, n_joints=args.links - 1)
+        traj = read_csv(args.data, n_joints=args.links - 1).to(args.device)  # moved once
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             model = ConnectionEstimator(pool=True).fit(traj).model_
@@ -84,7 +89,7 @@ def _propose(args) -> int:
                        extra={"prediction": summary})
     write_sidecar(args.out / "report.json", {
         "command": "propose", "data": [str(p) for p in args.data], "links": args.links,
-        "scale": args.scale, **summary,
+        "scale": args.scale, "device": args.device, **summary,
     })
     print(f"measured {args.objective} {meas:.4g} ± {meas_se:.2g} per cycle; the next gait is "
           f"predicted to gain {prop.gain:.3g} [{lo:.3g}, {hi:.3g}]")
@@ -111,9 +116,15 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--objective", choices=OBJECTIVES, default="displacement")
         q.add_argument("--scale", type=float, default=3.0, help="trust radius in tube radii")
         q.add_argument("--out", type=Path, required=True)
+        add_device(q)
     args = p.parse_args(argv)
     if args.links < 3:
         p.error(f"--links must be >= 3, got {args.links}")
+    try:
+        args.device = str(resolve_device(args.device))
+    except InputError as err:
+        print(f"{p.prog} {args.command}: error: {err}", file=sys.stderr)
+        return 2
     return _simulate(args) if args.command == "simulate" else _propose(args)
 
 

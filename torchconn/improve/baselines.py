@@ -69,7 +69,7 @@ def finite_difference_baseline(
     while used + (2 * n + 1) * per_eval <= budget:
         grad = torch.zeros_like(coeffs).reshape(-1)
         for i in range(n):  # one recording per perturbed gait: the experiment itself
-            e = torch.zeros(n, dtype=coeffs.dtype)
+            e = torch.zeros(n, dtype=coeffs.dtype, device=coeffs.device)
             e[i] = h
             e = e.reshape(coeffs.shape)
             grad[i] = (measure(coeffs + e) - measure(coeffs - e)) / (2 * h)
@@ -77,7 +77,7 @@ def finite_difference_baseline(
         if norm > 0 and math.isfinite(norm):
             coeffs = coeffs + step * grad.reshape(coeffs.shape) / norm
         if shape_bound is not None:
-            phi = torch.linspace(0, 2 * math.pi, 256, dtype=coeffs.dtype)
+            phi = torch.linspace(0, 2 * math.pi, 256, dtype=coeffs.dtype, device=coeffs.device)
             peak = float(torch.linalg.vector_norm(FourierGait(coeffs)(phi), dim=-1).max())
             if peak > shape_bound:
                 mean_norm = float(torch.linalg.vector_norm(coeffs[0]))

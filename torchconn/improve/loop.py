@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .._cli import resolve_device
 from ..physics.gaits.evaluate import evaluate
 from ..physics.gaits.gait import FourierGait, as_gait
 from ..physics.systems.base import LocomotionSystem
@@ -88,6 +89,8 @@ class LoopSettings:
         estimator: the estimator's settings table (:func:`estimator_from_settings`) for the
             pooled fit each round.
         seed: root seed (per-round seeds from ``numpy.random.SeedSequence``).
+        device: where the recordings are simulated and the models fitted (``cpu``, ``cuda``,
+            ``cuda:N``); CPU and CUDA draw different random numbers from the same seed.
     """
 
     rounds: int = 8
@@ -108,8 +111,10 @@ class LoopSettings:
     level: float = 0.95
     estimator: dict = field(default_factory=lambda: {"pool": True})
     seed: int = 0
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
+        resolve_device(self.device, "LoopSettings.device")
         for name in ("rounds", "trials", "cycles"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
@@ -188,7 +193,8 @@ class LoopResult:
 
 def _record(system, gait, s: LoopSettings, seed: np.random.SeedSequence):
     seeds = seed.generate_state(2 * s.trials, dtype=np.uint32).astype(np.int64)
-    traj = simulate(system, gait, eta=s.eta, alpha=s.alpha, n_cycles=s.cycles,
+    eta = torch.tensor(s.eta, dtype=torch.float64, device=s.device)  # sets the device
+    traj = simulate(system, gait, eta=eta, alpha=s.alpha, n_cycles=s.cycles,
                     seeds=seeds[: s.trials])
     if s.omega > 0:
         traj = observe(traj, s.omega, seeds=seeds[s.trials:])

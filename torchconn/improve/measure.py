@@ -73,7 +73,7 @@ def measure_cycles(traj: Trajectory, period: float = 2 * math.pi) -> CycleMeasur
     if n < 1:
         raise ValueError(f"the recordings ({pose.shape[-2]} samples) hold no whole period of "
                          f"{s} samples")
-    starts = torch.arange(n) * s
+    starts = torch.arange(n, device=pose.device) * s
     rel = se2.relative(pose[:, starts], pose[:, starts + s])  # (B, n, 3)
     ok = torch.isfinite(rel).all(-1)
     cost = None

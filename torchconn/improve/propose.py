@@ -169,16 +169,17 @@ def propose_gait(
                          "but it is missing or non-finite")
     radius = tr.radius_for(model)
     with_cost = objective == "efficiency"
-    h, theta = gauss_phases(n_steps)
+    h, theta = gauss_phases(n_steps, device=model.device)
     theta = theta.reshape(-1)
     base = FourierGait(model.gamma.coeffs.detach())
     base_r, base_v = base(theta), base.velocity(theta)
 
-    gen = torch.Generator().manual_seed(seed)
+    kw = dict(dtype=torch.float64, device=model.device)
+    gen = torch.Generator(device=model.device).manual_seed(seed)
     k = tr.order
-    u = 1e-3 * torch.randn(2 * k + 1, model.shape_dim, generator=gen, dtype=torch.float64)
+    u = 1e-3 * torch.randn(2 * k + 1, model.shape_dim, generator=gen, **kw)
     u.requires_grad_(True)
-    grid = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
+    grid = torch.arange(256, **kw) * (2 * math.pi / 256)
 
     def change(u: Tensor) -> FourierGait:
         raw = FourierGait(u)

@@ -36,7 +36,8 @@ def exact_local_model(
     d = system.shape_dim
     if gait.shape_dim != d:
         raise ValueError(f"gait has {gait.shape_dim} joints but the system has {d}")
-    grid = torch.arange(n_grid, dtype=torch.float64) * (2 * math.pi / n_grid)
+    kw = dict(dtype=torch.float64, device=getattr(gait, "device", None))  # the gait's device
+    grid = torch.arange(n_grid, **kw) * (2 * math.pi / n_grid)
     order = n_grid // 2 - 1
     gamma, gamma_dot = gait(grid), gait.velocity(grid)
     a, m = system.connection_and_metric(gamma)
@@ -51,13 +52,13 @@ def exact_local_model(
     bins = BinEstimates(
         phase=grid, gamma=gamma, gamma_dot=gamma_dot, c=c, b=b, A=a, dA=da,
         c_se=zeros(c), b_se=zeros(b), A_se=zeros(a), dA_se=zeros(da),
-        n_samples=torch.zeros(n_grid, dtype=torch.int64), M=m, M_se=zeros(m),
+        n_samples=torch.zeros(n_grid, dtype=torch.int64, device=grid.device), M=m, M_se=zeros(m),
     )
     meta = {"exact": True, "window": 0.5, "settings": {"kernel": "box"}}
     if tube_rms is not None:
         meta["tube_rms"] = [float(tube_rms)] * d
     return LocalConnectionModel(
-        gamma=series(gamma, 1), phase_rate=torch.tensor(1.0, dtype=torch.float64),
+        gamma=series(gamma, 1), phase_rate=torch.tensor(1.0, **kw),
         c=series(c, 1), b=series(b, 2), A=series(a, 2), dA=series(da, 3), M=series(m, 2),
         bins=bins, meta=meta,
     )

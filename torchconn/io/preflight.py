@@ -145,7 +145,7 @@ def preflight(traj: Trajectory, *, body_length: Tensor | None = None) -> Preflig
     r = traj.r.reshape(-1, traj.n_samples, traj.shape_dim)
     finite = torch.isfinite(r).all(-1) & torch.isfinite(traj.pose.reshape(-1, traj.n_samples,
                                                                            3)).all(-1)
-    idx = torch.arange(r.shape[-2])
+    idx = torch.arange(r.shape[-2], device=r.device)
     first = torch.where(finite, idx, r.shape[-2]).amin(-1)
     last = torch.where(finite, idx, -1).amax(-1)
     span = (last - first + 1).clamp_min(1)
@@ -171,7 +171,7 @@ def preflight(traj: Trajectory, *, body_length: Tensor | None = None) -> Preflig
     if body_length is not None:
         bl = body_length[torch.isfinite(body_length)]
         if bl.numel() > 2:
-            q = torch.quantile(bl, torch.tensor([0.1, 0.5, 0.9], dtype=bl.dtype))
+            q = torch.quantile(bl, torch.tensor([0.1, 0.5, 0.9], dtype=bl.dtype, device=bl.device))
             spread = float((q[2] - q[0]) / q[1])
             if spread > MAX_LENGTH_SPREAD:
                 warn.append(f"the body length varies by {100 * spread:.0f}% across frames (10th to "

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import statistics
 import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -87,7 +88,7 @@ def normal_quantile(level: float) -> float:
     """Two-sided standard normal quantile for a central ``level`` interval (0.95 -> 1.96)."""
     if not 0 < level < 1:
         raise ValueError(f"level must lie in (0, 1), got {level!r}")
-    return float(torch.special.ndtri(torch.tensor(0.5 + level / 2, dtype=torch.float64)))
+    return statistics.NormalDist().inv_cdf(0.5 + level / 2)
 
 
 def tube_radius(model: "LocalConnectionModel") -> float | None:
@@ -105,7 +106,7 @@ def align_phase(model: "LocalConnectionModel", gait, n_grid: int = 512) -> float
     ``π / n_grid``.
     """
     gait = as_gait(gait)
-    theta = torch.arange(n_grid, dtype=torch.float64) * (2 * math.pi / n_grid)
+    theta = torch.arange(n_grid, dtype=torch.float64, device=model.device) * (2 * math.pi / n_grid)
     target = gait(theta)  # (G, d)
     cycle = model.gamma_at(theta.expand(model.batch_shape + (n_grid,)))  # (..., G, d)
     cycle = cycle.reshape(-1, n_grid, cycle.shape[-1]).mean(0)
@@ -131,15 +132,17 @@ def sample_models(
     meta, bins = model.meta or {}, model.bins
     settings = meta.get("settings", {})
     kernel = settings.get("regression", settings).get("kernel", "box")
-    gen = torch.Generator().manual_seed(seed)
+    # drawn on the model's device: CPU and CUDA draw different numbers from the same seed
+    gen = torch.Generator(device=model.device).manual_seed(seed)
     centres = bins.phase
 
     def redraw(series, values, se, window):
         m = values.shape[len(model.batch_shape)]
-        chol = _bin_noise_factor(m, window, kernel, values.dtype)
+        chol = _bin_noise_factor(m, window, kernel, values)
         moved = values.movedim(len(model.batch_shape), -1)  # (..., *v, M)
         se_m = torch.nan_to_num(se).movedim(len(model.batch_shape), -1)
-        z = torch.randn((n_draws,) + moved.shape, generator=gen, dtype=values.dtype)
+        z = torch.randn((n_draws,) + moved.shape, generator=gen, dtype=values.dtype,
+                        device=values.device)
         noisy = moved + se_m * (z @ chol.mT)
         noisy = noisy.movedim(-1, len(model.batch_shape) + 1)  # (S, ..., M, *v)
         return fit_fourier(centres, noisy, series.order, value_ndim=series.value_ndim)
@@ -153,19 +156,21 @@ def sample_models(
     return dataclasses.replace(model, A=A, dA=dA, M=M)
 
 
-def _bin_noise_factor(n_bins: int, window: float, kernel: str, dtype) -> Tensor:
+def _bin_noise_factor(n_bins: int, window: float, kernel: str, like: Tensor) -> Tensor:
     """Cholesky factor ``(M, M)`` of the correlation between bin estimates whose kernel windows
     overlap: ``C_mm' = Σ w_m w_m' / √(Σ w_m² Σ w_m'²)`` over uniformly spread phases (the
-    correlation of two weighted means of the same i.i.d. samples)."""
+    correlation of two weighted means of the same i.i.d. samples); computed in float64 on
+    ``like``'s device, returned in its dtype."""
     per_bin = 64
-    grid = torch.arange(n_bins * per_bin, dtype=torch.float64) * (2 * math.pi / (n_bins * per_bin))
+    kw = dict(dtype=torch.float64, device=like.device)
+    grid = torch.arange(n_bins * per_bin, **kw) * (2 * math.pi / (n_bins * per_bin))
     idx = assign_bins(grid, n_bins, window=min(window, n_bins / 2 - 1e-9), kernel=kernel)
-    dense = torch.zeros(n_bins, grid.shape[0], dtype=torch.float64)
+    dense = torch.zeros(n_bins, grid.shape[0], **kw)
     dense.scatter_add_(1, idx.index, idx.weight)
     gram = dense @ dense.T
     norm = gram.diagonal().sqrt()
     corr = gram / (norm[:, None] * norm[None, :])
-    return torch.linalg.cholesky(corr + 1e-10 * torch.eye(n_bins, dtype=torch.float64)).to(dtype)
+    return torch.linalg.cholesky(corr + 1e-10 * torch.eye(n_bins, **kw)).to(like.dtype)
 
 
 def predict_gait(
@@ -206,7 +211,7 @@ def predict_gait(
                          f"{max_excursion!r}")
     if phase_offset is None:
         phase_offset = align_phase(model, gait)
-    h, theta = gauss_phases(n_steps)
+    h, theta = gauss_phases(n_steps, device=model.device)
     theta = theta.reshape(-1)  # (2n,): series take (..., P) phases
     r, r_theta = gait(theta), gait.velocity(theta)  # (2n, d)
     phi = theta + phase_offset
@@ -218,7 +223,7 @@ def predict_gait(
     _check_excursion(excursion, offset, radius, warn_excursion, max_excursion)
 
     disp, cost = _integrate(model, phi, r_theta, delta, h, n_steps)
-    draws = torch.zeros((0,) + disp.shape, dtype=disp.dtype)
+    draws = disp.new_zeros((0,) + disp.shape)
     nan = torch.full_like(disp, float("nan"))
     disp_se, cost_se, eff_se = nan, None, None
     if n_draws > 0:

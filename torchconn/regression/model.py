@@ -100,6 +100,25 @@ class LocalConnectionModel:
     def batch_shape(self) -> torch.Size:
         return self.gamma.batch_shape
 
+    @property
+    def device(self) -> torch.device:
+        """The device of the model's tensors (that of the data it was fitted to)."""
+        return self.gamma.coeffs.device
+
+    def to(self, device: torch.device | str) -> "LocalConnectionModel":
+        """The same model with every tensor on ``device`` (e.g. ``"cpu"`` to write it out)."""
+        def move(x):
+            if isinstance(x, FourierSeries):
+                return FourierSeries(x.coeffs.to(device), x.value_ndim)
+            return x if x is None else x.to(device)
+
+        bins = {f.name: move(getattr(self.bins, f.name)) for f in fields(self.bins)}
+        return LocalConnectionModel(
+            gamma=move(self.gamma), phase_rate=move(self.phase_rate), c=move(self.c),
+            b=move(self.b), A=move(self.A), dA=move(self.dA), bins=BinEstimates(**bins),
+            M=move(self.M), meta=self.meta,
+        )
+
     # ------------------------------------------------------------------ evaluation
     def gamma_at(self, phase: Tensor) -> Tensor:
         """``γ(φ)``: phase ``(..., P)`` -> ``(..., P, d)``."""

@@ -509,7 +509,7 @@ def interval_view(traj: Trajectory, h) -> IntervalSamples:
     """:func:`interval_samples` of a trajectory with a per-element interval ``h`` (an int or a
     ``(...)`` tensor): ``(..., T − min h, ·)``, elements with a longer interval padded with NaN
     at the end (``.h`` is the shortest)."""
-    h = torch.as_tensor(h)
+    h = torch.as_tensor(h, device=traj.pose.device)
     if h.ndim == 0:
         return interval_samples(traj.pose, traj.r, traj.phase, traj.dt, int(h))
     flat = _flatten_batch(traj)

@@ -11,7 +11,14 @@ import argparse
 import sys
 from pathlib import Path
 
-from .._cli import InputError, add_threads, prepare_output, run_command, set_threads
+from .._cli import (
+    InputError,
+    add_threads,
+    prepare_output,
+    resolve_device,
+    run_command,
+    set_threads,
+)
 from .config import load_config, sweep_config_names
 from .runner import run_sweep
 
@@ -36,6 +43,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--cycles", type=int, help="shortcut for --set simulation.n_cycles=N")
     p.add_argument("--block", type=int, help="shortcut for --set block_trials=N (trials per "
                    "stored cell, a multiple of 4; the results do not depend on it)")
+    p.add_argument("--device", metavar="DEVICE",
+                   help="where the cells run: cpu, cuda or cuda:N (shortcut for --set "
+                   "device=...; default: the config's device, cpu). CPU and CUDA draw different "
+                   "random numbers from the same seeds: each device's results are reproducible, "
+                   "and run.json records the device")
     p.add_argument("--workers", type=int, default=0,
                    help="run cells on a local Dask cluster with N workers")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler, tcp://HOST:PORT")
@@ -57,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
                           ("block", "block_trials")):
             if getattr(args, flag) is not None:
                 overrides.append(f"{key}={getattr(args, flag)}")
+        if args.device is not None:
+            resolve_device(args.device)  # the flag's own message, before the config's
+            overrides.append(f'device="{args.device}"')
         config = load_config(args.config, overrides)
         if args.workers < 0:
             raise InputError(f"--workers must be >= 0, got {args.workers}")

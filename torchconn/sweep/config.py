@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
-from .._cli import InputError, check_keys, did_you_mean
+from .._cli import InputError, check_keys, did_you_mean, resolve_device
 from .._options import check_value
 from .._provenance import source_hash
 from .._resources import config_names, configs, read_config
@@ -54,7 +54,7 @@ TRIAL_TILE = 4
 DEFAULT_TOML = configs().joinpath("default.toml").read_text(encoding="utf-8")
 
 _TOP = {"name": str, "seed": int, "phase": str, "error_bins": int, "block_trials": int,
-        "simulation": dict, "estimator": dict, "experiment": list}
+        "device": str, "simulation": dict, "estimator": dict, "experiment": list}
 
 
 def _in_range(key: str, value, tp, low, high=None) -> None:
@@ -134,7 +134,10 @@ class SweepConfig:
     :class:`ConnectionEstimator`; it is validated and stored in full, normalised form, so equal
     estimators written differently (flat 0.1 keys, nested tables) hash alike.
     ``block_trials`` is the number of trials per stored cell (a multiple of
-    :data:`TRIAL_TILE`); the results do not depend on it.
+    :data:`TRIAL_TILE`); the results do not depend on it. ``device`` (``cpu``, ``cuda``,
+    ``cuda:N``) is where the cells are simulated and fitted; it must be available on this
+    machine. CPU and CUDA draw different random numbers from the same seeds, so the device is
+    part of what determines the results (and of the cells' fingerprints).
     """
 
     name: str
@@ -144,6 +147,7 @@ class SweepConfig:
     phase: str = "estimated"
     error_bins: int = 16
     block_trials: int = 20
+    device: str = "cpu"
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -158,6 +162,7 @@ class SweepConfig:
                              + did_you_mean(self.phase, PHASES))
         _in_range("error_bins", self.error_bins, int, 2, 10_000)
         _in_range("block_trials", self.block_trials, int, TRIAL_TILE, 100_000)
+        resolve_device(self.device, "device")
         if self.block_trials % TRIAL_TILE:
             raise InputError(f"block_trials must be a multiple of {TRIAL_TILE} (so that results "
                              f"do not depend on it), got {self.block_trials}")
@@ -188,6 +193,8 @@ class SweepConfig:
             "estimator": self.estimator,
             "seed": self.seed, "phase": self.phase, "error_bins": self.error_bins,
             "index": [e.name for e in self.experiments].index(experiment.name),
+            # the random streams differ between device types (not between GPUs of one type)
+            "device": resolve_device(self.device, "device").type,
         }
 
     def make_estimator(self) -> ConnectionEstimator:
@@ -256,7 +263,8 @@ def _parse(raw: dict[str, Any]) -> SweepConfig:
             name=values.get("name", "sweep"), seed=values.get("seed", 0),
             experiments=tuple(experiments), estimator=raw.get("estimator", {}),
             phase=values.get("phase", "estimated"), error_bins=values.get("error_bins", 16),
-            block_trials=values.get("block_trials", 20), raw=raw,
+            block_trials=values.get("block_trials", 20), device=values.get("device", "cpu"),
+            raw=raw,
         )
     except InputError:
         raise

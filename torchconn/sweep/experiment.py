@@ -106,11 +106,11 @@ def experiment_seeds(config: SweepConfig, experiment: Experiment) -> np.ndarray:
 
 def run_experiment(config: SweepConfig, experiment: Experiment,
                    block_trials: int | None = None, *,
-                   device: torch.device | str = "cpu") -> ExperimentResult:
+                   device: torch.device | str | None = None) -> ExperimentResult:
     """All levels × trials of one experiment, cell by cell; returns its tidy rows.
 
     ``block_trials`` (default: all trials of a level in one cell) does not change the rows;
-    ``device`` is passed to :func:`run_cell`.
+    ``device`` (default: the config's) is passed to :func:`run_cell`.
     """
     out = ExperimentResult()
     for cell in experiment_cells(experiment, block_trials or experiment.trials):
@@ -119,17 +119,18 @@ def run_experiment(config: SweepConfig, experiment: Experiment,
 
 
 def run_cell(config: SweepConfig, cell: Cell, *,
-             device: torch.device | str = "cpu") -> ExperimentResult:
+             device: torch.device | str | None = None) -> ExperimentResult:
     """One cell's trials at one noise level, batched; returns its tidy rows.
 
     Rows are ordered by trial, then model, component and metric (phase bin), so the rows of
     an experiment are its cells' rows in :func:`experiment_cells` order for any block size.
-    The cell is simulated and fitted on ``device``; CPU and CUDA draw different random
-    numbers from the same seeds, so their rows are different samples of the same experiment.
+    The cell is simulated and fitted on ``device`` (default: the config's ``device``); CPU and
+    CUDA draw different random numbers from the same seeds, so their rows are different samples
+    of the same experiment. The rows are Python numbers (CPU copies).
     """
     experiment = cell.experiment
     out = ExperimentResult()
-    device = torch.device(device)
+    device = torch.device(config.device if device is None else device)
 
     def clock() -> float:  # stage timings: wait for the device's queued work first
         if device.type == "cuda":

@@ -190,6 +190,16 @@ def _run_dask(dask, config, pending, store, done, progress, workers, scheduler) 
             cluster.close()
 
 
+def _device_record(name: str) -> dict:
+    """The device the cells ran on, for ``run.json`` (CPU and CUDA draw different numbers)."""
+    device = torch.device(name)
+    out = {"device": str(device), "type": device.type}
+    if device.type == "cuda":
+        out["name"] = torch.cuda.get_device_name(device)
+        out["cuda"] = torch.version.cuda
+    return out
+
+
 def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged) -> SweepSummary:
     per_experiment = {e.name: ExperimentResult() for e in config.experiments}
     for cell, _ in plan:  # plan order: experiment, level, trials -- independent of block size
@@ -226,6 +236,7 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged)
         "timings_s": timings,
         "wall_time_s_this_run": wall,
         "torch_threads": torch.get_num_threads(),
+        "device": _device_record(config.device),
     }
     write_sidecar(out / "run.json", sidecar)
     for claim, holds, evidence in claims:

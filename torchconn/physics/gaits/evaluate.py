@@ -47,7 +47,8 @@ def gauss_phases(n_steps: int, dtype=torch.float64, device=None) -> tuple[float,
 
 
 def _gauss_samples(system: LocomotionSystem, gait, n_steps: int, with_metric: bool):
-    h, phi = gauss_phases(n_steps)  # (n, 2)
+    # on the gait's device (a plain callable has none: torch's default)
+    h, phi = gauss_phases(n_steps, device=getattr(gait, "device", None))  # (n, 2)
     r, r_dot = gait(phi), gait.velocity(phi)
     if with_metric:
         a, m = system.connection_and_metric(r)

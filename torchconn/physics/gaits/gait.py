@@ -1,9 +1,11 @@
 """Gaits: closed shape curves over one period φ ∈ [0, 2π).
 
 A gait is anything with ``shape_dim``, ``__call__(phi) -> r`` and ``velocity(phi) -> dr/dφ``
-(both ``(...,) -> (..., d)``). :class:`FourierGait` (one Fourier series per joint) and
-:class:`ModalGait` (``r = Φ a(φ)``, a Fourier series in a few shape modes) are the concrete
-kinds; :class:`CallableGait` wraps a user's function and differentiates it by autograd.
+(both ``(...,) -> (..., d)``, on ``phi``'s device). :class:`FourierGait` (one Fourier series per
+joint) and :class:`ModalGait` (``r = Φ a(φ)``, a Fourier series in a few shape modes) are the
+concrete kinds; :class:`CallableGait` wraps a user's function and differentiates it by autograd.
+The concrete kinds also say where their parameters live (``device``), which is where a gait is
+evaluated when no phases are given (:func:`~torchconn.physics.gaits.evaluate.evaluate`).
 """
 
 from __future__ import annotations
@@ -45,6 +47,10 @@ class FourierGait:
         self.order = self.series.order
         self.shape_dim = coeffs.shape[1]
 
+    @property
+    def device(self) -> torch.device:
+        return self.coeffs.device
+
     def __call__(self, phi: Tensor) -> Tensor:
         """``(...,) -> (..., d)``."""
         return self.series(torch.as_tensor(phi, dtype=self.coeffs.dtype))
@@ -84,6 +90,10 @@ class ModalGait:
         self.modes, self.plane_gait = modes, plane_gait
         self.shape_dim = modes.shape[0]
 
+    @property
+    def device(self) -> torch.device:
+        return self.modes.device
+
     def __call__(self, phi: Tensor) -> Tensor:
         return self.plane_gait(phi) @ self.modes.to(dtype=phi.dtype, device=phi.device).T
 
@@ -122,6 +132,10 @@ class PolarGait:
             raise ValueError(f"direction must be +1 or -1, got {direction!r}")
         self.logit = FourierGait(logit[:, None])
         self.direction, self.max_radius = direction, float(max_radius)
+
+    @property
+    def device(self) -> torch.device:
+        return self.center.device
 
     def _polar(self, phi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         rho = self.max_radius * torch.sigmoid(self.logit(phi)[..., 0])

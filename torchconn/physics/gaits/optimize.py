@@ -40,7 +40,7 @@ class OptimisedGait:
 
 
 def _build(params: Tensor, direction: int, modes: Tensor | None, max_radius: float):
-    plane = PolarGait(torch.zeros(2, dtype=params.dtype), params, direction, max_radius)
+    plane = PolarGait(params.new_zeros(2), params, direction, max_radius)
     return plane if modes is None else ModalGait(modes, plane)
 
 
