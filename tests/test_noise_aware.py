@@ -278,9 +278,9 @@ def test_standard_errors_of_the_correction_match_its_errors(clean30):
     assert 0.5 < ratio < 2.0, ratio
 
 
-def test_default_is_never_worse_than_the_smoothed_fit_with_one_9_link_trial():
+def test_shrinkage_falls_back_to_the_smoothed_fit_with_one_9_link_trial():
     # the low-information regime of the paper's Fig. 4B: one 9-link trial (81 regressors per
-    # bin), much motion-capture noise; the correction alone is far off, the default falls back
+    # bin), much motion-capture noise; the correction alone is far off, the blend falls back
     seeds = np.array([31, 32])
     from torchconn.physics.gaits import reference_gait
 
@@ -298,9 +298,9 @@ def test_default_is_never_worse_than_the_smoothed_fit_with_one_9_link_trial():
 
     smoothed, _ = error(TubeRegression(metric=False))
     alone, _ = error(NoiseAwareRegression(metric=False, shrink_to_smoothed=False))
-    default, model = error(NoiseAwareRegression(metric=False))
+    blended, model = error(NoiseAwareRegression(metric=False))
     assert bool((alone > 1.5 * smoothed).all())  # the failure the fallback exists for
-    assert bool((default <= 1.02 * smoothed).all()), (default, smoothed)
+    assert bool((blended <= 1.02 * smoothed).all()), (blended, smoothed)
     assert np.array(model.meta["corrected_weight"]).shape == (2, 4)
 
 

@@ -167,22 +167,19 @@ def test_sklearn_clone_gives_an_unfitted_estimator_with_equal_parameters(recordi
 def test_settings_tables_build_the_estimator_and_name_bad_keys():
     nested = estimator_from_settings({
         "pool": True, "phaser": {"order": 4},
-        "regression": {"n_bins": 24, "fourier_order": 6, "kernel": "box"},
+        "regression": {"method": "tube", "n_bins": 24, "fourier_order": 6, "kernel": "box"},
     })
     flat = estimator_from_settings({"pool": True, "phase_order": 4, "n_bins": 24,
                                     "fourier_order": 6, "kernel": "box"})
     assert nested.get_params() == flat.get_params()
     assert estimator_from_settings(estimator_settings(nested)).get_params() == nested.get_params()
-    assert estimator_settings(ConnectionEstimator())["regression"]["method"] == "noise_aware"
-    tube = estimator_from_settings({"regression": {"method": "tube"}})
-    assert estimator_settings(tube)["regression"]["method"] == "tube"
+    assert estimator_settings(ConnectionEstimator())["regression"]["method"] == "tube"
     bad = [
         ({"regresion": {}}, r"estimator: unknown key 'regresion' \(did you mean 'regression'\?\)"),
         ({"regression": {"n_bin": 3}},
-         r"estimator.regression \(NoiseAwareRegression\): unknown key 'n_bin' \(did you mean "
-         r"'n_bins'"),
+         r"estimator.regression \(TubeRegression\): unknown key 'n_bin' \(did you mean 'n_bins'"),
         ({"regression": {"n_bins": 4.5}},
-         "estimator.regression: NoiseAwareRegression.n_bins must be an integer, got 4.5"),
+         "estimator.regression: TubeRegression.n_bins must be an integer, got 4.5"),
         ({"smoother": {"method": "kalman"}}, r"estimator.smoother.method: unknown key 'kalman'"),
         ({"phaser": 3}, "estimator.phaser must be a table"),
         ({"pool": "yes"}, "estimator.pool must be true or false"),
@@ -217,8 +214,7 @@ trials = 1
                    "estimator.smoother.order=3", "estimator.cycle.order=5", "estimator.pool=true"):
         other = load_config(path, [change])
         assert other.fingerprint(other.experiments[0]) != config.fingerprint(exp), change
-    with pytest.raises(ValueError,
-                       match=r"\[estimator\].regression: NoiseAwareRegression.n_bins"):
+    with pytest.raises(ValueError, match=r"\[estimator\].regression: TubeRegression.n_bins"):
         load_config(path, ["estimator.regression.n_bins=2"])
 
 

@@ -155,10 +155,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--phase-order", type=int,
                    help="Phaser correction order (estimator.phaser.order, default 3)")
     p.add_argument("--regression", choices=("tube", "noise_aware"),
-                   help="noise_aware (default): regress on raw differences with the "
-                   "motion-capture noise removed, shrunk towards the smoothed fit where the data "
-                   "cannot support the correction; tube: on Kalman-smoothed velocities alone "
-                   "(torchconn 0.1's method)")
+                   help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
+                   "raw differences with the motion-capture noise removed, shrunk towards the "
+                   "smoothed fit where the data cannot support the correction")
     p.add_argument("--complexity", choices=("fixed", "cv"), default="fixed",
                    help="fixed: --n-bins and --fourier-order as given (default); cv: bins, "
                    "Fourier order and ridge chosen by held-out error over blocks of whole cycles")

@@ -8,7 +8,7 @@ optimizer=…)``::
         smoother=RTSSmoother(order=2),          # phase/smoothing.py: smooth(traj) -> traj
         phaser=Phaser(order=3),                 # phase/phaser.py: fit(r) -> fitted, transform(r)
         cycle=SelfConsistentCycle(order=8),     # phase/limit_cycle.py: fit(traj) -> LimitCycle
-        regression=NoiseAwareRegression(),      # regression/: fit(traj, cycle) -> model
+        regression=TubeRegression(n_bins=48),   # regression/tube.py: fit(traj, cycle) -> model
         pool=False,                             # one model per trial, or one for all trials
     )
 
@@ -55,7 +55,7 @@ STAGES: dict[str, tuple[type, dict[str, type]]] = {
     "smoother": (Smoother, {"rts": RTSSmoother}),
     "phaser": (PhaseEstimator, {"phaser": Phaser}),
     "cycle": (CycleEstimator, {"self_consistent": SelfConsistentCycle}),
-    "regression": (Regression, {"noise_aware": NoiseAwareRegression, "tube": TubeRegression}),
+    "regression": (Regression, {"tube": TubeRegression, "noise_aware": NoiseAwareRegression}),
 }
 
 #: torchconn 0.1's flat settings (``EstimatorSettings``) -> (stage, field)
@@ -77,8 +77,8 @@ class ConnectionEstimator:
         smoother: smooths poses and shapes and derives velocities (:class:`RTSSmoother`).
         phaser: estimates the phase when none is given (:class:`Phaser`).
         cycle: fits the limit cycle γ(φ) to the phased shapes (:class:`SelfConsistentCycle`).
-        regression: fits the local model around the cycle (:class:`NoiseAwareRegression`;
-            :class:`TubeRegression` is torchconn 0.1's smoothed regression).
+        regression: fits the local model around the cycle (:class:`TubeRegression`;
+            :class:`NoiseAwareRegression` for recordings with motion-capture noise).
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
 
@@ -109,7 +109,7 @@ class ConnectionEstimator:
         smoother: Smoother = RTSSmoother(),
         phaser: PhaseEstimator = Phaser(),
         cycle: CycleEstimator = SelfConsistentCycle(),
-        regression: Regression = NoiseAwareRegression(),
+        regression: Regression = TubeRegression(),
         pool: bool = False,
         **flat: Any,
     ):
@@ -418,7 +418,7 @@ def _prepare(traj, phase, smoother, phaser) -> tuple[Trajectory, PhaseEstimator 
 
 
 def fit_local_model(traj: Trajectory, cycle: LimitCycle,
-                    regression: Regression | EstimatorSettings = NoiseAwareRegression(), *,
+                    regression: Regression | EstimatorSettings = TubeRegression(), *,
                     pool: bool = False) -> LocalConnectionModel:
     """The regressions in every phase bin and their Fourier series in phase:
     ``regression.fit(traj, cycle, pool=pool)``.
