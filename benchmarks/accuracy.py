@@ -9,9 +9,9 @@ estimator: relative RMS error of ``Â(φ)`` against ``NLinkSwimmer(N).connection
 ``∂Â/∂r`` against the exact Jacobian), plus the scale factor ``s`` of the least-squares fit
 ``Â ≈ s A`` (1 = no attenuation bias; below 1: Â shrunk towards 0).
 
-Methods: ``tube`` = ``TubeRegression()`` (torchconn 0.1's default: Kalman-smoothed velocities);
-``noise_aware`` = ``NoiseAwareRegression()`` (the default since issue 12: the noise-corrected
-estimate shrunk towards the smoothed one where the data cannot support the correction);
+Methods: ``tube`` = ``TubeRegression()`` (the default: Kalman-smoothed velocities);
+``noise_aware`` = ``NoiseAwareRegression()`` (the noise-corrected estimate shrunk towards the
+smoothed one where the data cannot support the correction);
 ``corrected`` = ``NoiseAwareRegression(shrink_to_smoothed=False)`` (the correction alone);
 ``noise_aware_cv`` = the default with ``ConnectionEstimator.select_complexity``.
 

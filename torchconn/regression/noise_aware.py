@@ -296,7 +296,8 @@ _MAX_NOISE_WINDOW = 3.0
 #: by more than this many times its own variance. Set on seed 5 (3-, 5-, 9-link circle gaits,
 #: one trial of 30 cycles, ω = 0.002-0.02): with 1 (the plain Stein rule) the blend was worse
 #: than the smoothed estimate in 4 of 12 cells (Â 44 % vs 38 % at 5 links, ω = 0.01), with 2
-#: in none; pooled 4 x 30 cycles it costs < 0.5 points of Â at ω ≤ 0.01
+#: in none; pooled 4 x 30 cycles it cost 0-2.5 points of Â against factor 1 at ω ≤ 0.005
+#: and 0.5-5 points at ω = 0.01 (still below the smoothed estimate)
 _BLEND_VARIANCE_FACTOR = 2.0
 
 
