@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from torchconn.physics.systems import AffineConnectionSystem  # noqa: E402
-from torchconn.regression import assign_bins, connection_regression  # noqa: E402
+from torchconn.regression import _wls, assign_bins, connection_regression  # noqa: E402
 
 
 def make_data(n_trials: int, n_cycles: int, per_cycle: int, d: int, seed: int = 0):
@@ -103,7 +103,9 @@ def primitive_floor(n_systems: int, n_rows: int, p: int, k: int, repeat: int) ->
     kernels = {
         "Gram [X|y]ᵀ[X|y]": lambda: xy.mT @ xy,
         "Cholesky": lambda: torch.linalg.cholesky_ex(gram),
-        "triangular inverse": lambda: torch.linalg.solve_triangular(chol, eye, upper=False),
+        "triangular inverse": lambda: _wls._triangular_inverse(chol),
+        "(one triangular solve against I, before)":
+            lambda: torch.linalg.solve_triangular(chol, eye, upper=False),
     }
     return {name: best_of(fn, repeat) / b * 1e6 for name, fn in kernels.items()}
 
@@ -140,7 +142,9 @@ def main(argv=None) -> int:
     a @ a
     peak = 2 * 2048**3 / best_of(lambda: a @ a, 3) / 1e9
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; "
-          f"float64 matmul 2048² peak: {peak:.1f} GFLOP/s")
+          f"float64 matmul 2048² peak: {peak:.1f} GFLOP/s; load average "
+          + ", ".join(f"{x:.1f}" for x in os.getloadavg())
+          + " (on a shared machine compare ratios within one run)")
 
     phase, r, r_dot, xi, gamma, gamma_dot = make_data(args.trials, args.cycles, args.per_cycle,
                                                       args.d)

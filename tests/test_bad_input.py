@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import torch
 
+from torchconn import ConnectionEstimator, Phaser, fit
 from torchconn import discrepancy as _discrepancy  # noqa: F401 (registers the effects)
-from torchconn import fit
 from torchconn.discrepancy import __main__ as discrepancy_cli
 from torchconn.io.trajectory_files import write_csv
-from torchconn.physics.gaits import reference_gait
+from torchconn.physics.gaits import FourierGait, reference_gait
 from torchconn.physics.systems import NLinkSwimmer
 from torchconn.simulation.rollout import simulate
 from torchconn.sweep import __main__ as sweep_cli
@@ -330,6 +330,29 @@ def test_fit_options_checked_before_work(argv, fragments, recording, tmp_path, c
     code = fit.main([str(recording), *links, "--out", str(out), *argv])
     _assert_clean_failure(code, capsys.readouterr().err, fragments, out)
     assert not out.exists()
+
+
+def test_fit_too_few_cycles_for_the_complexity_says_how_many_are_needed(recording, tmp_path,
+                                                                        capsys):
+    # 6 cycles at 32 samples per cycle; 48 bins half a spacing wide hold ~2 samples each
+    out = tmp_path / "o"
+    code = fit.main([str(recording), "--links", "3", "--out", str(out), "--metric", "no",
+                     "--complexity", "fixed", "--window", "0.5"])
+    _assert_clean_failure(code, capsys.readouterr().err,
+                          ["phase bins cannot be fitted", "this recording has 6.0 cycles",
+                           "need at least", "cycles per trial", "--complexity"], out)
+
+
+def test_metric_with_too_few_cycles_says_how_many_are_needed():
+    # 5-link, 3 cycles at 126 samples per cycle: the tied metric's 130 coefficients need 390
+    seeds = [1]
+    wave = FourierGait(torch.tensor([[0.0] * 4, [0.7, 0.0, -0.7, 0.0], [0.0, 0.7, 0.0, -0.7]],
+                                    dtype=torch.float64))
+    traj = simulate(NLinkSwimmer(5), wave, eta=0.025, n_cycles=3, samples_per_cycle=126,
+                    seeds=seeds)
+    with pytest.raises(ValueError, match=r"need at least 3·P = 390 \(about 3\.\d cycles at the "
+                                         r"12\d samples per cycle of this recording\)"):
+        ConnectionEstimator(phaser=Phaser(min_cycles=2.5)).fit(traj)
 
 
 def test_fit_unwritable_out_is_found_before_fitting(recording, tmp_path, capsys, monkeypatch):

@@ -156,6 +156,36 @@ def test_connection_matches_per_bin_lstsq(window, kernel):
 
 
 @pytest.mark.parametrize("kernel", ["box", "tricube"])
+def test_connection_matches_lstsq_at_many_regressors(kernel):
+    # d = 6: P = 49 regressors (L⁻¹ by a block split, see _wls._triangular_inverse), with
+    # dropped samples and a tube radius that removes rows
+    d = 6
+    system = AffineConnectionSystem.random(d, seed=6)
+    phi, r, r_dot, gen = tube_samples((2,), 2400, d, seed=6)
+    xi = system.body_velocity(r, r_dot) + 0.2 * torch.cos(2 * r[..., 2:3]) * r_dot[..., :1] \
+        + 0.05 * torch.randn(2, 2400, 3, generator=gen, dtype=F64)
+    xi[0, ::7, 1] = torch.nan
+    bins = assign_bins(phi, 4, window=0.75, kernel=kernel)
+    g_m, gd_m = cycle_at_centres(4, d)
+    fit = connection_regression(r, r_dot, xi, bins, g_m, gd_m, delta_max=0.3)
+    for b in range(2):
+        for m in range(4):
+            w, rr, rd, y = _reference_rows(bins, b, m, r, r_dot, xi)
+            delta, delta_dot = rr - g_m[m].numpy(), rd - gd_m[m].numpy()
+            keep = (np.linalg.norm(delta, axis=1) < 0.3) & np.isfinite(y).all(1)
+            w, y, delta, delta_dot = w[keep], y[keep], delta[keep], delta_dot[keep]
+            cross = np.einsum("ni,nj->nij", delta_dot, delta).reshape(len(w), d * d)
+            x = np.concatenate([np.ones((len(w), 1)), delta, delta_dot, cross], 1)
+            beta, se = _reference_fit(x, y, w)
+            assert np.abs(fit.coef[b, m].numpy() - beta).max() <= 1e-10 * np.abs(beta).max()
+            np.testing.assert_allclose(fit.se_coef[b, m].numpy(), se, rtol=1e-8)
+            np.testing.assert_allclose(
+                fit.residual_rms[b, m].numpy(),
+                np.sqrt((w[:, None] * (y - x @ beta) ** 2).sum(0) / w.sum()), rtol=1e-8)
+            assert int(fit.n_samples[b, m]) == len(w)
+
+
+@pytest.mark.parametrize("kernel", ["box", "tricube"])
 def test_connection_standard_errors_calibrated(kernel):
     d, n_trials, m = 2, 40, 8
     system = AffineConnectionSystem.random(d, seed=11)

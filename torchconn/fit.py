@@ -53,6 +53,7 @@ from .regression.estimator import (
 )
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
+from .regression.skill import PoorHeldOutSkillWarning
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
@@ -101,13 +102,18 @@ _FLAGS = {"n_bins": "n_bins", "fourier_order": "fourier_order", "window": "windo
           "phase_order": "phase_order"}
 
 #: the estimator's stage names: ``--set regression.kernel=box`` means ``estimator.regression…``
-_STAGE_KEYS = ("smoother", "phaser", "cycle", "regression", "pool")
+_STAGE_KEYS = ("smoother", "phaser", "cycle", "regression", "pool", "complexity",
+               "held_out_folds")
 
 
 def build_estimator(args, table: dict | None) -> ConnectionEstimator:
     """The estimator of ``fit``: trials pooled by default, then the ``[estimator]`` table
     (nested per stage, see :func:`estimator_from_settings`), then the shortcut flags."""
     table = {"pool": True, **(table or {})}
+    if args.complexity is not None:
+        table["complexity"] = args.complexity
+    if args.folds is not None:
+        table["held_out_folds"] = args.folds
     if args.regression is not None:
         table["regression"] = {**table.get("regression", {}), "method": args.regression}
     if args.metric is not None:  # auto: fit the metric when there is a power column
@@ -158,12 +164,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
                    "raw differences with the motion-capture noise removed, shrunk towards the "
                    "smoothed fit where the data cannot support the correction")
-    p.add_argument("--complexity", choices=("fixed", "cv"), default="fixed",
-                   help="fixed: --n-bins and --fourier-order as given (default); cv: bins, "
-                   "Fourier order and ridge chosen by held-out error over blocks of whole cycles")
-    p.add_argument("--folds", type=int, default=3,
-                   help="blocks of whole cycles for the held-out check and --complexity cv "
-                   "(default 3; 0 skips the check)")
+    p.add_argument("--complexity", choices=("auto", "fixed", "cv"),
+                   help="auto (default): --n-bins and --fourier-order as given unless the model "
+                   "then predicts held-out cycles worse than their phase-averaged velocity, "
+                   "then as cv; fixed: as given; cv: bins, Fourier order and ridge chosen by "
+                   "held-out error over blocks of whole cycles (estimator.complexity)")
+    p.add_argument("--folds", type=int,
+                   help="blocks of whole cycles for the held-out check and the complexity "
+                   "choice (estimator.held_out_folds, default 3; 0 skips the check)")
     p.add_argument("--metric", choices=("auto", "yes", "no"),
                    help="estimate the dissipation metric: auto (default) when the files have a "
                    "power column, yes to require one, no never")
@@ -184,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--links must be >= 2, got {args.links}")
         if args.grid < 2:
             raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
-        if args.folds < 0 or args.folds == 1:
+        if args.folds is not None and (args.folds < 0 or args.folds == 1):
             raise InputError(f"--folds must be 0 (no held-out check) or >= 2, got {args.folds}")
         if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
             raise InputError(f"--window must be a positive number, got {args.window}")
@@ -218,15 +226,10 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError("the recording is not ready to fit: "
                              + "; ".join(check.problems["fit"]))
         traj = traj.to(device)  # read and checked on the CPU, moved once
-        if args.complexity == "cv":
-            est = estimator.select_complexity(traj, n_folds=max(args.folds, 2))
-        else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoorHeldOutSkillWarning)  # reported below
             est = estimator.fit(traj)
-        held_out = None
-        if args.folds:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # reported below
-                held_out = est.cross_validate(args.folds)
+        held_out, folds = est.held_out_skill_, est.held_out_folds
         model = est.model_.to("cpu")  # outputs are written from CPU copies
         # everything is computed before the first file is written: no partial outputs
         cols, rows = connection_table(model, args.grid)
@@ -251,11 +254,11 @@ def main(argv: list[str] | None = None) -> int:
                      "conversion": [r.to_dict() for r in rec.reports]},
             "preflight": check.to_dict(),
             "model": {"window": model.meta.get("window"), "metric": model.M is not None},
-            "complexity": (None if args.complexity != "cv" else
+            "complexity": (None if est.complexity_ is None else
                            {"n_bins": est.complexity_.n_bins,
                             "fourier_order": est.complexity_.fourier_order,
                             "ridge": est.complexity_.ridge}),
-            "held_out_skill": None if held_out is None else _skill_summary(held_out, args.folds),
+            "held_out_skill": None if held_out is None else _skill_summary(held_out, folds),
             "outputs": outputs,
             "device": str(device),
         })
@@ -269,22 +272,28 @@ def main(argv: list[str] | None = None) -> int:
             print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; "
                   "the full M only as far as the data leave the cycle (see the bands in "
                   "metric.png)")
-        if args.complexity == "cv":
+        if est.complexity_ is not None:
             c = est.complexity_
             print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
                   f"{c.fourier_order}, ridge {c.ridge:g}")
         if held_out is not None:
-            print(f"held-out R² (v_x, v_y, omega), each of {args.folds} blocks of whole cycles "
+            print(f"held-out R² (v_x, v_y, omega), each of {folds} blocks of whole cycles "
                   "left out in turn:")
             for name, r2 in (("model", held_out.r2),
                              ("phase-averaged velocity", held_out.r2_phase_average),
                              ("template", held_out.r2_template)):
                 print(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
-            if bool(held_out.worse_than_phase_average.any()):
+            if bool(held_out.unscored.any()):
+                print("WARNING: some phase bins cannot be fitted when a block of cycles is "
+                      "left out: the model has too many coefficients for this recording "
+                      "(record more cycles, or use fewer --n-bins)")
+            elif bool(held_out.worse_than_phase_average.any()):
                 print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
-                      "velocity: it overfits this recording (try --complexity cv, fewer "
-                      "--n-bins, a lower --fourier-order or a wider --window, or record more "
-                      "cycles)")
+                      "velocity: its shape terms do not help predict those components on this "
+                      "recording (" + ("record more cycles; the complexity was already chosen "
+                      "by held-out error)" if est.complexity_ is not None else "try --complexity "
+                      "cv, fewer --n-bins, a lower --fourier-order or a wider --window, or "
+                      "record more cycles)"))
         print(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
         return 0
 

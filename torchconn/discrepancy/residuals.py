@@ -124,7 +124,7 @@ def compare_terms(
     def fit(recording):
         est = ConnectionEstimator(
             regression=TubeRegression(n_bins=n_bins, fourier_order=fourier_order, metric=False),
-            pool=True,
+            pool=True, complexity="fixed", held_out_folds=0,  # the workflow cross-validates
         )
         return est.fit(recording, phase=phase).model_.bins
 

@@ -128,20 +128,22 @@ def connection_regression(
     return _connection_fit(sol.unflatten(s.batch_shape, s.n_bins), d)
 
 
+def split_coefficients(coef: Tensor, d: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Name the raw coefficients ``(..., P, 3)`` of the design ``[1, δ, δ̇, δ̇⊗δ]``
+    (:func:`connection_design`): ``c (..., 3)``, ``b (..., 3, d)``, ``A (..., 3, d)``,
+    ``∂A/∂r (..., 3, d, d)``."""
+    c = coef[..., 0, :]
+    b = coef[..., 1:1 + d, :].mT
+    a = coef[..., 1 + d:1 + 2 * d, :].mT
+    da = coef[..., 1 + 2 * d:, :].unflatten(-2, (d, d)).movedim(-1, -3)
+    return c, b, a, da
+
+
 def _connection_fit(sol: _wls.Solution, d: int) -> ConnectionFit:
     """Name the coefficients of an unflattened solution ``(..., M, P, 3)`` of the design
     ``[1, δ, δ̇, δ̇⊗δ]``."""
-
-    def split(coef: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        # coef: (..., M, P, 3) -> c (..., M, 3), b (..., M, 3, d), A (..., M, 3, d), dA
-        c = coef[..., 0, :]
-        b = coef[..., 1:1 + d, :].mT
-        a = coef[..., 1 + d:1 + 2 * d, :].mT
-        da = coef[..., 1 + 2 * d:, :].unflatten(-2, (d, d)).movedim(-1, -3)
-        return c, b, a, da
-
-    c, b, a, da = split(sol.coef)
-    se_c, se_b, se_a, se_da = split(sol.se)
+    c, b, a, da = split_coefficients(sol.coef, d)
+    se_c, se_b, se_a, se_da = split_coefficients(sol.se, d)
     return ConnectionFit(
         c=c, b=b, A=a, dA=da, se_c=se_c, se_b=se_b, se_A=se_a, se_dA=se_da,
         n_samples=sol.n_samples, residual_rms=sol.residual_rms, condition=sol.condition,

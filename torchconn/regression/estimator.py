@@ -25,7 +25,9 @@ functions: :func:`prepare` (smooth, phase) and :func:`fit_local_model` (the regr
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 import warnings
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
@@ -33,6 +35,7 @@ from typing import Any
 
 from torch import Tensor
 
+from .. import _checks
 from .._checks import unknown_keys_message
 from .._options import Options
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
@@ -40,6 +43,7 @@ from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
 from ..trajectory import Trajectory
 from . import skill
+from ._wls import IllConditionedBinWarning
 from .model import LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
 from .tube import Regression, TubeRegression
@@ -57,6 +61,11 @@ STAGES: dict[str, tuple[type, dict[str, type]]] = {
     "cycle": (CycleEstimator, {"self_consistent": SelfConsistentCycle}),
     "regression": (Regression, {"tube": TubeRegression, "noise_aware": NoiseAwareRegression}),
 }
+
+#: the estimator's own options besides its stages (settings-table keys beside the stages)
+OPTIONS = ("pool", "complexity", "held_out_folds")
+#: how the regression's complexity (bins, Fourier order, ridge) is set; see ConnectionEstimator
+COMPLEXITY = ("auto", "fixed", "cv")
 
 #: torchconn 0.1's flat settings (``EstimatorSettings``) -> (stage, field)
 FLAT_KEYS: dict[str, tuple[str, str]] = {
@@ -81,6 +90,16 @@ class ConnectionEstimator:
             :class:`NoiseAwareRegression` for recordings with motion-capture noise).
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
+        complexity: the regression's bins, Fourier order and ridge: ``"fixed"`` as given;
+            ``"cv"`` chosen by held-out error over blocks of whole cycles
+            (:func:`~torchconn.regression.skill.select_complexity`); ``"auto"`` (default): as
+            given, unless the fit loses to the phase-averaged velocity on held-out blocks
+            (short recordings), then chosen as by ``"cv"``.
+        held_out_folds: blocks of whole cycles of the held-out check every fit runs (0: no
+            check). The fit warns (:class:`~torchconn.regression.skill.PoorHeldOutSkillWarning`)
+            where the model predicts held-out cycles worse than their phase-averaged velocity.
+            The fits without each block come from downdating the bins' normal equations
+            (:mod:`~torchconn.regression.held_out`), not from refits.
 
     scikit-learn manners: the constructor only stores its arguments, :meth:`fit` returns
     ``self``, fitted attributes end in ``_``:
@@ -89,7 +108,12 @@ class ConnectionEstimator:
     - ``phaser_``: the fitted phaser (its ``model_`` can phase new recordings with the same
       origin), or None when the phase was given or already in the trajectory;
     - ``limit_cycle_``: the :class:`~torchconn.phase.limit_cycle.LimitCycle`;
-    - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`.
+    - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`;
+    - ``regression_``: the regression stage fitted (``regression`` with the chosen complexity);
+    - ``complexity_``: the :class:`~torchconn.regression.skill.ComplexityChoice` when the
+      complexity was chosen by held-out error, else None;
+    - ``held_out_skill_``: the held-out :class:`~torchconn.regression.skill.Skill` of the
+      check (None when ``held_out_folds=0`` or the regression is not a built-in one).
 
     Example::
 
@@ -111,13 +135,15 @@ class ConnectionEstimator:
         cycle: CycleEstimator = SelfConsistentCycle(),
         regression: Regression = TubeRegression(),
         pool: bool = False,
+        complexity: str = "auto",
+        held_out_folds: int = 3,
         **flat: Any,
     ):
         if flat:
             unknown = set(flat) - set(FLAT_KEYS)
             if unknown:
                 raise TypeError(unknown_keys_message("ConnectionEstimator", unknown,
-                                                 [*STAGES, "pool", *FLAT_KEYS]))
+                                                 [*STAGES, *OPTIONS, *FLAT_KEYS]))
             warnings.warn(
                 "ConnectionEstimator(" + ", ".join(f"{k}=…" for k in flat) + "): flat settings "
                 "are deprecated; set the stages' fields instead, e.g. "
@@ -132,13 +158,15 @@ class ConnectionEstimator:
         self.cycle = cycle
         self.regression = regression
         self.pool = pool
+        self.complexity = complexity
+        self.held_out_folds = held_out_folds
         _check_arguments(**self.get_params(deep=False))
 
     # ------------------------------------------------------------------ scikit-learn params
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """The constructor's arguments; with ``deep`` also each stage's fields as
         ``stage__field`` (scikit-learn's protocol)."""
-        params = {name: getattr(self, name) for name in (*STAGES, "pool")}
+        params = {name: getattr(self, name) for name in (*STAGES, *OPTIONS)}
         if deep:
             for name in STAGES:
                 for key, value in getattr(self, name).get_params().items():
@@ -188,16 +216,56 @@ class ConnectionEstimator:
             )
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
-        model = self.regression.fit(traj, cycle, pool=self.pool)
+        regression, choice = self.regression, None
+        with _cycles_in_errors(traj, regression, self.complexity):
+            if self.complexity == "cv":
+                regression, choice = skill.select_complexity(traj, cycle, regression,
+                                                             pool=self.pool, n_folds=self._folds())
+            try:
+                model = regression.fit(traj, cycle, pool=self.pool)
+            except ValueError:
+                if self.complexity != "auto" or not skill.downdates(regression):
+                    raise
+                model = None  # too many coefficients for this recording: choose them below
+            held = None if model is None else self._held_out(traj, cycle, regression, model)
+            if self.complexity == "auto" and (model is None or (held is not None and bool(
+                    (held.worse_than_phase_average | held.unscored[..., None]).any()))):
+                # the given complexity overfits this recording: choose it by held-out error
+                try:
+                    regression, choice = skill.select_complexity(
+                        traj, cycle, regression, pool=self.pool, n_folds=self._folds())
+                except ValueError:
+                    if model is None:
+                        raise
+                    # no candidate fits 2 of 3 blocks: keep the given one (the check warns)
+                else:
+                    model = regression.fit(traj, cycle, pool=self.pool)
+                    held = self._held_out(traj, cycle, regression, model)
         self.trajectory_ = traj
         self.phaser_ = fitted_phaser
         self.limit_cycle_ = cycle
-        self.model_ = dataclasses.replace(
-            model, meta={**(model.meta or {}), "settings": estimator_settings(self)}
-        )
-        view = skill.regression_view(traj, self.regression, self.model_, pool=self.pool)
-        self.phase_average_ = skill.phase_average(view, self.regression.fourier_order)
+        self.regression_ = regression
+        self.complexity_ = choice
+        self.held_out_skill_ = held
+        settings = estimator_settings(self, regression)
+        self.model_ = dataclasses.replace(model, meta={**(model.meta or {}), "settings": settings})
+        view = skill.regression_view(traj, regression, self.model_, pool=self.pool)
+        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
+        if held is not None:
+            held.warn_if_poor(stacklevel=3, choice=choice)
         return self
+
+    def _folds(self) -> int:
+        return self.held_out_folds or 3
+
+    def _held_out(self, traj, cycle, regression, model) -> skill.Skill | None:
+        """The held-out check's skill (downdated fits), or None when it is off."""
+        if not self.held_out_folds or not skill.downdates(regression):
+            return None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", IllConditionedBinWarning)
+            return skill.cross_validate(traj, cycle, regression, pool=self.pool,
+                                        n_folds=self.held_out_folds, model=model)
 
     # ------------------------------------------------------------------ held-out skill
     def score(self, traj: Trajectory, phase: Tensor | None = None) -> skill.Skill:
@@ -209,21 +277,21 @@ class ConnectionEstimator:
         """
         model = self._fitted()
         traj = self._prepare_new(traj, phase)
-        view = skill.regression_view(traj, self.regression, model, pool=self.pool)
+        view = skill.regression_view(traj, self.regression_, model, pool=self.pool)
         return skill.skill(model, self.phase_average_, view)
 
     def cross_validate(self, n_folds: int = 3) -> skill.Skill:
         """Held-out skill on the training recordings over ``n_folds`` blocks of whole cycles
         (:func:`~torchconn.regression.skill.cross_validate`)."""
-        self._fitted()
-        return skill.cross_validate(self.trajectory_, self.limit_cycle_, self.regression,
-                                    pool=self.pool, n_folds=n_folds)
+        model = self._fitted()
+        return skill.cross_validate(self.trajectory_, self.limit_cycle_, self.regression_,
+                                    pool=self.pool, n_folds=n_folds, model=model)
 
     def check_held_out(self, n_folds: int = 3) -> skill.Skill:
         """:meth:`cross_validate`, warning (:class:`~torchconn.regression.skill.
         PoorHeldOutSkillWarning`) where the model loses to the phase-averaged velocity."""
         result = self.cross_validate(n_folds)
-        result.warn_if_poor(stacklevel=3)
+        result.warn_if_poor(stacklevel=3, choice=self.complexity_)
         self.held_out_skill_ = result
         return result
 
@@ -233,16 +301,21 @@ class ConnectionEstimator:
         ``n_folds`` blocks of whole cycles, then fit with them; returns self.
 
         The choice is in ``complexity_``
-        (:class:`~torchconn.regression.skill.ComplexityChoice`) and in ``regression``.
+        (:class:`~torchconn.regression.skill.ComplexityChoice`) and in ``regression`` (which
+        is set to the chosen stage, so that a refit keeps it).
         """
         if not isinstance(traj, Trajectory):
             raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
-        prepared, _ = _prepare(traj, phase, self.smoother, self.phaser)
-        cycle = self.cycle.fit(prepared, pool=self.pool)
-        chosen, self.complexity_ = skill.select_complexity(
-            prepared, cycle, self.regression, pool=self.pool, n_folds=n_folds)
-        self.regression = chosen
-        return self.fit(traj, phase)
+        _checks.integer(n_folds, "n_folds", minimum=2, fn="select_complexity")
+        complexity, folds = self.complexity, self.held_out_folds
+        self.complexity = "cv"
+        self.held_out_folds = n_folds if folds else 0
+        try:
+            self.fit(traj, phase)
+        finally:
+            self.complexity, self.held_out_folds = complexity, folds
+        self.regression = self.regression_
+        return self
 
     def prepare(self, traj: Trajectory, phase: Tensor | None = None) -> Trajectory:
         """:func:`prepare` with this estimator's smoother and phaser (smoothing, phase)."""
@@ -275,7 +348,7 @@ class ConnectionEstimator:
         return self.prepare(traj, phase)
 
     def _fitted(self) -> LocalConnectionModel:
-        if not hasattr(self, "model_"):
+        if not hasattr(self, "model_") or not hasattr(self, "regression_"):
             raise RuntimeError("this ConnectionEstimator is not fitted yet: call fit(traj) first")
         return self.model_
 
@@ -286,8 +359,9 @@ class ConnectionEstimator:
         return "ConnectionEstimator(" + ", ".join(changed) + ")"
 
 
-def _check_arguments(*, pool: Any, **stages: Any) -> None:
-    """The constructor's arguments: each stage an instance of its kind's base, pool a bool."""
+def _check_arguments(*, pool: Any, complexity: Any, held_out_folds: Any, **stages: Any) -> None:
+    """The constructor's arguments: each stage an instance of its kind's base, pool a bool,
+    complexity one of :data:`COMPLEXITY`, held_out_folds 0 or an integer >= 2."""
     for name, (base, methods) in STAGES.items():
         value = stages[name]
         if not isinstance(value, base):
@@ -297,6 +371,48 @@ def _check_arguments(*, pool: Any, **stages: Any) -> None:
             )
     if not isinstance(pool, bool):
         raise ValueError(f"ConnectionEstimator: pool must be true or false, got {pool!r}")
+    if complexity not in COMPLEXITY:
+        raise ValueError(f"ConnectionEstimator: complexity must be one of {COMPLEXITY}, got "
+                         f"{complexity!r}")
+    if (isinstance(held_out_folds, bool) or not isinstance(held_out_folds, int)
+            or held_out_folds < 0 or held_out_folds == 1):
+        raise ValueError("ConnectionEstimator: held_out_folds must be 0 (no held-out check) or "
+                         f"an integer >= 2, got {held_out_folds!r}")
+
+
+@contextlib.contextmanager
+def _cycles_in_errors(traj: Trajectory, regression: Regression, complexity: str):
+    """Add to a "bins cannot be fitted" error how many cycles the recording has and how many
+    the regression's complexity asks for."""
+    try:
+        yield
+    except ValueError as err:
+        text = str(err)
+        if "cannot be fitted" not in text and "no candidate could be fitted" not in text:
+            raise
+        advice = ("; complexity='auto' or 'cv' (torchconn-fit --complexity) chooses fewer "
+                  "coefficients" if complexity == "fixed" else "")
+        raise ValueError(f"{text} [{_cycles_note(traj, regression)}{advice}]") from None
+
+
+def _cycles_note(traj: Trajectory, regression: Regression) -> str:
+    """The recording's cycles per trial against those the bins' window rule needs: a window
+    holds ``samples_per_regressor`` samples per regressor and spans at most half a cycle
+    (:func:`~torchconn.regression.tube._auto_window`; a tricube window of half a cycle
+    carries the weight of 0.3 cycles), so ``P`` regressors per bin need
+    ``P · samples_per_regressor / 0.3`` samples per trial."""
+    span = traj.phase.nan_to_num(nan=0.0).amax(-1) - traj.phase.nan_to_num(
+        nan=float("inf")).amin(-1)
+    cycles = float(span.min()) / (2 * math.pi)
+    per_cycle = (traj.n_samples - 1) / max(float(span.max()) / (2 * math.pi), 1e-9)
+    d = traj.shape_dim
+    p = 1 + 2 * d + d * d
+    spr = getattr(regression, "samples_per_regressor", 2.5)
+    need = p * spr / 0.3 / per_cycle
+    return (f"this recording has {cycles:.1f} cycles per trial at {per_cycle:.0f} samples per "
+            f"cycle; {p} regressors per bin (d = {d} joints) at {spr:g} samples per regressor "
+            f"need at least {need:.1f} cycles per trial (1.5x that to choose the complexity "
+            "on 2 of 3 blocks of cycles)")
 
 
 # ---------------------------------------------------------------------- settings tables
@@ -325,9 +441,9 @@ def estimator_from_settings(settings: Mapping[str, Any] | None = None, *,
     settings = dict(settings or {})
     if not isinstance(settings, Mapping):
         raise ValueError(f"{where} must be a table (mapping), got {type(settings).__name__}")
-    unknown = set(settings) - {*STAGES, "pool", *FLAT_KEYS}
+    unknown = set(settings) - {*STAGES, *OPTIONS, *FLAT_KEYS}
     if unknown:
-        raise ValueError(unknown_keys_message(where, unknown, [*STAGES, "pool", *FLAT_KEYS]))
+        raise ValueError(unknown_keys_message(where, unknown, [*STAGES, *OPTIONS, *FLAT_KEYS]))
     stages = {}
     for name, (_, methods) in STAGES.items():
         table = settings.get(name, {})
@@ -352,19 +468,27 @@ def estimator_from_settings(settings: Mapping[str, Any] | None = None, *,
     pool = settings.get("pool", False)
     if not isinstance(pool, bool):
         raise ValueError(f"{where}.pool must be true or false, got {pool!r}")
-    return ConnectionEstimator(**stages, pool=pool)
+    options = {k: settings[k] for k in ("complexity", "held_out_folds") if k in settings}
+    try:
+        return ConnectionEstimator(**stages, pool=pool, **options)
+    except ValueError as err:
+        raise ValueError(f"{where}: {str(err).removeprefix('ConnectionEstimator: ')}") from None
 
 
-def estimator_settings(estimator: ConnectionEstimator) -> dict[str, Any]:
+def estimator_settings(estimator: ConnectionEstimator,
+                       regression: Regression | None = None) -> dict[str, Any]:
     """The nested settings table of ``estimator`` (the inverse of
-    :func:`estimator_from_settings`; JSON-ready except that None stays None)."""
+    :func:`estimator_from_settings`; JSON-ready except that None stays None); ``regression``
+    replaces the estimator's regression stage (e.g. the fitted ``regression_``)."""
     out: dict[str, Any] = {}
     for name, (_, methods) in STAGES.items():
-        stage = getattr(estimator, name)
+        stage = getattr(estimator, name) if name != "regression" or regression is None \
+            else regression
         method = next((m for m, cls in methods.items() if type(stage) is cls),
                       f"{type(stage).__module__}.{type(stage).__qualname__}")
         out[name] = {"method": method, **stage.get_params()}
-    out["pool"] = estimator.pool
+    for key in OPTIONS:
+        out[key] = getattr(estimator, key)
     return out
 
 

@@ -215,6 +215,18 @@ def tied_metric_n_coef(d: int, order: int, derivative_order: int | None) -> int:
     return n_feat * q
 
 
+def _cycles_needed(phase: Tensor, valid: Tensor, samples: int) -> str:
+    """`` (about k cycles at n usable samples per cycle)``: ``samples`` usable samples in
+    cycles of this recording (its median phase step), or "" when that cannot be told."""
+    step = phase.diff(dim=-1).abs()
+    step = step[valid[..., 1:] & valid[..., :-1] & (step > 0) & (step < math.pi)]
+    if step.numel() == 0:
+        return ""
+    per_cycle = 2 * math.pi / float(step.median())
+    return (f" (about {math.ceil(10 * samples / per_cycle) / 10:g} cycles at the "
+            f"{per_cycle:.0f} samples per cycle of this recording)")
+
+
 def tied_metric_regression(
     offset: Tensor,
     velocity: Tensor,
@@ -319,7 +331,9 @@ def tied_metric_regression(
             f"interval) for P = {p} coefficients of the metric (Fourier order {order}"
             + ("" if derivative_order is None else f", derivative order {derivative_order}")
             + f", d = {d}); need at least {min_samples_per_coef:g}·P = "
-              f"{math.ceil(min_samples_per_coef * p)}. Record more cycles, or lower the orders"
+              f"{math.ceil(min_samples_per_coef * p)}" + _cycles_needed(
+                ph, valid, math.ceil(min_samples_per_coef * p)) + ". Record more cycles, or "
+            "lower the orders"
         )
     zero = delta.new_zeros(())
     delta = torch.where(valid.unsqueeze(-1), delta, zero)

@@ -15,6 +15,7 @@ choice made on them is reproducible.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
@@ -22,13 +23,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..phase.fourier import fit_fourier
+from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import LimitCycle
 from ..trajectory import Trajectory, pool_batch
+from . import _wls
 from ._wls import IllConditionedBinWarning
+from .binning import assign_bins
+from .connection import split_coefficients
+from .held_out import leave_blocks_out
 from .model import LocalConnectionModel
-from .noise_aware import NoiseAwareRegression, interval_view
-from .tube import Regression
+from .noise_aware import NoiseAwareRegression, eiv_correction, interval_view
+from .tube import Regression, TubeRegression, _auto_window
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
            "RIDGE_GRID", "regression_view", "cross_validate", "select_complexity", "skill"]
@@ -65,13 +70,34 @@ class Skill:
     n_samples: Tensor
 
     @property
+    def unscored(self) -> Tensor:
+        """``(...)`` True where the skill is undefined (NaN): some bin could not be fitted
+        without one of the held-out blocks (too few cycles for the model's complexity)."""
+        return ~torch.isfinite(self.r2).all(-1)
+
+    @property
     def worse_than_phase_average(self) -> Tensor:
         """``(..., 3)`` True where the model loses to a phase-averaged baseline that has skill
         (``R² > 0``)."""
         return (self.r2 < self.r2_phase_average) & (self.r2_phase_average > 0)
 
-    def warn_if_poor(self, stacklevel: int = 3) -> None:
-        """Warn (:class:`PoorHeldOutSkillWarning`) where :attr:`worse_than_phase_average`."""
+    def warn_if_poor(self, stacklevel: int = 3, choice: "ComplexityChoice | None" = None
+                     ) -> None:
+        """Warn (:class:`PoorHeldOutSkillWarning`) where :attr:`worse_than_phase_average` or
+        :attr:`unscored`; ``choice``: the complexity chosen by held-out error, if any (the
+        advice then is more cycles, not fewer bins)."""
+        fix = ("record more cycles (the complexity was already chosen by held-out error: "
+               f"{choice.n_bins} bins, Fourier order {choice.fourier_order}, ridge "
+               f"{choice.ridge:g})" if choice is not None else
+               "choose the complexity by held-out error (ConnectionEstimator(complexity='cv'), "
+               "torchconn-fit --complexity cv), or use fewer bins / a lower Fourier order / a "
+               "ridge, or record more cycles")
+        if bool(self.unscored.any()):
+            warnings.warn(
+                "held-out check: some phase bins cannot be fitted when one block of whole "
+                "cycles is left out, so the model has too many coefficients for this "
+                f"recording; {fix}", PoorHeldOutSkillWarning, stacklevel=stacklevel)
+            return
         worse = self.worse_than_phase_average.reshape(-1, 3).any(0)
         if not bool(worse.any()):
             return
@@ -79,9 +105,10 @@ class Skill:
         warnings.warn(
             f"the model predicts held-out cycles worse than their phase-averaged velocity for "
             f"{', '.join(names)} (held-out R² {_fmt(self.r2)} vs phase average "
-            f"{_fmt(self.r2_phase_average)}): it overfits this recording; use fewer bins / a "
-            "lower Fourier order / a wider window (ConnectionEstimator.select_complexity), or "
-            "record more cycles", PoorHeldOutSkillWarning, stacklevel=stacklevel)
+            f"{_fmt(self.r2_phase_average)}): its shape terms do not help predict these "
+            f"components on this recording (too few cycles for its coefficients, or joint-"
+            f"angle noise that swamps the shape deviations); {fix}", PoorHeldOutSkillWarning,
+            stacklevel=stacklevel)
 
 
 @dataclass(frozen=True)
@@ -130,40 +157,188 @@ def skill(model: LocalConnectionModel, baseline, view: _View) -> Skill:
 
 
 def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
-                   pool: bool, n_folds: int = 3, noise_corrected: bool = False) -> Skill:
+                   pool: bool, n_folds: int = 3, noise_corrected: bool = False,
+                   model: LocalConnectionModel | None = None, refit: bool = False) -> Skill:
     """Held-out skill over ``n_folds`` contiguous blocks of whole cycles of every trial.
 
-    Each block in turn is left out of the regression (its samples get a NaN phase, as
-    drop-outs do) and scored; the phase and the limit cycle of the whole recording are kept
-    (they carry little of the model's complexity). The metric is not refitted.
+    Each block in turn is left out of the regression and scored; the phase and the limit
+    cycle of the whole recording are kept (they carry little of the model's complexity). The
+    metric is not refitted.
+
+    For :class:`~torchconn.regression.tube.TubeRegression` and
+    :class:`~torchconn.regression.noise_aware.NoiseAwareRegression` the fits without each block
+    come from downdating every bin's normal equations (:mod:`~torchconn.regression.held_out`):
+    the window, velocity interval and noise level of the fit to the whole recording are kept,
+    and the cost is about one more pass over the data. ``refit=True`` (and any other regression)
+    refits the regression without each block instead (its samples get a NaN phase, as
+    drop-outs do), re-choosing window, interval and noise level from the remaining cycles.
+
+    ``model``: the regression's fit to the whole recording, when already at hand (its
+    ``meta`` gives the window, interval and noise level).
 
     ``noise_corrected`` (noise-aware regressions): subtract from the model's squared error the
     part the joint-angle noise of the held-out *inputs* adds (:func:`_input_noise_variance`),
     so that the score ranks models by how well they predict from the true shapes. Without it,
     held-out error on noisy inputs favours models shrunk towards 0 (the attenuation the
     noise-aware regression removes).
+
+    Raises:
+        ValueError: ``refit`` and a block that cannot be fitted (the solver's message). The
+            downdated fits never raise: a bin that cannot be fitted without a block predicts
+            NaN, and the skill of that trial is NaN (see :attr:`Skill.unscored`).
     """
     if isinstance(n_folds, bool) or not isinstance(n_folds, int) or n_folds < 2:
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
     reg = regression.replace(metric=False)
-    model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
+    if model is None:
+        model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
+    unflat = regression_view(traj, reg, model, pool=pool, flatten=False)
     view = regression_view(traj, reg, model, pool=pool)
-    fold = _cycle_blocks(regression_view(traj, reg, model, pool=pool, flatten=False).phase,
-                         n_folds)
-    if pool:
-        fold = pool_batch(fold, 0)
-    sample_fold = _cycle_blocks(traj.phase, n_folds)
+    fold = _cycle_blocks(unflat.phase, n_folds)
+    if refit or not downdates(reg):
+        sample_fold = _cycle_blocks(traj.phase, n_folds)
+        models = []
+        for f in range(n_folds):
+            train = traj.with_fields(phase=torch.where(sample_fold == f, torch.nan, traj.phase))
+            models.append(reg.fit(train, cycle, pool=pool))
+    else:
+        coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool)[0]
+        models = [with_coefficients(model, coef[f], reg.fourier_order) for f in range(n_folds)]
+    return _score_folds(models, view, pool_batch(fold, 0) if pool else fold, reg, traj.dt,
+                        pool, noise_corrected)
+
+
+def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
+                 noise_corrected: bool) -> Skill:
+    """:class:`Skill` of ``models[f]`` on block ``f`` of ``view``, summed over the blocks,
+    beside the phase-averaged velocity of the other blocks."""
     sums = []
-    for f in range(n_folds):
-        train = traj.with_fields(phase=torch.where(sample_fold == f, torch.nan, traj.phase))
-        fold_model = reg.fit(train, cycle, pool=pool)
+    for f, fold_model in enumerate(models):
         base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
                                    view.r_dot, view.xi), reg.fourier_order)
         noise = None
         if noise_corrected and isinstance(reg, NoiseAwareRegression):
-            noise = _noise_of(fold_model, traj.dt, pool)
+            noise = _noise_of(fold_model, dt, pool)
         sums.append(_sums(fold_model, base, view, fold == f, noise))
     return _from_sums(*[sum(parts) for parts in zip(*sums, strict=True)])
+
+
+def downdates(regression: Regression) -> bool:
+    """Whether :func:`held_out_coefficients` knows ``regression``'s design: a
+    :class:`TubeRegression` or :class:`NoiseAwareRegression` regressing as they do (a subclass
+    that regresses differently is refitted instead)."""
+    own = type(regression)._connection_fit
+    return own in (TubeRegression._connection_fit, NoiseAwareRegression._connection_fit)
+
+
+def held_out_coefficients(traj: Trajectory, regression: Regression,
+                          model: LocalConnectionModel, view: _View, fold: Tensor,
+                          n_folds: int, *, pool: bool,
+                          ridges: tuple[float, ...] | None = None,
+                          columns: Tensor | None = None, window=None) -> Tensor:
+    """Per-bin coefficients ``(R, F, ..., M, P, 3)`` of ``regression`` fitted without each of
+    the ``F = n_folds`` blocks (:func:`~torchconn.regression.held_out.leave_blocks_out`), for
+    each ridge in ``ridges`` (default: the regression's own).
+
+    ``model`` is the regression's fit to the whole recording (its bins' centres and ``meta``:
+    velocity interval, noise level); ``view`` and ``fold`` ``(..., N)`` are the samples it
+    regressed on (:func:`regression_view` with ``flatten=False``) and their blocks. ``window``:
+    the bins' half-width (default: the regression's own, or its rule applied to the samples
+    outside one block, :func:`_fold_windows`).
+    """
+    ridges = (regression.ridge,) if ridges is None else tuple(ridges)
+    meta = model.meta or {}
+    bins = model.bins
+    d = bins.gamma.shape[-1]
+    gamma, gamma_dot = bins.gamma, bins.gamma_dot
+    phase, r, r_dot, xi = view.phase, view.r, view.r_dot, view.xi
+    if pool:
+        phase, r, r_dot, xi, fold = (pool_batch(x, k) for x, k in (
+            (phase, 0), (r, 1), (r_dot, 1), (xi, 1), (fold, 0)))
+    batch = tuple(phase.shape[:-1])
+    n = math.prod(batch)
+    kw = dict(dtype=r.dtype, device=r.device)
+    var_delta = var_rate = None
+    if isinstance(regression, NoiseAwareRegression):
+        var = torch.as_tensor(meta["noise_r"], **kw).square().expand(batch + (d,))
+        span = torch.as_tensor(meta["velocity_interval"], **kw) * traj.dt
+        var_delta, var_rate = var / 2, 2 * var / span.expand(batch).unsqueeze(-1) ** 2
+        var_delta, var_rate = var_delta.reshape(n, d), var_rate.reshape(n, d)
+    if window is None:
+        window = _fold_windows(regression, meta, phase, fold, d)
+    windows = torch.as_tensor(window, dtype=torch.float64, device=r.device).expand(
+        batch).reshape(n)
+    flat = [x.reshape((n,) + x.shape[len(batch):]) for x in (phase, r, r_dot, xi, fold)]
+    m = regression.n_bins
+    g_m = gamma.expand(batch + (m, d)).reshape(n, m, d)
+    g_dot = gamma_dot.expand(batch + (m, d)).reshape(n, m, d)
+    out = None
+    for w in torch.unique(windows).tolist():  # elements sharing a window share their bins
+        idx = torch.nonzero(windows == w).flatten()
+        ph, rr, rd, y, fo = (x[idx] for x in flat)
+        s = _wls.prepare("cross_validate", rr, rd, y, "xi", 3,
+                         assign_bins(ph, m, window=w, kernel=regression.kernel),
+                         g_m[idx], g_dot[idx])
+        correction = None
+        if var_delta is not None:
+            vd = var_delta[idx].repeat_interleave(m, 0)
+            vr = var_rate[idx].repeat_interleave(m, 0)
+
+            def correction(gram, sel, vd=vd, vr=vr):
+                return eiv_correction(gram, vd[sel], vr[sel])
+
+        coef = leave_blocks_out(s, fo.reshape(-1), n_folds, ridges=ridges,
+                                delta_max=regression.delta_max, correction=correction,
+                                columns=columns)
+        coef = coef.unflatten(1, (idx.numel(), m))  # (R, b, M, F, P, K)
+        if out is None:
+            out = coef.new_full((len(ridges), n) + coef.shape[2:], torch.nan)
+        out[:, idx] = coef
+    out = out.movedim(3, 1)  # (R, F, n, M, P, K)
+    return out.reshape(out.shape[:2] + batch + out.shape[3:])
+
+
+def _fold_windows(regression: Regression, meta: dict, phase: Tensor, fold: Tensor, d: int):
+    """The bins' half-width(s) the regression's own rule gives on the samples outside one
+    block (block 0; the blocks are about equal): a refit on fewer cycles widens its windows,
+    and keeping the whole recording's narrower ones would handicap the models with more
+    regressors (measured: 3-link reference gait, 3 cycles, ω = 0.005: 12 bins / order 3
+    chosen and held-out R² of v_x 0.90, against 24 / 6 and 0.99 with the refits' windows).
+
+    ``phase``, ``fold``: ``(..., N)`` (pooled: ``(N,)``). Returns a float or a ``(...)`` list.
+    """
+    if regression.window is not None:
+        return regression.window
+    train = torch.where(fold == 0, torch.nan, phase)
+    if not isinstance(regression, NoiseAwareRegression):
+        return _auto_window(train, regression.n_bins, 1 + 2 * d + d * d,
+                            regression.samples_per_regressor)
+    ratio = torch.as_tensor(meta["noise_ratio"], dtype=torch.float64, device=phase.device)
+    if train.ndim == 1:
+        return regression._window(train, d, float(ratio))
+    flat, ratio = train.reshape(-1, train.shape[-1]), ratio.reshape(-1)
+    widths = torch.tensor([regression._window(flat[b:b + 1], d, float(ratio[b]))
+                           for b in range(flat.shape[0])], dtype=torch.float64,
+                          device=phase.device)
+    return (torch.round(widths * 2) / 2).reshape(train.shape[:-1])  # as the regression rounds
+
+
+def with_coefficients(model: LocalConnectionModel, coef: Tensor, order: int
+                      ) -> LocalConnectionModel:
+    """``model`` with its connection terms replaced by the Fourier series (order ``order``)
+    through per-bin coefficients ``coef (..., M, P, 3)`` of the design ``[1, δ, δ̇, δ̇⊗δ]``."""
+    # a batch element with a bin that could not be fitted predicts NaN (it is unscored)
+    bad = ~torch.isfinite(coef).flatten(-3).all(-1)
+    c, b, a, da = split_coefficients(torch.nan_to_num(coef), model.shape_dim)
+    centres = model.bins.phase.to(coef)
+
+    def series(values: Tensor, ndim: int):
+        fitted = fit_fourier(centres, values, order, value_ndim=ndim)
+        mask = bad.reshape(bad.shape + (1,) * (ndim + 1))
+        return FourierSeries(fitted.coeffs.masked_fill(mask, torch.nan), ndim)
+
+    return dataclasses.replace(model, c=series(c, 1), b=series(b, 2), A=series(a, 2),
+                               dA=series(da, 3))
 
 
 def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):
@@ -185,6 +360,10 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
     :data:`COMPLEXITY_GRID` x :data:`RIDGE_GRID` (:func:`cross_validate`, noise-corrected);
     a ridge only when it gains more than :data:`RIDGE_MIN_GAIN` over no ridge.
 
+    The blocks are whole cycles in order and nothing is random: the same data give the same
+    choice. For the built-in regressions one fit per ``(n_bins, fourier_order)`` and one pass
+    over the data give every ridge's fits without each block (:func:`held_out_coefficients`).
+
     Returns ``regression`` with the chosen fields and the :class:`ComplexityChoice`.
 
     Raises:
@@ -193,16 +372,8 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
     """
     scores, failed = [], []
     for n_bins, order in COMPLEXITY_GRID:
-        for ridge in RIDGE_GRID:
-            cand = regression.replace(n_bins=n_bins, fourier_order=order, ridge=ridge)
-            try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", IllConditionedBinWarning)
-                    s = cross_validate(traj, cycle, cand, pool=pool, n_folds=n_folds,
-                                       noise_corrected=True)
-            except ValueError as err:
-                failed.append(f"{n_bins} bins: {err}")
-                continue
+        for ridge, s in _candidate_skills(traj, cycle, regression, n_bins, order, pool,
+                                          n_folds, failed):
             scores.append((n_bins, order, ridge, float((1 - s.r2).mean())))
     if not scores:
         raise ValueError(f"select_complexity: no candidate could be fitted on {n_folds - 1} of "
@@ -217,6 +388,47 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
     choice = ComplexityChoice(n_bins=n_bins, fourier_order=order, ridge=ridge,
                               scores=tuple(scores))
     return regression.replace(n_bins=n_bins, fourier_order=order, ridge=ridge), choice
+
+
+def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, failed):
+    """``(ridge, Skill)`` of every ridge in :data:`RIDGE_GRID` at ``(n_bins, order)``, noise-
+    corrected; a candidate that cannot be fitted is left out and named in ``failed``."""
+    base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        if not downdates(base):
+            out = []
+            for ridge in RIDGE_GRID:
+                try:
+                    out.append((ridge, cross_validate(
+                        traj, cycle, base.replace(ridge=ridge), pool=pool, n_folds=n_folds,
+                        noise_corrected=True, refit=True)))
+                except ValueError as err:
+                    failed.append(f"{n_bins} bins, ridge {ridge:g}: {err}")
+            return out
+        try:
+            # the whole recording's window, interval and noise level (bins that need a
+            # ridge are NaN here and do not matter: only the fits without each block count)
+            model = base.replace(on_ill_conditioned="warn").fit(traj, cycle, pool=pool)
+        except ValueError as err:
+            failed.append(f"{n_bins} bins: {err}")
+            return []
+    unflat = regression_view(traj, base, model, pool=pool, flatten=False)
+    view = regression_view(traj, base, model, pool=pool)
+    fold = _cycle_blocks(unflat.phase, n_folds)
+    coef = held_out_coefficients(traj, base, model, unflat, fold, n_folds, pool=pool,
+                                 ridges=RIDGE_GRID)
+    flat_fold = pool_batch(fold, 0) if pool else fold
+    out = []
+    for k, ridge in enumerate(RIDGE_GRID):
+        models = [with_coefficients(model, coef[k, f], order) for f in range(n_folds)]
+        s = _score_folds(models, view, flat_fold, base, traj.dt, pool, noise_corrected=True)
+        if bool(s.unscored.any()):
+            failed.append(f"{n_bins} bins, ridge {ridge:g}: some bins cannot be fitted "
+                          f"without one of the {n_folds} blocks of cycles")
+            continue
+        out.append((ridge, s))
+    return out
 
 
 def _cycle_blocks(phase: Tensor, n_folds: int) -> Tensor:
@@ -278,5 +490,5 @@ def _from_sums(sse_model, sse_base, sse_template, sy, syy, n) -> Skill:
 
 def _fmt(x: Tensor) -> str:
     flat = x.reshape(-1, 3)
-    worst = "[" + ", ".join(f"{float(v):.2f}" for v in flat.min(0).values) + "]"
+    worst = "[" + ", ".join(f"{float(v):.3f}" for v in flat.min(0).values) + "]"
     return worst + (" (worst trial)" if flat.shape[0] > 1 else "")

@@ -1,0 +1,210 @@
+"""Held-out skill on short real-like recordings: the default estimator against its baselines.
+
+Short recordings like tracked fish: one trial of 3-6 gait cycles, 4 joints (5-link), motion-
+capture noise ω = 0.005 on x, y, θ and every r_i (the paper's SDE, α = 0.05, η = 0.025,
+126 samples per cycle). The estimator is fitted to the first ``n`` cycles and scored on the
+next 4 cycles of the same trial (phased by the fitted phaser), as R² per body-velocity
+component against the smoothed observed velocity (what the default regression is fitted to):
+
+- ``fixed``: today's fixed complexity (48 bins, Fourier order 12, no ridge);
+- ``default``: ``ConnectionEstimator()`` -- complexity ``"auto"``: chosen by held-out error
+  over blocks of whole training cycles when the fixed one loses to the phase average there;
+- ``phase avg``: the training cycles' phase-averaged velocity (order of the default's series);
+- ``template``: the default model on the cycle, ``Â(γ)γ̇``;
+- ``exact A``: the swimmer's exact connection applied to the same smoothed noisy shapes and
+  shape velocities -- what a perfect estimate of ``A`` would score against this target.
+
+Only ``Phaser(min_cycles=2.5)`` differs from the defaults: a recording of exactly 3 cycles
+often phases to 2.9-3.0 and the default Phaser (3 cycles) refuses it.
+
+Run by hand (about a minute per 20 rows on a loaded 2-core machine)::
+
+    python benchmarks/short_recordings.py                       # seeds 10-14, 5-link, 3 gaits
+    python benchmarks/short_recordings.py --links 9 3 --gaits wave0.7 --seeds 10 11
+    python benchmarks/short_recordings.py --cost                # cost of the held-out check
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+import warnings
+from functools import partial
+
+import numpy as np
+import torch
+
+from torchconn import (
+    ConnectionEstimator,
+    NLinkSwimmer,
+    Phaser,
+    TubeRegression,
+    observe,
+    simulate,
+)
+from torchconn.physics.gaits import FourierGait, reference_gait
+from torchconn.regression import skill
+
+SAMPLES_PER_CYCLE = 126  # Δt ≈ 0.05
+TEST_CYCLES = 4
+COMPONENTS = ("v_x", "v_y", "omega")
+
+
+def gait(n_links: int, kind: str) -> FourierGait:
+    """``wave<ρ>``: a travelling wave of amplitude ρ rad (3-link: a circle); ``wave2``: a wave
+    of 0.6 rad plus a second harmonic of 0.25 rad (a figure-eight-like, non-circular loop);
+    ``reference``: the stored reference gait (3- and 9-link)."""
+    d = n_links - 1
+    if kind == "reference":
+        return reference_gait(f"{n_links}link")
+    i = torch.arange(d, dtype=torch.float64)
+    lag = 2 * math.pi * i / max(d, 4) if d > 2 else torch.tensor([0.0, math.pi / 2])
+    radius = 0.6 if kind == "wave2" else float(kind.removeprefix("wave"))
+    coeffs = torch.zeros(5 if kind == "wave2" else 3, d, dtype=torch.float64)
+    coeffs[1], coeffs[2] = radius * torch.cos(lag), radius * torch.sin(lag)
+    if kind == "wave2":
+        coeffs[3], coeffs[4] = 0.25 * torch.cos(2 * lag), 0.25 * torch.sin(2 * lag)
+    return FourierGait(coeffs)
+
+
+def recording(n_links: int, kind: str, n_cycles: int, seed: int, omega: float):
+    seeds = np.array([seed])
+    clean = simulate(NLinkSwimmer(n_links), gait(n_links, kind), eta=0.025,
+                     n_cycles=n_cycles + TEST_CYCLES, samples_per_cycle=SAMPLES_PER_CYCLE,
+                     seeds=seeds)
+    # tracked recordings carry no power channel (and the metric needs more cycles)
+    return observe(clean, omega, seeds=seeds).with_fields(power=None)
+
+
+def _exact_r2(est: ConnectionEstimator, test, n_links: int) -> torch.Tensor:
+    """R² of the exact connection on the smoothed test recording (phase-free)."""
+    prepared = est.prepare(test)
+    sm = prepared.smoothed
+    pred = (NLinkSwimmer(n_links).connection(sm.r) @ sm.r_dot.unsqueeze(-1)).squeeze(-1)
+    y = sm.xi
+    sst = (y - y.mean(-2, keepdim=True)).square().sum(-2)
+    return (1 - (y - pred).square().sum(-2) / sst).reshape(-1)
+
+
+def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float) -> dict:
+    traj = recording(n_links, kind, n_cycles, seed, omega)
+    cut = n_cycles * SAMPLES_PER_CYCLE + 1
+    train, test = traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
+    phaser = Phaser(min_cycles=2.5)
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            fixed = ConnectionEstimator(phaser=phaser, complexity="fixed").fit(train)
+            out["fixed"] = fixed.score(test).r2.reshape(-1)
+        except ValueError:
+            out["fixed"] = torch.full((3,), math.nan, dtype=torch.float64)  # cannot be fitted
+        start = time.perf_counter()
+        est = ConnectionEstimator(phaser=phaser).fit(train)
+        out["seconds"] = time.perf_counter() - start
+        s = est.score(test)
+    out.update(default=s.r2.reshape(-1), phase_avg=s.r2_phase_average.reshape(-1),
+               template=s.r2_template.reshape(-1), exact=_exact_r2(est, test, n_links))
+    c = est.complexity_
+    out["choice"] = "fixed" if c is None else f"{c.n_bins}/{c.fourier_order}/{c.ridge:g}"
+    held = est.held_out_skill_
+    out["warned"] = bool(held.worse_than_phase_average.any() | held.unscored.any())
+    return out
+
+
+def _fmt(x, marks=None) -> str:
+    marks = [False] * len(x) if marks is None else marks.tolist()
+    return " ".join(f"{float(v):6.3f}" + ("*" if m else " ")
+                    for v, m in zip(x, marks, strict=True))
+
+
+def _best_of_3(fn) -> float:
+    times = []
+    for _ in range(3):
+        t0 = time.process_time()
+        fn()
+        times.append(time.process_time() - t0)
+    return min(times)
+
+
+def table(args) -> int:
+    print(f"train n cycles, test the next {TEST_CYCLES}; R² per component "
+          f"({', '.join(COMPONENTS)}); default < phase avg (where phase avg > 0) marked *")
+    print(f"{'links':>5} {'gait':>9} {'n':>2} {'seed':>4} | {'fixed':^20} | {'default':^20} | "
+          f"{'phase avg':^20} | {'template':^20} | {'exact A':^20} | choice     warn  s/fit")
+    worse, losses, cases = 0, [], 0
+    for n_links in args.links:
+        for kind in args.gaits:
+            if kind == "reference" and n_links not in (3, 9):
+                continue
+            for n in args.cycles:
+                for seed in args.seeds:
+                    r = run_one(n_links, kind, n, seed, args.omega)
+                    pa = r["phase_avg"]
+                    bad = (r["default"] < pa) & (pa > 0)
+                    cases += int((pa > 0).sum())
+                    worse += int(bad.sum())
+                    losses += (pa - r["default"])[bad].tolist()
+
+                    print(f"{n_links:>5} {kind:>9} {n:>2} {seed:>4} | {_fmt(r['fixed'])}| "
+                          f"{_fmt(r['default'], bad)}| {_fmt(pa)}| {_fmt(r['template'])}| "
+                          f"{_fmt(r['exact'])}| {r['choice']:10s} {'yes' if r['warned'] else 'no':4s}"
+                          f" {r['seconds']:5.2f}", flush=True)
+    worst = max(losses) if losses else 0.0
+    print(f"default worse than the phase average in {worse} of {cases} components with a "
+          f"phase-average R² > 0 (largest shortfall {worst:.3f})")
+    return 0
+
+
+def _fit_for_cost(traj, reg, pool, folds):
+    return ConnectionEstimator(regression=reg, pool=pool, complexity="fixed",
+                               held_out_folds=folds).fit(traj)
+
+
+def cost(args) -> int:
+    """Time of a fit without and with the held-out check, and of the refitting check."""
+    torch.manual_seed(0)
+    cases = [
+        ("5-link, 1 trial x 6 cycles, 126/cycle", 5, "wave0.7", 6, 1, 126, False),
+        ("3-link, 4 x 30 pooled, 126/cycle", 3, "wave0.9", 30, 4, 126, True),
+        ("9-link, 4 x 30 pooled, 126/cycle", 9, "reference", 30, 4, 126, True),
+        ("9-link, 20 x 30 per trial, 64/cycle (a sweep cell)", 9, "reference", 30, 20, 64,
+         False),
+    ]
+    print("CPU seconds (best of 3); ratio = extra time of the check / fit without it")
+    for name, n_links, kind, n_cycles, n_trials, spc, pool in cases:
+        seeds = np.arange(n_trials)
+        traj = observe(simulate(NLinkSwimmer(n_links), gait(n_links, kind), eta=0.025,
+                                n_cycles=n_cycles, samples_per_cycle=spc, seeds=seeds),
+                       0.005, seeds=seeds)
+
+        reg = TubeRegression(metric=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            plain = _best_of_3(partial(_fit_for_cost, traj, reg, pool, 0))
+            checked = _best_of_3(partial(_fit_for_cost, traj, reg, pool, 3))
+            est = _fit_for_cost(traj, reg, pool, 0)
+            refit = _best_of_3(partial(skill.cross_validate, est.trajectory_, est.limit_cycle_,
+                                       reg, pool=pool, refit=True))
+        print(f"{name:52s} fit {plain:6.2f}  with check {checked:6.2f} "
+              f"(+{(checked - plain) / plain:5.0%})  refitting check {refit:6.2f} "
+              f"({refit / plain:4.0%} of a fit)", flush=True)
+    return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--links", type=int, nargs="+", default=[5])
+    p.add_argument("--gaits", nargs="+", default=["wave0.7", "wave0.9", "wave2"])
+    p.add_argument("--cycles", type=int, nargs="+", default=[3, 4, 5, 6])
+    p.add_argument("--seeds", type=int, nargs="+", default=[10, 11, 12, 13, 14])
+    p.add_argument("--omega", type=float, default=0.005)
+    p.add_argument("--cost", action="store_true", help="time the held-out check instead")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    return cost(args) if args.cost else table(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

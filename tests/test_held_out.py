@@ -1,0 +1,141 @@
+"""Held-out skill without refits: downdated normal equations against true refits, the check
+that every fit runs, and its warning."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from torchconn import (
+    ConnectionEstimator,
+    NLinkSwimmer,
+    NoiseAwareRegression,
+    SelfConsistentCycle,
+    TubeRegression,
+    observe,
+    simulate,
+)
+from torchconn.physics.gaits import FourierGait
+from torchconn.regression import (
+    IllConditionedBinWarning,
+    assign_bins,
+    connection_regression,
+    skill,
+)
+from torchconn.regression.noise_aware import IntervalSamples, noise_aware_regression
+from torchconn.regression.skill import PoorHeldOutSkillWarning
+
+F64 = torch.float64
+SPC = 126  # samples per cycle (Δt ≈ 0.05)
+
+
+def _wave(n_joints: int = 4, radius: float = 0.7) -> FourierGait:
+    coeffs = torch.zeros(3, n_joints, dtype=F64)
+    lag = torch.arange(n_joints, dtype=F64) * (2 * math.pi / max(n_joints, 4))
+    coeffs[1], coeffs[2] = radius * torch.cos(lag), radius * torch.sin(lag)
+    return FourierGait(coeffs)
+
+
+def _recording(n_cycles: int, n_trials: int = 1, omega: float = 0.005, seed: int = 0,
+               n_links: int = 5):
+    seeds = np.arange(n_trials) + 100 * seed
+    clean = simulate(NLinkSwimmer(n_links), _wave(n_links - 1), eta=0.025, n_cycles=n_cycles,
+                     samples_per_cycle=SPC, seeds=seeds)
+    return observe(clean, omega, seeds=seeds)
+
+
+@pytest.fixture(scope="module")
+def eight():
+    """Two trials of the 5-link, 8 cycles each, ω = 0.005, prepared (smoothed and phased)."""
+    traj = ConnectionEstimator().prepare(_recording(8, n_trials=2))
+    return traj, SelfConsistentCycle().fit(traj), SelfConsistentCycle().fit(traj, pool=True)
+
+
+def _setup(traj, cycle, reg, pool):
+    model = reg.fit(traj, cycle, pool=pool)
+    view = skill.regression_view(traj, reg, model, pool=pool, flatten=False)
+    return model, view, skill._cycle_blocks(view.phase, 3)
+
+
+def _close(a, b):
+    scale = float(b[torch.isfinite(b)].abs().max())
+    torch.testing.assert_close(a, b, rtol=0, atol=1e-9 * scale, equal_nan=True)
+
+
+@pytest.mark.parametrize("ridge", [0.0, 0.3])
+def test_downdated_fits_equal_refits_without_each_block(eight, ridge):
+    traj, cycle, _ = eight
+    reg = TubeRegression(metric=False, n_bins=24, fourier_order=6, window=2.0)
+    model, view, fold = _setup(traj, cycle, reg, pool=False)
+    coef = skill.held_out_coefficients(traj, reg, model, view, fold, 3, pool=False,
+                                       ridges=(ridge,))[0]
+    for f in range(3):
+        bins = assign_bins(torch.where(fold == f, torch.nan, view.phase), 24, window=2.0,
+                           kernel="tricube")
+        refit = connection_regression(view.r, view.r_dot, view.xi, bins, model.bins.gamma,
+                                      model.bins.gamma_dot, ridge=ridge)
+        _close(coef[f], refit.coef)
+
+
+def test_downdated_noise_aware_fits_equal_refits_with_the_noise_correction(eight):
+    traj, _, cycle = eight
+    reg = NoiseAwareRegression(metric=False, n_bins=16, fourier_order=4)
+    model, view, fold = _setup(traj, cycle, reg, pool=True)
+    assert float(torch.as_tensor(model.meta["noise_r"]).min()) > 0  # the correction is on
+    coef = skill.held_out_coefficients(traj, reg, model, view, fold, 3, pool=True)[0]
+    h = model.meta["velocity_interval"]
+    var = torch.as_tensor(model.meta["noise_r"], dtype=F64).square()
+    flat = [x.reshape((-1,) + x.shape[2:]) for x in (view.phase, view.r, view.r_dot, view.xi)]
+    for f in range(3):
+        phase = torch.where(fold.reshape(-1) == f, torch.nan, flat[0])
+        samples = IntervalSamples(phase, *flat[1:], h=h, dt=traj.dt)
+        bins = assign_bins(phase, 16, window=model.meta["window"], kernel="tricube")
+        refit = noise_aware_regression(samples, bins, model.bins.gamma, model.bins.gamma_dot,
+                                       var)
+        _close(coef[f], refit.coef)
+
+
+def test_cross_validate_matches_the_refitting_one_when_nothing_is_rechosen(eight):
+    traj, cycle, _ = eight
+    reg = TubeRegression(metric=False, n_bins=24, fourier_order=6, window=2.0)
+    down = skill.cross_validate(traj, cycle, reg, pool=False)
+    refit = skill.cross_validate(traj, cycle, reg, pool=False, refit=True)
+    torch.testing.assert_close(down.r2, refit.r2, rtol=0, atol=1e-9)
+    torch.testing.assert_close(down.r2_phase_average, refit.r2_phase_average)
+
+
+@pytest.fixture(scope="module")
+def short():
+    """One trial of the 5-link, 4 cycles, ω = 0.005: the default complexity overfits it."""
+    return _recording(4, seed=3)
+
+
+def test_the_fit_warns_by_itself_and_auto_complexity_stops_the_overfit(short):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        with pytest.warns(PoorHeldOutSkillWarning, match="worse than their phase-averaged"):
+            fixed = ConnectionEstimator(complexity="fixed").fit(short)
+        assert bool(fixed.held_out_skill_.worse_than_phase_average.any())
+        assert fixed.complexity_ is None
+        warnings.simplefilter("error", PoorHeldOutSkillWarning)
+        off = ConnectionEstimator(complexity="fixed", held_out_folds=0).fit(short)  # no check
+        assert off.held_out_skill_ is None
+        warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
+        auto = ConnectionEstimator().fit(short)
+    # the default chose a simpler model; the fit's settings record what was fitted
+    assert auto.complexity_ is not None and auto.regression.n_bins == 48
+    assert auto.regression_.n_bins == auto.complexity_.n_bins
+    assert auto.model_.meta["settings"]["regression"]["n_bins"] == auto.complexity_.n_bins
+    gain = auto.held_out_skill_.r2 - fixed.held_out_skill_.r2
+    assert bool((gain > 0).all())
+
+
+def test_a_complexity_the_recording_cannot_carry_is_reported(short):
+    # a window just wide enough for the whole recording's bins (30 samples for 25 regressors)
+    # leaves too few once a third of the cycles is held out
+    reg = TubeRegression(metric=False, window=1.8)
+    with pytest.warns(PoorHeldOutSkillWarning, match="cannot be fitted when one block"):
+        est = ConnectionEstimator(regression=reg, complexity="fixed").fit(short)
+    assert bool(est.held_out_skill_.unscored.all())
