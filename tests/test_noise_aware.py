@@ -294,7 +294,9 @@ def test_shrinkage_falls_back_to_the_smoothed_fit_with_one_9_link_trial():
     def error(regression):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model = ConnectionEstimator(regression=regression).fit(traj).model_
+            # the sweep's setting: fixed complexity (48 bins, order 12), no held-out check
+            model = ConnectionEstimator(regression=regression, complexity="fixed",
+                                        held_out_folds=0).fit(traj).model_
         a_true = NLinkSwimmer(9).connection(model.gamma_at(phi))
         err = (model.connection(phi) - a_true).square().sum((-3, -2, -1)).sqrt()
         return err / a_true.square().sum((-3, -2, -1)).sqrt(), model
