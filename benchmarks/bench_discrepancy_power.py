@@ -9,15 +9,18 @@ hidden, runs :func:`torchconn.discrepancy.diagnose` blind, and records
   one, said ``none`` or ``unexplained``;
 - the relative error of the fitted parameters and whether the 95% intervals cover the truth.
 
-Effect-free datasets (at every noise level, at the sampling rates and link counts of the
-``[clean]`` table) measure false discoveries, and datasets with an effect outside the registry
-measure confident wrong names: there "correct" means ``unexplained`` (possibly beside a partial
+Effect-free datasets (the study's own swimmer at its noise levels, and the ``[clean]`` grid of
+link counts, sampling rates, noise levels and drop-out fractions) measure false discoveries,
+and datasets with an effect outside the registry measure confident wrong names:
+there "correct" means ``unexplained`` (possibly beside a partial
 effect), never a clean ``effect``. The unregistered effects: an unmodelled lateral slip
 (``ΔA_vy = ε (r2, r1)``), a first-order inertial relaxation of the body velocity
 (:func:`~torchconn.discrepancy.simulate.simulate_inertial_relaxation`, which a registered time
 lag imitates only with a negative lag), and a lag of the *pose* stream behind the shapes (a
 negative ``time_lag``, outside its physical range). Coverage: the fraction of named effects whose
-nominal 95% intervals contain the truth (every parameter). On the *same* datasets,
+95% intervals (simultaneous over the effect's parameters) contain the truth (every parameter);
+``covered_marginal`` the same with per-parameter 95% quantiles, ``covered_noise_only`` with the
+standard error alone. On the *same* datasets,
 the field's standard tool: a PySINDy sparse regression (STLSQ) of the nominal residual on a
 library of the effects' linearised signatures -- the columns of the forward model's Jacobian in
 each effect's parameters at zero (absent) -- with its threshold calibrated on the clean datasets
@@ -28,7 +31,7 @@ Writes ``OUT/power.csv`` (tidy: one row per dataset and method), ``OUT/power.jso
 versions, seeds, the summary table) and ``OUT/power.png``; prints the summary table.
 
     python benchmarks/bench_discrepancy_power.py --out runs/power [--config FILE]
-        [--set study.seeds=4] [--effects ambient_flow drag_ratio]
+        [--set study.seeds=4] [--effects ambient_flow drag_ratio] [--workers 2]
 
 pysindy is an optional benchmark dependency (``pip install pysindy``); without it the SINDy
 columns are skipped with a note.
@@ -70,7 +73,7 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "discrepancy_
 UNREGISTERED = ("unregistered_slip", "inertial_relaxation", "pose_lag")
 
 
-def simulate_case(name, vals, factor, sw, gait, st, seeds, omega, spc=64):
+def simulate_case(name, vals, factor, sw, gait, st, seeds, omega, spc=64, dropout=0.0):
     """One dataset: ``(recording, hidden registered effects)``."""
     kw = dict(eta=st["eta"], alpha=st["alpha"], n_cycles=int(st["n_cycles"]), seeds=seeds,
               omega=omega)
@@ -81,7 +84,62 @@ def simulate_case(name, vals, factor, sw, gait, st, seeds, omega, spc=64):
     if name == "pose_lag":  # the poses lag the shapes: a negative time_lag
         return simulate_with_effects(sw, gait, {"time_lag": {"tau": -factor * vals}}, **kw), {}
     hidden = {} if vals is None else {name: {k: factor * v for k, v in vals.items()}}
-    return simulate_with_effects(sw, gait, hidden, samples_per_cycle=spc, **kw), hidden
+    return simulate_with_effects(sw, gait, hidden, samples_per_cycle=spc, dropout=dropout,
+                                 **kw), hidden
+
+
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def run_job(work) -> tuple[dict, object, dict]:
+    """Simulate and diagnose one dataset: ``(row, report or None, hidden effects)`` (the report
+    is kept only for the SINDy comparison)."""
+    (name, vals, factor, omega, rep_i, nl, spc, drop), seq, st, settings, keep = work
+    sw = NLinkSwimmer(int(nl)) if nl == 3 else NLinkSwimmer(int(nl), frame="com-mean")
+    gait = reference_gait(f"{nl}link")
+    seeds = [int(s) for s in seq.generate_state(int(st["trials"]))]
+    traj, hidden = simulate_case(name, vals, factor, sw, gait, st, seeds, omega, spc=spc,
+                                 dropout=drop)
+    cpu = time.process_time()
+    report = diagnose(traj, sw, settings)
+    cpu = time.process_time() - cpu
+    if name in UNREGISTERED:
+        res = report.verdict if report.verdict != "effect" else "wrong"
+    else:
+        res = outcome(report, name) if vals is not None else report.verdict
+    row = {"effect": name, "factor": factor, "omega": omega, "replicate": rep_i,
+           "n_links": nl, "samples_per_cycle": spc, "dropout": drop,
+           "method": "workflow", "outcome": res,
+           "named": "+".join(e.name for e in report.effects) or report.verdict,
+           "partial": "+".join(e.name for e in report.partial_effects),
+           "correct": int(res == "correct" or (vals is None and res == "none")
+                          or (name in UNREGISTERED and res == "unexplained")),
+           "param_rel_error": math.nan, "covered": math.nan, "covered_noise_only": math.nan,
+           "covered_marginal": math.nan, "cpu_seconds": cpu}
+    if vals is not None and name not in UNREGISTERED:
+        p_true = effect_parameters(hidden, sw)[name].numpy()
+        entry = next((e for e in report.effects if e.name == name), None)
+        if entry is not None:
+            p_hat = np.array(list(entry.fitted.values()))
+            row["param_rel_error"] = float(np.linalg.norm(p_hat - p_true)
+                                           / np.linalg.norm(p_true))
+            truth = {k: float(v) for k, v in REGISTRY[name].physical(
+                torch.as_tensor(p_true), sw).items()}
+            row["covered"] = int(all(entry.ci[k][0] <= v <= entry.ci[k][1]
+                                     for k, v in truth.items()))
+            df = max(report.data["n_cycles"] - 1, 1)
+            # the interval from the noise alone (before the twin's bias and lack of fit)
+            q = float(stats.t.ppf(0.5 + entry.ci_level / 2, df=df))
+            row["covered_noise_only"] = int(all(
+                abs(entry.parameters[k] - v) <= q * entry.se[k] for k, v in truth.items()))
+            # per-parameter (not simultaneous) 95% intervals: the same half-widths with the
+            # plain Student-t quantile in place of the Bonferroni-corrected one
+            q_sim = float(stats.t.ppf(1 - (1 - entry.ci_level) / (2 * len(truth)), df=df))
+            row["covered_marginal"] = int(all(
+                abs(entry.parameters[k] - v) <= 0.5 * (entry.ci[k][1] - entry.ci[k][0])
+                * q / q_sim for k, v in truth.items()))
+    return row, (report if keep else None), hidden
 
 
 def load_config(path: Path, overrides: list[str]) -> dict:
@@ -144,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--effects", nargs="+", default=None)
+    ap.add_argument("--workers", type=int, default=1,
+                    help="processes (one thread each); the SINDy comparison needs 1")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     cfg = load_config(args.config, args.overrides)
@@ -157,70 +217,48 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError:
         have_sindy = False
         print("pysindy is not installed: the SINDy comparison is skipped (pip install pysindy)")
-    sw = NLinkSwimmer(int(st["n_links"]))
-    gait = reference_gait("3link" if st["n_links"] == 3 else "9link")
+    if have_sindy and args.workers > 1:
+        have_sindy = False
+        print("the SINDy comparison needs --workers 1: skipped")
     names = list(REGISTRY)
     settings = DiscrepancySettings(compare_terms=False, experiments=False)
     root = np.random.SeedSequence(int(st["root_seed"]))
     clean = cfg.get("clean", {})
-    jobs = [("clean", None, 0.0, om, i, nl, spc) for nl in clean.get("n_links", [st["n_links"]])
-            for spc in clean.get("samples_per_cycle", [64]) for om in st["omegas"]
-            for i in range(st["clean_seeds"] if nl == st["n_links"] and spc == 64
-                           else clean.get("seeds", 1))]
-    jobs += [(name, vals, f, om, i, st["n_links"], 64) for name, vals in effects.items()
+    # clean data: the study's own swimmer and rate at its noise levels (SINDy's threshold), and
+    # the [clean] grid of link counts, sampling rates, noise levels and drop-out fractions
+    jobs = [("clean", None, 0.0, om, i, st["n_links"], 64, 0.0) for om in st["omegas"]
+            for i in range(st["clean_seeds"])]
+    drops = clean.get("dropouts", [0.0])
+    jobs += [("clean", None, 0.0, om, i, nl, spc, drops[i % len(drops)])
+             for nl in clean.get("n_links", []) for spc in clean.get("samples_per_cycle", [64])
+             for om in clean.get("omegas", st["omegas"]) for i in range(clean.get("seeds", 1))]
+    jobs += [(name, vals, f, om, i, st["n_links"], 64, 0.0) for name, vals in effects.items()
              for f in st["factors"] for om in st["omegas"] for i in range(st["seeds"])]
     unreg = cfg.get("unregistered", {})
-    jobs += [(name, unreg[name], f, om, i, st["n_links"], 64) for name in UNREGISTERED
+    jobs += [(name, unreg[name], f, om, i, st["n_links"], 64, 0.0) for name in UNREGISTERED
              if name in unreg and (args.effects is None or name in args.effects)
              for f in st["factors"] for om in st["omegas"] for i in range(st["seeds"])]
     seqs = root.spawn(len(jobs))
 
     args.out.mkdir(parents=True, exist_ok=True)
     rows, reports, t0 = [], [], time.time()
-    for j, ((name, vals, factor, omega, rep_i, nl, spc), seq) in enumerate(
-            zip(jobs, seqs, strict=True)):
-        seeds = [int(s) for s in seq.generate_state(int(st["trials"]))]
-        sys_j = sw if nl == st["n_links"] else NLinkSwimmer(int(nl), frame="com-mean")
-        gait_j = gait if nl == st["n_links"] else reference_gait(f"{nl}link")
-        traj, hidden = simulate_case(name, vals, factor, sys_j, gait_j, st, seeds, omega,
-                                     spc=spc)
-        cpu = time.process_time()
-        report = diagnose(traj, sys_j, settings)
-        cpu = time.process_time() - cpu
-        if name in UNREGISTERED:
-            res = report.verdict if report.verdict != "effect" else "wrong"
-        else:
-            res = outcome(report, name) if vals is not None else report.verdict
-        row = {"effect": name, "factor": factor, "omega": omega, "replicate": rep_i,
-               "n_links": nl, "samples_per_cycle": spc,
-               "method": "workflow", "outcome": res,
-               "named": "+".join(e.name for e in report.effects) or report.verdict,
-               "partial": "+".join(e.name for e in report.partial_effects),
-               "correct": int(res == "correct" or (vals is None and res == "none")
-                              or (name in UNREGISTERED and res == "unexplained")),
-               "param_rel_error": math.nan, "covered": math.nan, "covered_noise_only": math.nan,
-               "cpu_seconds": cpu}
-        if vals is not None and name not in UNREGISTERED:
-            p_true = effect_parameters(hidden, sw)[name].numpy()
-            entry = next((e for e in report.effects if e.name == name), None)
-            if entry is not None:
-                p_hat = np.array(list(entry.fitted.values()))
-                row["param_rel_error"] = float(np.linalg.norm(p_hat - p_true)
-                                               / np.linalg.norm(p_true))
-                truth = {k: float(v) for k, v in REGISTRY[name].physical(
-                    torch.as_tensor(p_true), sw).items()}
-                row["covered"] = int(all(entry.ci[k][0] <= v <= entry.ci[k][1]
-                                         for k, v in truth.items()))
-                # the interval from the noise alone (before the twin's bias and lack of fit)
-                q = float(stats.t.ppf(0.5 + entry.ci_level / 2,
-                                      df=max(report.data["n_cycles"] - 1, 1)))
-                row["covered_noise_only"] = int(all(
-                    abs(entry.parameters[k] - v) <= q * entry.se[k] for k, v in truth.items()))
+    work = [(job, seq, st, settings, have_sindy) for job, seq in zip(jobs, seqs, strict=True)]
+    if args.workers > 1:  # every job has its own seeds: the same rows in any order
+        import concurrent.futures
+
+        pool = concurrent.futures.ProcessPoolExecutor(args.workers, initializer=_one_thread)
+        results = pool.map(run_job, work)
+    else:
+        results = map(run_job, work)
+    for j, (row, report, hidden) in enumerate(results):
         rows.append(row)
-        reports.append((name, vals, factor, omega, rep_i, report, hidden))
-        print(f"[{j + 1}/{len(jobs)}] {name:19s} x{factor:<4g} omega={omega:<6g} links={nl} "
-              f"spc={spc:<4d} -> {res:13s} ({cpu:.1f} s CPU; {time.time() - t0:.0f} s)",
-              flush=True)
+        if report is not None:
+            reports.append((row["effect"], jobs[j][1], row["factor"], row["omega"],
+                            row["replicate"], report, hidden))
+        print(f"[{j + 1}/{len(jobs)}] {row['effect']:19s} x{row['factor']:<4g} "
+              f"omega={row['omega']:<6g} links={row['n_links']} spc={row['samples_per_cycle']:<4d} "
+              f"drop={row['dropout']:<4g} -> {row['outcome']:13s} ({row['cpu_seconds']:.1f} s "
+              f"CPU; {time.time() - t0:.0f} s)", flush=True)
 
     if have_sindy:
         # threshold per noise level from the clean datasets
@@ -244,14 +282,16 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 res = "none" if not named else "wrong"
             row = {"effect": name, "factor": factor, "omega": omega, "replicate": rep_i,
-                   "n_links": st["n_links"], "samples_per_cycle": 64, "partial": "",
+                   "n_links": st["n_links"], "samples_per_cycle": 64, "dropout": 0.0,
+                   "partial": "",
                    "method": "pysindy", "outcome": res, "named": "+".join(named) or "none",
                    "correct": int(res == "correct" or (vals is None and res == "none")
                                   or (name in UNREGISTERED and res == "none")),
                    "param_rel_error": math.nan, "covered": math.nan,
-                   "covered_noise_only": math.nan, "cpu_seconds": math.nan}
+                   "covered_noise_only": math.nan, "covered_marginal": math.nan,
+                   "cpu_seconds": math.nan}
             if vals is not None and name in named:
-                p_true = effect_parameters(hidden, sw)[name].numpy()
+                p_true = effect_parameters(hidden, NLinkSwimmer(int(st["n_links"])))[name].numpy()
                 p_hat = coef[owner == name]
                 row["param_rel_error"] = float(np.linalg.norm(p_hat - p_true)
                                                / np.linalg.norm(p_true))
@@ -264,11 +304,13 @@ def main(argv: list[str] | None = None) -> int:
     summary = summarise(rows)
     table = format_table(summary)
     print(table)
+    clean_table = summarise_clean(rows)
+    print(format_clean(clean_table))
     write_sidecar(args.out / "power.json", {
         "config": cfg, "root_seed": st["root_seed"], "pysindy": have_sindy,
         "pysindy_version": _pysindy_version(),
         "sindy_thresholds": thresholds if have_sindy else None,
-        "summary": summary, "seconds": time.time() - t0,
+        "summary": summary, "clean": clean_table, "seconds": time.time() - t0,
     })
     shown = list(effects) + [u for u in UNREGISTERED if any(r["effect"] == u for r in rows)]
     plot(summary, st, shown, args.out / "power.png")
@@ -296,6 +338,7 @@ def summarise(rows: list[dict]) -> list[dict]:
         err = [r["param_rel_error"] for r in sel if not math.isnan(r["param_rel_error"])]
         cov = [r["covered"] for r in sel if not math.isnan(r["covered"])]
         cov0 = [r["covered_noise_only"] for r in sel if not math.isnan(r["covered_noise_only"])]
+        cov_m = [r["covered_marginal"] for r in sel if not math.isnan(r["covered_marginal"])]
         out.append({
             "method": method, "effect": effect, "factor": factor, "omega": omega, "n": len(sel),
             "p_correct": sum(r["correct"] for r in sel) / len(sel),
@@ -304,18 +347,53 @@ def summarise(rows: list[dict]) -> list[dict]:
             "median_param_rel_error": float(np.median(err)) if err else math.nan,
             "ci_coverage": float(np.mean(cov)) if cov else math.nan,
             "ci_coverage_noise_only": float(np.mean(cov0)) if cov0 else math.nan,
+            "ci_coverage_marginal": float(np.mean(cov_m)) if cov_m else math.nan,
+            "n_named": len(cov),
             "median_cpu_seconds": float(np.nanmedian([r["cpu_seconds"] for r in sel])),
         })
     return out
 
 
+def summarise_clean(rows: list[dict]) -> list[dict]:
+    """Clean datasets per link count, sampling rate and noise level: how many, how many
+    ``none`` (a named effect is a false discovery, ``unexplained`` a false alarm)."""
+    sel = [r for r in rows if r["method"] == "workflow" and r["effect"] == "clean"]
+    keys = sorted({(r["n_links"], r["samples_per_cycle"], r["omega"]) for r in sel})
+    out = []
+    for nl, spc, om in keys:
+        g = [r for r in sel if (r["n_links"], r["samples_per_cycle"], r["omega"]) == (nl, spc, om)]
+        out.append({"n_links": nl, "samples_per_cycle": spc, "omega": om, "n": len(g),
+                    "with_dropouts": sum(r["dropout"] > 0 for r in g),
+                    "none": sum(r["outcome"] == "none" for r in g),
+                    "named": sum(r["outcome"] not in ("none", "unexplained") for r in g),
+                    "unexplained": sum(r["outcome"] == "unexplained" for r in g),
+                    "median_cpu_seconds": float(np.median([r["cpu_seconds"] for r in g]))})
+    return out
+
+
+def format_clean(table: list[dict]) -> str:
+    lines = ["clean datasets: links  samples/cycle  omega  n (drop-outs)  none  named  "
+             "unexplained  CPU s"]
+    for t in table:
+        lines.append(f"                {t['n_links']:5d}  {t['samples_per_cycle']:13d}  "
+                     f"{t['omega']:5g}  {t['n']:2d} ({t['with_dropouts']})        "
+                     f"{t['none']:4d}  {t['named']:5d}  {t['unexplained']:11d}  "
+                     f"{t['median_cpu_seconds']:5.1f}")
+    tot = {k: sum(t[k] for t in table) for k in ("n", "none", "named", "unexplained")}
+    lines.append(f"total {tot['n']} clean datasets: none {tot['none']}, named (false discoveries) "
+                 f"{tot['named']}, unexplained {tot['unexplained']}")
+    return "\n".join(lines)
+
+
 def format_table(summary: list[dict]) -> str:
     lines = [f"{'effect':14s} {'factor':>6s} {'omega':>7s} {'method':9s} {'P(correct)':>10s} "
-             f"{'rel.err':>8s} {'CI cov':>6s} {'(noise)':>7s} {'CPU s':>6s}  outcomes"]
+             f"{'rel.err':>8s} {'CI cov':>6s} {'(marg.)':>7s} {'(noise)':>7s} {'CPU s':>6s}  "
+             "outcomes"]
     for s in summary:
         lines.append(f"{s['effect']:14s} {s['factor']:6g} {s['omega']:7g} {s['method']:9s} "
                      f"{s['p_correct']:10.2f} {s['median_param_rel_error']:8.3f} "
-                     f"{s['ci_coverage']:6.2f} {s['ci_coverage_noise_only']:7.2f} "
+                     f"{s['ci_coverage']:6.2f} {s['ci_coverage_marginal']:7.2f} "
+                     f"{s['ci_coverage_noise_only']:7.2f} "
                      f"{s['median_cpu_seconds']:6.1f}  {s['outcomes']}")
     return "\n".join(lines)
 

@@ -296,6 +296,10 @@ def fit_effects(
             H = Js.T @ Js
             g = Js.T @ rho
             damp = torch.diagonal(H).clamp_min(1e-12 * float(torch.diagonal(H).max()) + 1e-300)
+            if fresh and float(g @ torch.linalg.solve(H + mu * torch.diag(damp), g)) <= abs_tol:
+                # converged where the exact Jacobian was just taken: the step it predicts would
+                # lower the cost by less than abs_tol and need another Jacobian at its end
+                break
             accepted = False
             for _ in range(12):
                 step = -torch.linalg.solve(H + mu * torch.diag(damp), g) * scale

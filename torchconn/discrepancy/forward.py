@@ -341,11 +341,13 @@ def prepare_measurement(
 
 
 def measurement_from_clean(t: Tensor, pose: Tensor, r: Tensor, phase: Tensor, kernel: Tensor,
-                           dt: float) -> Measurement:
-    """A :class:`Measurement` of noise-free (simulated) data smoothed with a given kernel.
+                           dt: float, *, heading: Tensor | None = None) -> Measurement:
+    """A :class:`Measurement` of simulated data smoothed with a given kernel.
 
     Used to compute effects' signatures under alternative experiments with the recording's own
-    smoother. ``pose (B, T, 3)``, ``r (B, T, d)``, ``phase (B, T)``, ``kernel (3, 2W+1)``.
+    smoother, and for the simulated twins behind the intervals. ``pose (B, T, 3)``,
+    ``r (B, T, d)``, ``phase (B, T)``, ``kernel (3, 2W+1)``; ``heading (B, T)`` rotates between
+    world and body frames (default the poses' own heading, right for noise-free poses).
     """
     B, T, _ = pose.shape
     W = (kernel.shape[-1] - 1) // 2
@@ -366,9 +368,10 @@ def measurement_from_clean(t: Tensor, pose: Tensor, r: Tensor, phase: Tensor, ke
             index.append(k)
             nxt += 1
     pose = torch.cat([pose[..., :2], unwrap(pose[..., 2], dim=-1)[..., None]], -1)
+    heading = pose[..., 2] if heading is None else heading.expand(B, T)
     m = Measurement(
         dt=float(dt), t=t.to(torch.float64), pose=pose.to(torch.float64),
-        r=r.to(torch.float64), heading=pose[..., 2].to(torch.float64),
+        r=r.to(torch.float64), heading=heading.to(torch.float64),
         phase=phase.to(torch.float64), kernel=kernel.expand(B, 3, -1).clone(), mask=mask,
         cycle=cycle, cycle_trial=torch.tensor(trials, dtype=torch.long, device=pose.device),
         cycle_index=torch.tensor(index, dtype=torch.long, device=pose.device),

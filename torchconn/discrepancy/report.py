@@ -152,11 +152,14 @@ class Confound(_Record):
 class EffectEstimate(_Record):
     """A named effect: physical values with intervals, and how it was chosen.
 
-    The interval half-width is ``q · √(se² + bias²) · lack_of_fit``: ``se`` the cluster-robust
-    standard error over cycles (noise), ``bias`` the estimator's own error measured on a
-    noise-free simulated twin with the fitted values (time stepping, smoothing), and
+    ``parameters`` and ``fitted`` are corrected for ``bias``, the estimator's own error measured
+    on simulated twins with the fitted values and the recording's observation noise (time
+    stepping, smoothing, noisy shapes driving the forward model); ``bias`` is its size. The
+    interval half-width is ``q · √(se² + bias²) · lack_of_fit``: ``se`` the cluster-robust
+    standard error over cycles (noise), ``bias`` an allowance for the correction's own error, and
     ``lack_of_fit`` ``√max(1, held-out mean square)`` of the final model (what the model does not
-    reproduce inflates every interval alike).
+    reproduce inflates every interval alike). The intervals of one effect are simultaneous at
+    ``ci_level`` (``q`` the Bonferroni-corrected Student-t quantile over its values).
     """
 
     name: str

@@ -16,9 +16,11 @@
    else, never the effect: :class:`~.report.Implausible`). Screen and select repeat until no
    candidate clears the bars (:class:`~.report.SelectionStep`).
 4. **Check backward**: each accepted effect must still earn its place next to the others.
-5. **Refit** the accepted effects jointly to full precision, with intervals that account for the
-   noise (cluster-robust over cycles), for the estimator's own error (a noise-free simulated
-   twin with the fitted values) and for the lack of fit (:class:`~.report.EffectEstimate`).
+5. **Refit** the accepted effects jointly to full precision, correct them for the estimator's
+   own bias (measured by refitting simulated twins with the fitted values and the recording's
+   estimated observation noise, in antithetic pairs), with intervals that account for the
+   noise (cluster-robust over cycles), the bias correction and the lack of fit
+   (:class:`~.report.EffectEstimate`).
 6. **Confounding** (:mod:`.confounding`): a runner-up that clears the bars, is not significantly
    worse on held-out cycles and whose signature is collinear with the winner's on the actual
    data is reported as confounded with it, with the simulated experiment that would separate
@@ -48,8 +50,10 @@ import torch
 from scipy import stats
 from torch import Tensor
 
+from ..phase.smoothing import smooth_trajectory, unwrap
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
+from ..regression.noise_aware import estimate_noise
 from ..trajectory import Trajectory
 from .confounding import principal_cosine, separating_experiments, signature_collinearity
 from .effects import REGISTRY, Effect, get_effect
@@ -81,6 +85,8 @@ __all__ = ["DiscrepancySettings", "DiscrepancyReport", "diagnose", "VERDICTS"]
 
 #: fine integration steps per gait cycle the forward model aims for when ``upsample`` is None
 FINE_STEPS_PER_CYCLE = 256
+#: antithetic pairs of noisy simulated twins behind the intervals' bias term
+TWIN_PAIRS = 1
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -109,9 +115,11 @@ class DiscrepancySettings:
         confound_alpha: a collinear runner-up is "not significantly worse" (confounded) above
             this p-value of the paired held-out comparison, a look-alike the data rule out
             below it.
-        ci_level: confidence level of the parameter intervals.
-        twin_intervals: widen the intervals by the estimator's own error on a noise-free
-            simulated twin with the fitted values.
+        ci_level: confidence level of the parameter intervals, simultaneous over each effect's
+            parameters (Bonferroni: all of an effect's intervals cover its values together).
+        twin_intervals: correct the estimates for the estimator's own bias, measured on
+            simulated twins with the fitted values and the recording's observation noise, and
+            widen the intervals by it.
         max_effects: most effects accepted.
         max_iter: Levenberg–Marquardt iterations per screening fit.
         n_bins, n_boot: phase bins and bootstrap resamples of the residual profiles.
@@ -199,7 +207,8 @@ def diagnose(
     final = _refit(job, sel)                              # 5.
     flex = _flexible_residual_test(job, final)            # 7.
     gaps = _gaps(job, base, final)
-    estimates = _estimates(job, sel, final)               # 5. (intervals)
+    bias = _bias(job, sel, final)                         # 5. (the estimator's bias)
+    estimates = _estimates(job, sel, final, bias)         # 5. (intervals)
     confounds = _confounding(job, sel)                    # 6.
     unexplained = _unexplained(job, sel, flex, gaps)      # 8.
     say(f"flexible residual model: gain {flex.gain:.3g} (p={flex.p:.2g}); per component "
@@ -209,7 +218,8 @@ def diagnose(
     estimates = [replace(e, confounded_with=[c.effects[1] for c in confounds
                                              if c.effects[0] == e.name])
                  for e in estimates]
-    effects = {n: v.detach() for n, v in final.params().items()} if verdict == "effect" else {}
+    effects = ({n: (final.p[sl] - bias[sl]).detach() for n, sl in final.slices.items()}
+               if verdict == "effect" else {})
     model = AugmentedModel(nominal=system, effects=effects,
                            meta={"verdict": verdict, "source": traj.meta.get("source")})
     return DiscrepancyReport(
@@ -460,14 +470,21 @@ def _refit(job: _Job, sel: _Selection) -> EffectFit:
     return final
 
 
-def _twin_bias(job: _Job, fit: EffectFit, max_cycles: float = 8.0) -> Tensor:
-    """The estimator's own error at the fitted values: ``(P,)`` refit minus fit on a noise-free
-    twin recording.
+def _twin_bias(job: _Job, fit: EffectFit, max_cycles: float = 8.0,
+               n_pairs: int = TWIN_PAIRS) -> Tensor:
+    """The estimator's own error at the fitted values: ``(P,)`` refit minus fit on simulated
+    twin recordings.
 
-    The twin is the augmented simulator with the fitted effects, driven by the measured shapes
-    of the first trial (up to ``max_cycles`` cycles) and integrated on SE(2) with four times
-    finer steps than the forward model, observed through the recording's own smoother. Refitting
-    it shows what the forward model's time stepping and the smoothing do to the estimate.
+    A twin is the augmented simulator with the fitted effects, driven by the smoothed measured
+    shapes of the first trial (up to ``max_cycles`` cycles), integrated on SE(2) with four times
+    finer steps than the forward model and observed through the recording's own smoother, with
+    white observation noise at the level estimated in the recording
+    (:func:`~torchconn.regression.noise_aware.estimate_noise`, per pose and shape channel) on
+    its poses and on the shapes that drive its forward model. The refit shows what the time
+    stepping, the smoothing and the errors in variables (noisy shapes drive the forward model,
+    which attenuates a fitted joint bias) do to the estimate. The noise comes in ``n_pairs``
+    antithetic pairs ``(ε, −ε)`` refitted jointly: the noise's first-order effect on the refit
+    cancels exactly, leaving its bias, with no sampling error of the order of the standard error.
     """
     m, fm = job.m, job.fm
     params = {n: v.detach() for n, v in fit.params().items()}
@@ -476,34 +493,57 @@ def _twin_bias(job: _Job, fit: EffectFit, max_cycles: float = 8.0) -> Tensor:
     margin = m.half_width + 16
     T = min(m.n_samples, int(usable[0]) + margin
             + int(math.ceil(max_cycles * 2 * math.pi / float(dphi))))
-    kernel = m.kernel[0]
-    placeholder = measurement_from_clean(m.t[:T], m.pose[:1, :T], m.r[:1, :T], m.phase[:1, :T],
-                                         kernel, m.dt)
+    kernel, t, phase = m.kernel[0], m.t[:T], m.phase[:1, :T]
+    shapes = smooth_trajectory(m.pose[:1, :T], m.r[:1, :T], m.dt).r  # what the sensors read
+    placeholder = measurement_from_clean(t, m.pose[:1, :T], shapes, phase, kernel, m.dt)
     fine = ForwardModel(placeholder, fm.system, upsample=4 * fm.upsample)
     pose = fine.integrate_poses(params)
     for name, p in params.items():
         effect = get_effect(name)
         if type(effect).observe is not Effect.observe:
             pose = effect.observe(p, pose)
-    twin = measurement_from_clean(m.t[:T], pose, m.r[:1, :T], m.phase[:1, :T], kernel, m.dt)
+    noise = estimate_noise(torch.cat([m.pose, m.r], -1)).measurement.square().mean(0).sqrt()
+    gen = torch.Generator(device=pose.device).manual_seed(int(job.s.seed))
+    eps = torch.randn((n_pairs, T, noise.shape[0]), generator=gen, dtype=pose.dtype,
+                      device=pose.device) * noise.to(pose)
+    eps = torch.cat([eps, -eps])  # antithetic pairs
+    R = 2 * n_pairs
+    twin = measurement_from_clean(t, pose + eps[..., :3], shapes + eps[..., 3:],
+                                  phase.expand(R, T), kernel, m.dt,
+                                  heading=unwrap(pose[..., 2], dim=-1))
     pb = Problem(ForwardModel(twin, fm.system, upsample=fm.upsample), n_folds=2,
                  weight=job.pb.weight)
     refit = fit_effects(pb, list(fit.names), fit.p, abs_tol=1e-6, max_iter=2 * job.s.max_iter)
     return (refit.p - fit.p).detach()
 
 
-def _estimates(job: _Job, sel: _Selection, fit: EffectFit) -> list[EffectEstimate]:
-    """Physical values of the accepted effects with calibrated intervals (delta method)."""
+def _bias(job: _Job, sel: _Selection, fit: EffectFit) -> Tensor:
+    """``(P,)`` the estimator's bias at the final fit (zeros without effects or twins)."""
+    if not sel.accepted or not job.s.twin_intervals:
+        return torch.zeros_like(fit.p)
+    return _twin_bias(job, fit)
+
+
+def _estimates(job: _Job, sel: _Selection, fit: EffectFit, bias_all: Tensor
+               ) -> list[EffectEstimate]:
+    """Physical values of the accepted effects, corrected for the estimator's bias
+    ``bias_all (P,)``, with calibrated intervals (delta method).
+
+    The half-width is ``q·√(se² + bias²)·√max(1, held-out MSE)``: the noise, an allowance for
+    the bias correction's own error (at most the bias itself), and the lack of fit. The
+    intervals of one effect are simultaneous (Bonferroni over its ``k`` values: ``q`` the
+    Student-t quantile at ``1 − (1 − ci_level)/(2k)`` over the cycles), so that all of them
+    cover the truth together at ``ci_level``."""
     if not sel.accepted:
         return []
     s, system = job.s, job.fm.system
-    q = float(stats.t.ppf(0.5 + s.ci_level / 2, df=max(job.m.n_cycles - 1, 1)))
-    bias_all = _twin_bias(job, fit) if s.twin_intervals else torch.zeros_like(fit.p)
     lack = math.sqrt(max(1.0, fit.mse_cv))
     out = []
     for name, sl in fit.slices.items():
         e = get_effect(name)
-        p, cov, bias = fit.p[sl].detach(), fit.cov[sl, sl], bias_all[sl]
+        p, cov, bias = (fit.p[sl] - bias_all[sl]).detach(), fit.cov[sl, sl], bias_all[sl]
+        k = len(e.physical(p, system))
+        q = float(stats.t.ppf(1 - (1 - s.ci_level) / (2 * k), df=max(job.m.n_cycles - 1, 1)))
 
         def phys(x, e=e):
             return torch.stack([torch.as_tensor(v, dtype=x.dtype, device=x.device) for v in

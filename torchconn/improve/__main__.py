@@ -21,7 +21,7 @@ from .._cli import InputError, add_device, resolve_device
 from .._provenance import write_sidecar
 from ..io.trajectory_files import read_csv
 from ..physics.systems import NLinkSwimmer
-from ..regression.estimator import ConnectionEstimator
+from ..regression.estimator import estimator_from_settings
 from .export import write_gait
 from .loop import LoopSettings, circle_gait, improve
 from .measure import measure_cycles
@@ -70,7 +70,8 @@ def _propose(args) -> int:
         traj = read_csv(args.data, n_joints=args.links - 1).to(args.device)  # moved once
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model = ConnectionEstimator(pool=True).fit(traj).model_
+            # the loop's estimator (pooled, noise-aware regression)
+            model = estimator_from_settings(LoopSettings().estimator).fit(traj).model_
         prop = propose_gait(model, args.objective, TrustRegion(scale=args.scale))
         meas, meas_se = measure_cycles(traj, period=2 * math.pi / float(model.phase_rate))\
             .objective(args.objective)

@@ -65,10 +65,13 @@ def exact_local_model(
 
 
 def ceiling(system: LocomotionSystem, *, order: int = 4, starts=(1.0, 2.0),
-            component: int | str = "planar") -> OptimisedGait:
+            component: int | str = "planar", max_turn: float | None = None) -> OptimisedGait:
     """The best displacement per cycle with the true connection, by the existing optimiser.
 
     ``component``: ``"planar"`` (|(x, y)|, the loop's ``"displacement"`` objective) or 0, 1, 2.
+    ``max_turn``: the largest net rotation per cycle (rad; None: any) -- the loop's
+    :attr:`TrustRegion.max_turn <torchconn.improve.TrustRegion.max_turn>`, for the ceiling of
+    the same objective the loop maximises.
 
     Simple loops star-shaped about the straight shape (:class:`PolarGait`, loop radius ≤ π) in
     the shape plane of a 3-link, or in the two-mode plane of the 9-link (modal radius ≤ π/2);
@@ -83,7 +86,7 @@ def ceiling(system: LocomotionSystem, *, order: int = 4, starts=(1.0, 2.0),
         raise ValueError(f"the ceiling's gait family is defined for 2 or 8 joints, got {d}")
     runs = [
         optimise_gait(system, modes=modes, order=order, radius=min(r, 0.9 * bound),
-                      max_radius=bound, direction=s, component=component)
+                      max_radius=bound, direction=s, component=component, max_turn=max_turn)
         for r in starts for s in (1, -1)
     ]
     return max(runs, key=lambda run: run.x_displacement)

@@ -53,6 +53,7 @@ def optimise_gait(
     max_radius: float = math.pi,
     direction: int = 1,
     component: int | str = 0,
+    max_turn: float | None = None,
     n_steps: int = 128,
     max_iter: int = 300,
 ) -> OptimisedGait:
@@ -71,6 +72,9 @@ def optimise_gait(
         system: the locomotion system; modes: ``(d, 2)`` or None when ``d = 2``.
         radius, direction: the starting circle (``direction`` +1 counter-clockwise).
         max_radius: bound on the loop's distance from the straight shape (rad).
+        max_turn: largest net rotation ``|θ|`` per cycle (rad; None: any), enforced by a
+            quadratic penalty ``10³ · max(|θ| − max_turn, 0)²`` as the improvement loop's
+            proposals are (:class:`torchconn.improve.TrustRegion`).
         n_steps: Magnus steps per cycle inside the objective (O(n⁻⁴) error).
     Returns:
         the optimised gait, its displacement component (evaluated at 4·n_steps) and the number
@@ -80,6 +84,8 @@ def optimise_gait(
         raise ValueError(f"a {system.shape_dim}-joint system needs modes (d, 2) to span a plane")
     if not 0 < radius < max_radius:
         raise ValueError(f"radius must lie in (0, max_radius={max_radius}), got {radius}")
+    if max_turn is not None and not max_turn >= 0:
+        raise ValueError(f"max_turn must be >= 0 or None, got {max_turn!r}")
     params = torch.zeros(2 * order + 1, dtype=torch.float64)
     params[0] = math.log(radius / (max_radius - radius))
     params.requires_grad_(True)
@@ -91,8 +97,10 @@ def optimise_gait(
 
     def closure() -> Tensor:
         opt.zero_grad()
-        loss = -_component(displacement(system, _build(params, direction, modes, max_radius),
-                                        n_steps), component)
+        disp = displacement(system, _build(params, direction, modes, max_radius), n_steps)
+        loss = -_component(disp, component)
+        if max_turn is not None:
+            loss = loss + 1e3 * torch.relu(disp[2].abs() - max_turn).pow(2)
         loss.backward()
         count[0] += 1
         return loss
