@@ -69,8 +69,10 @@ def _previous_defaults(traj):
 
 def test_default_stages_reproduce_the_previous_defaults(recording):
     # 0.1's fixed complexity (the default "auto" keeps it unless it loses to the phase-averaged
-    # velocity on held-out cycles, which it does here by 0.002 in v_x of one trial)
-    est = ConnectionEstimator(complexity="fixed").fit(recording)
+    # velocity on held-out cycles, which it does here by 0.002 in v_x of one trial), and 0.1's
+    # phase (the default is now order "auto" with SNR weights): both named options
+    old_phaser = Phaser(order=3, weighting="coherence")
+    est = ConnectionEstimator(phaser=old_phaser, complexity="fixed").fit(recording)
     phase, gamma, coeffs, se_A = _previous_defaults(recording)
     model = est.model_
     torch.testing.assert_close(est.trajectory_.phase, phase, rtol=0, atol=1e-12)
@@ -80,7 +82,7 @@ def test_default_stages_reproduce_the_previous_defaults(recording):
             torch.testing.assert_close(getattr(model, name).coeffs, expected, rtol=0, atol=1e-12)
     torch.testing.assert_close(model.bins.A_se, se_A, rtol=0, atol=1e-12)
     # except the metric, whose default is now the tied model: the old one is a named option
-    paper = ConnectionEstimator(regression=TubeRegression(metric_method="paper"),
+    paper = ConnectionEstimator(phaser=old_phaser, regression=TubeRegression(metric_method="paper"),
                                 complexity="fixed").fit(recording)
     torch.testing.assert_close(paper.model_.M.coeffs, coeffs["M"], rtol=0, atol=1e-12)
     # and the estimates are real ones: A within a few per cent of the swimmer's exact A
@@ -133,7 +135,7 @@ def test_get_and_set_params_follow_scikit_learn_without_it():
     assert set(shallow) == {"smoother", "phaser", "cycle", "regression", "pool", "complexity",
                             "held_out_folds"}
     deep = est.get_params(deep=True)
-    assert deep["regression__n_bins"] == 24 and deep["phaser__order"] == 3
+    assert deep["regression__n_bins"] == 24 and deep["phaser__order"] == "auto"
     assert deep["smoother__order"] == 2 and deep["cycle__order"] == 8 and deep["pool"] is True
     shared = est.regression
     assert est.set_params(regression__n_bins=32, phaser__order=4, pool=False) is est

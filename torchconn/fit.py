@@ -106,6 +106,16 @@ _STAGE_KEYS = ("smoother", "phaser", "cycle", "regression", "pool", "complexity"
                "held_out_folds")
 
 
+def _phase_order(text: str) -> int | str:
+    """``--phase-order``: ``auto`` or an integer."""
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer or 'auto', got {text!r}") from None
+
+
 def build_estimator(args, table: dict | None) -> ConnectionEstimator:
     """The estimator of ``fit``: trials pooled by default, then the ``[estimator]`` table
     (nested per stage, see :func:`estimator_from_settings`), then the shortcut flags."""
@@ -158,8 +168,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="Fourier order in phase (estimator.regression.fourier_order, default 12)")
     p.add_argument("--window", type=float,
                    help="bin half-width in bin spacings (default: sized from the data)")
-    p.add_argument("--phase-order", type=int,
-                   help="Phaser correction order (estimator.phaser.order, default 3)")
+    p.add_argument("--phase-order", type=_phase_order, metavar="K|auto",
+                   help="Phaser correction order (estimator.phaser.order): an integer, or "
+                   "'auto' (default) to choose it from the data")
     p.add_argument("--regression", choices=("tube", "noise_aware"),
                    help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
                    "raw differences with the motion-capture noise removed, shrunk towards the "

@@ -9,11 +9,13 @@
 from .fourier import FourierSeries, fit_fourier, fourier_design
 from .limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle, fit_limit_cycle, phase_rate
 from .phaser import (
+    PhaseAmbiguityWarning,
     PhaseEstimator,
     PhaseModel,
     Phaser,
     analytic_signal,
     circular_rms,
+    correction_order,
     correction_series,
     estimate_phase,
     hilbert_phase_pc1,
@@ -35,7 +37,8 @@ __all__ = [
     "CycleEstimator", "SelfConsistentCycle",
     "FourierSeries", "fit_fourier", "fourier_design",
     "LimitCycle", "fit_limit_cycle", "phase_rate",
-    "analytic_signal", "protophase", "correction_series", "whole_cycle_weights",
+    "analytic_signal", "protophase", "correction_series", "correction_order",
+    "whole_cycle_weights", "PhaseAmbiguityWarning",
     "estimate_phase", "hilbert_phase_pc1", "circular_rms",
     "rts_smooth", "unwrap", "body_velocity", "smooth_trajectory", "noise_parameters",
 ]

@@ -6,7 +6,7 @@ optimizer=…)``::
 
     ConnectionEstimator(
         smoother=RTSSmoother(order=2),          # phase/smoothing.py: smooth(traj) -> traj
-        phaser=Phaser(order=3),                 # phase/phaser.py: fit(r) -> fitted, transform(r)
+        phaser=Phaser(order="auto"),            # phase/phaser.py: fit(r) -> fitted, transform(r)
         cycle=SelfConsistentCycle(order=8),     # phase/limit_cycle.py: fit(traj) -> LimitCycle
         regression=TubeRegression(n_bins=48),   # regression/tube.py: fit(traj, cycle) -> model
         pool=False,                             # one model per trial, or one for all trials
