@@ -236,3 +236,102 @@ def test_overfitting_a_short_recording_is_reported_and_complexity_from_cv_stops_
     assert bool((s_cv.r2 > s_fixed.r2).all())
     # the chosen model is no worse than the phase-averaged velocity on the later cycles
     assert bool((s_cv.r2 > s_cv.r2_phase_average - 0.01).all())
+
+
+def _fit_fields(a, se):
+    """A ConnectionFit with every block equal to ``a`` and standard errors ``se`` (one batch
+    element, 8 bins, d = 2)."""
+    from torchconn.regression.connection import ConnectionFit
+
+    shapes = {"c": (1, 8, 3), "b": (1, 8, 3, 2), "A": (1, 8, 3, 2), "dA": (1, 8, 3, 2, 2)}
+    vals = {k: torch.full(s, float(a), dtype=F64) for k, s in shapes.items()}
+    ses = {"se_" + k: torch.full(s, float(se), dtype=F64) for k, s in shapes.items()}
+    n = torch.full((1, 8), 100)
+    z = torch.zeros(1, 8, dtype=F64)
+    return ConnectionFit(**vals, **ses, n_samples=n, residual_rms=torch.zeros(1, 8, 3,
+                         dtype=F64), condition=z, ridge=z, coef=z, se_coef=z)
+
+
+def test_blend_keeps_a_clear_correction_and_drops_one_within_its_noise():
+    from torchconn.regression.noise_aware import blend_fits
+
+    smoothed = _fit_fields(1.0, 0.01)
+    # differs by 1 with standard errors 0.01: w = 1 - 2 * 0.01² / 1² per entry
+    fit, w = blend_fits(smoothed, _fit_fields(2.0, 0.01))
+    assert torch.allclose(w, torch.full((1, 4), 1 - 2e-4, dtype=F64))
+    assert torch.allclose(fit.A, torch.full_like(fit.A, 2 - 2e-4))
+    # differs by 0.5 with standard errors 1: within the noise, the smoothed estimate stays
+    fit, w = blend_fits(smoothed, _fit_fields(1.5, 1.0))
+    assert bool((w == 0).all()) and torch.equal(fit.dA, smoothed.dA)
+    # in between: w = 1 - 2 V / D² = 1 - 2 * 0.25 / 1 = 0.5
+    fit, w = blend_fits(smoothed, _fit_fields(2.0, 0.5))
+    assert torch.allclose(w, torch.full((1, 4), 0.5, dtype=F64))
+    assert torch.allclose(fit.b, torch.full_like(fit.b, 1.5))
+
+
+def test_standard_errors_of_the_correction_match_its_errors(clean30):
+    # against the exact connection at the bin centres: the squared errors average about the
+    # squared standard errors (the overlap of the intervals does not widen them by √h)
+    traj = _recording(0.005, clean=clean30)
+    est = _fit(traj, shrink_to_smoothed=False)
+    bins = est.model_.bins
+    err2 = (bins.A - NLinkSwimmer(3).connection(bins.gamma)).square().sum()
+    ratio = float(err2 / bins.A_se.square().sum())
+    assert est.model_.meta["velocity_interval"] >= 4
+    assert 0.5 < ratio < 2.0, ratio
+
+
+def test_shrinkage_falls_back_to_the_smoothed_fit_with_one_9_link_trial():
+    # the low-information regime of the paper's Fig. 4B: one 9-link trial (81 regressors per
+    # bin), much motion-capture noise; the correction alone is far off, the blend falls back
+    seeds = np.array([31, 32])
+    from torchconn.physics.gaits import reference_gait
+
+    traj = observe(simulate(NLinkSwimmer(9), reference_gait("9link"), eta=0.025, n_cycles=30,
+                            samples_per_cycle=64, seeds=seeds), 0.02, seeds=seeds)
+    phi = torch.linspace(0, 2 * math.pi, 101, dtype=F64)[:-1].expand(2, 100)
+
+    def error(regression):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            # the sweep's setting: fixed complexity (48 bins, order 12), no held-out check
+            model = ConnectionEstimator(regression=regression, complexity="fixed",
+                                        held_out_folds=0).fit(traj).model_
+        a_true = NLinkSwimmer(9).connection(model.gamma_at(phi))
+        err = (model.connection(phi) - a_true).square().sum((-3, -2, -1)).sqrt()
+        return err / a_true.square().sum((-3, -2, -1)).sqrt(), model
+
+    smoothed, _ = error(TubeRegression(metric=False))
+    alone, _ = error(NoiseAwareRegression(metric=False, shrink_to_smoothed=False))
+    blended, model = error(NoiseAwareRegression(metric=False))
+    assert bool((alone > 1.5 * smoothed).all())  # the failure the fallback exists for
+    assert bool((blended <= 1.02 * smoothed).all()), (blended, smoothed)
+    assert np.array(model.meta["corrected_weight"]).shape == (2, 4)
+
+
+def test_observed_view_is_what_each_regression_sees():
+    from torchconn.evaluation.models import clean_trajectory, observed_view
+
+    traj = _recording(0.005, n_cycles=10, n_trials=2)
+    system = NLinkSwimmer(3)
+    for regression in (NoiseAwareRegression(metric=False), TubeRegression(metric=False)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            est = ConnectionEstimator(regression=regression).fit(traj)
+        prepared = est.trajectory_
+        observed, models = observed_view(system, prepared, regression, est.model_,
+                                         clean_trajectory(traj))
+        if isinstance(regression, NoiseAwareRegression):
+            h = est.model_.meta["velocity_interval"]
+            assert h == [h[0], h[0]] and h[0] > 1
+            iv = interval_samples(traj.pose, traj.r, prepared.phase, traj.dt, h[0])
+            assert torch.equal(observed, iv.xi)  # raw differences, not the smoothed ξ
+            truth = system.body_velocity(*(lambda c: (c.r, c.r_dot))(interval_samples(
+                traj.truth.pose, traj.truth.r, prepared.phase, traj.dt, h[0])))
+            assert torch.allclose(models["ground_truth"], truth)
+            expected = est.model_.predict(iv.phase, iv.r, iv.r_dot)
+        else:
+            assert torch.equal(observed, prepared.smoothed.xi)
+            expected = est.model_.predict(prepared.phase, prepared.smoothed.r,
+                                          prepared.smoothed.r_dot)
+        assert torch.allclose(models["data_driven"], expected)

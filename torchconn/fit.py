@@ -173,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
                    "'auto' (default) to choose it from the data")
     p.add_argument("--regression", choices=("tube", "noise_aware"),
                    help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
-                   "raw differences with the motion-capture noise removed (unbiased under noise)")
+                   "raw differences with the motion-capture noise removed, shrunk towards the "
+                   "smoothed fit where the data cannot support the correction")
     p.add_argument("--complexity", choices=("auto", "fixed", "cv"),
                    help="auto (default): --n-bins and --fourier-order as given unless the model "
                    "then predicts held-out cycles worse than their phase-averaged velocity, "

@@ -8,9 +8,11 @@ from .models import (
     MODELS,
     clean_trajectory,
     error_summary,
+    models_on,
+    observed_view,
     phase_bin_errors,
     reference_models,
 )
 
-__all__ = ["MODELS", "COMPONENTS", "reference_models", "clean_trajectory", "error_summary",
-           "phase_bin_errors"]
+__all__ = ["MODELS", "COMPONENTS", "reference_models", "models_on", "observed_view",
+           "clean_trajectory", "error_summary", "phase_bin_errors"]

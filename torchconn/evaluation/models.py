@@ -13,7 +13,9 @@ For every sample n, with phase φ_n, shape r_n, shape velocity ṙ_n, the fitted
 
 The three models use the same (smoothed) recorded ``r_n, ṙ_n`` and the same phase, so they
 differ only in the model. Errors are taken against ``ground_truth`` and against the observed
-body velocity (the smoothed ``g⁻¹ġ`` of the recording).
+body velocity the way the regression sees it (:func:`observed_view`: for the default
+noise-aware regression the raw differences of the recorded poses over the model's velocity
+interval, with every model evaluated on the same intervals).
 """
 
 from __future__ import annotations
@@ -26,11 +28,13 @@ from torch import Tensor
 from ..phase.fourier import fit_fourier
 from ..phase.smoothing import smooth_trajectory
 from ..physics.systems.base import LocomotionSystem
+from ..regression import skill
 from ..regression.model import LocalConnectionModel
 from ..trajectory import Trajectory
 
 __all__ = [
-    "MODELS", "COMPONENTS", "reference_models", "clean_trajectory", "error_summary",
+    "MODELS", "COMPONENTS", "reference_models", "models_on", "observed_view",
+    "clean_trajectory", "error_summary",
     "phase_bin_errors",
 ]
 
@@ -55,11 +59,26 @@ def reference_models(
     """
     if traj.phase is None or traj.smoothed is None:
         raise ValueError("reference_models needs a prepared trajectory (phase and smoothed set)")
-    phase, r, r_dot = traj.phase, traj.smoothed.r, traj.smoothed.r_dot
+    truth_in = None if clean is None else (clean.smoothed.r, clean.smoothed.r_dot)
+    return models_on(system, model, traj.phase, traj.smoothed.r, traj.smoothed.r_dot, truth_in)
+
+
+def models_on(system: LocomotionSystem, model: LocalConnectionModel, phase: Tensor, r: Tensor,
+              r_dot: Tensor, truth_in: tuple[Tensor, Tensor] | None = None
+              ) -> dict[str, Tensor]:
+    """Body velocity ``(..., N, 3)`` of each of :data:`MODELS` on samples ``phase (..., N)``,
+    ``r, r_dot (..., N, d)`` (NaN samples give NaN); the ground truth on ``truth_in``
+    (noise-free ``r, r_dot``) when given, else on ``r, r_dot``."""
     if system.shape_dim != r.shape[-1]:
         raise ValueError(
             f"system has {system.shape_dim} joints but the trajectory has {r.shape[-1]}"
         )
+    missing = torch.isnan(phase) | torch.isnan(r).any(-1) | torch.isnan(r_dot).any(-1)
+    if truth_in is not None:
+        missing = missing | torch.isnan(truth_in[0]).any(-1) | torch.isnan(truth_in[1]).any(-1)
+        truth_in = tuple(torch.where(missing.unsqueeze(-1), 0.0, x) for x in truth_in)
+    phase = torch.where(missing, 0.0, phase)
+    r, r_dot = (torch.where(missing.unsqueeze(-1), 0.0, x) for x in (r, r_dot))
     gamma, gamma_dot = model.gamma_at(phase), model.gamma_dot_at(phase)
     delta = r - gamma
     A_gamma, dA_gamma = _simulator_on_cycle(system, model, phase)
@@ -67,14 +86,40 @@ def reference_models(
     def apply(a: Tensor, v: Tensor) -> Tensor:
         return (a @ v.unsqueeze(-1)).squeeze(-1)
 
-    truth_in = (r, r_dot) if clean is None else (clean.smoothed.r, clean.smoothed.r_dot)
-    return {
-        "ground_truth": system.body_velocity(*truth_in),
+    out = {
+        "ground_truth": system.body_velocity(*(truth_in or (r, r_dot))),
         "data_driven": model.predict(phase, r, r_dot),
         "analytic": apply(A_gamma, r_dot)
         + torch.einsum("...kij,...j,...i->...k", dA_gamma, delta, r_dot),
         "template": apply(A_gamma, gamma_dot),
     }
+    return {k: torch.where(missing.unsqueeze(-1), torch.nan, v) for k, v in out.items()}
+
+
+def observed_view(system: LocomotionSystem, traj: Trajectory, regression,
+                  model: LocalConnectionModel, clean: Trajectory | None = None):
+    """The observed body velocity the way ``regression`` sees it, and every model of
+    :data:`MODELS` on the same samples.
+
+    For a :class:`~torchconn.regression.NoiseAwareRegression` model these are the raw interval
+    differences of the recording (``ξ`` over the model's ``h`` samples, against the mid-point
+    shapes and mean shape velocities; the ground truth on the same intervals of ``clean``); for
+    a :class:`~torchconn.regression.TubeRegression` the Kalman-smoothed velocities.
+
+    Args:
+        traj: the prepared trajectory the model was fitted to (one model per batch element).
+        clean: its noise-free twin, smoothed (:func:`clean_trajectory`), or None.
+
+    Returns:
+        ``(observed (..., N, 3), {model: (..., N, 3)})``, NaN where an element has fewer samples.
+    """
+    view = skill.regression_view(traj, regression, model, pool=False, flatten=False)
+    truth_in = None
+    if clean is not None:
+        twin = skill.regression_view(clean.with_fields(phase=traj.phase), regression, model,
+                                     pool=False, flatten=False)
+        truth_in = (twin.r, twin.r_dot)
+    return view.xi, models_on(system, model, view.phase, view.r, view.r_dot, truth_in)
 
 
 def _simulator_on_cycle(system, model, phase: Tensor, n_grid: int = 256):

@@ -86,7 +86,8 @@ class ConnectionEstimator:
         smoother: smooths poses and shapes and derives velocities (:class:`RTSSmoother`).
         phaser: estimates the phase when none is given (:class:`Phaser`).
         cycle: fits the limit cycle γ(φ) to the phased shapes (:class:`SelfConsistentCycle`).
-        regression: fits the local model around the cycle (:class:`TubeRegression`).
+        regression: fits the local model around the cycle (:class:`TubeRegression`;
+            :class:`NoiseAwareRegression` for recordings with motion-capture noise).
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
         complexity: the regression's bins, Fourier order and ridge: ``"fixed"`` as given;

@@ -20,6 +20,7 @@ from ..evaluation.models import (
     MODELS,
     clean_trajectory,
     error_summary,
+    observed_view,
     phase_bin_errors,
     reference_models,
 )
@@ -176,13 +177,18 @@ def run_cell(config: SweepConfig, cell: Cell, *,
     t0 = clock()
     clean = clean_trajectory(traj) if noisy else None
     preds = reference_models(system, estimator.model_, estimator.trajectory_, clean)
-    observed = estimator.trajectory_.smoothed.xi
+    # against the observations the way the regression saw them (raw interval differences for
+    # the noise-aware regression), every model on the same samples
+    observed = observed_view(system, estimator.trajectory_, estimator.regression,
+                             estimator.model_, clean)
     _collect(out, config, cell, preds, observed, estimator.trajectory_)
     out.timings["evaluation"] = clock() - t0
     return out
 
 
 def _collect(out, config, cell, preds, observed, traj) -> None:
+    """``observed``: (the observed velocity, the models' predictions on its samples)."""
+    observed_xi, on_observed = observed
     experiment = cell.experiment
     key = (experiment.name, experiment.system, experiment.noise_kind)
     level = experiment.levels[cell.level]
@@ -192,7 +198,7 @@ def _collect(out, config, cell, preds, observed, traj) -> None:
         p = preds[model]
         stats[model] = {
             "rms_vs_ground_truth": error_summary(p, truth)[0].tolist(),
-            "rms_vs_observed": error_summary(p, observed)[0].tolist(),
+            "rms_vs_observed": error_summary(on_observed[model], observed_xi)[0].tolist(),
             "mean_vs_ground_truth": torch.nanmean(p - truth, dim=-2)[0].tolist(),
         }
         if model != "ground_truth":
@@ -210,7 +216,7 @@ def _collect(out, config, cell, preds, observed, traj) -> None:
                     out.phase_errors.append(key + (level, trial, model, comp, centre,
                                                    mean[j][b][c], rms[j][b][c], se[j][b][c]))
     if experiment.traces and cell.level == trace_level(experiment) and cell.start == 0:
-        _collect_traces(out, experiment, preds, observed, traj)
+        _collect_traces(out, experiment, preds, traj.smoothed.xi, traj)
 
 
 def trace_level(experiment: Experiment) -> int:
