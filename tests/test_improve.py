@@ -227,6 +227,22 @@ def test_command_proposes_from_recordings(tmp_path):
                  "--out", str(tmp_path / "x")]) == 2
 
 
+@pytest.mark.parametrize("argv, message", [
+    (["--threads", "0"], "--threads must be an integer >= 1, got 0"),
+    (["--links", "2"], "--links must be >= 3, got 2"),
+])
+def test_command_errors_are_one_line_through_the_shared_wrapper(argv, message, tmp_path, capsys):
+    """Like every torchconn command: ``--threads`` (default 1), one line, exit code 2, nothing
+    written."""
+    from torchconn.improve.__main__ import main
+
+    out = tmp_path / "out"
+    assert main(["simulate", "--rounds", "1", "--out", str(out), *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"python -m torchconn.improve simulate: error: {message}"
+    assert not out.exists()
+
+
 def test_efficiency_proposal_improves_true_efficiency_with_exact_model():
     """The efficiency path end to end where the metric is exact (clean: the exact local model)."""
     system = NLinkSwimmer(3)

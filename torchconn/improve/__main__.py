@@ -17,7 +17,15 @@ import sys
 import warnings
 from pathlib import Path
 
-from .._cli import InputError, add_device, resolve_device
+from .._cli import (
+    InputError,
+    add_device,
+    add_threads,
+    prepare_output,
+    resolve_device,
+    run_command,
+    set_threads,
+)
 from .._provenance import write_sidecar
 from ..io.trajectory_files import read_csv
 from ..physics.systems import NLinkSwimmer
@@ -43,9 +51,8 @@ def _simulate(args) -> int:
               f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, "
               f"{r.predicted_high:.4f}], realised {r.realised:.4f}", flush=True)
 
+    out = prepare_output(args.out)
     result = improve(system, start, settings, progress=report)
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
     rows = [r.as_row() for r in result.rounds]
     keys = list(rows[0])
     lines = [",".join(keys)] + [",".join(str(row[k]) for k in keys) for row in rows]
@@ -66,18 +73,15 @@ def _simulate(args) -> int:
 
 
 def _propose(args) -> int:
-    try:
-        traj = read_csv(args.data, n_joints=args.links - 1).to(args.device)  # moved once
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            # the loop's estimator (pooled, noise-aware regression)
-            model = estimator_from_settings(LoopSettings().estimator).fit(traj).model_
-        prop = propose_gait(model, args.objective, TrustRegion(scale=args.scale))
-        meas, meas_se = measure_cycles(traj, period=2 * math.pi / float(model.phase_rate))\
-            .objective(args.objective)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"python -m torchconn.improve propose: error: {err}", file=sys.stderr)
-        return 2
+    out = prepare_output(args.out)
+    traj = read_csv(args.data, n_joints=args.links - 1).to(args.device)  # moved once
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        # the loop's estimator (pooled, noise-aware regression)
+        model = estimator_from_settings(LoopSettings().estimator).fit(traj).model_
+    prop = propose_gait(model, args.objective, TrustRegion(scale=args.scale))
+    meas, meas_se = measure_cycles(traj, period=2 * math.pi / float(model.phase_rate))\
+        .objective(args.objective)
     period = 2 * math.pi / float(model.phase_rate)
     lo, hi = prop.gain_interval()
     summary = {
@@ -86,9 +90,9 @@ def _propose(args) -> int:
         "model_current": prop.current, "model_predicted": prop.predicted,
         "trust_radius_rad": prop.radius, "step_rad": prop.step,
     }
-    paths = write_gait(prop.gait, args.out / "next_gait", period=period,
+    paths = write_gait(prop.gait, out / "next_gait", period=period,
                        extra={"prediction": summary})
-    write_sidecar(args.out / "report.json", {
+    write_sidecar(out / "report.json", {
         "command": "propose", "data": [str(p) for p in args.data], "links": args.links,
         "scale": args.scale, "device": args.device, **summary,
     })
@@ -118,15 +122,17 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--scale", type=float, default=3.0, help="trust radius in tube radii")
         q.add_argument("--out", type=Path, required=True)
         add_device(q)
+        add_threads(q)
     args = p.parse_args(argv)
-    if args.links < 3:
-        p.error(f"--links must be >= 3, got {args.links}")
-    try:
+
+    def body() -> int:
+        set_threads(args.threads)
+        if args.links < 3:
+            raise InputError(f"--links must be >= 3, got {args.links}")
         args.device = str(resolve_device(args.device))
-    except InputError as err:
-        print(f"{p.prog} {args.command}: error: {err}", file=sys.stderr)
-        return 2
-    return _simulate(args) if args.command == "simulate" else _propose(args)
+        return _simulate(args) if args.command == "simulate" else _propose(args)
+
+    return run_command(f"{p.prog} {args.command}", body)
 
 
 if __name__ == "__main__":
