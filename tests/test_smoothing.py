@@ -170,6 +170,8 @@ def test_errors_are_clear():
         rts_smooth(y, 0.0)
     with pytest.raises(ValueError, match=r"shape \(\.\.\., T, C\)"):
         rts_smooth(torch.randn(50, dtype=DT), 0.1)
+    with pytest.raises(ValueError, match=r"no empty batch dimension, got \(0, 50, 3\)"):
+        rts_smooth(torch.zeros(0, 50, 3, dtype=DT), 0.1)
     with pytest.raises(ValueError, match="measurement_noise must be a scalar or broadcast"):
         rts_smooth(y, 0.1, measurement_noise=torch.ones(4, dtype=DT))
     with pytest.raises(ValueError, match=r"pose must have shape \(\.\.\., T, 3\)"):

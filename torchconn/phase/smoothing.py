@@ -441,8 +441,10 @@ def rts_smooth(
     Raises:
         ValueError: bad shapes/arguments, or a channel that is NaN at every sample.
     """
-    _checks.tensor(y, "y", "(..., T, C) with T >= 2 samples and C >= 1 channels",
-                   fn="rts_smooth", valid=lambda t: t.ndim >= 2 and t.shape[-2] >= 2 and t.shape[-1] >= 1)
+    _checks.tensor(y, "y", "(..., T, C) with T >= 2 samples, C >= 1 channels and no empty "
+                   "batch dimension", fn="rts_smooth",
+                   valid=lambda t: t.ndim >= 2 and t.shape[-2] >= 2 and t.shape[-1] >= 1
+                   and t.numel() > 0)
     if order not in (2, 3):
         raise ValueError(f"rts_smooth: order must be 2 or 3, got {order!r}")
     if algorithm not in ALGORITHMS:
