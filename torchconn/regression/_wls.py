@@ -212,6 +212,33 @@ def _guarded_correction(gram: Tensor, corr: Tensor) -> tuple[Tensor, Tensor]:
     return gram - kappa[:, None, None] * corr, kappa
 
 
+def ridge_cholesky(gram: Tensor, lam: Tensor | float
+                   ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Cholesky factor of normal matrices ``gram (b, P, P)`` with the solver's ridge convention;
+    ``gram`` is changed in place into the factorised matrix.
+
+    The ridge ``lam`` (``(b,)`` or one number) sits on the unit diagonal of the equilibrated
+    matrix, i.e. ``λ (XᵀWX)ⱼⱼ`` is added to every column but the intercept; a dead (all-zero)
+    column is decoupled with a unit pivot (its coefficient comes out 0; callers report NaN).
+
+    Returns:
+        ``(chol (b, P, P), failed (b,), dead (b, P), d2 (b, P))``: the factor (the identity
+        where the factorisation failed), the failures, the dead columns and the diagonal of
+        ``gram`` before the ridge.
+    """
+    d2 = gram.diagonal(dim1=-2, dim2=-1).clone()
+    dead = d2 <= 0  # an all-zero column: its coefficient is not identified
+    penalty = torch.as_tensor(lam, dtype=gram.dtype, device=gram.device).reshape(-1, 1) * d2
+    penalty[..., 0] = 0  # the intercept is not penalised
+    gram.diagonal(dim1=-2, dim2=-1).add_(torch.where(dead, 1.0, penalty))
+    chol, info = torch.linalg.cholesky_ex(gram)
+    failed = info != 0
+    if bool(failed.any()):
+        eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
+        chol = torch.where(failed[:, None, None], eye, chol)
+    return chol, failed, dead, d2
+
+
 def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
                tolerate_dead: bool, correction: Tensor | None = None):
     """Solve one chunk of bins from ``xy = √w [X | y]`` ``(b, n, P + K)``; ``lam (b,)`` ridge.
@@ -238,19 +265,10 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
         kappa = gram.new_ones(gram.shape[0])
     else:
         gram, kappa = _guarded_correction(gram, correction)
-    d2 = gram.diagonal(dim1=-2, dim2=-1).clone()
-    dead = d2 <= 0  # an all-zero column: its coefficient is not identified
-    # a dead column is decoupled (unit pivot, zero coefficient, returned as NaN); unless
-    # tolerated (a ridge was asked for) the bin is rank-deficient: infinite condition number
-    penalty = lam.unsqueeze(-1) * d2
-    penalty[..., 0] = 0  # the intercept is not penalised
-    gram.diagonal(dim1=-2, dim2=-1).add_(torch.where(dead, 1.0, penalty))
+    # unless tolerated (a ridge was asked for) a dead column makes the bin rank-deficient:
+    # infinite condition number
+    chol, failed, dead, d2 = ridge_cholesky(gram, lam)
     scale = torch.where(dead, 1.0, d2.sqrt())
-    chol, info = torch.linalg.cholesky_ex(gram)
-    failed = info != 0
-    eye = torch.eye(p, dtype=xy.dtype, device=xy.device)
-    if bool(failed.any()):
-        chol = torch.where(failed[:, None, None], eye, chol)
     beta = torch.cholesky_solve(rhs, chol)
     # L⁻¹ gives diag(A⁻¹) for the standard errors and the condition bound
     l_inv = _triangular_inverse(chol)

@@ -110,23 +110,11 @@ def _block_sums(s: _wls.BinnedSamples, sel: slice, block: Tensor, n_blocks: int,
 
 
 def _solve(gram: Tensor, rhs: Tensor, lam: float) -> Tensor:
-    """``β`` of the normal equations ``(b, P, P) β = (b, P, K)`` with the ridge ``lam`` on the
-    unit diagonal of the equilibrated matrix (intercept unpenalised); NaN where a column has
-    no data or the matrix is not positive definite."""
-    p = gram.shape[-1]
-    a = gram.clone()
-    d2 = gram.diagonal(dim1=-2, dim2=-1)
-    dead = d2 <= 0
-    penalty = lam * d2
-    penalty[..., 0] = 0
-    a.diagonal(dim1=-2, dim2=-1).add_(torch.where(dead, 1.0, penalty))
-    chol, info = torch.linalg.cholesky_ex(a)
-    bad = info != 0
-    if lam == 0:
-        bad |= dead.any(-1)
-    if bool((info != 0).any()):
-        eye = torch.eye(p, dtype=gram.dtype, device=gram.device)
-        chol = torch.where((info != 0)[:, None, None], eye, chol)
+    """``β`` of the normal equations ``(b, P, P) β = (b, P, K)`` with the solver's ridge
+    ``lam`` (:func:`~torchconn.regression._wls.ridge_cholesky`); NaN where a column has no data
+    or the matrix is not positive definite."""
+    chol, failed, dead, _ = _wls.ridge_cholesky(gram.clone(), lam)
+    bad = failed | dead.any(-1) if lam == 0 else failed
     beta = torch.cholesky_solve(rhs, chol)
     beta = beta.masked_fill(bad[:, None, None], math.nan)
     return beta.masked_fill(dead.unsqueeze(-1), math.nan)

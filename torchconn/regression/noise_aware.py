@@ -354,11 +354,7 @@ class NoiseAwareRegression(TubeRegression):
         n, m = math.prod(batch), n_bins
         flat = _flatten_batch(traj)
         h_flat, ratio_flat = h.reshape(-1), ratio.reshape(-1)
-        windows = torch.tensor([self.window or self._window(flat.phase[b:b + 1], d,
-                                                            float(ratio_flat[b]))
-                                for b in range(n)], dtype=torch.float64,
-                               device=flat.phase.device)
-        windows = torch.round(windows * 2) / 2  # half spacings: few distinct groups
+        windows = self.element_windows(flat.phase, d, ratio_flat)
         groups, inverse = torch.unique(torch.stack([h_flat.to(windows), windows], -1), dim=0,
                                        return_inverse=True)
         g_m = gamma_m.expand(batch + (m, d)).reshape(n, m, d)
@@ -393,6 +389,15 @@ class NoiseAwareRegression(TubeRegression):
         return max(_auto_window(phase, self.n_bins, 1 + 2 * d + d * d,
                                 self.samples_per_regressor),
                    min(1 + _WINDOW_PER_NOISE_RATIO * ratio, _MAX_NOISE_WINDOW))
+
+    def element_windows(self, phase: Tensor, d: int, ratio: Tensor) -> Tensor:
+        """Bin half-widths ``(n,)`` of unpooled elements ``phase (n, N)`` with noise ratios
+        ``ratio (n,)``: ``window``, or each element's :meth:`_window`, rounded to half bin
+        spacings so that few distinct windows (groups of elements regressed together) remain."""
+        widths = torch.tensor([self.window or self._window(phase[b:b + 1], d, float(ratio[b]))
+                               for b in range(phase.shape[0])], dtype=torch.float64,
+                              device=phase.device)
+        return torch.round(widths * 2) / 2
 
     def noise_setup(self, traj: Trajectory, pool: bool):
         """Joint-angle noise variance ``(..., d)``, noise ratio and velocity interval ``(...)``

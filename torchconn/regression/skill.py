@@ -316,11 +316,8 @@ def _fold_windows(regression: Regression, meta: dict, phase: Tensor, fold: Tenso
     ratio = torch.as_tensor(meta["noise_ratio"], dtype=torch.float64, device=phase.device)
     if train.ndim == 1:
         return regression._window(train, d, float(ratio))
-    flat, ratio = train.reshape(-1, train.shape[-1]), ratio.reshape(-1)
-    widths = torch.tensor([regression._window(flat[b:b + 1], d, float(ratio[b]))
-                           for b in range(flat.shape[0])], dtype=torch.float64,
-                          device=phase.device)
-    return (torch.round(widths * 2) / 2).reshape(train.shape[:-1])  # as the regression rounds
+    return regression.element_windows(train.reshape(-1, train.shape[-1]), d,
+                                      ratio.reshape(-1)).reshape(train.shape[:-1])
 
 
 def with_coefficients(model: LocalConnectionModel, coef: Tensor, order: int
