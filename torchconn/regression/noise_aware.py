@@ -39,7 +39,7 @@ from ..trajectory import Trajectory, pool_batch
 from . import _wls
 from .binning import BinIndex, assign_bins
 from .connection import ConnectionFit, _blocks, _connection_fit
-from .tube import TubeRegression, _auto_window
+from .tube import TubeRegression, _auto_window, _auto_windows
 
 __all__ = ["NoiseEstimate", "estimate_noise", "interval_samples", "IntervalSamples",
            "eiv_correction", "noise_aware_regression", "blend_fits", "NoiseAwareRegression", "interval_view",
@@ -392,19 +392,35 @@ class NoiseAwareRegression(TubeRegression):
 
     def element_windows(self, phase: Tensor, d: int, ratio: Tensor) -> Tensor:
         """Bin half-widths ``(n,)`` of unpooled elements ``phase (n, N)`` with noise ratios
-        ``ratio (n,)``: ``window``, or each element's :meth:`_window`, rounded to half bin
-        spacings so that few distinct windows (groups of elements regressed together) remain."""
-        widths = torch.tensor([self.window or self._window(phase[b:b + 1], d, float(ratio[b]))
-                               for b in range(phase.shape[0])], dtype=torch.float64,
-                              device=phase.device)
+        ``ratio (n,)``: ``window``, or each element's :meth:`_window` (from its own samples
+        and noise only), rounded to half bin spacings so that few distinct windows (groups of
+        elements regressed together) remain."""
+        if self.window:
+            widths = torch.full(phase.shape[:1], float(self.window), dtype=torch.float64,
+                                device=phase.device)
+        else:
+            size = _auto_windows(phase, self.n_bins, 1 + 2 * d + d * d,
+                                 self.samples_per_regressor)
+            noise = (1 + _WINDOW_PER_NOISE_RATIO * ratio.to(size)).clamp_max(_MAX_NOISE_WINDOW)
+            widths = torch.maximum(size, noise)
         return torch.round(widths * 2) / 2
 
     def noise_setup(self, traj: Trajectory, pool: bool):
         """Joint-angle noise variance ``(..., d)``, noise ratio and velocity interval ``(...)``
-        (``(d,)`` and scalars when ``pool``: the trials share one rig)."""
-        per_cycle = 2 * math.pi / float(phase_rate(traj.phase, traj.dt).nanmean() * traj.dt)
-        low = self.noise_band_low or min(max(6 / per_cycle, 0.1), 0.3)
-        noise = estimate_noise(traj.r, band=(low, 0.5))  # (..., d)
+        (``(d,)`` and scalars when ``pool``: the trials share one rig).
+
+        Unpooled, each batch element's are its own: its samples per cycle (which set the
+        noise band and the longest interval) come from its own phase rate, so a trial's fit
+        does not depend on the trials it shares a batch with (a sweep's cells)."""
+        per_cycle = 2 * math.pi / (phase_rate(traj.phase, traj.dt) * traj.dt)  # (...)
+        if pool:
+            per_cycle = per_cycle.nanmean()
+        if self.noise_band_low:
+            low = torch.full_like(per_cycle, self.noise_band_low)
+        else:
+            # the 6th harmonic, rounded up to 0.01 cycles per sample: few distinct bands
+            low = (torch.ceil(600 / per_cycle) / 100).clamp(0.1, 0.3)
+        noise = _estimate_noise_by_band(traj.r, low)  # (..., d)
         n_pool = traj.phase.ndim - 1 if pool else 0
         var = noise.pooled_variance(n_pool)
         q2 = noise.process.square()
@@ -415,6 +431,26 @@ class NoiseAwareRegression(TubeRegression):
         else:
             h = velocity_interval_for(ratio, per_cycle)
         return var, ratio, h
+
+
+def _estimate_noise_by_band(r: Tensor, low: Tensor) -> NoiseEstimate:
+    """:func:`estimate_noise` of ``r (..., T, d)`` with each element's band ``(low, 0.5)``,
+    ``low`` ``(...)`` (or one value for all): one call per distinct band."""
+    if low.ndim == 0 or bool((low == low.reshape(-1)[0]).all()):
+        return estimate_noise(r, band=(float(low.reshape(-1)[0]), 0.5))
+    batch = r.shape[:-2]
+    flat, low_flat = r.reshape((-1,) + r.shape[-2:]), low.expand(batch).reshape(-1)
+    parts = {}
+    for value in torch.unique(low_flat).tolist():
+        idx = torch.nonzero(low_flat == value).flatten()
+        parts[value] = (idx, estimate_noise(flat[idx], band=(value, 0.5)))
+    out = {}
+    for name in ("measurement", "process", "variance_se"):
+        full = flat.new_zeros((flat.shape[0], r.shape[-1]))
+        for idx, est in parts.values():
+            full[idx] = getattr(est, name)
+        out[name] = full.reshape(batch + (r.shape[-1],))
+    return NoiseEstimate(**out)
 
 
 def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
@@ -470,15 +506,18 @@ def noise_ratio(var: Tensor, process_var: Tensor) -> Tensor:
     return torch.where(q2 > 0, 2 * var.mean(-1) / q2.clamp_min(1e-300), 0.0)
 
 
-def velocity_interval_for(ratio: Tensor, samples_per_cycle: float) -> Tensor:
-    """Samples per difference ``(...)`` of the noise-aware regression, from the noise ratio.
+def velocity_interval_for(ratio: Tensor, samples_per_cycle: Tensor | float) -> Tensor:
+    """Samples per difference ``(...)`` of the noise-aware regression, from the noise ratio
+    ``(...)`` and the samples per cycle (a number, or ``(...)`` per element).
 
     Over ``h`` samples the process noise's variance grows as ``h`` and the measurement noise's
     stays, so ``h = ⌈ratio / _INTERVAL_NOISE_FRACTION⌉``, at least 1 and at most
-    :data:`_MAX_INTERVAL_CYCLES` of a cycle.
+    :data:`_MAX_INTERVAL_CYCLES` of a cycle (but never capped below 2).
     """
-    longest = max(2, int(samples_per_cycle * _MAX_INTERVAL_CYCLES))
-    return torch.ceil(ratio / _INTERVAL_NOISE_FRACTION).clamp(1, longest).long()
+    per_cycle = torch.as_tensor(samples_per_cycle, dtype=torch.float64, device=ratio.device)
+    longest = torch.floor(per_cycle * _MAX_INTERVAL_CYCLES).clamp_min(2)
+    h = torch.ceil(ratio / _INTERVAL_NOISE_FRACTION).clamp_min(1)
+    return torch.minimum(h.to(longest), longest).long()
 
 
 def _flatten_batch(traj: Trajectory) -> Trajectory:
