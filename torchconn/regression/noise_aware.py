@@ -360,11 +360,11 @@ class NoiseAwareRegression(TubeRegression):
         g_m = gamma_m.expand(batch + (m, d)).reshape(n, m, d)
         g_dot = gamma_dot_m.expand(batch + (m, d)).reshape(n, m, d)
         var_flat = var.reshape(n, d)
+        by_h = _intervals_by_h(flat, h_flat, traj.dt)
         parts = []
         for g, (hg, wg) in enumerate(groups.tolist()):
             idx = torch.nonzero(inverse == g).flatten()
-            sub = _take(flat, idx)
-            iv = interval_samples(sub.pose, sub.r, sub.phase, traj.dt, int(hg))
+            iv = _take_intervals(by_h[int(hg)], idx)
             bins = assign_bins(iv.phase, n_bins, window=wg, kernel=self.kernel)
             parts.append((idx, noise_aware_regression(iv, bins, g_m[idx], g_dot[idx],
                                                       var_flat[idx], **opts)))
@@ -528,10 +528,20 @@ def _flatten_batch(traj: Trajectory) -> Trajectory:
         phase=traj.phase.reshape(-1, T))
 
 
-def _take(traj: Trajectory, idx: Tensor) -> Trajectory:
-    """Batch elements ``idx`` of a flattened trajectory (pose, r, phase)."""
-    return Trajectory(t=traj.t, pose=traj.pose[idx], r=traj.r[idx]).with_fields(
-        phase=traj.phase[idx])
+def _intervals_by_h(flat: Trajectory, h: Tensor, dt: float) -> dict[int, IntervalSamples]:
+    """:func:`interval_samples` of every element of a flattened trajectory ``(n, T, ·)`` for
+    each distinct interval in ``h (n,)``. Each is computed over the whole batch, not over the
+    elements that use it: torch's elementwise kernels (sin, atan2, ...) can round the last
+    samples of a tensor differently from the rest, so computing on a subset would make an
+    element's values depend on which other elements share its interval."""
+    return {hg: interval_samples(flat.pose, flat.r, flat.phase, dt, hg)
+            for hg in torch.unique(h).tolist()}
+
+
+def _take_intervals(iv: IntervalSamples, idx: Tensor) -> IntervalSamples:
+    """Batch elements ``idx`` of flattened interval samples ``(n, N, ·)``."""
+    return dataclasses.replace(iv, phase=iv.phase[idx], r=iv.r[idx], r_dot=iv.r_dot[idx],
+                               xi=iv.xi[idx])
 
 
 def _scatter_fits(parts, n: int, batch: tuple) -> ConnectionFit:
@@ -561,11 +571,9 @@ def interval_view(traj: Trajectory, h) -> IntervalSamples:
     h_flat = h.reshape(-1)
     n = traj.n_samples - int(h_flat.min())
     out = None
-    for hg in torch.unique(h_flat).tolist():
+    for hg, iv in _intervals_by_h(flat, h_flat, traj.dt).items():
         idx = torch.nonzero(h_flat == hg).flatten()
-        sub = _take(flat, idx)
-        iv = interval_samples(sub.pose, sub.r, sub.phase, traj.dt, int(hg))
-        vals = [iv.phase, iv.r, iv.r_dot, iv.xi]
+        vals = [v[idx] for v in (iv.phase, iv.r, iv.r_dot, iv.xi)]
         if out is None:
             out = [v.new_full((h_flat.numel(), n) + v.shape[2:], float("nan")) for v in vals]
         for o, v in zip(out, vals, strict=True):
