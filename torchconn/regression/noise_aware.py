@@ -30,7 +30,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .._options import option
 from ..phase.limit_cycle import phase_rate
@@ -528,20 +528,38 @@ def _flatten_batch(traj: Trajectory) -> Trajectory:
         phase=traj.phase.reshape(-1, T))
 
 
+#: torch's CPU elementwise kernels work in chunks of this many values (two AVX-512 vectors of
+#: float32) and round the remainder at a tensor's end differently (sin, atan2, ...)
+_KERNEL_CHUNK = 32
+
+
 def _intervals_by_h(flat: Trajectory, h: Tensor, dt: float) -> dict[int, IntervalSamples]:
-    """:func:`interval_samples` of every element of a flattened trajectory ``(n, T, ·)`` for
-    each distinct interval in ``h (n,)``. Each is computed over the whole batch, not over the
-    elements that use it: torch's elementwise kernels (sin, atan2, ...) can round the last
-    samples of a tensor differently from the rest, so computing on a subset would make an
-    element's values depend on which other elements share its interval."""
-    return {hg: interval_samples(flat.pose, flat.r, flat.phase, dt, hg)
-            for hg in torch.unique(h).tolist()}
+    """:func:`interval_samples` ``(n, T − h, ·)`` of every element of a flattened trajectory
+    ``(n, T, ·)`` for each distinct interval in ``h (n,)``, each element's values independent
+    of the other elements (bit for bit).
+
+    torch's elementwise kernels (sin, atan2, ...) round the values in the last, partial chunk
+    of a tensor differently from the rest, so an element's values would depend on where the
+    batch ends. Each interval is therefore computed over the whole batch (not over the elements
+    that use it) with the time axis NaN-padded to whole chunks: every element then starts on
+    a chunk boundary and no tensor ends in a partial chunk."""
+    T = flat.n_samples
+    out = {}
+    for hg in torch.unique(h).tolist():
+        pad = -(T - hg) % _KERNEL_CHUNK
+        pose, r, phase = (nn.functional.pad(x, (0, 0, 0, pad) if x.ndim == 3 else (0, pad),
+                                            value=float("nan"))
+                          for x in (flat.pose, flat.r, flat.phase))
+        iv = interval_samples(pose, r, phase, dt, hg)
+        out[hg] = _take_intervals(iv, slice(None), T - hg)
+    return out
 
 
-def _take_intervals(iv: IntervalSamples, idx: Tensor) -> IntervalSamples:
-    """Batch elements ``idx`` of flattened interval samples ``(n, N, ·)``."""
-    return dataclasses.replace(iv, phase=iv.phase[idx], r=iv.r[idx], r_dot=iv.r_dot[idx],
-                               xi=iv.xi[idx])
+def _take_intervals(iv: IntervalSamples, idx, n: int | None = None) -> IntervalSamples:
+    """Batch elements ``idx`` (and the first ``n`` intervals) of flattened interval samples
+    ``(n, N, ·)``."""
+    return dataclasses.replace(iv, phase=iv.phase[idx, :n], r=iv.r[idx, :n],
+                               r_dot=iv.r_dot[idx, :n], xi=iv.xi[idx, :n])
 
 
 def _scatter_fits(parts, n: int, batch: tuple) -> ConnectionFit:
