@@ -316,14 +316,18 @@ class NoiseAwareRegression(TubeRegression):
     correction then removes most of the normal matrix and mostly adds variance), the result
     is shrunk towards the smoothed estimate (:func:`blend_fits`; the weights of the corrected
     estimate are ``model.meta["corrected_weight"]``). The metric is fitted as by
-    :class:`TubeRegression`.
+    :class:`TubeRegression`. It is :class:`~torchconn.regression.ConnectionEstimator`'s
+    default regression (settings table ``method = "noise_aware"``). Unpooled, a trial's
+    noise estimate, interval, windows and coefficients do not depend on the other trials of the
+    batch, bit for bit (its standard errors to the last bits, as :class:`TubeRegression`'s).
 
     Attributes (besides :class:`TubeRegression`'s):
         velocity_interval: samples per difference; None chooses it per batch element from the
             noise (:func:`velocity_interval_for`). With ``window=None`` the bins' width also
             grows with the noise.
         noise_band_low: lowest frequency (cycles per sample) of the noise fit; None: the 6th
-            harmonic of the gait (``6 / samples per cycle``, within [0.1, 0.3]).
+            harmonic of the gait (``6 / samples per cycle`` of each trial, rounded up to 0.01,
+            within [0.1, 0.3]).
         shrink_to_smoothed: combine with the smoothed estimate (:func:`blend_fits`); False:
             the corrected estimate alone (unbiased, but with one trial of a 9-link swimmer at
             ω ≥ 0.005 measured 2-4 times further off than the smoothed one).
