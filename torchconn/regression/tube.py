@@ -307,12 +307,14 @@ def intercept_series(centres: Tensor, values: Tensor, order: int, intercept_orde
                      ) -> FourierSeries:
     """The Fourier series in phase of per-bin intercepts ``values (..., M, 3)`` at bin centres
     ``centres (M,)``: order ``order``, or per batch element ``intercept_order (...)`` (None:
-    ``order``). Elements at ``order`` get exactly the order-``order`` least-squares series;
-    the others the series of the highest order asked, truncated to their own."""
+    ``order``). Elements at ``order`` get exactly the order-``order`` least-squares series, the
+    others the series of the highest order the bins carry, ``(M − 1) // 2``, truncated to their
+    own; the coefficients always have that highest order, so that no element's series depends
+    on the others in its batch."""
     base = fit_fourier(centres, values, order, value_ndim=1)
-    if intercept_order is None or not bool((intercept_order > order).any()):
+    if intercept_order is None:
         return base
-    top = int(intercept_order.max())
+    top = (centres.shape[-1] - 1) // 2
     high = fit_fourier(centres, values, top, value_ndim=1).truncated(intercept_order)
     padded = torch.zeros_like(high.coeffs)
     padded[..., :2 * order + 1, :] = base.coeffs
