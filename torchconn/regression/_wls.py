@@ -247,11 +247,13 @@ def ridge_cholesky(gram: Tensor, lam: Tensor | float
 
 
 def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
-               tolerate_dead: bool, correction: Tensor | None = None):
+               tolerate_dead: bool, correction: Correction | None = None, sel=None):
     """Solve one chunk of bins from ``xy = √w [X | y]`` ``(b, n, P + K)``; ``lam (b,)`` ridge.
 
-    ``correction (b, P, P)``, when given, is the expected noise part of ``XᵀWX`` (errors in
-    the regressors); it is subtracted under the guard of :func:`_guarded_correction`.
+    ``correction``, when given, maps this chunk's ``XᵀWX (b, P, P)`` (the bins ``sel``) to its
+    expected noise part (errors in the regressors), which is subtracted under the guard of
+    :func:`_guarded_correction`; it gets the ``XᵀWX`` block of the one ``[X|y]ᵀW[X|y]``
+    product (no second product of the design).
 
     One batched matmul forms ``[X|y]ᵀW[X|y]``; Cholesky is invariant to diagonal scaling (van der
     Sluis), so the unscaled normal matrix is factorised and the equilibrated quantities --
@@ -271,7 +273,7 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     if correction is None:
         kappa = gram.new_ones(gram.shape[0])
     else:
-        gram, kappa = _guarded_correction(gram, correction)
+        gram, kappa = _guarded_correction(gram, correction(gram, sel))
     # unless tolerated (a ridge was asked for) a dead column makes the bin rank-deficient:
     # infinite condition number
     chol, failed, dead, d2 = ridge_cholesky(gram, lam)
@@ -364,11 +366,8 @@ def _solve_bins(s: BinnedSamples, sel_list, design: Design, lam: Tensor, delta_m
     outs = []
     for sel in sel_list:
         xy, w = _chunk_design(s, sel, design, delta_max)
-        corr = None
-        if correction is not None:
-            xw = xy[..., : xy.shape[-1] - s.y.shape[-1]]
-            corr = correction(xw.mT @ xw, sel)
-        outs.append(_fit_chunk(xy, w, lam[sel], binary, s.y.shape[-1], tolerate_dead, corr))
+        outs.append(_fit_chunk(xy, w, lam[sel], binary, s.y.shape[-1], tolerate_dead,
+                               correction, sel))
     return [torch.cat(parts) for parts in zip(*outs, strict=True)]
 
 
