@@ -70,10 +70,12 @@ def _previous_defaults(traj):
 
 def test_default_stages_reproduce_the_previous_defaults(recording):
     # 0.1's fixed complexity (the default "auto" keeps it unless it loses to the phase-averaged
-    # velocity on held-out cycles, which it does here by 0.002 in v_x of one trial), and 0.1's
-    # phase (the default is now order "auto" with SNR weights): both named options
+    # velocity on held-out cycles, which it does here by 0.002 in v_x of one trial), 0.1's
+    # phase (the default is now order "auto" with SNR weights) and 0.1's regression on the
+    # smoothed velocities (the default is now NoiseAwareRegression): all named options
     old_phaser = Phaser(order=3, weighting="coherence")
-    est = ConnectionEstimator(phaser=old_phaser, complexity="fixed").fit(recording)
+    est = ConnectionEstimator(phaser=old_phaser, regression=TubeRegression(),
+                              complexity="fixed").fit(recording)
     phase, gamma, coeffs, se_A = _previous_defaults(recording)
     model = est.model_
     torch.testing.assert_close(est.trajectory_.phase, phase, rtol=0, atol=1e-12)
