@@ -318,8 +318,10 @@ class NoiseAwareRegression(TubeRegression):
     estimate are ``model.meta["corrected_weight"]``). The metric is fitted as by
     :class:`TubeRegression`. It is :class:`~torchconn.regression.ConnectionEstimator`'s
     default regression (settings table ``method = "noise_aware"``). Unpooled, a trial's
-    noise estimate, interval, windows and coefficients do not depend on the other trials of the
-    batch, bit for bit (its standard errors to the last bits, as :class:`TubeRegression`'s).
+    noise estimate, interval and windows do not depend on the other trials of the batch, and
+    its coefficients only through the solver's rounding, as :class:`TubeRegression`'s (bit for
+    bit on the 3-link; to 1e-13 on the 9-link, where MKL's kernels round with the memory
+    alignment of the bins' matrices unless ``MKL_CBWR=AUTO`` is set).
 
     Attributes (besides :class:`TubeRegression`'s):
         velocity_interval: samples per difference; None chooses it per batch element from the
