@@ -87,19 +87,22 @@ class NoiseEstimate:
         variance_se: ``(..., C)`` standard error of ``measurement²`` (from the fit's
             information, ``inf`` for a channel without usable data).
         band_low: ``(..., C)`` lowest frequency (cycles per sample) of the band fitted.
+        variance: ``(..., C)`` the fitted ``σ²`` before clamping (negative where the data show
+            less than no noise by chance; unbiased, so averages over trials stay unbiased).
     """
 
     measurement: Tensor
     process: Tensor
     variance_se: Tensor
     band_low: Tensor | None = None
+    variance: Tensor | None = None
 
     def pooled_variance(self, n_batch_dims: int, *, min_z: float = 2.0) -> Tensor:
         """Measurement variance ``(C,)``-shaped after averaging the leading ``n_batch_dims``
         dims (trials of one rig), set to 0 where it is not ``min_z`` standard errors above 0
         (clean data: the estimate is then only the periodogram's scatter)."""
         dims = tuple(range(n_batch_dims))
-        var = self.measurement.square()
+        var = self.measurement.square() if self.variance is None else self.variance
         count = math.prod(var.shape[:n_batch_dims])
         mean = var.mean(dims) if dims else var
         se = (self.variance_se.square().sum(dims).sqrt() / count) if dims else self.variance_se
@@ -151,7 +154,10 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
     u = torch.diff(x, dim=-2)
     if angular is not None:
         u = torch.where(angular.to(x.device), se2.wrap_angle(u), u)
-    spec = _increment_spectrum(u)
+    bridged = torch.diff(_bridge_gaps(x), dim=-2)
+    if angular is not None:
+        bridged = torch.where(angular.to(x.device), se2.wrap_angle(bridged), bridged)
+    spec = _increment_spectrum(u, bridged)
     f = torch.fft.rfftfreq(n, dtype=x.dtype, device=x.device)
     if band is not None:
         inside = (f >= band[0]) & (f <= band[1]) & (f > 0)
@@ -173,7 +179,7 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
     q2 = torch.where(usable, line.q2, 0.0)
     se = torch.where(usable, _SE_FACTOR * line.var_se, math.inf)
     return NoiseEstimate(measurement=sigma2.clamp_min(0).sqrt(), process=q2.clamp_min(0).sqrt(),
-                         variance_se=se, band_low=low)
+                         variance_se=se, band_low=low, variance=sigma2)
 
 
 #: reweighting passes of the Whittle fit (from the unweighted line; it settles in two or three)
@@ -190,8 +196,28 @@ class _Spectrum:
     x1: Tensor
 
 
-def _increment_spectrum(u: Tensor) -> _Spectrum:
+def _bridge_gaps(x: Tensor) -> Tensor:
+    """``x (..., T, C)`` with interior NaN runs filled by straight lines between their
+    neighbours (leading and trailing runs stay NaN)."""
+    ok = torch.isfinite(x)
+    idx = torch.arange(x.shape[-2], device=x.device)[:, None].expand(x.shape)
+    prev = torch.where(ok, idx, -1).cummax(-2).values
+    nxt = torch.where(ok, idx, x.shape[-2]).flip(-2).cummin(-2).values.flip(-2)
+    inside = ~ok & (prev >= 0) & (nxt < x.shape[-2])
+    x0 = torch.gather(torch.where(ok, x, 0.0), -2, prev.clamp_min(0))
+    x1 = torch.gather(torch.where(ok, x, 0.0), -2, nxt.clamp_max(x.shape[-2] - 1))
+    frac = (idx - prev).to(x.dtype) / (nxt - prev).clamp_min(1).to(x.dtype)
+    return torch.where(inside, x0 + frac * (x1 - x0), x)
+
+
+def _increment_spectrum(u: Tensor, bridged: Tensor | None = None) -> _Spectrum:
     """:class:`_Spectrum` of increments ``u (..., n, C)`` (NaN where missing).
+
+    Zeros in place of missing increments would spread the gait's strong lines over the whole
+    spectrum (a random mask leaks a line's power everywhere), so the spectrum is taken of
+    ``bridged``, the increments of the recording with its gaps bridged by straight lines (the
+    signal goes on, the noise does not), while the expectation below counts only the present
+    increments of ``u``.
 
     With the taper ``a_t = w_t m_t`` (taper times the 0/1 mask of present increments), white
     process increments (lag-0 covariance ``q²``) and the measurement noise's MA(1) increments
@@ -201,9 +227,11 @@ def _increment_spectrum(u: Tensor) -> _Spectrum:
     n = u.shape[-2]
     present = torch.isfinite(u)
     m = present.to(u.dtype)
-    filled = torch.where(present, u, 0.0)
-    mean = filled.sum(-2, keepdim=True) / m.sum(-2, keepdim=True).clamp_min(1)
-    filled = torch.where(present, filled - mean, 0.0)
+    source = u if bridged is None else bridged
+    usable = torch.isfinite(source)
+    filled = torch.where(usable, source, 0.0)
+    mean = filled.sum(-2, keepdim=True) / usable.sum(-2, keepdim=True).clamp_min(1)
+    filled = torch.where(usable, filled - mean, 0.0)
     t = torch.arange(1, n + 1, dtype=u.dtype, device=u.device)
     j = torch.arange(1, _TAPERS + 1, dtype=u.dtype, device=u.device)[:, None]
     tapers = (math.sqrt(2 / (n + 1)) * torch.sin(math.pi * j * t / (n + 1)))[:, :, None]
