@@ -63,7 +63,7 @@ _LOWEST_FREQUENCY = 0.025
 #: Contamination (the gait's harmonics spread by phase noise) is an excess at low
 #: frequencies; a step that deviates by chance and is left out biases the fit, so the
 #: threshold trades the two: on random walks observed with white noise (640-3780 samples)
-#: 3 overestimated σ² by up to 13 %, 3.5 by up to 8 % and 4 by 3 %, while on the 9-link
+#: 3 overestimated σ² by up to 13 %, 3.5 by up to 8-11 % and 4 by 3 %, while on the 9-link
 #: reference gait at 64 samples per cycle (seeds 0-1, 4 x 30 cycles) per-channel tests alone
 #: let in enough contamination to find 0-0.8 of ω ≤ 0.005; with the test of the channels'
 #: mean it found 0.83-0.97
@@ -87,7 +87,8 @@ class NoiseEstimate:
             offset of the paper's SDE; a joint whose gait moves with the phase noise also gets
             ``η √Δt |γ'(φ)|``, root mean square over the cycle).
         variance_se: ``(..., C)`` standard error of ``measurement²`` (from the fit's
-            information, ``inf`` for a channel without usable data).
+            information, widened by the missing fraction of the increments; ``inf`` for a
+            channel with fewer than 16 present increments).
         band_low: ``(..., C)`` lowest frequency (cycles per sample) of the band fitted.
         variance: ``(..., C)`` the fitted ``σ²`` before clamping (negative where the data show
             less than no noise by chance; unbiased, so averages over trials stay unbiased).
@@ -177,14 +178,22 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
         line = _fit_line(spec, sel, weight)
         weight = 1 / line.model.square()
     line = _fit_line(spec, sel, weight)
-    usable = torch.isfinite(line.var_se) & (line.var_se > 0)
+    # the ordinates of a record with gaps are fewer independent values than their count: the
+    # variance grows as the present fraction of the increments falls
+    present = torch.isfinite(u).sum(-2)
+    coverage = present.to(x.dtype) / n
+    usable = (torch.isfinite(line.var_se) & (line.var_se > 0) & (present >= _MIN_INCREMENTS))
     sigma2 = torch.where(usable, line.sigma2, 0.0)
     q2 = torch.where(usable, line.q2, 0.0)
-    se = torch.where(usable, _SE_FACTOR * line.var_se, math.inf)
+    se = torch.where(usable, _SE_FACTOR * line.var_se / coverage.clamp_min(1e-12).sqrt(),
+                     math.inf)
     return NoiseEstimate(measurement=sigma2.clamp_min(0).sqrt(), process=q2.clamp_min(0).sqrt(),
                          variance_se=se, band_low=low, variance=sigma2)
 
 
+#: fewest present increments for a channel's estimate (fewer: no estimate, ``variance_se``
+#: infinite, as for a record shorter than 17 samples)
+_MIN_INCREMENTS = 16
 #: reweighting passes of the Whittle fit (from the unweighted line; it settles in two or three)
 _WHITTLE_ITERATIONS = 3
 
@@ -313,7 +322,9 @@ def _choose_band(spec: _Spectrum, f: Tensor) -> tuple[Tensor, Tensor]:
         z = (observed - expected) / spread.clamp_min(1e-300).sqrt()
         # each channel, and the element's channels together: the gait's harmonics raise
         # every joint a little, which the mean of the channels' z shows sooner
-        joint = z.mean(-1, keepdim=True) * math.sqrt(z.shape[-1])
+        finite = torch.isfinite(z)
+        n_finite = finite.sum(-1, keepdim=True).clamp_min(1)
+        joint = torch.where(finite, z, 0.0).sum(-1, keepdim=True) / n_finite.sqrt()
         agrees = (z.abs() < _BAND_Z) & (joint.abs() < _BAND_Z)
         growing = growing & agrees
         sel = sel + step * growing.unsqueeze(-2).to(dtype)
