@@ -158,11 +158,13 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
     u = torch.diff(x, dim=-2)
     if angular is not None:
         u = torch.where(angular.to(x.device), se2.wrap_angle(u), u)
-    bridged = torch.diff(_bridge_gaps(x), dim=-2)
-    if angular is not None:
-        bridged = torch.where(angular.to(x.device), se2.wrap_angle(bridged), bridged)
+    bridged = None
+    if not bool(torch.isfinite(x).all()):
+        bridged = torch.diff(_bridge_gaps(x), dim=-2)
+        if angular is not None:
+            bridged = torch.where(angular.to(x.device), se2.wrap_angle(bridged), bridged)
     spec = _increment_spectrum(u, bridged)
-    f = torch.fft.rfftfreq(n, dtype=x.dtype, device=x.device)
+    f = spec.f
     if band is not None:
         inside = (f >= band[0]) & (f <= band[1]) & (f > 0)
         if int(inside.sum()) < 4:
@@ -172,7 +174,7 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
         low = torch.full(spec.power.shape[:-2] + spec.power.shape[-1:], float(band[0]),
                          dtype=x.dtype, device=x.device)
     else:
-        sel, low = _choose_band(spec, f)
+        sel, low = _choose_band(spec, f, spec.s0, spec.s1)
     weight = torch.ones_like(spec.power)
     for _ in range(_WHITTLE_ITERATIONS):
         line = _fit_line(spec, sel, weight)
@@ -185,8 +187,8 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
     usable = (torch.isfinite(line.var_se) & (line.var_se > 0) & (present >= _MIN_INCREMENTS))
     sigma2 = torch.where(usable, line.sigma2, 0.0)
     q2 = torch.where(usable, line.q2, 0.0)
-    se = torch.where(usable, _SE_FACTOR * line.var_se / coverage.clamp_min(1e-12).sqrt(),
-                     math.inf)
+    se = torch.where(usable, _SE_FACTOR * line.var_se
+                     * math.sqrt(spec.density) / coverage.clamp_min(1e-12).sqrt(), math.inf)
     return NoiseEstimate(measurement=sigma2.clamp_min(0).sqrt(), process=q2.clamp_min(0).sqrt(),
                          variance_se=se, band_low=low, variance=sigma2)
 
@@ -206,6 +208,10 @@ class _Spectrum:
     power: Tensor
     x0: Tensor
     x1: Tensor
+    s0: Tensor  # (..., C): x0 = s0, x1 = 2 s0 − 2 s1 cos 2πf
+    s1: Tensor
+    f: Tensor  # (F,) frequencies, cycles per sample
+    density: float  # ordinates per independent ordinate (the FFT length over the record's)
 
 
 def _bridge_gaps(x: Tensor) -> Tensor:
@@ -247,14 +253,31 @@ def _increment_spectrum(u: Tensor, bridged: Tensor | None = None) -> _Spectrum:
     t = torch.arange(1, n + 1, dtype=u.dtype, device=u.device)
     j = torch.arange(1, _TAPERS + 1, dtype=u.dtype, device=u.device)[:, None]
     tapers = (math.sqrt(2 / (n + 1)) * torch.sin(math.pi * j * t / (n + 1)))[:, :, None]
-    power = torch.fft.rfft(tapers * filled.unsqueeze(-3), dim=-2).abs().square().mean(-3)
+    # time last and a length of small primes (the tapers end at 0, so zeros may follow):
+    # an FFT of 1919 = 19·101 samples along a middle dim took 6 times as long
+    n_fft = _fft_length(n)
+    tapered = (tapers * filled.unsqueeze(-3)).transpose(-1, -2)
+    power = torch.fft.rfft(tapered, n=n_fft, dim=-1).abs().square().mean(-3).transpose(-1, -2)
     a = tapers * m.unsqueeze(-3)  # (..., K, n, C)
     s0 = a.square().sum(-2).mean(-2).unsqueeze(-2)  # (..., 1, C)
     s1 = (a[..., :-1, :] * a[..., 1:, :]).sum(-2).mean(-2).unsqueeze(-2)
-    f = torch.fft.rfftfreq(n, dtype=u.dtype, device=u.device)
+    f = torch.fft.rfftfreq(n_fft, dtype=u.dtype, device=u.device)
     cos = torch.cos(2 * math.pi * f)[:, None]
-    return _Spectrum(power=power, x0=s0.expand(power.shape),
-                     x1=2 * s0 - 2 * cos * s1)
+    return _Spectrum(power=power, x0=s0.expand(power.shape), x1=2 * s0 - 2 * cos * s1,
+                     s0=s0.squeeze(-2), s1=s1.squeeze(-2), f=f, density=n_fft / n)
+
+
+def _fft_length(n: int) -> int:
+    """The smallest length ``≥ n`` whose prime factors are 2, 3 and 5."""
+    m = n
+    while True:
+        k = m
+        for prime in (2, 3, 5):
+            while k % prime == 0:
+                k //= prime
+        if k == 1:
+            return m
+        m += 1
 
 
 @dataclass(frozen=True)
@@ -296,39 +319,69 @@ def _fit_line(spec: _Spectrum, sel: Tensor, weight: Tensor) -> _Line:
     return _Line(q2=q2, sigma2=s2, model=model, cov=cov)
 
 
-def _choose_band(spec: _Spectrum, f: Tensor) -> tuple[Tensor, Tensor]:
+def _choose_band(spec: _Spectrum, f: Tensor, s0: Tensor, s1: Tensor) -> tuple[Tensor, Tensor]:
     """Ordinates ``(..., F, C)`` (0/1) of the band of every channel and its low edge
     ``(..., C)``: the top band, grown downwards step by step while each step's mean agrees
-    with the unweighted line fitted above it (the line's own uncertainty included)."""
-    dtype = spec.power.dtype
-    sel = ((f >= _TOP_BAND) & (f > 0))[:, None].to(dtype).expand(spec.power.shape)
-    edge_shape = spec.power.shape[:-2] + spec.power.shape[-1:]
-    growing = torch.ones(edge_shape, dtype=torch.bool, device=f.device)
-    low = torch.full(edge_shape, _TOP_BAND, dtype=dtype, device=f.device)
-    ones = torch.ones_like(spec.power)
+    with the unweighted line fitted above it (the line's own uncertainty included).
+
+    The line's columns are ``x0 = s0`` and ``x1 = 2 s0 − 2 s1 cos 2πf`` (:class:`_Spectrum`),
+    so every sum the fits need is a sum of powers of ``cos 2πf`` (batch-free) or of the power
+    and the power times ``cos 2πf`` over each step: the scan runs on ``(..., C)`` sums, not
+    on the spectrum.
+    """
+    dtype, power = spec.power.dtype, spec.power
     n_steps = int(round((_TOP_BAND - _LOWEST_FREQUENCY) / _BAND_STEP))
-    for i in range(n_steps):  # a few frequency steps, each batched over elements and channels
-        hi = _TOP_BAND - i * _BAND_STEP
-        step = ((f >= hi - _BAND_STEP) & (f < hi) & (f > 0))[:, None].to(dtype)
-        count = step.sum()
+    edges = _TOP_BAND - _BAND_STEP * torch.arange(n_steps + 1, dtype=dtype, device=f.device)
+    # group 0: the top band; group i: [edge_i, edge_{i-1})
+    group = torch.stack([(f >= edges[0]) & (f > 0)]
+                        + [(f >= edges[i]) & (f < edges[i - 1]) & (f > 0)
+                           for i in range(1, n_steps + 1)]).to(dtype)  # (G, F)
+    c = torch.cos(2 * math.pi * f)
+    cos_sums = group @ torch.stack([c**k for k in range(5)], -1)  # (G, 5): Σ cos^k
+    p0 = torch.einsum("gf,...fc->...gc", group, power)  # Σ p per group
+    p1 = torch.einsum("gf,...fc->...gc", group * c, power)  # Σ p cos
+    u0, u1 = 2 * s0, -2 * s1  # x1 = u0 + u1 cos
+
+    ck = [torch.zeros_like(s0) + cos_sums[0, k] for k in range(5)]  # running Σ cos^k, (..., C)
+    q0, q1 = p0[..., 0, :], p1[..., 0, :]
+    growing = torch.ones_like(s0, dtype=torch.bool)
+    low = torch.full_like(s0, _TOP_BAND)
+    for g in range(1, n_steps + 1):  # a few frequency steps, each batched over all channels
+        count = cos_sums[g, 0]
         if count == 0:
             continue
-        line = _fit_line(spec, sel, ones)
-        c00, c01, c11 = line.cov
-        m0, m1 = (step * spec.x0).sum(-2) / count, (step * spec.x1).sum(-2) / count
-        expected = line.q2 * m0 + line.sigma2 * m1
-        observed = (step * spec.power).sum(-2) / count
-        spread = expected.square() / count + m0 * m0 * c00 + 2 * m0 * m1 * c01 + m1 * m1 * c11
+        a, bb = s0 * s0 * ck[0], s0 * (u0 * ck[0] + u1 * ck[1])
+        d = u0 * u0 * ck[0] + 2 * u0 * u1 * ck[1] + u1 * u1 * ck[2]
+        r0, r1 = s0 * q0, u0 * q0 + u1 * q1
+        det = a * d - bb * bb
+        det = torch.where(det > 0, det, math.nan)
+        q2, s2 = (d * r0 - bb * r1) / det, (a * r1 - bb * r0) / det
+        al, ga = q2 * s0 + s2 * u0, s2 * u1  # the fitted line: al + ga cos
+        mk = [al * al * ck[k] + 2 * al * ga * ck[k + 1] + ga * ga * ck[k + 2] for k in range(3)]
+        e00 = s0 * s0 * mk[0]
+        e01 = s0 * (u0 * mk[0] + u1 * mk[1])
+        e11 = u0 * u0 * mk[0] + 2 * u0 * u1 * mk[1] + u1 * u1 * mk[2]
+        i00, i01, i11 = d / det, -bb / det, a / det
+        c00 = i00 * i00 * e00 + 2 * i00 * i01 * e01 + i01 * i01 * e11
+        c01 = i00 * i01 * e00 + (i00 * i11 + i01 * i01) * e01 + i01 * i11 * e11
+        c11 = i01 * i01 * e00 + 2 * i01 * i11 * e01 + i11 * i11 * e11
+        m0, m1 = s0, u0 + u1 * cos_sums[g, 1] / count
+        expected = q2 * m0 + s2 * m1
+        observed = p0[..., g, :] / count
+        spread = spec.density * (expected.square() / count + m0 * m0 * c00 + 2 * m0 * m1 * c01
+                                 + m1 * m1 * c11)
         z = (observed - expected) / spread.clamp_min(1e-300).sqrt()
         # each channel, and the element's channels together: the gait's harmonics raise
         # every joint a little, which the mean of the channels' z shows sooner
         finite = torch.isfinite(z)
         n_finite = finite.sum(-1, keepdim=True).clamp_min(1)
         joint = torch.where(finite, z, 0.0).sum(-1, keepdim=True) / n_finite.sqrt()
-        agrees = (z.abs() < _BAND_Z) & (joint.abs() < _BAND_Z)
-        growing = growing & agrees
-        sel = sel + step * growing.unsqueeze(-2).to(dtype)
-        low = torch.where(growing, torch.full_like(low, hi - _BAND_STEP), low)
+        growing = growing & (z.abs() < _BAND_Z) & (joint.abs() < _BAND_Z)
+        grow = growing.to(dtype)
+        ck = [ck[k] + grow * cos_sums[g, k] for k in range(5)]
+        q0, q1 = q0 + grow * p0[..., g, :], q1 + grow * p1[..., g, :]
+        low = torch.where(growing, edges[g], low)
+    sel = ((f[:, None] >= low.unsqueeze(-2)) & (f[:, None] > 0)).to(dtype)
     return sel, low
 
 
