@@ -130,13 +130,14 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
     0.0125 (to 0.025 at the lowest) while each step's mean agrees with the line fitted above
     it (within 3.5 standard errors, in each channel and in the mean over the channels): a
     gait's harmonics, spread by phase noise, raise the low frequencies and stop the band
-    there. Every batch element is estimated on
-    its own (the result does not depend on the other elements).
+    there. Every batch element is estimated on its own (the result does not depend on the
+    other elements).
 
     Args:
-        x: ``(..., T, C)`` recordings; NaN drop-outs allowed (an increment touching one counts
-            as missing; the expected spectrum of the zero-filled increments is worked out
-            for the actual gaps, so the fit stays unbiased).
+        x: ``(..., T, C)`` recordings; NaN drop-outs allowed (the spectrum is taken with the
+            gaps bridged by straight lines and its expectation counts the present increments
+            only; with 5 % of the samples missing at random ``σ̂²`` came out about 6 % low on
+            random walks observed with white noise).
         band: ``(f_lo, f_hi)`` to fit that band exactly, ``0 < f_lo < f_hi ≤ 0.5``; None
             (default): chosen from the data as above.
         angular: optional ``(C,)`` bool, channels whose increments are wrapped to ``(−π, π]``
