@@ -7,7 +7,8 @@ observed with Gaussian noise ω on x, y, θ and every r_i. Per cell the table pr
 joint angles of every trial (``mean [min-max]``):
 
 - ``old ω̂/ω``: the previous estimator (a plain periodogram's line fitted above the 6th harmonic,
-  ``6 / samples per cycle`` within [0.1, 0.3], unweighted), kept here as the reference;
+  ``6 / samples per cycle`` within [0.1, 0.3], unweighted), kept here as the reference, per
+  joint the root of its (clamped) variance averaged over the trials;
 - ``new ω̂/ω``: :func:`estimate_noise` (multitaper, Whittle fit, band from the data), per
   joint the root of its unclamped ``variance`` averaged over the trials;
 - ``rig ω̂/ω``: the joints' ``pooled_variance`` over the trials (what ``NoiseAwareRegression``
@@ -118,11 +119,13 @@ def run_cell(n_links: int, gait: str, per_cycle: int, length: str, omegas, *, se
         pose = estimate_noise(traj.pose, angular=torch.tensor([False, False, True]))
         rig = new.pooled_variance(1)
         if omega > 0:
-            o, nw = _range(old / omega), _range(new.variance.mean(0).clamp_min(0).sqrt() / omega)
+            o = _range(old.square().mean(0).sqrt() / omega)
+            nw = _range(new.variance.mean(0).clamp_min(0).sqrt() / omega)
             rg = f"{float(rig.mean().sqrt()) / omega:.2f}"
             ps = _range(pose.measurement / omega)
         else:
-            o, nw = _range(old, "{:.4f}"), _range(new.measurement, "{:.4f}")
+            o = _range(old.square().mean(0).sqrt(), "{:.4f}")
+            nw = _range(new.variance.mean(0).clamp_min(0).sqrt(), "{:.4f}")
             rg = f"{float((rig > 0).to(torch.float64).mean()):.2f}"
             ps = _range(pose.measurement, "{:.4f}")
         z = (new.variance - omega**2) / new.variance_se
