@@ -444,7 +444,8 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
     and coefficients, bit for bit (a sweep's results must not depend on its block size).
     Trials at different noise levels fall in different (interval, window) groups."""
     seeds = np.arange(8) + 500
-    omega = torch.tensor([0.0, 0.002, 0.005, 0.01] * 2, dtype=F64)
+    # (ω = 0.002 is not resolved by 12 cycles at 64 samples per cycle, README "Noise estimates")
+    omega = torch.tensor([0.0, 0.005, 0.01, 0.02] * 2, dtype=F64)
     clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
                      seeds=seeds)
     est = ConnectionEstimator()
@@ -452,7 +453,9 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
     cycle = est.cycle.fit(prep)
     reg = NoiseAwareRegression(metric=False)
     full = reg.fit(prep, cycle)
-    assert len(set(full.meta["velocity_interval"])) >= 3  # several groups
+    # several groups: clean trials at h = 1, noisy ones at the longest interval (a tenth of a
+    # cycle, 6 samples)
+    assert len(set(full.meta["velocity_interval"])) >= 2 and len(set(full.meta["windows"])) >= 2
     groups = [[i] for i in range(8)] + [[0, 1, 2, 3], [1, 3, 5], [7, 6, 5, 4, 3, 2, 1, 0], [2, 6]]
     for group in groups:
         idx = torch.tensor(group)
