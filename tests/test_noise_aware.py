@@ -485,3 +485,21 @@ def test_noise_setup_uses_each_trials_own_samples_per_cycle():
     assert h.tolist() == [6, 12]  # floor(64 / 10), floor(128 / 10)
     for i in range(2):
         assert reg.noise_setup(slow[i:i + 1], pool=False)[2].tolist() == [h.tolist()[i]]
+
+
+def test_one_noise_level_for_all_joints_of_a_trial():
+    """``pooled_variance(channels=True)``: the mean of the joints' variances, tested against
+    its own standard error as a whole, for every joint; per trial when nothing is pooled."""
+    from torchconn.regression.noise_aware import NoiseEstimate
+
+    var = torch.tensor([[4.0, 0.0, 2.0], [0.5, -0.3, 0.1]], dtype=F64)  # (trials, joints)
+    se = torch.tensor([[1.0, 1.0, 1.0], [0.2, 0.2, 0.2]], dtype=F64)
+    est = NoiseEstimate(measurement=var.clamp_min(0).sqrt(), process=torch.ones_like(var),
+                        variance_se=se, variance=var)
+    per_trial = est.pooled_variance(0, channels=True)
+    # trial 0: mean 2 against se √3/3 = 0.577 -> kept; trial 1: mean 0.1 against 0.115 -> 0
+    torch.testing.assert_close(per_trial, torch.tensor([[2.0] * 3, [0.0] * 3], dtype=F64))
+    # per joint, trial 1's joint 0 (0.5 > 2 x 0.2) would have been kept on its own
+    assert float(est.pooled_variance(0)[1, 0]) == 0.5
+    pooled = est.pooled_variance(1, channels=True)  # one rig: mean 1.05, se 0.29
+    torch.testing.assert_close(pooled, torch.full((3,), 1.05, dtype=F64))
