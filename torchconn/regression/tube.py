@@ -93,10 +93,11 @@ class TubeRegression(Regression):
             separate linear and quadratic terms (torchconn 0.1's method, kept for comparison;
             it does not converge, see the README).
         metric_order, metric_derivative_order: Fourier orders in phase of the tied model's
-            ``M(φ)`` and ``∂M/∂r(φ)`` (None: no derivative term; it is also left out when the
-            data hold fewer than 3 usable samples per coefficient with it, e.g. a 9-link trial
-            of 30 cycles). Chosen by measurement on
-            3- and 5-link gaits other than the benchmark's (README, "Known limits").
+            ``M(φ)`` (the largest considered when ``metric_held_out_order``) and ``∂M/∂r(φ)``
+            (None: no derivative term; it is also left out when the data hold fewer than 3
+            usable samples per coefficient with it, e.g. a 9-link trial of 30 cycles). Chosen
+            by measurement on 3- and 5-link gaits other than the benchmark's (README, "Known
+            limits").
         metric_held_out_order: choose the order of ``M(φ)`` in ``0 … metric_order`` from the
             data, by the noise-corrected error on held-out blocks of whole cycles (lower orders
             where the noise leaves the higher harmonics unresolved); False: ``metric_order``.
