@@ -51,6 +51,14 @@ _MU_GRID = torch.linspace(-10.0, 6.0, 65).tolist()
 # while a smooth signal sampled at >= ~30 samples per cycle is suppressed to (w dt)^k
 _DIFF_ORDER = 4
 _PRIOR_SCALE = 1e4
+#: the least precision the noise estimates and the recursions run in: their covariance updates
+#: cancel digits (``P − P²/(P + R)`` under the vague prior and on noise-free data), which in
+#: float32 left only rounding -- NaN on a constant channel, a singular solve on a noise-free line,
+#: derivatives 5-60 % off on simulated recordings; a capped float32 prior still put 66 % errors
+#: on the first samples' derivatives. Results come back in the input's dtype.
+_WORK_DTYPE = torch.float64
+# the smallest noise variance, relative to the data's spread (noise-free data)
+_NOISE_FLOOR = 1e-12
 #: on a CPU the parallel scan is used for at most this many rows (batch elements × channels)
 #: per model order: the sequential loop's cost per sample is mostly per-step overhead shared by
 #: all rows, the scan's is proportional to the rows (benchmarks/bench_smoother.py, one thread:
@@ -119,6 +127,15 @@ def _measurement_variance(y: Tensor) -> Tensor:
     return (1.4826 * mad) ** 2 / math.comb(2 * _DIFF_ORDER, _DIFF_ORDER)
 
 
+def _spread(y: Tensor) -> Tensor:
+    """A positive size per row of ``y (B, T)``: its variance, else (a constant row) its mean
+    square, else (all zero) 1 -> ``(B,)``. Floors scaled by it never underflow in the
+    covariance products, which gave NaN on constant channels."""
+    v = _nanvar(y)
+    v = torch.where(v > 0, v, torch.nanmean(y * y, dim=-1))
+    return torch.where(v > 0, v, torch.ones_like(v))
+
+
 def _prior(y: Tensor, finite: Tensor, order: int, dt: float) -> tuple[Tensor, Tensor]:
     """Vague initial state: first finite sample, zero rates, variances from the data's spread."""
     B, T = y.shape
@@ -129,7 +146,11 @@ def _prior(y: Tensor, finite: Tensor, order: int, dt: float) -> tuple[Tensor, Te
     for k in range(1, order):
         # mean square, not variance, of the differences: a steady drift must fit in the prior
         scales.append(torch.nanmean(torch.diff(y, n=k, dim=-1) ** 2, dim=-1) / dt ** (2 * k))
-    var = torch.nan_to_num(torch.stack(scales, -1), nan=1.0) + torch.finfo(y.dtype).tiny
+    scales = torch.nan_to_num(torch.stack(scales, -1), nan=1.0)
+    # a rate (or spread) that is exactly zero gets the noise floor's size instead
+    floor = _NOISE_FLOOR * _spread(y)[:, None] * torch.tensor(
+        [dt ** (-2 * k) for k in range(order)], dtype=y.dtype, device=y.device)
+    var = torch.where(scales > 0, scales, floor) + torch.finfo(y.dtype).tiny
     # vague: 1e4 times the data's own scale, so the prior's pull on the start is ~1e-4 of it
     return x0, torch.diag_embed(_PRIOR_SCALE * var)
 
@@ -359,7 +380,7 @@ def _gcv_noise_ratio(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float
 
 def _default_noise(yb, fb, F, Q1, dt, q, R) -> tuple[Tensor, Tensor]:
     """Fill in the noise parameters ``q, R (B,)`` that were not given (None) for rows ``yb``."""
-    tiny = 1e-12 * _nanvar(yb) + torch.finfo(yb.dtype).tiny  # keeps S > 0 for noise-free data
+    tiny = _NOISE_FLOOR * _spread(yb) + torch.finfo(yb.dtype).tiny  # S > 0 for noise-free data
     if R is None:
         R = _measurement_variance(yb)
         R = torch.where(torch.isfinite(R), R, torch.zeros_like(R))
@@ -390,12 +411,15 @@ def noise_parameters(y: Tensor, dt: float, *, order: int = 2) -> tuple[Tensor, T
         raise ValueError(f"noise_parameters: order must be 2 or 3, got {order!r}")
     if not y.is_floating_point():
         y = y.to(torch.get_default_dtype())
+    out_dtype = y.dtype
+    y = y.to(torch.promote_types(y.dtype, _WORK_DTYPE))
     T, C = y.shape[-2:]
     yb = y.movedim(-1, -2).reshape(-1, T)
     fb = torch.isfinite(yb)
     F, Q1 = _model(order, float(dt), y.dtype, y.device)
     q, R = _default_noise(yb, fb, F, Q1, float(dt), None, None)
-    return q.reshape(y.shape[:-2] + (C,)), R.reshape(y.shape[:-2] + (C,))
+    return (q.reshape(y.shape[:-2] + (C,)).to(out_dtype),
+            R.reshape(y.shape[:-2] + (C,)).to(out_dtype))
 
 
 def rts_smooth(
@@ -435,8 +459,9 @@ def rts_smooth(
             well-conditioned data; the scan is the more accurate across long drop-outs).
 
     Returns:
-        ``(values, derivatives)``, both ``(..., T, C)``: smoothed positions and their time
-        derivatives, finite everywhere.
+        ``(values, derivatives)``, both ``(..., T, C)`` in ``y``'s dtype: smoothed positions and
+        their time derivatives, finite everywhere. Lower precisions (float32) are computed in
+        float64 and rounded back: the covariance recursions lose too many digits in float32.
 
     Raises:
         ValueError: bad shapes/arguments, or a channel that is NaN at every sample.
@@ -455,6 +480,8 @@ def rts_smooth(
         raise ValueError(f"rts_smooth: dt must be a positive sampling interval, got {dt}")
     if not y.is_floating_point():
         y = y.to(torch.get_default_dtype())
+    out_dtype = y.dtype
+    y = y.to(torch.promote_types(y.dtype, _WORK_DTYPE))
     T, C = y.shape[-2:]
     batch = y.shape[:-2]
     finite = torch.isfinite(y)
@@ -506,7 +533,7 @@ def rts_smooth(
                       x0[i:i + step], P0[i:i + step])
             for i in range(0, yb.shape[0], step)
         ])
-    out = xs[..., :2].reshape(batch + (C, T, 2)).movedim(-3, -2)  # (..., T, C, 2)
+    out = xs[..., :2].reshape(batch + (C, T, 2)).movedim(-3, -2).to(out_dtype)  # (..., T, C, 2)
     return out[..., 0], out[..., 1]
 
 
