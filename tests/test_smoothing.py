@@ -352,3 +352,21 @@ def test_constant_channel_is_smoothed_to_itself(algorithm, order):
     y = torch.tensor([0.0, 2.0, -1e-30], dtype=DT).expand(200, 3).clone()
     v, d = rts_smooth(y, STEP, order=order, algorithm=algorithm)
     assert (v - y).abs().max() < 1e-13 and d.abs().max() < 1e-13
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_scan_without_dropouts_shares_the_covariance_steps_exactly(order):
+    # rows measured at every sample compose their (identical) covariance steps once per scan
+    # round; that must be the same arithmetic as composing them pair by pair, which the scan
+    # does as soon as one row of the batch has a drop-out -- so a row's result does not depend
+    # on its batch -- and it must agree with the loop
+    y, _, _ = _noisy(trials=3, cycles=10, seed=11)
+    y = y + 0.3 * torch.arange(y.shape[1], dtype=DT)[:, None]
+    with_gap = y.clone()
+    with_gap[2, 50:53, 1] = float("nan")
+    alone = rts_smooth(y[:2], STEP, order=order, algorithm="scan")
+    beside = rts_smooth(with_gap, STEP, order=order, algorithm="scan")
+    loop = rts_smooth(y[:2], STEP, order=order, algorithm="loop")
+    for a, b, c in zip(alone, beside, loop, strict=True):
+        assert torch.equal(a, b[:2])
+        assert (a - c).abs().max() < 1e-10 * c.abs().max()

@@ -280,8 +280,12 @@ def _rts_scan(y, finite, F, Q1, q, R, x0, P0) -> Tensor:
     f0 = F[0]  # y_t = x_t[0] + v = F[0] x_{t-1} + (noise of variance S)
     # samples 1..T-1: predict with (F, Q) then update with y_t
     S = q * Q1[0, 0] + R  # (B,)
-    K = m[1:, None, :] * (q * Q1[:, 0, None] / S)[None]  # (T-1, n, B) Kalman gains
-    info = m[1:] / S  # (T-1, B)
+    # without drop-outs after the first sample every step has the same gain, covariance and
+    # information: those parts get time size 1 and are composed once per scan round, not once
+    # per pair of samples (the means still are)
+    mk = m[1:2] if bool(finite[:, 1:].all()) else m[1:]  # (1 or T-1, B)
+    K = mk[:, None, :] * (q * Q1[:, 0, None] / S)[None]  # (1 or T-1, n, B) Kalman gains
+    info = mk / S  # (1 or T-1, B)
     elements = (
         Fb - K[:, :, None, :] * f0[None, None, :, None],
         K * yt[1:, None, :],
