@@ -59,11 +59,13 @@ _PRIOR_SCALE = 1e4
 _WORK_DTYPE = torch.float64
 # the smallest noise variance, relative to the data's spread (noise-free data)
 _NOISE_FLOOR = 1e-12
-#: on a CPU the parallel scan is used for at most this many rows (batch elements × channels)
-#: per model order: the sequential loop's cost per sample is mostly per-step overhead shared by
-#: all rows, the scan's is proportional to the rows (benchmarks/bench_smoother.py, one thread:
-#: at 1,000-4,000 samples the scan is 3-7x faster for 11 rows, even near 220 (order 2) and
-#: 44-110 (order 3), and slower beyond)
+#: on a CPU the parallel scan is used for rows with drop-outs for at most this many rows (batch
+#: elements × channels) per model order: the sequential loop's cost per sample is mostly
+#: per-step overhead shared by all rows, the scan's is proportional to the rows
+#: (benchmarks/bench_smoother.py, one thread: at 1,000-4,000 samples with 5 % drop-outs the
+#: scan is 3-7x faster for 11 rows, even near 220 (order 2) and 44-110 (order 3), and slower
+#: beyond). Rows without drop-outs share their covariance steps and take the scan at any size
+#: (1,920 samples: 2.8-3x faster than the loop at 220-880 rows, order 2; 2.3x at 220, order 3)
 _SCAN_MAX_ROWS_CPU = {2: 256, 3: 64}
 #: samples (rows × time) per scan chunk: the scan keeps ~0.45 (order 2) to ~0.9 kB per sample
 _SCAN_CHUNK_SAMPLES = 1 << 20
@@ -457,8 +459,9 @@ def rts_smooth(
         algorithm: how the filter and smoother run over time -- ``"scan"``: two parallel
             (log-depth) associative scans, a few large tensor operations per round, for GPUs
             and for few rows; ``"loop"``: one Python step per sample (the reference); ``"auto"``
-            (default): the scan off the CPU, and on the CPU for at most 256 rows (order 2) or
-            64 rows (order 3), rows being batch elements × channels -- where it measured faster.
+            (default): the scan off the CPU, and on the CPU for data without drop-outs (after
+            the first sample) or for at most 256 rows (order 2) or 64 rows (order 3), rows
+            being batch elements × channels -- where it measured faster.
             Both give the same result to rounding (≤ 1e-10 relative in float64 on
             well-conditioned data; the scan is the more accurate across long drop-outs).
 
@@ -526,7 +529,8 @@ def rts_smooth(
     x0, P0 = _prior(yb, fb, order, dt)
 
     if algorithm == "auto":
-        scan = yb.device.type != "cpu" or yb.shape[0] <= _SCAN_MAX_ROWS_CPU[order]
+        scan = (yb.device.type != "cpu" or yb.shape[0] <= _SCAN_MAX_ROWS_CPU[order]
+                or bool(fb[:, 1:].all()))
         algorithm = "scan" if scan else "loop"
     if algorithm == "loop":
         xs = _rts_loop(yb, fb, F, Q1, q, R, x0, P0)  # (B, T, n)
