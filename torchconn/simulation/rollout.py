@@ -12,7 +12,8 @@ reconstruction equation ``dg = g A(r)∘dr`` (plus, optionally, an extra body-fr
 Scheme
     Heun's predictor–corrector (the trapezoid rule), which converges to the Stratonovich
     solution, on the fine step ``h = 2π / (samples_per_cycle · substeps)``. The shape process
-    does not depend on the pose, so it is advanced first (``φ`` exactly, ``δ`` by Heun); the
+    does not depend on the pose, so it is advanced first (``φ`` exactly, ``δ`` by Heun -- with
+    its linear drift a linear recurrence, evaluated by a parallel scan, not step by step); the
     pose step then takes the trapezoid of the connection at both ends of the shape step,
     ``g_{n+1} = g_n exp(½(A(r_n) + A(r_{n+1})) Δr_n)``, composed on SE(2). ``A`` is evaluated once
     per fine point and shared by the two steps that meet there. A drift is added to the twist
@@ -436,7 +437,7 @@ def _heun_offsets(delta0: Tensor, dw: Tensor, c: Tensor, e: Tensor) -> Tensor:
     fine step). ``delta0 (B, d)``, ``dw (B, K, d)``, ``c, e (B, 1)`` -> ``(B, K, d)``.
     """
     u = (e[:, None] * dw).movedim(1, 0)  # (K, B, d)
-    cs = c.expand(u.shape[:2] + (1,))
+    cs = c[None]  # (1, B, 1): every step's factor, shared (composed once per scan round)
 
     def combine(first, then):
         return then[0] * first[0], then[0] * first[1] + then[1]
