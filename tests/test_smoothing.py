@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn.phase.smoothing import body_velocity, rts_smooth, smooth_trajectory, unwrap
+from torchconn.phase.smoothing import (
+    body_velocity,
+    noise_parameters,
+    rts_smooth,
+    smooth_trajectory,
+    unwrap,
+)
 from torchconn.physics import se2
 from torchconn.trajectory import SmoothedState
 
@@ -374,3 +380,17 @@ def test_scan_without_dropouts_shares_the_covariance_steps_exactly(order):
     for a, b, c in zip(alone, beside, loop, strict=True):
         assert torch.equal(a, b[:2])
         assert (a - c).abs().max() < 1e-10 * c.abs().max()
+
+
+def test_a_rows_noise_ratio_does_not_depend_on_its_batch():
+    # the sweep's results must not depend on how many trials share a cell: torch's scalar-base
+    # power (10 ** x) rounded a short tensor's tail elements differently with its length
+    gen = torch.Generator().manual_seed(4)
+    t = torch.arange(5 * SPC, dtype=DT) * STEP
+    amp = 0.5 + torch.rand(23, 1, generator=gen, dtype=DT)
+    y = (amp * torch.sin(t + amp) + 0.02 * torch.randn(23, t.numel(), generator=gen,
+                                                       dtype=DT)).T[None]  # (1, T, 23)
+    q, R = noise_parameters(y, STEP)
+    for n in (1, 3, 5, 13, 17, 20):
+        q_n, R_n = noise_parameters(y[..., :n], STEP)
+        assert torch.equal(q_n, q[..., :n]) and torch.equal(R_n, R[..., :n]), n

@@ -367,21 +367,28 @@ def _gcv_noise_ratio(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float
     # leave a kink at the mirror point whose spectrum looks like signal to GCV
     t = torch.linspace(-1.0, 1.0, T, dtype=y.dtype, device=y.device)
     z = z - z.mean(-1, keepdim=True)
-    z = z - (z @ t / (t @ t))[:, None] * t
+    z = z - ((z * t).sum(-1) / (t @ t))[:, None] * t  # per row: z @ t rounds with the batch size
     z = torch.cat([z, z.flip(-1)], -1)
     power = torch.fft.fft(z).abs() ** 2  # (B, 2T)
     S = _unit_spectrum(F, Q1, 2 * T)
     g = torch.tensor(_MU_GRID, dtype=y.dtype, device=y.device)  # log10 of q dt^(2n-1) / R
     lam = 10.0**g / dt ** (2 * order - 1)
     H = torch.where(torch.isinf(S), torch.ones_like(S), lam[:, None] * S / (lam[:, None] * S + 1))
-    rss = power @ ((1 - H) ** 2).mT  # (B, G)
+    # one product per row (batched), not one matrix product of all rows: with one row that is a
+    # different BLAS path whose rounding differs
+    weights = ((1 - H) ** 2).mT  # (2T, G)
+    rss = torch.bmm(power[:, None, :], weights.expand(power.shape[0], -1, -1))[:, 0]  # (B, G)
     gcv = torch.log(rss) - 2 * torch.log1p(-H.mean(-1))
     G = g.numel()
     i = gcv.argmin(-1).clamp(1, G - 2)
     l0, l1, l2 = (gcv.gather(-1, (i + o)[:, None])[:, 0] for o in (-1, 0, 1))
     curv = l0 - 2 * l1 + l2
     off = torch.where(curv > 0, 0.5 * (l0 - l2) / curv, torch.zeros_like(curv)).clamp(-1, 1)
-    return 10.0 ** (g[i] + off * (g[1] - g[0])) / dt ** (2 * order - 1)
+    # exp, not 10 ** x: torch's scalar-base power rounds the elements of a short tensor's tail
+    # differently (a last-ulp change with the batch size), and a row's noise ratio -- hence
+    # everything after it -- must not depend on the other rows of its batch
+    log_ratio = (g[i] + off * (g[1] - g[0])) * math.log(10.0)
+    return torch.exp(log_ratio) / dt ** (2 * order - 1)
 
 
 def _default_noise(yb, fb, F, Q1, dt, q, R) -> tuple[Tensor, Tensor]:
