@@ -312,20 +312,35 @@ def _fit_line(spec: _Spectrum, sel: Tensor, weight: Tensor) -> _Line:
     w = sel * weight
     a, b, d = (w * x0 * x0).sum(-2), (w * x0 * x1).sum(-2), (w * x1 * x1).sum(-2)
     r0, r1 = (w * x0 * p).sum(-2), (w * x1 * p).sum(-2)
-    det = a * d - b * b
-    det = torch.where(det > 0, det, math.nan)
-    q2, s2 = (d * r0 - b * r1) / det, (a * r1 - b * r0) / det
+    q2, s2, det = _solve_2x2(a, b, d, r0, r1)
     model = q2.unsqueeze(-2) * x0 + s2.unsqueeze(-2) * x1
     # a fitted line that dips towards 0 somewhere would give those ordinates all the weight
     mean = (sel * p).sum(-2, keepdim=True) / sel.sum(-2, keepdim=True).clamp_min(1)
     model = torch.maximum(model, 0.1 * mean)
     v = w * weight * model.square()
     e00, e01, e11 = (v * x0 * x0).sum(-2), (v * x0 * x1).sum(-2), (v * x1 * x1).sum(-2)
+    return _Line(q2=q2, sigma2=s2, model=model,
+                 cov=_sandwich_2x2(a, b, d, det, e00, e01, e11))
+
+
+def _solve_2x2(a: Tensor, b: Tensor, d: Tensor, r0: Tensor, r1: Tensor
+               ) -> tuple[Tensor, Tensor, Tensor]:
+    """``(q², σ²)`` of the normal equations ``[[a, b], [b, d]] (q², σ²) = (r0, r1)`` and their
+    determinant (NaN where it is not positive); all ``(..., C)``."""
+    det = a * d - b * b
+    det = torch.where(det > 0, det, math.nan)
+    return (d * r0 - b * r1) / det, (a * r1 - b * r0) / det, det
+
+
+def _sandwich_2x2(a: Tensor, b: Tensor, d: Tensor, det: Tensor, e00: Tensor, e01: Tensor,
+                  e11: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Covariance ``(q², q²), (q², σ²), (σ², σ²)`` of :func:`_solve_2x2`'s solution: the
+    sandwich ``I⁻¹ E I⁻¹`` of the normal matrix ``I = [[a, b], [b, d]]`` and the ordinates'
+    ``E = [[e00, e01], [e01, e11]]``."""
     i00, i01, i11 = d / det, -b / det, a / det
-    cov = (i00 * i00 * e00 + 2 * i00 * i01 * e01 + i01 * i01 * e11,
-           i00 * i01 * e00 + (i00 * i11 + i01 * i01) * e01 + i01 * i11 * e11,
-           i01 * i01 * e00 + 2 * i01 * i11 * e01 + i11 * i11 * e11)
-    return _Line(q2=q2, sigma2=s2, model=model, cov=cov)
+    return (i00 * i00 * e00 + 2 * i00 * i01 * e01 + i01 * i01 * e11,
+            i00 * i01 * e00 + (i00 * i11 + i01 * i01) * e01 + i01 * i11 * e11,
+            i01 * i01 * e00 + 2 * i01 * i11 * e01 + i11 * i11 * e11)
 
 
 def _choose_band(spec: _Spectrum, f: Tensor, s0: Tensor, s1: Tensor) -> tuple[Tensor, Tensor]:
@@ -362,18 +377,13 @@ def _choose_band(spec: _Spectrum, f: Tensor, s0: Tensor, s1: Tensor) -> tuple[Te
         a, bb = s0 * s0 * ck[0], s0 * (u0 * ck[0] + u1 * ck[1])
         d = u0 * u0 * ck[0] + 2 * u0 * u1 * ck[1] + u1 * u1 * ck[2]
         r0, r1 = s0 * q0, u0 * q0 + u1 * q1
-        det = a * d - bb * bb
-        det = torch.where(det > 0, det, math.nan)
-        q2, s2 = (d * r0 - bb * r1) / det, (a * r1 - bb * r0) / det
+        q2, s2, det = _solve_2x2(a, bb, d, r0, r1)
         al, ga = q2 * s0 + s2 * u0, s2 * u1  # the fitted line: al + ga cos
         mk = [al * al * ck[k] + 2 * al * ga * ck[k + 1] + ga * ga * ck[k + 2] for k in range(3)]
         e00 = s0 * s0 * mk[0]
         e01 = s0 * (u0 * mk[0] + u1 * mk[1])
         e11 = u0 * u0 * mk[0] + 2 * u0 * u1 * mk[1] + u1 * u1 * mk[2]
-        i00, i01, i11 = d / det, -bb / det, a / det
-        c00 = i00 * i00 * e00 + 2 * i00 * i01 * e01 + i01 * i01 * e11
-        c01 = i00 * i01 * e00 + (i00 * i11 + i01 * i01) * e01 + i01 * i11 * e11
-        c11 = i01 * i01 * e00 + 2 * i01 * i11 * e01 + i11 * i11 * e11
+        c00, c01, c11 = _sandwich_2x2(a, bb, d, det, e00, e01, e11)
         m0, m1 = s0, u0 + u1 * cos_sums[g, 1] / count
         expected = q2 * m0 + s2 * m1
         observed = p0[..., g, :] / count

@@ -287,8 +287,11 @@ class TubeRegression(Regression):
                 stacklevel=3)
             derivative = None
         orders = dict(order=self.metric_order, derivative_order=derivative)
-        fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders,
-                                     min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
+        # the order is chosen in the final fit: the noise-corrected one when there is one
+        fit = tied_metric_regression(
+            offset, v, power, phase, centres, gamma_dot_m, **orders,
+            held_out_order=self.metric_held_out_order and not self.metric_noise_correction,
+            min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         noise = None
         if self.metric_noise_correction:
             # the noise from the uncorrected fit's residuals (the power channel is noise-free),
@@ -299,10 +302,6 @@ class TubeRegression(Regression):
             fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m,
                                          **orders, noise_variance=2 * omega2 / traj.dt**2,
                                          held_out_order=self.metric_held_out_order,
-                                         min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
-        elif self.metric_held_out_order:
-            fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders,
-                                         held_out_order=True,
                                          min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         return fit, noise
 
