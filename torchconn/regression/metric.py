@@ -202,9 +202,14 @@ def metric_regression(
 
 
 # ================================================================================ tied model
-#: shrink factors tried, in order, on the noise correction when the corrected normal matrix is
-#: not positive definite
-_CORRECTION_STEPS = (1.0, 0.9, 0.75, 0.5, 0.25, 0.0)
+#: least signal fraction of the noise-corrected normal matrix in any direction: in the
+#: generalized eigenvectors of (G, C) (raw normal matrix G, the noise's contribution C) the
+#: correction divides each direction by its signal fraction 1 − ν; where 1 − ν falls below
+#: this floor (the noise swamps that direction's excitation, and 1 − ν is mostly sampling
+#: error) it is raised to the floor, a ridge on those directions alone
+_SIGNAL_FLOOR = 0.1
+#: blocks of consecutive samples over which the residual noise level's standard error is taken
+_NOISE_BLOCKS = 24
 #: rows of the design built at once (bounds memory: rows × coefficients × 8 bytes)
 _ROW_CHUNK = 2048
 #: blocks of whole cycles held out in turn to choose the order of ``M(φ)``
@@ -401,7 +406,7 @@ def tied_metric_regression(
     inv = torch.where(diag <= 0, 1.0, diag.rsqrt())
     chosen = torch.full(batch, order, dtype=torch.int64, device=dev)
     if held_out_order:
-        chosen = _held_out_orders(gram - corr_g, rhs - corr_h, inv, order, q)
+        chosen = _held_out_orders(gram, corr_g, rhs - corr_h, inv, order, q)
     # the harmonics above each element's order are dropped (zero coefficients)
     feature = torch.arange(p, device=dev) // q
     drop = (feature >= 2 * chosen[..., None] + 1) & (feature < 2 * order + 1)  # (..., p)
@@ -412,22 +417,11 @@ def tied_metric_regression(
 
     dead = gram.diagonal(dim1=-2, dim2=-1) <= 0
     eye = torch.eye(p, dtype=dtype, device=dev)
-    shrink = torch.full(batch, float("nan"), dtype=dtype, device=dev)
-    chol = eye.expand(batch + (p, p)).clone()
-    for t in _CORRECTION_STEPS:
-        g = (gram - t * corr_g) * inv.unsqueeze(-1) * inv.unsqueeze(-2) + torch.diag_embed(
-            dead.to(dtype))
-        c, info = torch.linalg.cholesky_ex(g)
-        take = (info == 0) & shrink.isnan()
-        chol = torch.where(take[..., None, None], c, chol)
-        shrink = torch.where(take, t, shrink)
-        if not bool(shrink.isnan().any()):
-            break
-    failed = shrink.isnan()
-    shrink = shrink.nan_to_num(0.0)
-    g_final = (gram - shrink[..., None, None] * corr_g) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
-    ev = torch.linalg.eigvalsh(g_final + torch.diag_embed(dead.to(dtype)))
-    condition = torch.where(failed | (dead & ~drop).any(-1) | (ev[..., 0] <= 0), torch.inf,
+    scale = inv.unsqueeze(-1) * inv.unsqueeze(-2)
+    chol, applied, ok = _corrected_cholesky(gram * scale + torch.diag_embed(dead.to(dtype)),
+                                            corr_g * scale, _SIGNAL_FLOOR)
+    ev = torch.linalg.eigvalsh(chol @ chol.mT)
+    condition = torch.where(~ok | (dead & ~drop).any(-1) | (ev[..., 0] <= 0), torch.inf,
                             ev[..., -1] / ev[..., 0].clamp(min=torch.finfo(dtype).tiny))
     bad = ~(condition <= max_condition)
     if bool(bad.any()):
@@ -443,13 +437,14 @@ def tied_metric_regression(
               "(derivative_order=None), record more varied data, or fit the connection alone "
               "(TubeRegression(metric=False); torchconn-fit: --metric no)"
         )
-    h = (rhs - shrink[..., None] * corr_h) * inv
+    h = (rhs - corr_h) * inv
     beta = torch.cholesky_solve(h.unsqueeze(-1), chol)[..., 0] * inv
-    if bool((shrink < 1).any()):
+    if bool((applied < 1).any()):
         warnings.warn(
-            f"{fn}: the noise-corrected normal matrix was not positive definite (the noise "
-            f"swamps the off-cycle excitation); the correction was shrunk to "
-            f"{float(shrink.min()):.2g} of its size, so M̂'s weakly excited directions are "
+            f"{fn}: in some directions of the metric's coefficients the noise swamps the "
+            "off-cycle excitation (signal fraction of the corrected normal matrix below "
+            f"{_SIGNAL_FLOOR:g}); the noise correction there was limited to "
+            f"{float(applied.min()):.2g} of its size, so M̂'s weakly excited directions are "
             "biased towards smaller values", _wls.IllConditionedBinWarning, stacklevel=2)
 
     # cluster-robust sandwich over whole cycles, on the corrected regressors
@@ -512,11 +507,57 @@ def tied_metric_regression(
         residual_rms=(sse / cnt.clamp(min=1)).sqrt(), condition=per_phase(condition),
         ridge=torch.zeros_like(per_phase(condition)), coef=beta, se_coef=se,
         se_power_on_cycle=se_p, M_gamma_dot=m_gd, se_M_gamma_dot=se_m_gd,
-        noise_correction=per_phase(shrink), cov_M=cov_m, order=chosen,
+        noise_correction=per_phase(applied), cov_M=cov_m, order=chosen,
     )
 
 
-def _held_out_orders(gram: Tensor, rhs: Tensor, inv: Tensor, order: int, q: int) -> Tensor:
+def _corrected_cholesky(gram: Tensor, corr: Tensor, floor: float
+                        ) -> tuple[Tensor, Tensor, Tensor]:
+    """Cholesky factor of the noise-corrected normal matrix ``G − C``, with the signal
+    fraction of every direction raised to at least ``floor``.
+
+    With ``G = L Lᵀ`` and ``L⁻¹ C L⁻ᵀ = U diag(ν) Uᵀ``, ``G − C = (LU) diag(1 − ν) (LU)ᵀ``:
+    direction ``u`` keeps the fraction ``1 − ν`` of its raw excitation once the noise's share
+    ``ν`` is removed, and the correction divides by it. Where the noise swamps a direction's
+    excitation, ``1 − ν`` is near zero or negative by sampling error alone, and dividing by it
+    is what made the fit's variance explode (or the matrix indefinite); those ``1 − ν`` are
+    raised to ``floor`` (a ridge on those directions alone, the others keep the full
+    correction). One Cholesky of ``(1 − floor) G − C`` finds the elements that need no floor;
+    only the others get the eigenvalue solve.
+
+    Args:
+        gram, corr: ``(..., P, P)`` symmetric, ``gram`` positive definite (equilibrated).
+        floor: least signal fraction, in ``(0, 1]``.
+
+    Returns:
+        ``(chol (..., P, P), applied (...), ok (...))``: the factor; the least fraction of the
+        correction applied in any direction (1 where nothing was floored); False where
+        ``gram`` itself is not positive definite (then ``chol`` is not usable).
+    """
+    shape = gram.shape
+    g, c = gram.reshape((-1,) + shape[-2:]), corr.reshape((-1,) + shape[-2:])
+    _, info = torch.linalg.cholesky_ex((1 - floor) * g - c)
+    chol, info_full = torch.linalg.cholesky_ex(g - c)
+    applied = g.new_ones(g.shape[0])
+    ok = torch.ones(g.shape[0], dtype=torch.bool, device=g.device)
+    need = torch.nonzero((info != 0) | (info_full != 0))[:, 0]
+    if need.numel():
+        lg, info_g = torch.linalg.cholesky_ex(g[need])
+        half = torch.linalg.solve_triangular(lg, c[need], upper=False)  # L⁻¹ C
+        n = torch.linalg.solve_triangular(lg, half.mT, upper=False)  # L⁻¹ C L⁻ᵀ
+        nu, u = torch.linalg.eigh((n + n.mT) / 2)
+        capped = nu.clamp(max=1 - floor)
+        b = lg @ u
+        a = (b * (1 - capped).unsqueeze(-2)) @ b.mT
+        ca, info_a = torch.linalg.cholesky_ex((a + a.mT) / 2)
+        chol[need] = ca
+        applied[need] = torch.where(nu > 1 - floor, capped / nu, 1.0).amin(-1)
+        ok[need] = (info_g == 0) & (info_a == 0)
+    return chol.reshape(shape), applied.reshape(shape[:-2]), ok.reshape(shape[:-2])
+
+
+def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, inv: Tensor, order: int,
+                     q: int) -> Tensor:
     """The Fourier order of ``M(φ)`` in ``0 … order`` with the least held-out error over
     blocks of whole cycles, per batch element.
 
@@ -527,13 +568,16 @@ def _held_out_orders(gram: Tensor, rhs: Tensor, inv: Tensor, order: int, q: int)
     scored on it without the noisy regressors favouring attenuated models. Among ``order``
     and the lower orders whose summed loss beats ``order``'s by more than :data:`_ORDER_Z`
     standard errors of the difference (from its spread over the blocks), the one with the least
-    summed loss is chosen (the lowest on ties); an order whose fit on the other blocks is not
+    summed loss is chosen (the lowest on ties). The fits on the other blocks are floored as the
+    final fit is (:func:`_corrected_cholesky`); an order whose raw normal matrix there is not
     positive definite scores infinity (``order`` when every order does).
 
     Args:
-        gram: ``(..., F, P, P)`` corrected normal matrices per block (``P`` in the layout of
-            ``order``: feature ``a = column // q``, the first ``2·order+1`` those of ``M(φ)``);
-            rhs: ``(..., F, P)``; inv: ``(..., P)`` equilibration of the whole fit.
+        gram: ``(..., F, P, P)`` raw normal matrices ``X̂_bᵀX̂_b`` per block (``P`` in the
+            layout of ``order``: feature ``a = column // q``, the first ``2·order+1`` those of
+            ``M(φ)``); corr: ``(..., F, P, P)`` the noise's contributions ``C_b``; rhs:
+            ``(..., F, P)`` corrected right-hand sides ``h_b``; inv: ``(..., P)`` equilibration
+            of the whole fit.
         order: largest order; q: metric coefficients per feature.
 
     Returns:
@@ -541,6 +585,8 @@ def _held_out_orders(gram: Tensor, rhs: Tensor, inv: Tensor, order: int, q: int)
     """
     p = gram.shape[-1]
     train_g = gram.sum(-3, keepdim=True) - gram
+    train_c = corr.sum(-3, keepdim=True) - corr
+    gram = gram - corr  # the blocks' corrected normal matrices, for the held-out loss
     train_h = rhs.sum(-2, keepdim=True) - rhs
     scale = inv.unsqueeze(-2)  # (..., 1, P)
     feature = torch.arange(p, device=gram.device) // q
@@ -549,12 +595,12 @@ def _held_out_orders(gram: Tensor, rhs: Tensor, inv: Tensor, order: int, q: int)
     for k in range(order + 1):
         drop = ((feature >= 2 * k + 1) & (feature < 2 * order + 1)) | dead  # (..., F, P)
         keep = (~drop).to(gram)
-        a = (train_g * (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
-             + torch.diag_embed(drop.to(gram)))
-        c, info = torch.linalg.cholesky_ex(a)
+        both = (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
+        c, _, ok = _corrected_cholesky(train_g * both + torch.diag_embed(drop.to(gram)),
+                                       train_c * both, _SIGNAL_FLOOR)
         beta = torch.cholesky_solve((train_h * scale * keep).unsqueeze(-1), c)[..., 0] * scale
         loss = (beta.unsqueeze(-2) @ gram @ beta.unsqueeze(-1))[..., 0, 0] - 2 * (beta * rhs).sum(-1)
-        losses.append(torch.where(info == 0, loss, torch.inf))
+        losses.append(torch.where(ok, loss, torch.inf))
     losses = torch.stack(losses, -1)  # (..., F, order + 1)
     # a lower order than ``order`` only where it predicts the held-out blocks better by more
     # than _ORDER_Z standard errors of the difference (over the blocks): a harmonic dropped
@@ -646,7 +692,8 @@ def tied_metric_predict(coef: Tensor, offset: Tensor, velocity: Tensor, phase: T
     return torch.cat(power, -1), torch.cat(m_v, -2)
 
 
-def power_noise_variance(residual: Tensor, m_v: Tensor, dt: float) -> Tensor:
+def power_noise_variance(residual: Tensor, m_v: Tensor, dt: float, *, with_se: bool = False
+                         ) -> Tensor | tuple[Tensor, Tensor]:
     """Observation-noise variance of the shape channels, from the power residuals' lag structure.
 
     The power channel is noise-free, while the model's velocity ``v̂ = v + e`` carries the
@@ -663,13 +710,34 @@ def power_noise_variance(residual: Tensor, m_v: Tensor, dt: float) -> Tensor:
             pooled trials may be concatenated when a NaN separates them).
         m_v: ``(..., N, d)`` ``M̂v`` of the same samples.
         dt: sampling interval.
+        with_se: also return the standard error of ``ω²``, from the spread of the regression's
+            sums over :data:`_NOISE_BLOCKS` blocks of consecutive samples (the products of
+            residuals are serially correlated, so samples are not independent).
 
     Returns:
-        ``(..., d)`` ``ω²`` (≥ 0, the same for every joint), the noise on the recorded shapes.
+        ``(..., d)`` ``ω²`` (≥ 0, the same for every joint), the noise on the recorded shapes;
+        with ``with_se`` also its ``(..., d)`` standard error (before clamping).
     """
     z = residual[..., :-2] * (residual[..., 1:-1] - residual[..., 2:])  # (..., N-2)
     f = -(4 / dt**2) * (m_v[..., :-2, :] * m_v[..., 1:-1, :]).sum(-1)
     ok = torch.isfinite(z) & torch.isfinite(f)
     z, f = torch.where(ok, z, 0.0), torch.where(ok, f, 0.0)
-    omega2 = (f * z).sum(-1) / (f * f).sum(-1).clamp(min=torch.finfo(f.dtype).tiny)
-    return omega2.clamp(min=0).unsqueeze(-1).expand(m_v.shape[:-2] + m_v.shape[-1:])
+    tiny = torch.finfo(f.dtype).tiny
+    omega2 = (f * z).sum(-1) / (f * f).sum(-1).clamp(min=tiny)
+    shape = m_v.shape[:-2] + m_v.shape[-1:]
+    out = omega2.clamp(min=0).unsqueeze(-1).expand(shape)
+    if not with_se:
+        return out
+    # the ratio estimator's linearised spread over blocks of consecutive samples
+    n_b = _NOISE_BLOCKS
+    pad = (-z.shape[-1]) % n_b
+    fz = _pad_last(f * z, pad).unflatten(-1, (n_b, -1)).sum(-1)
+    ff = _pad_last(f * f, pad).unflatten(-1, (n_b, -1)).sum(-1)
+    u = fz - omega2.unsqueeze(-1) * ff
+    se = (u.square().sum(-1) * n_b / (n_b - 1)).sqrt() / ff.sum(-1).clamp(min=tiny)
+    return out, se.unsqueeze(-1).expand(shape)
+
+
+def _pad_last(x: Tensor, n: int) -> Tensor:
+    """``x (..., N)`` with ``n`` zeros appended along the last dim."""
+    return torch.cat([x, x.new_zeros(x.shape[:-1] + (n,))], -1)

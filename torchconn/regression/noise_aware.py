@@ -109,15 +109,24 @@ class NoiseEstimate:
         joints tracked by one rig share its noise, and a per-channel test keeps the estimates
         of weakly resolved channels that came out high (measured: one 9-link trial at
         ω = 0.002, two of eight joints kept at 1.75-1.95 ω)."""
+        mean, se = self.pooled_mean(n_batch_dims, channels=channels)
+        return torch.where(mean > min_z * se, mean, torch.zeros_like(mean))
+
+    def pooled_mean(self, n_batch_dims: int, *, channels: bool = False
+                    ) -> tuple[Tensor, Tensor]:
+        """The unclamped mean of ``σ²`` over the leading ``n_batch_dims`` dims (and the
+        channels when ``channels``) and its standard error, both ``(C,)``-shaped as
+        :meth:`pooled_variance` (which tests the one against the other)."""
         var = self.measurement.square() if self.variance is None else self.variance
         dims = tuple(range(n_batch_dims)) + ((var.ndim - 1,) if channels else ())
         if not dims:
-            return torch.where(var > min_z * self.variance_se, var, torch.zeros_like(var))
+            return var, self.variance_se
         count = math.prod(var.shape[d] for d in dims)
         mean = var.mean(dims, keepdim=True)
         se = self.variance_se.square().sum(dims, keepdim=True).sqrt() / count
-        out = torch.where(mean > min_z * se, mean, torch.zeros_like(mean))
-        return out.reshape(out.shape[n_batch_dims:]).expand(var.shape[n_batch_dims:])
+        shape = var.shape[n_batch_dims:]
+        return (mean.reshape(mean.shape[n_batch_dims:]).expand(shape),
+                se.reshape(se.shape[n_batch_dims:]).expand(shape))
 
 
 def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
