@@ -210,6 +210,8 @@ def metric_regression(
 #: on the 5-link wave at ω = 0.005 (seeds 1000 and 3000, four noise draws each), M̂γ̇ RMS
 #: error 6.0 / 5.7 / 6.6 / 7.8 % at 0.1 / 0.2 / 0.3 / 0.5
 _SIGNAL_FLOOR = 0.2
+_FLOOR_SCALE = 1.1
+_MAX_FLOOR = 0.9
 #: blocks of consecutive samples over which the residual noise level's standard error is taken
 _NOISE_BLOCKS = 24
 #: rows of the design built at once (bounds memory: rows × coefficients × 8 bytes)
@@ -408,7 +410,8 @@ def tied_metric_regression(
     inv = torch.where(diag <= 0, 1.0, diag.rsqrt())
     chosen = torch.full(batch, order, dtype=torch.int64, device=dev)
     if held_out_order:
-        chosen = _held_out_orders(gram, corr_g, rhs, corr_h, inv, order, q)
+        n_fold = torch.stack([(valid & (fold == b)).sum(-1) for b in range(folds)], -1)
+        chosen = _held_out_orders(gram, corr_g, rhs, corr_h, inv, order, q, n_fold)
     # the harmonics above each element's order are dropped (zero coefficients)
     feature = torch.arange(p, device=dev) // q
     drop = (feature >= 2 * chosen[..., None] + 1) & (feature < 2 * order + 1)  # (..., p)
@@ -420,8 +423,9 @@ def tied_metric_regression(
     dead = gram.diagonal(dim1=-2, dim2=-1) <= 0
     eye = torch.eye(p, dtype=dtype, device=dev)
     scale = inv.unsqueeze(-1) * inv.unsqueeze(-2)
+    floor = _signal_floor(torch.full_like(n_valid, p), n_valid)
     normal = _CorrectedNormal.of(gram * scale + torch.diag_embed(dead.to(dtype)),
-                                 corr_g * scale, _SIGNAL_FLOOR)
+                                 corr_g * scale, floor)
     chol, applied, ok = normal.cholesky(), normal.applied, normal.ok
     ev = torch.linalg.eigvalsh(chol @ chol.mT)
     condition = torch.where(~ok | (dead & ~drop).any(-1) | (ev[..., 0] <= 0), torch.inf,
@@ -446,7 +450,7 @@ def tied_metric_regression(
         warnings.warn(
             f"{fn}: in some directions of the metric's coefficients the noise swamps the "
             "off-cycle excitation (signal fraction of the corrected normal matrix below "
-            f"{_SIGNAL_FLOOR:g}); the noise correction there was limited to "
+            f"{float(floor.max()):.2g}); the noise correction there was limited to "
             f"{float(applied.min()):.2g} of its size, so M̂'s weakly excited directions are "
             "biased towards smaller values", _wls.IllConditionedBinWarning, stacklevel=2)
 
@@ -514,6 +518,16 @@ def tied_metric_regression(
     )
 
 
+def _signal_floor(n_coef: Tensor, n_samples: Tensor) -> Tensor:
+    """The floor on the signal fraction, ``(...)`` from the numbers of live coefficients and of
+    samples: :data:`_FLOOR_SCALE` ``√(P/N)``, the scale on which sampling error spreads the
+    eigenvalues of a ``P``-dimensional Gram matrix of ``N`` samples, at most :data:`_MAX_FLOOR`."""
+    if _FLOOR_SCALE is None:
+        return torch.full(n_coef.shape, _SIGNAL_FLOOR, dtype=torch.float64, device=n_coef.device)
+    ratio = n_coef.to(torch.float64) / n_samples.to(torch.float64).clamp(min=1)
+    return (_FLOOR_SCALE * ratio.sqrt()).clamp(max=_MAX_FLOOR)
+
+
 @dataclass(frozen=True)
 class _CorrectedNormal:
     """The noise-corrected normal matrix ``A`` of a batch of fits, with a floor on the signal
@@ -553,11 +567,13 @@ class _CorrectedNormal:
     shape: tuple
 
     @staticmethod
-    def of(gram: Tensor, corr: Tensor, floor: float) -> _CorrectedNormal:
-        """From ``gram, corr (..., P, P)`` (equilibrated, ``gram`` positive definite)."""
+    def of(gram: Tensor, corr: Tensor, floor: Tensor) -> _CorrectedNormal:
+        """From ``gram, corr (..., P, P)`` (equilibrated, ``gram`` positive definite) and the
+        floor ``(...)`` of each element."""
         shape, p = gram.shape[:-2], gram.shape[-1]
         g, c = gram.reshape(-1, p, p), corr.reshape(-1, p, p)
-        _, info = torch.linalg.cholesky_ex((1 - floor) * g - c)
+        floor = torch.as_tensor(floor, dtype=g.dtype, device=g.device).expand(shape).reshape(-1)
+        _, info = torch.linalg.cholesky_ex((1 - floor)[:, None, None] * g - c)
         full, info_full = torch.linalg.cholesky_ex(g - c)
         floored = (info != 0) | (info_full != 0)
         ok = torch.ones_like(floored)
@@ -567,7 +583,8 @@ class _CorrectedNormal:
         half = torch.linalg.solve_triangular(lower, c[need], upper=False)  # L⁻¹ C
         n = torch.linalg.solve_triangular(lower, half.mT, upper=False)  # L⁻¹ C L⁻ᵀ
         nu, u = torch.linalg.eigh((n + n.mT) / 2)
-        share = torch.where(nu > 1 - floor, (1 - floor) / nu, 1.0)
+        top = (1 - floor[need]).unsqueeze(-1)
+        share = torch.where(nu > top, top / nu, 1.0)
         applied[need] = share.amin(-1)
         ok[need] = info_g == 0
         return _CorrectedNormal(full=full, floored=floored, lower=lower, rotation=u,
@@ -610,7 +627,7 @@ class _CorrectedNormal:
 
 
 def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, inv: Tensor,
-                     order: int, q: int) -> Tensor:
+                     order: int, q: int, n_fold: Tensor) -> Tensor:
     """The Fourier order of ``M(φ)`` in ``0 … order`` with the least held-out error over
     blocks of whole cycles, per batch element.
 
@@ -651,8 +668,9 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
         drop = ((feature >= 2 * k + 1) & (feature < 2 * order + 1)) | dead  # (..., F, P)
         keep = (~drop).to(gram)
         both = (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
+        floor = _signal_floor(torch.full_like(n_fold, p), n_fold.sum(-1, keepdim=True))
         normal = _CorrectedNormal.of(train_g * both + torch.diag_embed(drop.to(gram)),
-                                     train_c * both, _SIGNAL_FLOOR)
+                                     train_c * both, floor)
         h = (train_h * scale - normal.correction_share(train_ch * scale)) * keep
         beta = normal.solve(h) * scale
         ok = normal.ok
