@@ -62,8 +62,9 @@ class MetricFit:
         se_power_on_cycle: ``(..., M)`` standard error of ``power_on_cycle``.
         M_gamma_dot, se_M_gamma_dot: ``(..., M, d)`` ``M̂γ̇_m``, strongly identified by the gait
             itself (the full ``M̂`` needs off-cycle excitation), and its standard error.
-        noise_correction: ``(..., M)`` fraction of the noise correction applied (1 unless the
-            corrected normal matrix was not positive definite); None for the paper's model.
+        noise_correction: ``(..., M)`` the least fraction of the noise correction applied in
+            any direction of the coefficients (1 unless the noise swamps some direction's
+            excitation, see :class:`_CorrectedNormal`); None for the paper's model.
         cov_M: ``(..., M, q, q)`` covariance of the ``q = d(d+1)/2`` metric coefficients (tied
             model only).
         order: ``(...)`` Fourier order of ``M(φ)`` (tied model only).
@@ -275,8 +276,10 @@ def tied_metric_regression(
     ``Σ``; the known bias is removed from the normal equations (the Gaussian fourth-moment
     identity: an errors-in-variables correction). ``r̄``'s own noise, variance ``ω²/2`` against
     the offsets' ``η²/2α``, only biases ``∂M/∂r`` (by ~0.2 % at ω = 0.005) and is left alone.
-    Where the corrected normal matrix is not positive definite (the noise swamps the
-    excitation) the correction is shrunk (``MetricFit.noise_correction`` < 1) with a warning.
+    In the directions of the coefficients where the noise swamps the excitation (signal
+    fraction of the corrected normal matrix below ``1.1 √(P/N)``) only part of the correction
+    is applied, the other directions keep all of it (:class:`_CorrectedNormal`;
+    ``MetricFit.noise_correction`` < 1, with a warning).
 
     Standard errors: the sandwich ``G⁻¹ (Σ_c s_c s_cᵀ) G⁻¹`` over cycles ``c`` (whole turns of
     ``phase``), ``s_c`` the summed scores of the corrected regressors: they reflect the actual
