@@ -203,15 +203,17 @@ def metric_regression(
 
 
 # ================================================================================ tied model
-#: least signal fraction kept in any direction of the noise-corrected normal matrix: in the
+#: the floor on the signal fraction kept in any direction of the noise-corrected normal
+#: matrix is this many times ``√(P/N)`` (``P`` coefficients of the largest model, ``N``
+#: samples), the scale on which sampling error spreads a Gram matrix's eigenvalues. In the
 #: generalized eigenvectors of (G, C) (raw normal matrix G, the noise's contribution C) the
-#: correction divides each direction by its signal fraction 1 − ν; where 1 − ν falls below
-#: this floor (the noise swamps that direction's excitation, and 1 − ν is mostly sampling
-#: error) only part of the correction is applied there (:class:`_CorrectedNormal`). Measured
-#: on the 5-link wave at ω = 0.005 (seeds 1000 and 3000, four noise draws each), M̂γ̇ RMS
-#: error 6.0 / 5.7 / 6.6 / 7.8 % at 0.1 / 0.2 / 0.3 / 0.5
-_SIGNAL_FLOOR = 0.2
+#: correction divides each direction by its signal fraction 1 − ν; below the floor it is
+#: mostly sampling error and only part of the correction is applied (:class:`_CorrectedNormal`).
+#: Tuned on the pooled 5-link wave at ω = 0.005 (seeds 1000 and 3000, four noise draws each;
+#: floor 0.2 there): M̂γ̇ RMS error 6.0 / 5.7 / 6.6 / 7.8 % at floors 0.1 / 0.2 / 0.3 / 0.5.
+#: The 3-link gets about 0.1, the 9-link 0.45-0.55 (where 0.2 left M̂γ̇ 40 % off at order 6)
 _FLOOR_SCALE = 1.1
+#: the floor's largest value
 _MAX_FLOOR = 0.9
 #: blocks of consecutive samples over which the residual noise level's standard error is taken
 _NOISE_BLOCKS = 24
@@ -426,7 +428,7 @@ def tied_metric_regression(
     dead = gram.diagonal(dim1=-2, dim2=-1) <= 0
     eye = torch.eye(p, dtype=dtype, device=dev)
     scale = inv.unsqueeze(-1) * inv.unsqueeze(-2)
-    floor = _signal_floor(torch.full_like(n_valid, p), n_valid)
+    floor = _signal_floor(p, n_valid)
     normal = _CorrectedNormal.of(gram * scale + torch.diag_embed(dead.to(dtype)),
                                  corr_g * scale, floor)
     chol, applied, ok = normal.cholesky(), normal.applied, normal.ok
@@ -521,13 +523,10 @@ def tied_metric_regression(
     )
 
 
-def _signal_floor(n_coef: Tensor, n_samples: Tensor) -> Tensor:
-    """The floor on the signal fraction, ``(...)`` from the numbers of live coefficients and of
-    samples: :data:`_FLOOR_SCALE` ``√(P/N)``, the scale on which sampling error spreads the
-    eigenvalues of a ``P``-dimensional Gram matrix of ``N`` samples, at most :data:`_MAX_FLOOR`."""
-    if _FLOOR_SCALE is None:
-        return torch.full(n_coef.shape, _SIGNAL_FLOOR, dtype=torch.float64, device=n_coef.device)
-    ratio = n_coef.to(torch.float64) / n_samples.to(torch.float64).clamp(min=1)
+def _signal_floor(n_coef: int, n_samples: Tensor) -> Tensor:
+    """The floor on the signal fraction, ``(...)``: :data:`_FLOOR_SCALE` ``√(P/N)`` for ``P =
+    n_coef`` coefficients and ``N = n_samples (...)`` samples, at most :data:`_MAX_FLOOR`."""
+    ratio = n_coef / n_samples.to(torch.float64).clamp(min=1)
     return (_FLOOR_SCALE * ratio.sqrt()).clamp(max=_MAX_FLOOR)
 
 
@@ -648,10 +647,11 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
     Args:
         gram: ``(..., F, P, P)`` raw normal matrices ``X̂_bᵀX̂_b`` per block (``P`` in the
             layout of ``order``: feature ``a = column // q``, the first ``2·order+1`` those of
-            ``M(φ)``); corr: ``(..., F, P, P)`` the noise's contributions ``C_b``; rhs:
-            ``(..., F, P)`` corrected right-hand sides ``h_b``; inv: ``(..., P)`` equilibration
-            of the whole fit.
+            ``M(φ)``); corr: ``(..., F, P, P)`` the noise's contributions ``C_b``; rhs, corr_h:
+            ``(..., F, P)`` raw right-hand sides ``X̂_bᵀy_b`` and the noise's contributions
+            ``c_b``; inv: ``(..., P)`` equilibration of the whole fit.
         order: largest order; q: metric coefficients per feature.
+        n_fold: ``(..., F)`` usable samples per block.
 
     Returns:
         ``(...)`` int64 orders.
@@ -666,19 +666,19 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
     scale = inv.unsqueeze(-2)  # (..., 1, P)
     feature = torch.arange(p, device=gram.device) // q
     dead = train_g.diagonal(dim1=-2, dim2=-1) <= 0
+    # the floor of the whole fit, so that it does not favour one order or block over another
+    floor = _signal_floor(p, n_fold.sum(-1, keepdim=True)).expand(n_fold.shape)
     losses = []
     for k in range(order + 1):
         drop = ((feature >= 2 * k + 1) & (feature < 2 * order + 1)) | dead  # (..., F, P)
         keep = (~drop).to(gram)
         both = (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
-        floor = _signal_floor(torch.full_like(n_fold, p), n_fold.sum(-1, keepdim=True))
         normal = _CorrectedNormal.of(train_g * both + torch.diag_embed(drop.to(gram)),
                                      train_c * both, floor)
         h = (train_h * scale - normal.correction_share(train_ch * scale)) * keep
         beta = normal.solve(h) * scale
-        ok = normal.ok
         loss = (beta.unsqueeze(-2) @ gram @ beta.unsqueeze(-1))[..., 0, 0] - 2 * (beta * rhs).sum(-1)
-        losses.append(torch.where(ok, loss, torch.inf))
+        losses.append(torch.where(normal.ok, loss, torch.inf))
     losses = torch.stack(losses, -1)  # (..., F, order + 1)
     # a lower order than ``order`` only where it predicts the held-out blocks better by more
     # than _ORDER_Z standard errors of the difference (over the blocks): a harmonic dropped
