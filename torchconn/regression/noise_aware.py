@@ -42,6 +42,7 @@ from .connection import ConnectionFit, _blocks, _connection_fit
 from .tube import TubeRegression, _auto_window
 
 __all__ = ["NoiseEstimate", "estimate_noise", "interval_samples", "IntervalSamples",
+           "interval_weights", "interval_noise_gains", "overlap_inflation",
            "eiv_correction", "noise_aware_regression", "blend_fits", "NoiseAwareRegression", "interval_view",
            "noise_ratio", "velocity_interval_for"]
 
@@ -137,16 +138,56 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] = NOISE_BAND,
                          process=intercept.clamp_min(0).sqrt(), variance_se=slope_se)
 
 
+#: shapes of the velocity filter over an interval (:func:`interval_weights`)
+VELOCITY_KERNELS = ("box", "triangle")
+#: the filter of :func:`interval_samples` (and so of :class:`NoiseAwareRegression`): measured
+#: on seed 5 (3-/5-link circle, 3-link reference and 5-link wave gaits, pooled 4 x 30 cycles,
+#: ω = 0.005-0.01, the best interval and window of each) the triangle's Â error was 0.45-0.75
+#: times the box's (5-link ω = 0.01: 10.6 % vs 17.3 %); a Hann window was no better than the
+#: triangle (0.96-1.10 times)
+VELOCITY_KERNEL = "triangle"
+
+
+def interval_weights(h: int, kernel: str = VELOCITY_KERNEL, *, dtype=torch.float64,
+                     device=None) -> Tensor:
+    """Weights ``u (h,)`` (sum 1) of the ``h`` one-sample intervals in a velocity filter.
+
+    ``"box"``: ``1/h`` (the mean over the interval); ``"triangle"``: ``∝ 1 − |x|`` at the
+    intervals' centres ``x ∈ (−1, 1)``. A filter's output is ``Σ_j u_j v_j`` of the one-sample
+    velocities ``v_j``; on the samples it is ``Σ_j a_j x_j / Δt`` with ``a_j = u_j − u_{j+1}``,
+    so white measurement noise of variance ``σ²`` enters with ``σ² Σ a_j² / Δt²``: ``2σ²/h²``
+    for the box (its sharp edges), ``≈ 16σ²/(h+1)³`` for the triangle.
+    """
+    if kernel not in VELOCITY_KERNELS:
+        raise ValueError(f"velocity kernel must be one of {VELOCITY_KERNELS}, got {kernel!r}")
+    j = torch.arange(1, h + 1, dtype=dtype, device=device)
+    u = torch.ones_like(j) if kernel == "box" else 1 - ((2 * j - h - 1) / (h + 1)).abs()
+    return u / u.sum()
+
+
+def _filter_taps(h: int, kernel: str) -> tuple[Tensor, Tensor]:
+    """``u (h + 2,)`` padded with zeros and the sample taps ``a (h + 1,)`` of the velocity
+    filter and ``b (h + 1,)`` of its mid-point shape (float64, CPU)."""
+    u = torch.nn.functional.pad(interval_weights(h, kernel), (1, 1))
+    return u[1:] - u[:-1], (u[1:] + u[:-1]) / 2
+
+
 @dataclass(frozen=True)
 class IntervalSamples:
-    """Samples on intervals of ``h`` recorded samples (``N = T − h`` intervals).
+    """Samples filtered over intervals of ``h`` recorded samples (``N = T − h`` intervals).
+
+    With the filter's weights ``u_j`` (:func:`interval_weights`) on the one-sample intervals
+    ``[t_{k+j−1}, t_{k+j}]``, ``j = 1…h``:
 
     Attributes:
         phase: ``(..., N)`` phase at each interval's middle.
-        r: ``(..., N, d)`` mid-point shape ``(r_k + r_{k+h}) / 2``.
-        r_dot: ``(..., N, d)`` mean shape velocity ``(r_{k+h} − r_k) / (hΔt)``.
-        xi: ``(..., N, 3)`` mean body velocity ``log(g_k⁻¹ g_{k+h}) / (hΔt)``.
-        h: the interval in samples; dt: the sampling interval.
+        r: ``(..., N, d)`` the weighted mean of the one-sample mid-points ``Σ u_j (r_{k+j−1} +
+            r_{k+j})/2`` (box: ``(r_k + r_{k+h}) / 2``).
+        r_dot: ``(..., N, d)`` weighted mean shape velocity ``Σ u_j (r_{k+j} − r_{k+j−1})/Δt``
+            (box: ``(r_{k+h} − r_k) / (hΔt)``).
+        xi: ``(..., N, 3)`` weighted mean body velocity ``Σ u_j log(g_{k+j−1}⁻¹ g_{k+j})/Δt``
+            (box: ``log(g_k⁻¹ g_{k+h}) / (hΔt)``).
+        h: the interval in samples; dt: the sampling interval; kernel: the filter's shape.
     """
 
     phase: Tensor
@@ -155,27 +196,99 @@ class IntervalSamples:
     xi: Tensor
     h: int
     dt: float
+    kernel: str = VELOCITY_KERNEL
+
+    def noise_gains(self) -> tuple[float, float]:
+        """Factors ``(g_r, g_ṙ)`` by which a joint angle's white measurement-noise variance
+        enters ``r`` and ``r_dot``. The two noises are uncorrelated for every filter:
+        ``Σ a_j b_j = Σ (u_j² − u_{j+1}²)/2 = 0``."""
+        return interval_noise_gains(self.h, self.dt, self.kernel)
 
 
-def interval_samples(pose: Tensor, r: Tensor, phase: Tensor, dt: float, h: int) -> IntervalSamples:
-    """Target and regressors from raw differences over ``h`` samples (nothing smoothed).
+def interval_noise_gains(h: int, dt: float, kernel: str = VELOCITY_KERNEL
+                         ) -> tuple[float, float]:
+    """``(Σ b_j², Σ a_j² / Δt²)``: the noise gains of :class:`IntervalSamples` (box: ``1/2`` and
+    ``2/(hΔt)²``, the end points' mean and difference)."""
+    if kernel == "box" or h == 1:
+        return 0.5, 2 / (h * dt) ** 2
+    a, b = _filter_taps(h, kernel)
+    return float(b.square().sum()), float(a.square().sum()) / dt**2
+
+
+def interval_samples(pose: Tensor, r: Tensor, phase: Tensor, dt: float, h: int,
+                     kernel: str = VELOCITY_KERNEL) -> IntervalSamples:
+    """Target and regressors filtered identically over ``h`` samples (nothing else smoothed).
 
     Args:
         pose: ``(..., T, 3)``; r: ``(..., T, d)``; phase: ``(..., T)`` (unwrapped or wrapped);
-            dt: sampling interval; h: interval in samples, ``1 ≤ h < T``.
+            dt: sampling interval; h: interval in samples, ``1 ≤ h < T``; kernel: the filter
+            (:func:`interval_weights`; at ``h = 1`` every filter is the one-sample difference).
+
+    Returns:
+        :class:`IntervalSamples` ``(..., T − h, ·)``.
     """
     T = r.shape[-2]
     if isinstance(h, bool) or not isinstance(h, int) or not 1 <= h < T:
         raise ValueError(f"velocity interval h must be an integer in [1, {T - 1}], got {h!r}")
+    if kernel not in VELOCITY_KERNELS:
+        raise ValueError(f"velocity kernel must be one of {VELOCITY_KERNELS}, got {kernel!r}")
     span = h * dt
     step = se2.wrap_angle(phase[..., h:] - phase[..., :-h])
+    mid_phase = phase[..., :-h] + step / 2
+    if kernel == "box" or h == 1:
+        return IntervalSamples(
+            phase=mid_phase,
+            r=(r[..., h:, :] + r[..., :-h, :]) / 2,
+            r_dot=(r[..., h:, :] - r[..., :-h, :]) / span,
+            xi=se2.log(se2.relative(pose[..., :-h, :], pose[..., h:, :])) / span,
+            h=h, dt=float(dt), kernel=kernel,
+        )
+    u = interval_weights(h, kernel, dtype=r.dtype, device=r.device)
+
+    def filtered(x: Tensor) -> Tensor:  # one-sample values (..., T − 1, C) -> (..., T − h, C)
+        return x.unfold(-2, h, 1) @ u
+
+    one_step = se2.log(se2.relative(pose[..., :-1, :], pose[..., 1:, :])) / dt
     return IntervalSamples(
-        phase=phase[..., :-h] + step / 2,
-        r=(r[..., h:, :] + r[..., :-h, :]) / 2,
-        r_dot=(r[..., h:, :] - r[..., :-h, :]) / span,
-        xi=se2.log(se2.relative(pose[..., :-h, :], pose[..., h:, :])) / span,
-        h=h, dt=float(dt),
+        phase=mid_phase, r=filtered((r[..., 1:, :] + r[..., :-1, :]) / 2),
+        r_dot=filtered(torch.diff(r, dim=-2) / dt), xi=filtered(one_step),
+        h=h, dt=float(dt), kernel=kernel,
     )
+
+
+def overlap_inflation(bins: BinIndex, h: int, kernel: str = VELOCITY_KERNEL) -> Tensor:
+    """Factor ``κ (..., M)`` by which the rows' overlap inflates each bin's coefficient
+    variance over the solver's, which treats the rows as independent.
+
+    A filter over ``h`` samples makes the measurement-noise part of consecutive rows
+    correlated: its autocovariance at lag ``l`` is ``∝ ρ_a(l) = Σ a_j a_{j+l}``, the
+    regressors' (process) part's ``∝ ρ_u(l) = Σ u_j u_{j+l}``. A bin's weighted rows
+    ``w_k`` then have ``κ = 1 + 2 Σ_{l≥1} [ρ_u(l) ρ_a(l) / (ρ_u(0) ρ_a(0))] c(l)`` with
+    ``c(l) = Σ_k w_k w_{k+l} / Σ_k w_k²`` (the bin's own run of consecutive rows). For the box
+    ``ρ_a`` vanishes at every lag ``0 < l < h`` and ``ρ_u(h) = 0``, so ``κ = 1``; the triangle
+    at ``h = 8-24`` gives 2.4-7. Measured against the swimmer's exact connection (seed 5,
+    3-/5-link, ω = 0.005-0.01, ``h`` 8-24, windows 1-4) the squared errors are 0.8-1.2 times
+    the variance with ``κ`` where the bias is small (2-9 times without).
+    """
+    batch = tuple(bins.batch_shape)
+    m = bins.n_bins
+    if kernel == "box" or h == 1:
+        return bins.weight.new_ones(batch + (m,))
+    u = torch.nn.functional.pad(interval_weights(h, kernel), (1, 1))
+    a = u[1:] - u[:-1]
+    u = u[1:-1]
+    lags = range(1, h)
+    rho = torch.tensor([float((u[:-l] * u[l:]).sum() * (a[:-l] * a[l:]).sum()) for l in lags],
+                       dtype=torch.float64) / float(u.square().sum() * a.square().sum())
+    w = bins.weight.reshape(-1, bins.max_count)
+    dense = w.new_zeros(w.shape[0], bins.n_points)
+    dense.scatter_add_(1, bins.index.reshape(w.shape).to(w.device), w)
+    norm = dense.square().sum(-1).clamp_min(1e-300)
+    kappa = torch.ones_like(norm)
+    for lag, r in zip(lags, rho.tolist(), strict=True):
+        if r != 0:
+            kappa = kappa + 2 * r * (dense[:, :-lag] * dense[:, lag:]).sum(-1) / norm
+    return kappa.clamp_min(1e-3).reshape(batch + (m,))
 
 
 def eiv_correction(gram: Tensor, var_delta: Tensor, var_rate: Tensor) -> Tensor:
@@ -248,10 +361,9 @@ def noise_aware_regression(
             :func:`~torchconn.regression.connection_regression`.
 
     Returns:
-        :class:`~torchconn.regression.ConnectionFit`. The standard errors treat the rows as
-        independent although consecutive intervals overlap; measured against the truth
-        (3-, 5-, 9-link, ω = 0.005-0.01, ``h`` = 6-12) the squared errors average 0.9-1.1 times
-        the squared standard errors this way (an extra ``√h`` made them ``h`` times too wide).
+        :class:`~torchconn.regression.ConnectionFit`. The standard errors are the solver's
+        (rows independent) times ``√κ`` for the rows' overlap (:func:`overlap_inflation`; 1
+        for the box filter, whose errors measured 0.9-1.1 times its squared standard errors).
     """
     fn = "noise_aware_regression"
     s = _wls.prepare(fn, samples.r, samples.r_dot, samples.xi, "xi", 3, bins, gamma_m,
@@ -267,8 +379,8 @@ def noise_aware_regression(
     p = 1 + 2 * d + d * d
     m = s.n_bins
     var_bins = var.unsqueeze(-2).expand(batch + (m, d)).reshape(-1, d)
-    span = samples.h * samples.dt
-    var_delta, var_rate = var_bins / 2, 2 * var_bins / span**2
+    g_delta, g_rate = samples.noise_gains()
+    var_delta, var_rate = var_bins * g_delta, var_bins * g_rate
 
     def correction(gram: Tensor, sel) -> Tensor:
         return eiv_correction(gram, var_delta[sel], var_rate[sel])
@@ -276,20 +388,31 @@ def noise_aware_regression(
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge, min_samples=None,
                      max_condition=None, on_ill_conditioned=on_ill_conditioned,
                      correction=correction)
-    sol = sol.unflatten(s.batch_shape, m)
+    kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
+    sol = dataclasses.replace(sol, se=sol.se * kappa.sqrt()).unflatten(s.batch_shape, m)
     return _connection_fit(sol, d)
 
 
 # ------------------------------------------------------------------------ the regression stage
 #: the velocity interval is the shortest at which the joint-angle noise adds at most this
-#: fraction of the process noise's variance to a shape-velocity difference
+#: fraction of the process noise's variance to a filtered shape velocity
+#: (:func:`velocity_interval_for`); the pooled fit then chooses between it and longer ones
 _INTERVAL_NOISE_FRACTION = 0.05
-#: longest velocity interval, as a fraction of a cycle (the mid-point rule's bias grows with it)
-_MAX_INTERVAL_CYCLES = 1 / 10
-#: bin half-width grows by this many bin spacings per unit of the noise ratio (see noise_ratio),
-#: up to _MAX_NOISE_WINDOW spacings: wider windows lowered the error on a circle gait but
-#: biased the strongly curved 3-link reference gait (measured: 9 % at 3 spacings, 17 % at 6,
-#: ω = 0.005)
+#: longest velocity interval, as a fraction of a cycle. The triangle filter's error grows
+#: more slowly with the interval than the box's; seed 5 (pooled, ω = 0.01) chose 24-32 of 126
+#: samples per cycle
+_MAX_INTERVAL_CYCLES = 1 / 4
+#: the pooled fit's candidate intervals (multiples of the noise rule's) and bin half-widths
+#: (bin spacings), chosen among by estimated mean squared error (see
+#: ``NoiseAwareRegression._chosen_fit``). Set on seeds 5 and 6 (3-/5-link circle, 3-link
+#: reference, 5-link wave, ω = 0-0.01, pooled 4 x 30 cycles) against a grid of intervals
+#: 2-32 and windows 1-4: the chosen fits' Â errors were 1.11 times the best of the grid's on
+#: average (at most 1.45; always the best at ω = 0); the strongly curved 3-link reference gait
+#: gets 1.5-3 spacings, circle gaits 3-4
+_INTERVAL_MULTIPLES = (1.0, 1.5, 2.0)
+_CANDIDATE_WINDOWS = (1.0, 2.0, 3.0, 4.0)
+#: unpooled elements (no choice yet) widen their bins with the noise: by this many bin spacings
+#: per unit of the noise ratio (see noise_ratio), up to _MAX_NOISE_WINDOW spacings
 _WINDOW_PER_NOISE_RATIO = 20.0
 _MAX_NOISE_WINDOW = 3.0
 #: :func:`blend_fits` keeps the corrected estimate only where it differs from the smoothed one
@@ -340,15 +463,10 @@ class NoiseAwareRegression(TubeRegression):
         d, n_bins = traj.shape_dim, self.n_bins
         var, ratio, h = self.noise_setup(traj, pool)
         if pool:
-            view = interval_view(traj, h)
-            view = IntervalSamples(phase=pool_batch(view.phase, 0), r=pool_batch(view.r, 1),
-                                   r_dot=pool_batch(view.r_dot, 1), xi=pool_batch(view.xi, 1),
-                                   h=int(h), dt=float(traj.dt))
-            window = self.window or self._window(view.phase, d, float(ratio))
-            bins = assign_bins(view.phase, n_bins, window=window, kernel=self.kernel)
-            fit = noise_aware_regression(view, bins, gamma_m, gamma_dot_m, var, **opts)
-            meta = {"velocity_interval": int(h), "noise_ratio": float(ratio),
-                    "noise_r": var.sqrt().tolist()}
+            fit, h, window, scores = self._chosen_fit(traj, var, int(h), gamma_m, gamma_dot_m,
+                                                      opts)
+            meta = {"velocity_interval": h, "noise_ratio": float(ratio),
+                    "noise_r": var.sqrt().tolist(), "interval_window_scores": scores}
             return fit, window, meta
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
@@ -371,6 +489,65 @@ class NoiseAwareRegression(TubeRegression):
         meta = {"velocity_interval": h.tolist(), "noise_ratio": ratio.tolist(),
                 "noise_r": var.sqrt().tolist(), "windows": windows.reshape(batch).tolist()}
         return _scatter_fits(parts, n, batch), float(windows.max()), meta
+
+    def _chosen_fit(self, traj: Trajectory, var: Tensor, h0: int, gamma_m: Tensor,
+                    gamma_dot_m: Tensor, opts: dict):
+        """The pooled corrected fit at the velocity interval and bin width of least estimated
+        mean squared error of ``Â``.
+
+        Candidates are ``h ∈ h0 · _INTERVAL_MULTIPLES`` (``h0`` from the noise,
+        :func:`velocity_interval_for`) and half-widths ``_CANDIDATE_WINDOWS`` (at least the
+        data-size rule's); ``velocity_interval`` or ``window``, when given, fix theirs. Longer
+        intervals and wider bins lower the variance and add bias (they average ``A`` over
+        more of the cycle). With the narrowest candidate ``0`` as the reference (least bias),
+        ``MSE_c ≈ ‖Â_c − Â_0‖² − V_0 + 2 V_c`` (``V`` the summed squared standard errors of
+        ``Â``, calibrated for the overlap by :func:`overlap_inflation`; ``E‖Â_c − Â_0‖²`` is
+        the bias difference plus ``V_0 − V_c`` for nested estimates), and ``MSE_0 = V_0``.
+
+        Returns the fit, ``h``, the window and the candidates' ``(h, window, MSE)`` (a list).
+        """
+        d = traj.shape_dim
+        longest = max(2, int(_samples_per_cycle(traj) * _MAX_INTERVAL_CYCLES))
+        if self.velocity_interval:
+            intervals = [int(self.velocity_interval)]
+        else:
+            intervals = list(dict.fromkeys(min(longest, max(1, round(h0 * f)))
+                                           for f in _INTERVAL_MULTIPLES))
+        candidates = []
+        views = {}
+        for h in intervals:
+            if h >= traj.n_samples:
+                continue
+            view = interval_view(traj, h)
+            views[h] = dataclasses.replace(
+                view, phase=pool_batch(view.phase, 0), r=pool_batch(view.r, 1),
+                r_dot=pool_batch(view.r_dot, 1), xi=pool_batch(view.xi, 1), h=h)
+            if self.window:
+                widths = [float(self.window)]
+            else:
+                least = _auto_window(views[h].phase, self.n_bins, 1 + 2 * d + d * d,
+                                     self.samples_per_regressor)
+                widths = list(dict.fromkeys(max(least, w) for w in _CANDIDATE_WINDOWS))
+            candidates += [(h, w) for w in widths]
+        if not candidates:
+            raise ValueError(f"NoiseAwareRegression: velocity interval {intervals[0]} must be "
+                             f"shorter than the recording ({traj.n_samples} samples)")
+        fits = []
+        for h, w in candidates:
+            bins = assign_bins(views[h].phase, self.n_bins, window=w, kernel=self.kernel)
+            fits.append(noise_aware_regression(views[h], bins, gamma_m, gamma_dot_m, var,
+                                               **opts))
+        ref = fits[0]
+        v_ref = float(ref.se_A.square().nansum())
+        scores = []
+        for fit in fits:
+            v = float(fit.se_A.square().nansum())
+            diff = float((fit.A - ref.A).square().nansum())
+            scores.append(v_ref if fit is ref else diff - v_ref + 2 * v)
+        best = min(range(len(fits)), key=lambda i: scores[i])
+        h, w = candidates[best]
+        return fits[best], h, w, [[c[0], c[1], sc] for c, sc in zip(candidates, scores,
+                                                                        strict=True)]
 
     def _connection_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """The corrected fit, shrunk towards the smoothed one (:func:`blend_fits`)."""
@@ -402,7 +579,7 @@ class NoiseAwareRegression(TubeRegression):
     def noise_setup(self, traj: Trajectory, pool: bool):
         """Joint-angle noise variance ``(..., d)``, noise ratio and velocity interval ``(...)``
         (``(d,)`` and scalars when ``pool``: the trials share one rig)."""
-        per_cycle = 2 * math.pi / float(phase_rate(traj.phase, traj.dt).nanmean() * traj.dt)
+        per_cycle = _samples_per_cycle(traj)
         low = self.noise_band_low or min(max(6 / per_cycle, 0.1), 0.3)
         noise = estimate_noise(traj.r, band=(low, 0.5))  # (..., d)
         n_pool = traj.phase.ndim - 1 if pool else 0
@@ -470,15 +647,39 @@ def noise_ratio(var: Tensor, process_var: Tensor) -> Tensor:
     return torch.where(q2 > 0, 2 * var.mean(-1) / q2.clamp_min(1e-300), 0.0)
 
 
-def velocity_interval_for(ratio: Tensor, samples_per_cycle: float) -> Tensor:
-    """Samples per difference ``(...)`` of the noise-aware regression, from the noise ratio.
+def velocity_interval_for(ratio: Tensor, samples_per_cycle: Tensor | float,
+                          kernel: str = VELOCITY_KERNEL) -> Tensor:
+    """Samples per difference ``(...)`` of the noise-aware regression, from the noise ratio
+    ``(...)`` and the samples per cycle (a number, or ``(...)`` per element).
 
-    Over ``h`` samples the process noise's variance grows as ``h`` and the measurement noise's
-    stays, so ``h = ⌈ratio / _INTERVAL_NOISE_FRACTION⌉``, at least 1 and at most
-    :data:`_MAX_INTERVAL_CYCLES` of a cycle.
+    The shortest ``h`` at which the joint-angle noise's variance in a filtered shape velocity
+    is at most :data:`_INTERVAL_NOISE_FRACTION` of the process noise's: with the filter's taps
+    (:func:`interval_weights`) that ratio is ``(ratio / 2) Σ a_j² / Σ u_j²`` (the box's
+    ``ratio / h``; the triangle's ``≈ 6 ratio / (h + 1)²``). At least 1, at most
+    :data:`_MAX_INTERVAL_CYCLES` of a cycle (but never capped below 2).
     """
-    longest = max(2, int(samples_per_cycle * _MAX_INTERVAL_CYCLES))
-    return torch.ceil(ratio / _INTERVAL_NOISE_FRACTION).clamp(1, longest).long()
+    per_cycle = torch.as_tensor(samples_per_cycle, dtype=torch.float64, device=ratio.device)
+    longest = torch.floor(per_cycle * _MAX_INTERVAL_CYCLES).clamp_min(2)
+    n = int(longest.max())
+    gain = torch.tensor([_rate_gain(h, kernel) for h in range(1, n + 1)], dtype=torch.float64,
+                        device=ratio.device)
+    ok = (ratio.to(gain).unsqueeze(-1) / 2) * gain <= _INTERVAL_NOISE_FRACTION
+    h = torch.where(ok.any(-1), ok.to(torch.int64).argmax(-1) + 1, n)
+    return torch.minimum(h.to(longest), longest).long()
+
+
+def _rate_gain(h: int, kernel: str) -> float:
+    """``Σ a_j² / Σ u_j²``: a filter's measurement-noise gain in a shape velocity relative to
+    its process-noise gain (box: ``2/h``)."""
+    if kernel == "box" or h == 1:
+        return 2 / h
+    a, _ = _filter_taps(h, kernel)
+    return float(a.square().sum() / interval_weights(h, kernel).square().sum())
+
+
+def _samples_per_cycle(traj: Trajectory) -> float:
+    """Mean samples per cycle of a phased trajectory."""
+    return 2 * math.pi / float(phase_rate(traj.phase, traj.dt).nanmean() * traj.dt)
 
 
 def _flatten_batch(traj: Trajectory) -> Trajectory:
@@ -534,4 +735,4 @@ def interval_view(traj: Trajectory, h) -> IntervalSamples:
     batch = tuple(traj.batch_shape)
     phase, r, r_dot, xi = (o.reshape(batch + o.shape[1:]) for o in out)
     return IntervalSamples(phase=phase, r=r, r_dot=r_dot, xi=xi, h=int(h_flat.min()),
-                           dt=float(traj.dt))
+                           dt=float(traj.dt), kernel=iv.kernel)

@@ -32,7 +32,12 @@ from .binning import assign_bins
 from .connection import split_coefficients
 from .held_out import leave_blocks_out
 from .model import LocalConnectionModel
-from .noise_aware import NoiseAwareRegression, eiv_correction, interval_view
+from .noise_aware import (
+    NoiseAwareRegression,
+    eiv_correction,
+    interval_noise_gains,
+    interval_view,
+)
 from .tube import Regression, TubeRegression, _auto_window
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
@@ -261,9 +266,10 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
     var_delta = var_rate = None
     if isinstance(regression, NoiseAwareRegression):
         var = torch.as_tensor(meta["noise_r"], **kw).square().expand(batch + (d,))
-        span = torch.as_tensor(meta["velocity_interval"], **kw) * traj.dt
-        var_delta, var_rate = var / 2, 2 * var / span.expand(batch).unsqueeze(-1) ** 2
-        var_delta, var_rate = var_delta.reshape(n, d), var_rate.reshape(n, d)
+        h = torch.as_tensor(meta["velocity_interval"]).expand(batch).reshape(n)
+        gains = torch.tensor([interval_noise_gains(int(v), traj.dt) for v in h.tolist()], **kw)
+        var = var.reshape(n, d)
+        var_delta, var_rate = var * gains[:, :1], var * gains[:, 1:]
     if window is None:
         window = _fold_windows(regression, meta, phase, fold, d)
     windows = torch.as_tensor(window, dtype=torch.float64, device=r.device).expand(
@@ -314,8 +320,10 @@ def _fold_windows(regression: Regression, meta: dict, phase: Tensor, fold: Tenso
         return _auto_window(train, regression.n_bins, 1 + 2 * d + d * d,
                             regression.samples_per_regressor)
     ratio = torch.as_tensor(meta["noise_ratio"], dtype=torch.float64, device=phase.device)
-    if train.ndim == 1:
-        return regression._window(train, d, float(ratio))
+    if train.ndim == 1:  # pooled: the window the fit chose, widened as fewer cycles need
+        return max(float(meta["window"]), _auto_window(train, regression.n_bins,
+                                                       1 + 2 * d + d * d,
+                                                       regression.samples_per_regressor))
     return regression.element_windows(train.reshape(-1, train.shape[-1]), d,
                                       ratio.reshape(-1)).reshape(train.shape[:-1])
 
