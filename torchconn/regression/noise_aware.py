@@ -1,24 +1,30 @@
-"""Noise-aware connection regression: raw interval differences with an errors-in-variables fix.
+"""Noise-aware connection regression: filtered raw differences with an errors-in-variables fix.
 
 The smoothed regression (:func:`~torchconn.regression.connection_regression` on a Kalman
 smoother's output) smooths the noisy pose channels, which carry the target ``ξ``, harder than
 the shape channels, which carry the regressors ``δ̇``; that removes the body's response to the
 very shape jitter that identifies ``A`` and shrinks ``Â`` towards 0 under motion-capture noise.
-Here target and regressors see the same operation -- a difference over one interval of ``h``
-samples -- and nothing is smoothed:
+Here target and regressors see the same linear filter over ``h`` samples and nothing else is
+smoothed: with weights ``u_j`` on the one-sample intervals (:func:`interval_weights`; a
+triangle by default, the plain mean over the interval as ``"box"``),
 
-- ``ξ_k = log(g_k⁻¹ g_{k+h}) / (hΔt)``, the mean body velocity over ``[t_k, t_{k+h}]``;
-- ``ṙ_k = (r_{k+h} − r_k) / (hΔt)``, the mean shape velocity over the same interval, and
-  ``r̄_k = (r_k + r_{k+h}) / 2``, its mid-point shape (Stratonovich's mid-point rule);
+- ``ξ_k = Σ_j u_j log(g_{k+j−1}⁻¹ g_{k+j}) / Δt``, a weighted mean body velocity;
+- ``ṙ_k = Σ_j u_j (r_{k+j} − r_{k+j−1}) / Δt``, the same mean of the shape velocity, and
+  ``r̄_k = Σ_j u_j (r_{k+j−1} + r_{k+j}) / 2``, its mid-point shape (Stratonovich's rule);
 - the phase at the interval's middle.
 
-Independent Gaussian noise of variance ``σ_i²`` on ``r_i`` puts noise of variance ``σ_i²/2``
-into ``r̄_i`` and ``2σ_i²/(hΔt)²`` into ``ṙ_i``, uncorrelated with each other and with the
-pose noise in ``ξ``. Its expected contribution to each bin's normal matrix ``XᵀWX`` for the
-design ``[1, δ, δ̇, δ̇⊗δ]`` is known in closed form from ``XᵀWX`` itself
-(:func:`eiv_correction`) and is subtracted (errors in variables; the right-hand side needs no
-correction). The per-channel noise is estimated from the data (:func:`estimate_noise`).
-Where the data are too few for the correction to pay (it removes most of the normal matrix and
+On the samples the filter is ``ṙ_k = Σ_j a_j r_{k+j} / Δt`` and ``r̄_k = Σ_j b_j r_{k+j}``, so
+independent Gaussian noise of variance ``σ_i²`` on ``r_i`` puts ``σ_i² Σ b_j²`` into ``r̄_i``
+and ``σ_i² Σ a_j² / Δt²`` into ``ṙ_i`` (:func:`interval_noise_gains`; the box's sharp edges
+give ``2σ²/(hΔt)²``, the triangle ``≈ 16σ²/((h+1)³Δt²)``), uncorrelated with each other
+(``Σ a_j b_j = 0`` for every filter) and with the pose noise in ``ξ``. Its expected
+contribution to each bin's normal matrix ``XᵀWX`` for the design ``[1, δ, δ̇, δ̇⊗δ]`` is known
+in closed form from ``XᵀWX`` itself (:func:`eiv_correction`) and is subtracted (errors in
+variables; the right-hand side needs no correction). Consecutive rows overlap, so the
+solver's standard errors are inflated by the rows' correlation (:func:`overlap_inflation`).
+The per-channel noise is estimated from the data (:func:`estimate_noise`); a pooled fit
+chooses the interval and the bins' width by an estimate of ``Â``'s mean squared error. Where
+the data are too few for the correction to pay (it removes most of the normal matrix and
 amplifies the noise), the estimate falls back towards the smoothed regression's
 (:func:`blend_fits`).
 """
@@ -158,18 +164,29 @@ def interval_weights(h: int, kernel: str = VELOCITY_KERNEL, *, dtype=torch.float
     so white measurement noise of variance ``σ²`` enters with ``σ² Σ a_j² / Δt²``: ``2σ²/h²``
     for the box (its sharp edges), ``≈ 16σ²/(h+1)³`` for the triangle.
     """
+    return torch.tensor(_weights(h, kernel), dtype=dtype, device=device)
+
+
+def _weights(h: int, kernel: str) -> list[float]:
+    """:func:`interval_weights` as numbers (the filter's constants need no device)."""
     if kernel not in VELOCITY_KERNELS:
         raise ValueError(f"velocity kernel must be one of {VELOCITY_KERNELS}, got {kernel!r}")
-    j = torch.arange(1, h + 1, dtype=dtype, device=device)
-    u = torch.ones_like(j) if kernel == "box" else 1 - ((2 * j - h - 1) / (h + 1)).abs()
-    return u / u.sum()
+    u = [1.0 if kernel == "box" else 1 - abs(2 * j - h - 1) / (h + 1) for j in range(1, h + 1)]
+    total = sum(u)
+    return [v / total for v in u]
 
 
-def _filter_taps(h: int, kernel: str) -> tuple[Tensor, Tensor]:
-    """``u (h + 2,)`` padded with zeros and the sample taps ``a (h + 1,)`` of the velocity
-    filter and ``b (h + 1,)`` of its mid-point shape (float64, CPU)."""
-    u = torch.nn.functional.pad(interval_weights(h, kernel), (1, 1))
-    return u[1:] - u[:-1], (u[1:] + u[:-1]) / 2
+def _filter_taps(h: int, kernel: str) -> tuple[list[float], list[float]]:
+    """The sample taps ``a (h + 1)`` of the velocity filter and ``b (h + 1)`` of its mid-point
+    shape: ``a_j = u_j − u_{j+1}``, ``b_j = (u_j + u_{j+1}) / 2`` with ``u_0 = u_{h+1} = 0``."""
+    u = [0.0, *_weights(h, kernel), 0.0]
+    return ([u[j] - u[j + 1] for j in range(h + 1)],
+            [(u[j] + u[j + 1]) / 2 for j in range(h + 1)])
+
+
+def _autocorrelation(x: list[float], lag: int) -> float:
+    """``Σ_i x_i x_{i+lag}``."""
+    return sum(x[i] * x[i + lag] for i in range(len(x) - lag))
 
 
 @dataclass(frozen=True)
@@ -212,7 +229,7 @@ def interval_noise_gains(h: int, dt: float, kernel: str = VELOCITY_KERNEL
     if kernel == "box" or h == 1:
         return 0.5, 2 / (h * dt) ** 2
     a, b = _filter_taps(h, kernel)
-    return float(b.square().sum()), float(a.square().sum()) / dt**2
+    return _autocorrelation(b, 0), _autocorrelation(a, 0) / dt**2
 
 
 def interval_samples(pose: Tensor, r: Tensor, phase: Tensor, dt: float, h: int,
@@ -274,18 +291,16 @@ def overlap_inflation(bins: BinIndex, h: int, kernel: str = VELOCITY_KERNEL) -> 
     m = bins.n_bins
     if kernel == "box" or h == 1:
         return bins.weight.new_ones(batch + (m,))
-    u = torch.nn.functional.pad(interval_weights(h, kernel), (1, 1))
-    a = u[1:] - u[:-1]
-    u = u[1:-1]
+    u, (a, _) = _weights(h, kernel), _filter_taps(h, kernel)
     lags = range(1, h)
-    rho = torch.tensor([float((u[:-l] * u[l:]).sum() * (a[:-l] * a[l:]).sum()) for l in lags],
-                       dtype=torch.float64) / float(u.square().sum() * a.square().sum())
+    norm0 = _autocorrelation(u, 0) * _autocorrelation(a, 0)
+    rho = [_autocorrelation(u, lag) * _autocorrelation(a, lag) / norm0 for lag in lags]
     w = bins.weight.reshape(-1, bins.max_count)
     dense = w.new_zeros(w.shape[0], bins.n_points)
     dense.scatter_add_(1, bins.index.reshape(w.shape).to(w.device), w)
     norm = dense.square().sum(-1).clamp_min(1e-300)
     kappa = torch.ones_like(norm)
-    for lag, r in zip(lags, rho.tolist(), strict=True):
+    for lag, r in zip(lags, rho, strict=True):
         if r != 0:
             kappa = kappa + 2 * r * (dense[:, :-lag] * dense[:, lag:]).sum(-1) / norm
     return kappa.clamp_min(1e-3).reshape(batch + (m,))
@@ -432,10 +447,11 @@ class NoiseAwareRegression(TubeRegression):
     """:class:`~torchconn.regression.tube.TubeRegression` with the connection regressed on raw
     interval differences and corrected for the joint angles' measurement noise.
 
-    Body and shape velocities are differences of the recorded poses and joint angles over
-    ``velocity_interval`` samples (:func:`interval_samples`), so target and regressors see the
-    same operation and nothing is smoothed; each joint's noise is estimated from the spectrum
-    of its increments (:func:`estimate_noise`) and removed from every bin's normal equations
+    Body and shape velocities are differences of the recorded poses and joint angles filtered
+    alike over ``velocity_interval`` samples (:func:`interval_samples`), so target and
+    regressors see the same operation and nothing else is smoothed; each joint's noise is
+    estimated from the spectrum of its increments (:func:`estimate_noise`) and removed from
+    every bin's normal equations
     (:func:`eiv_correction`). The smoothed state serves the phase and the limit cycle, and
     :class:`TubeRegression`'s smoothed regression is the fallback: where the data cannot tell
     the corrected estimate from the smoothed one (little data, many joints, much noise: the
@@ -445,9 +461,11 @@ class NoiseAwareRegression(TubeRegression):
     :class:`TubeRegression`.
 
     Attributes (besides :class:`TubeRegression`'s):
-        velocity_interval: samples per difference; None chooses it per batch element from the
-            noise (:func:`velocity_interval_for`). With ``window=None`` the bins' width also
-            grows with the noise.
+        velocity_interval: samples the velocity filter spans; None chooses it from the noise
+            (:func:`velocity_interval_for`), and a pooled fit then also tries longer ones.
+            With ``window=None`` a pooled fit chooses the bins' width too, by the estimated
+            error of ``Â`` (``meta["interval_window_scores"]``); unpooled elements widen it
+            with the noise.
         noise_band_low: lowest frequency (cycles per sample) of the noise fit; None: the 6th
             harmonic of the gait (``6 / samples per cycle``, within [0.1, 0.3]).
         shrink_to_smoothed: combine with the smoothed estimate (:func:`blend_fits`); False:
@@ -676,7 +694,7 @@ def _rate_gain(h: int, kernel: str) -> float:
     if kernel == "box" or h == 1:
         return 2 / h
     a, _ = _filter_taps(h, kernel)
-    return float(a.square().sum() / interval_weights(h, kernel).square().sum())
+    return _autocorrelation(a, 0) / _autocorrelation(_weights(h, kernel), 0)
 
 
 def _samples_per_cycle(traj: Trajectory) -> float:

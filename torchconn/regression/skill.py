@@ -266,8 +266,9 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
     var_delta = var_rate = None
     if isinstance(regression, NoiseAwareRegression):
         var = torch.as_tensor(meta["noise_r"], **kw).square().expand(batch + (d,))
-        h = torch.as_tensor(meta["velocity_interval"]).expand(batch).reshape(n)
-        gains = torch.tensor([interval_noise_gains(int(v), traj.dt) for v in h.tolist()], **kw)
+        h = torch.as_tensor(meta["velocity_interval"], device=r.device).expand(batch)
+        gains = torch.tensor([interval_noise_gains(int(v), traj.dt)
+                              for v in h.reshape(n).tolist()], **kw)
         var = var.reshape(n, d)
         var_delta, var_rate = var * gains[:, :1], var * gains[:, 1:]
     if window is None:
