@@ -18,6 +18,7 @@ from .phaser import (
     correction_order,
     correction_series,
     estimate_phase,
+    held_out_order,
     hilbert_phase_pc1,
     protophase,
     whole_cycle_weights,
@@ -38,7 +39,7 @@ __all__ = [
     "FourierSeries", "fit_fourier", "fourier_design",
     "LimitCycle", "fit_limit_cycle", "phase_rate",
     "analytic_signal", "protophase", "correction_series", "correction_order",
-    "whole_cycle_weights", "PhaseAmbiguityWarning",
+    "held_out_order", "whole_cycle_weights", "PhaseAmbiguityWarning",
     "estimate_phase", "hilbert_phase_pc1", "circular_rms",
     "rts_smooth", "unwrap", "body_velocity", "smooth_trajectory", "noise_parameters",
 ]

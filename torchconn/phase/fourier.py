@@ -122,6 +122,18 @@ class FourierSeries:
         """Mean over one cycle, ``a0``: ``(*batch_shape, *value_shape)``."""
         return self.coeffs.select(self._axis, 0)
 
+    def truncated(self, order: Tensor | int) -> FourierSeries:
+        """This series with the harmonics above ``order`` set to zero: an integer, or ``(...)``
+        integers broadcasting against :attr:`batch_shape` (one order per batch element); the
+        coefficient array keeps its shape."""
+        c = self.coeffs
+        order = torch.as_tensor(order, device=c.device)
+        harmonic = torch.div(torch.arange(c.shape[self._axis], device=c.device) + 1, 2,
+                             rounding_mode="floor")
+        keep = harmonic <= order[..., None]  # (..., 2K+1)
+        keep = keep.reshape(keep.shape + (1,) * self.value_ndim)
+        return FourierSeries(torch.where(keep, c, torch.zeros_like(c)), self.value_ndim)
+
     # ------------------------------------------------------------------ calculus
     def _harmonics(self) -> tuple[Tensor, Tensor, Tensor]:
         """``a (..., *v, K)``, ``b (..., *v, K)`` (harmonics moved last) and ``k (K,)``."""

@@ -57,6 +57,7 @@ __all__ = [
     "protophase",
     "correction_series",
     "correction_order",
+    "held_out_order",
     "whole_cycle_weights",
     "estimate_phase",
     "hilbert_phase_pc1",
@@ -132,14 +133,8 @@ def correction_order(theta: Tensor, weights: Tensor, max_order: int | Tensor,
 
     The correction of order ``K`` is ``P_K(θ) = Σ_{k≤K} 2 Re(S_k e^{ikθ} / (ik))`` with
     ``S_k = <e^{-ikθ}>`` (:func:`correction_series`), so its mean square error against the
-    correction of the underlying oscillation is ``Σ_{k≤K} 2 |Ŝ_k − S_k|² / k² + Σ_{k>K} 2 |S_k|² / k²``.
-    The record's whole cycles are split into ``folds`` contiguous blocks; for each block the
-    ``S_k`` of the other blocks (``Ŝ_k``) are scored against the block's own (``S'_k``, an unbiased
-    and independent estimate of ``S_k``): ``|Ŝ_k|² − 2 Re(Ŝ_k conj S'_k)`` estimates
-    ``|Ŝ_k − S_k|² − |S_k|²`` without bias, so the block-weighted sum over ``k ≤ K`` is the held-out
-    mean square error of ``P_K`` up to a constant. The order with the smallest is chosen (the
-    lowest on ties): harmonics the data resolve are kept, harmonics that only fit the noise of
-    the protophase are not. Deterministic (no random folds).
+    correction of the underlying oscillation is ``Σ_{k≤K} 2 |Ŝ_k − S_k|² / k² + Σ_{k>K} 2 |S_k|² / k²``:
+    :func:`held_out_order` of the values 1 with harmonic weights ``2 / k²``.
 
     Args:
         theta: protophases ``(..., T)`` (wrapped or not) of samples taken uniformly in time.
@@ -156,19 +151,68 @@ def correction_order(theta: Tensor, weights: Tensor, max_order: int | Tensor,
     limit = torch.as_tensor(max_order, device=theta.device)
     if limit.is_floating_point() or bool((limit < 1).any()):
         raise ValueError(f"correction_order: max_order must be integers >= 1, got {max_order}")
-    wb = weights[..., :, None] * _blocks(unwrap(theta), folds).to(weights)  # (..., T, F)
     k = torch.arange(1, int(limit.max()) + 1, dtype=theta.dtype, device=theta.device)
+    return held_out_order(unwrap(theta), weights, None, limit, folds=folds,
+                          harmonic_weights=2 / k.square(), lowest=1)
+
+
+def held_out_order(theta: Tensor, weights: Tensor, values: Tensor | None,
+                   max_order: int | Tensor, *, folds: int = 5,
+                   harmonic_weights: Tensor | None = None, lowest: int = 0,
+                   n_pooled: int = 0) -> Tensor:
+    """The order of a Fourier series in phase of ``values`` with the least held-out error over
+    blocks of whole cycles.
+
+    The series of order ``K`` has the harmonics ``S_k = <v e^{-ikθ}>`` (weighted means over the
+    samples), so its mean square error against the underlying periodic function is
+    ``Σ_{k≤K} c_k |Ŝ_k − S_k|² + Σ_{k>K} c_k |S_k|²`` (``c_k`` the harmonic weights). The
+    record's whole cycles are split into ``folds`` contiguous blocks; for each block the ``S_k``
+    of the other blocks (``Ŝ_k``) are scored against the block's own (``S'_k``, an unbiased and
+    independent estimate of ``S_k``): ``|Ŝ_k|² − 2 Re(Ŝ_k conj S'_k)`` estimates
+    ``|Ŝ_k − S_k|² − |S_k|²`` without bias, so the block-weighted sum over ``k ≤ K`` is the
+    held-out mean square error of the order-``K`` series up to a constant. The order with the
+    smallest is chosen (the lowest on ties): harmonics the data resolve are kept, harmonics
+    that only fit the noise are not. Deterministic (no random folds); each batch element on its
+    own.
+
+    Args:
+        theta: unwrapped phases ``(..., T)`` of samples taken uniformly in time.
+        weights: ``(..., T)`` whole-cycle weights (:func:`whole_cycle_weights`); 0 drops a
+            sample (e.g. NaN values).
+        values: ``(..., T, C)`` channels whose errors add up, or None for the values 1.
+        max_order: largest order considered: an integer or ``(...)`` integers.
+        folds: number of blocks (a record with fewer whole cycles has one cycle per block).
+        harmonic_weights: ``(K,)`` weights ``c_k`` of harmonics ``lowest … max_order`` (None: 1).
+        lowest: the lowest harmonic scored (0 scores the mean as well; the lowest order
+            returned).
+        n_pooled: the first ``n_pooled`` batch dims are one recording (trials of one model):
+            their held-out errors add up and they get one order.
+
+    Returns:
+        ``(...)`` int64 orders in ``[lowest, max_order]`` (without the pooled dims).
+    """
+    limit = torch.as_tensor(max_order, device=theta.device)
+    wb = weights[..., :, None] * _blocks(theta, folds).to(weights)  # (..., T, F)
+    k = torch.arange(lowest, int(limit.max()) + 1, dtype=theta.dtype, device=theta.device)
     e = torch.polar(torch.ones_like(theta[..., None] * k), -theta[..., None] * k)  # (..., T, K)
-    sums = wb.mT.to(e.dtype) @ e  # (..., F, K): Σ_t w e^{-ikθ} per block
-    count = wb.sum(-2)[..., None]  # (..., F, 1)
+    if values is None:
+        sums = (wb.mT.to(e.dtype) @ e).unsqueeze(-1)  # (..., F, K, 1): Σ_t w e^{-ikθ} per block
+    else:
+        v = torch.where(weights[..., None] > 0, values, 0.0)
+        sums = torch.einsum("...tf,...tk,...tc->...fkc", wb.to(e.dtype), e, v.to(e.dtype))
+    count = wb.sum(-2)[..., None, None]  # (..., F, 1, 1)
     tiny = torch.finfo(count.dtype).tiny
     held = sums / count.clamp_min(tiny)
-    rest = ((sums.sum(-2, keepdim=True) - sums)
-            / (count.sum(-2, keepdim=True) - count).clamp_min(tiny))
-    gain = (rest.abs().square() - 2 * (rest * held.conj()).real) * 2 / k.square()
-    score = (count * gain.cumsum(-1)).sum(-2)  # (..., K)
+    rest = ((sums.sum(-3, keepdim=True) - sums)
+            / (count.sum(-3, keepdim=True) - count).clamp_min(tiny))
+    gain = (rest.abs().square() - 2 * (rest * held.conj()).real).sum(-1)  # (..., F, K)
+    if harmonic_weights is not None:
+        gain = gain * harmonic_weights
+    score = (count[..., 0] * gain.cumsum(-1)).sum(-2)  # (..., K)
+    if n_pooled:
+        score = score.sum(tuple(range(n_pooled)))
     score = torch.where(k <= limit[..., None], score, torch.full_like(score, math.inf))
-    return score.argmin(-1) + 1
+    return score.argmin(-1) + lowest
 
 
 def _blocks(theta: Tensor, folds: int) -> Tensor:
@@ -192,14 +236,6 @@ def _window(theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     n = total.floor().clamp_min(1.0)
     start = mono[..., 0] + math.pi * (total - n).clamp_min(0.0)
     return mono, start, n
-
-
-def _truncate(series: FourierSeries, order: Tensor) -> FourierSeries:
-    """``series`` with the harmonics above ``order`` (batch shape, integer) set to zero."""
-    c = series.coeffs  # (..., 2K+1) scalar series
-    harmonic = torch.div(torch.arange(c.shape[-1], device=c.device) + 1, 2, rounding_mode="floor")
-    keep = harmonic <= order[..., None]
-    return FourierSeries(torch.where(keep, c, torch.zeros_like(c)), series.value_ndim)
 
 
 def _crossing(mono: Tensor, levels: Tensor) -> Tensor:
@@ -718,7 +754,7 @@ def _correction(theta: Tensor, order, w: Tensor) -> tuple[FourierSeries, Tensor]
         limit = order[1].reshape(order[1].shape + (1,) * (theta.ndim - 1 - order[1].ndim))
         limit = limit.expand(theta.shape[:-1])  # per batch element, the same for its channels
         chosen = correction_order(theta, w, limit)
-        return _truncate(correction_series(theta, int(limit.max()), w), chosen), chosen
+        return correction_series(theta, int(limit.max()), w).truncated(chosen), chosen
     series = correction_series(theta, order, w)
     return series, torch.full(theta.shape[:-1], order, dtype=torch.long, device=theta.device)
 

@@ -38,7 +38,7 @@ from .noise_aware import (
     interval_noise_gains,
     interval_view,
 )
-from .tube import Regression, TubeRegression, _auto_window
+from .tube import Regression, TubeRegression, _auto_window, intercept_series
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
            "RIDGE_GRID", "regression_view", "cross_validate", "select_complexity", "skill"]
@@ -338,13 +338,18 @@ def with_coefficients(model: LocalConnectionModel, coef: Tensor, order: int
     c, b, a, da = split_coefficients(torch.nan_to_num(coef), model.shape_dim)
     centres = model.bins.phase.to(coef)
 
-    def series(values: Tensor, ndim: int):
-        fitted = fit_fourier(centres, values, order, value_ndim=ndim)
-        mask = bad.reshape(bad.shape + (1,) * (ndim + 1))
-        return FourierSeries(fitted.coeffs.masked_fill(mask, torch.nan), ndim)
+    def masked(fitted: FourierSeries) -> FourierSeries:
+        mask = bad.reshape(bad.shape + (1,) * (fitted.value_ndim + 1))
+        return FourierSeries(fitted.coeffs.masked_fill(mask, torch.nan), fitted.value_ndim)
 
-    return dataclasses.replace(model, c=series(c, 1), b=series(b, 2), A=series(a, 2),
-                               dA=series(da, 3))
+    def series(values: Tensor, ndim: int):
+        return masked(fit_fourier(centres, values, order, value_ndim=ndim))
+
+    c_order = (model.meta or {}).get("intercept_order")
+    if c_order is not None:
+        c_order = torch.as_tensor(c_order, device=coef.device)
+    return dataclasses.replace(model, c=masked(intercept_series(centres, c, order, c_order)),
+                               b=series(b, 2), A=series(a, 2), dA=series(da, 3))
 
 
 def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):

@@ -22,8 +22,9 @@ import torch
 from torch import Tensor, nn
 
 from .._options import Options, option
-from ..phase.fourier import fit_fourier
+from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import LimitCycle
+from ..phase.phaser import held_out_order, whole_cycle_weights
 from ..trajectory import Trajectory, pool_batch
 from .binning import assign_bins
 from .connection import connection_regression
@@ -62,6 +63,14 @@ class TubeRegression(Regression):
         fourier_order: order of the Fourier series interpolating the per-bin estimates
             (at most (M−1)/2). ``A(γ(φ))`` is nonlinear in the gait, so it carries harmonics
             well above the gait's own; a low order biases the model.
+        intercept_order: order of the series of the intercept ``c(φ)`` (the body velocity on
+            the cycle, ``A(γ)γ̇``: the gait's harmonics times the connection's, the richest of
+            the model's terms). ``"auto"`` (default): ``fourier_order``, or more where the
+            recording's phase-averaged body velocity has harmonics above it that hold up on
+            held-out blocks of whole cycles (:func:`~torchconn.phase.held_out_order`, at most
+            (M−1)/2, per batch element; ``model.meta["intercept_order"]``); an integer fixes
+            it; None: ``fourier_order``. Measured on the 9-link reference gait at 0.25η: the
+            intercept truncated at order 12 doubled the model's error (README, "Accuracy").
         window: half-width of a bin's phase window in units of the bin spacing (0.5: each
             sample in exactly one bin; larger: overlapping windows, more samples per bin).
             None (default) sizes it from the data: wide enough that a window holds about
@@ -95,6 +104,7 @@ class TubeRegression(Regression):
 
     n_bins: int = option(48, ge=3)
     fourier_order: int = option(12, ge=0)
+    intercept_order: int | Literal["auto"] | None = option("auto", ge=0)
     window: float | None = option(None, gt=0)
     samples_per_regressor: float = option(2.5, gt=0)
     kernel: Literal["box", "tricube", "epanechnikov"] = "tricube"
@@ -114,6 +124,11 @@ class TubeRegression(Regression):
                 f"TubeRegression.fourier_order must satisfy 2*fourier_order < n_bins="
                 f"{self.n_bins} (the series is fitted to one value per bin), got "
                 f"{self.fourier_order!r}"
+            )
+        if isinstance(self.intercept_order, int) and not 2 * self.intercept_order < self.n_bins:
+            raise ValueError(
+                f"TubeRegression.intercept_order must satisfy 2*intercept_order < n_bins="
+                f"{self.n_bins}, got {self.intercept_order!r}"
             )
 
     def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False
@@ -179,9 +194,13 @@ class TubeRegression(Regression):
         def series(values: Tensor, ndim: int):
             return fit_fourier(centres, values, self.fourier_order, value_ndim=ndim)
 
+        c_order = self.intercept_orders(traj, pool)
+        if c_order is not None:
+            connection_meta["intercept_order"] = c_order.tolist()
         return LocalConnectionModel(
             gamma=cycle.gamma, phase_rate=cycle.phase_rate,
-            c=series(fit.c, 1), b=series(fit.b, 2), A=series(fit.A, 2), dA=series(fit.dA, 3),
+            c=intercept_series(centres, fit.c, self.fourier_order, c_order), b=series(fit.b, 2),
+            A=series(fit.A, 2), dA=series(fit.dA, 3),
             M=None if metric_fit is None else series(metric_fit.M, 2),
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
@@ -189,6 +208,20 @@ class TubeRegression(Regression):
                   "metric_noise_std": noise, **connection_meta,
                   "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
+
+    def intercept_orders(self, traj: Trajectory, pool: bool) -> Tensor | None:
+        """The intercept's Fourier order ``(...)`` per batch element (``()`` when ``pool``) of a
+        prepared trajectory, or None where it is ``fourier_order`` by setting."""
+        if self.intercept_order is None:
+            return None
+        batch = () if pool else tuple(traj.batch_shape)
+        device = traj.r.device
+        if self.intercept_order != "auto":
+            return torch.full(batch, self.intercept_order, dtype=torch.long, device=device)
+        theta, weights = _unwrapped_cycles(traj.phase)
+        chosen = held_out_order(theta, weights, traj.smoothed.xi, (self.n_bins - 1) // 2,
+                                n_pooled=traj.phase.ndim - 1 if pool else 0)
+        return chosen.clamp_min(self.fourier_order)
 
     def _connection_fit(self, traj: Trajectory, pool: bool, samples, gamma_m: Tensor,
                         gamma_dot_m: Tensor, opts: dict, bins_for):
@@ -268,6 +301,36 @@ def _unwrapped(phase: Tensor) -> Tensor:
     first = torch.nan_to_num(phase[..., :1])
     out = first + torch.cat([torch.zeros_like(first), torch.nan_to_num(step).cumsum(-1)], -1)
     return torch.where(torch.isnan(phase), torch.nan, out)
+
+
+def intercept_series(centres: Tensor, values: Tensor, order: int, intercept_order: Tensor | None
+                     ) -> FourierSeries:
+    """The Fourier series in phase of per-bin intercepts ``values (..., M, 3)`` at bin centres
+    ``centres (M,)``: order ``order``, or per batch element ``intercept_order (...)`` (None:
+    ``order``). Elements at ``order`` get exactly the order-``order`` least-squares series, the
+    others the series of the highest order the bins carry, ``(M − 1) // 2``, truncated to their
+    own; the coefficients always have that highest order, so that no element's series depends
+    on the others in its batch."""
+    base = fit_fourier(centres, values, order, value_ndim=1)
+    if intercept_order is None:
+        return base
+    top = (centres.shape[-1] - 1) // 2
+    high = fit_fourier(centres, values, top, value_ndim=1).truncated(intercept_order)
+    padded = torch.zeros_like(high.coeffs)
+    padded[..., :2 * order + 1, :] = base.coeffs
+    keep_base = (intercept_order <= order).reshape(intercept_order.shape + (1, 1))
+    return FourierSeries(torch.where(keep_base, padded, high.coeffs), 1)
+
+
+def _unwrapped_cycles(phase: Tensor) -> tuple[Tensor, Tensor]:
+    """A prepared trajectory's phase ``(..., T)`` as :func:`~torchconn.phase.held_out_order`
+    wants it: non-decreasing (NaN drop-outs filled with the phase before them) and the
+    whole-cycle weights, 0 at the drop-outs."""
+    finite = torch.isfinite(phase)
+    filled = torch.cummax(torch.where(finite, phase, -math.inf), dim=-1).values
+    first = torch.where(finite, phase, math.inf).amin(-1, keepdim=True)
+    filled = torch.where(torch.isfinite(filled), filled, first)
+    return filled, whole_cycle_weights(filled) * finite.to(phase.dtype)
 
 
 def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:
