@@ -148,9 +148,9 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] = NOISE_BAND,
 VELOCITY_KERNELS = ("box", "triangle")
 #: the filter of :func:`interval_samples` (and so of :class:`NoiseAwareRegression`): measured
 #: on seed 5 (3-/5-link circle, 3-link reference and 5-link wave gaits, pooled 4 x 30 cycles,
-#: ω = 0.005-0.01, the best interval and window of each) the triangle's Â error was 0.45-0.75
-#: times the box's (5-link ω = 0.01: 10.6 % vs 17.3 %); a Hann window was no better than the
-#: triangle (0.96-1.10 times)
+#: ω = 0.005-0.01, the best of intervals 8-24 and windows 2-4 for each) the triangle's Â error
+#: was 0.61-0.90 times the box's (5-link circle ω = 0.01: 10.6 % vs 17.3 %); a Hann window was
+#: no better than the triangle (0.97-1.08 times)
 VELOCITY_KERNEL = "triangle"
 
 
@@ -284,7 +284,7 @@ def overlap_inflation(bins: BinIndex, h: int, kernel: str = VELOCITY_KERNEL) -> 
     ``c(l) = Σ_k w_k w_{k+l} / Σ_k w_k²`` (the bin's own run of consecutive rows). For the box
     ``ρ_a`` vanishes at every lag ``0 < l < h`` and ``ρ_u(h) = 0``, so ``κ = 1``; the triangle
     at ``h = 8-24`` gives 2.4-7. Measured against the swimmer's exact connection (seed 5,
-    3-/5-link, ω = 0.005-0.01, ``h`` 8-24, windows 1-4) the squared errors are 0.8-1.2 times
+    3-/5-link, ω = 0.005-0.01, ``h`` 8-24, windows 1-4) the squared errors are 0.75-1.3 times
     the variance with ``κ`` where the bias is small (2-9 times without).
     """
     batch = tuple(bins.batch_shape)
