@@ -537,7 +537,7 @@ class NoiseAwareRegression(TubeRegression):
         """
         d = traj.shape_dim
         longest = max(2, int(_samples_per_cycle(traj) * _MAX_INTERVAL_CYCLES))
-        views, fits, scores = {}, {}, {}
+        views, fits, scores, errors = {}, {}, {}, []
 
         def candidate(h: int, w: float | None) -> tuple[int, float]:
             if h not in views:
@@ -549,16 +549,22 @@ class NoiseAwareRegression(TubeRegression):
                 w = _auto_window(views[h].phase, self.n_bins, 1 + 2 * d + d * d,
                                  self.samples_per_regressor)
             key = (h, float(w))
-            if key not in fits:
+            if key not in scores:
                 bins = assign_bins(views[h].phase, self.n_bins, window=key[1],
                                    kernel=self.kernel)
-                fit = noise_aware_regression(views[h], bins, gamma_m, gamma_dot_m, var, **opts)
+                try:
+                    fit = noise_aware_regression(views[h], bins, gamma_m, gamma_dot_m, var,
+                                                 **opts)
+                except ValueError as err:  # bins too sparse at this width: not a candidate
+                    errors.append(err)
+                    scores[key] = math.inf
+                    return key
                 v = float(fit.se_A.square().nansum())
                 if not fits:
                     scores[key] = v
                 else:
                     ref = next(iter(fits.values()))
-                    v_ref = next(iter(scores.values()))
+                    v_ref = scores[next(iter(fits))]
                     scores[key] = float((fit.A - ref.A).square().nansum()) - v_ref + 2 * v
                 fits[key] = fit
             return key
@@ -572,7 +578,9 @@ class NoiseAwareRegression(TubeRegression):
                 h = min(longest, max(1, round(h0 * f)), traj.n_samples - 1)
                 key = candidate(h, best[1])
                 best = min(best, key, key=scores.__getitem__)
-        table = [[h, w, sc] for (h, w), sc in scores.items()]
+        if best not in fits:  # no candidate could be fitted
+            raise errors[0]
+        table = [[h, w, sc] for (h, w), sc in scores.items() if math.isfinite(sc)]
         return fits[best], best[0], best[1], table
 
     def _connection_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
