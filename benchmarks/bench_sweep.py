@@ -13,6 +13,11 @@ Run by hand: ``python benchmarks/bench_sweep.py [--workers 2] [--block 20] [--st
 2. **Stages** (``--stages``): the paper experiments (Fig. 4A + 4B) split by stage.
 3. **Scaling** (``--scaling``): time against trials and cycles on a smaller 9-link
    experiment, against the same pipeline run one trial at a time.
+4. **One cell by stage in CPU seconds** (``--cell fig4a:3``, repeatable; ``--skip-cells`` to
+   run only these): a whole-level cell of a packaged config (``NAME:LEVEL_INDEX``), run
+   ``--repeat`` times after a warm-up, the best CPU time of this process per stage -- on a
+   shared machine wall time mostly measures the other processes. Run it with two versions of
+   the package, alternating, to compare them on one machine state.
 
 The machine's load average is printed: on a shared machine compare ratios within one run.
 """
@@ -24,11 +29,13 @@ import heapq
 import os
 import tempfile
 import time
+import types
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from torchconn.sweep import experiment
 from torchconn.sweep.config import load_config
 from torchconn.sweep.experiment import experiment_cells, run_cell, run_experiment
 from torchconn.sweep.runner import run_sweep
@@ -146,6 +153,28 @@ def scaling_part() -> None:
           f"{by_trials[-1]:.1f} s batched ({n * t1 / by_trials[-1]:.1f}x)")
 
 
+def cell_part(spec: str, repeat: int) -> None:
+    name, _, level = spec.partition(":")
+    config = load_config(name)
+    exp = config.experiments[0]
+    cell = [c for c in experiment_cells(exp, exp.trials) if c.level == int(level or 0)][0]
+    clock = experiment.time
+    experiment.time = types.SimpleNamespace(perf_counter=time.process_time)  # stage clocks: CPU
+    try:
+        run_cell(config, cell)  # warm-up: imports, caches
+        best: dict[str, float] = {}
+        for _ in range(repeat):
+            t0 = time.process_time()
+            timings = run_cell(config, cell).timings
+            timings["total"] = time.process_time() - t0
+            best = {k: min(v, best.get(k, v)) for k, v in timings.items()}
+    finally:
+        experiment.time = clock
+    print(f"{name} cell (level {exp.levels[cell.level]}, {exp.trials} trials x "
+          f"{exp.simulation.n_cycles} cycles), best CPU s of {repeat}: "
+          + ", ".join(f"{k} {v:.3f}" for k, v in best.items()) + f" ({load()})")
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--workers", type=int, default=2)
@@ -153,6 +182,9 @@ def main() -> None:
     p.add_argument("--skip-cells", action="store_true", help="skip serial vs workers")
     p.add_argument("--stages", action="store_true", help="Fig. 4A + 4B split by stage")
     p.add_argument("--scaling", action="store_true", help="time vs trials and cycles")
+    p.add_argument("--cell", action="append", default=[], metavar="NAME:LEVEL",
+                   help="one cell by stage in CPU seconds, e.g. fig4a:3 (repeatable)")
+    p.add_argument("--repeat", type=int, default=3, help="runs per --cell")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args()
     torch.set_num_threads(args.threads)
@@ -162,6 +194,8 @@ def main() -> None:
         stages_part()
     if args.scaling:
         scaling_part()
+    for spec in args.cell:
+        cell_part(spec, args.repeat)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from torchconn.phase.fourier import FourierSeries, fit_fourier, fourier_design
+from torchconn.phase.fourier import FourierSeries, fit_fourier, fourier_design, fourier_on_grid
 
 DT = torch.float64
 
@@ -148,3 +148,20 @@ def test_errors_are_clear():
         fit_fourier(narrow, torch.sin(narrow), 2)
     with pytest.raises(ValueError, match="odd length"):
         FourierSeries(torch.zeros(4, dtype=DT))
+
+
+@pytest.mark.parametrize("value_shape", [(), (3, 2)])
+def test_fourier_on_grid_is_the_least_squares_fit(value_shape):
+    """On an equispaced grid the FFT gives fit_fourier's coefficients (noisy, not band-limited
+    values, orders up to the highest below Nyquist)."""
+    gen = torch.Generator().manual_seed(3)
+    n = 64
+    grid = torch.arange(n, dtype=DT) * (2 * math.pi / n)
+    values = torch.randn(2, n, *value_shape, generator=gen, dtype=DT)
+    for order in (0, 5, n // 2 - 1):
+        fast = fourier_on_grid(values, order, value_ndim=len(value_shape))
+        slow = fit_fourier(grid, values, order, value_ndim=len(value_shape))
+        assert fast.order == order and fast.value_shape == value_shape
+        torch.testing.assert_close(fast.coeffs, slow.coeffs, rtol=0, atol=1e-13)
+    with pytest.raises(ValueError, match="order 32 needs more than 64 grid samples"):
+        fourier_on_grid(values, n // 2, value_ndim=len(value_shape))

@@ -12,7 +12,7 @@ from scipy import stats
 from torchconn import AffineConnectionSystem, NLinkSwimmer
 from torchconn.physics import se2
 from torchconn.physics.gaits import FourierGait, displacement, three_link_gait
-from torchconn.simulation.rollout import _integrate, cell_generators, simulate
+from torchconn.simulation.rollout import _heun_offsets, _integrate, cell_generators, simulate
 
 # Two-sided acceptance probability of each statistical check; with fixed seeds the tests are
 # deterministic, this only sets how wide the sampling-distribution bands are.
@@ -190,6 +190,24 @@ def test_strong_convergence_same_brownian_path():
     assert np.all(np.diff(err_pose) < 0)
     # the shape: φ is exact, δ has additive noise, so Heun is strongly first order
     assert slope_r > 0.8, (slope_r, err_r)
+
+
+def test_block_heun_offsets_are_the_step_by_step_predictor_corrector():
+    """The shape offsets of a block, by scan, equal Heun's steps taken one at a time, for
+    cells with no, the paper's and a strong attraction (odd block length included)."""
+    gen = torch.Generator().manual_seed(2)
+    B, K, d, h = 3, 37, 4, 2 * math.pi / 64 / 8
+    alpha = torch.tensor([[0.0], [0.05], [40.0]], dtype=torch.float64)
+    delta0 = torch.randn(B, d, generator=gen, dtype=torch.float64)
+    dw = 0.3 * math.sqrt(h) * torch.randn(B, K, d, generator=gen, dtype=torch.float64)
+    ah = alpha * h
+    fast = _heun_offsets(delta0, dw, 1 - ah + 0.5 * ah * ah, 1 - 0.5 * ah)
+    delta, slow = delta0, []
+    for n in range(K):
+        pred = delta - alpha * delta * h + dw[:, n]
+        delta = delta + 0.5 * (-alpha * delta - alpha * pred) * h + dw[:, n]
+        slow.append(delta)
+    torch.testing.assert_close(fast, torch.stack(slow, 1), rtol=0, atol=1e-14)
 
 
 # ---------------------------------------------------------------------------- batching, seeds

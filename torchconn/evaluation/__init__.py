@@ -12,7 +12,8 @@ from .models import (
     observed_view,
     phase_bin_errors,
     reference_models,
+    simulator_on_cycle,
 )
 
 __all__ = ["MODELS", "COMPONENTS", "reference_models", "models_on", "observed_view",
-           "clean_trajectory", "error_summary", "phase_bin_errors"]
+           "simulator_on_cycle", "clean_trajectory", "error_summary", "phase_bin_errors"]

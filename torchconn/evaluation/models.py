@@ -25,7 +25,7 @@ import math
 import torch
 from torch import Tensor
 
-from ..phase.fourier import fit_fourier
+from ..phase.fourier import FourierSeries, fourier_on_grid
 from ..phase.smoothing import smooth_trajectory
 from ..physics.systems.base import LocomotionSystem
 from ..regression import skill
@@ -34,7 +34,7 @@ from ..trajectory import Trajectory
 
 __all__ = [
     "MODELS", "COMPONENTS", "reference_models", "models_on", "observed_view",
-    "clean_trajectory", "error_summary",
+    "simulator_on_cycle", "clean_trajectory", "error_summary",
     "phase_bin_errors",
 ]
 
@@ -47,6 +47,8 @@ def reference_models(
     model: LocalConnectionModel,
     traj: Trajectory,
     clean: Trajectory | None = None,
+    *,
+    on_cycle: FourierSeries | None = None,
 ) -> dict[str, Tensor]:
     """Body velocity ``(..., T, 3)`` of each of :data:`MODELS` on a prepared trajectory.
 
@@ -56,19 +58,22 @@ def reference_models(
         traj: a trajectory with ``phase`` and ``smoothed`` set.
         clean: the same trials without observation noise, smoothed (``smoothed`` set); the
             ground truth is then the simulator on these shapes.
+        on_cycle: :func:`simulator_on_cycle` of ``system`` and ``model``, when already computed.
     """
     if traj.phase is None or traj.smoothed is None:
         raise ValueError("reference_models needs a prepared trajectory (phase and smoothed set)")
     truth_in = None if clean is None else (clean.smoothed.r, clean.smoothed.r_dot)
-    return models_on(system, model, traj.phase, traj.smoothed.r, traj.smoothed.r_dot, truth_in)
+    return models_on(system, model, traj.phase, traj.smoothed.r, traj.smoothed.r_dot, truth_in,
+                     on_cycle=on_cycle)
 
 
 def models_on(system: LocomotionSystem, model: LocalConnectionModel, phase: Tensor, r: Tensor,
-              r_dot: Tensor, truth_in: tuple[Tensor, Tensor] | None = None
-              ) -> dict[str, Tensor]:
+              r_dot: Tensor, truth_in: tuple[Tensor, Tensor] | None = None, *,
+              on_cycle: FourierSeries | None = None) -> dict[str, Tensor]:
     """Body velocity ``(..., N, 3)`` of each of :data:`MODELS` on samples ``phase (..., N)``,
     ``r, r_dot (..., N, d)`` (NaN samples give NaN); the ground truth on ``truth_in``
-    (noise-free ``r, r_dot``) when given, else on ``r, r_dot``."""
+    (noise-free ``r, r_dot``) when given, else on ``r, r_dot``. ``on_cycle``: the simulator
+    along the model's cycle (:func:`simulator_on_cycle`), computed here when not given."""
     if system.shape_dim != r.shape[-1]:
         raise ValueError(
             f"system has {system.shape_dim} joints but the trajectory has {r.shape[-1]}"
@@ -81,7 +86,10 @@ def models_on(system: LocomotionSystem, model: LocalConnectionModel, phase: Tens
     r, r_dot = (torch.where(missing.unsqueeze(-1), 0.0, x) for x in (r, r_dot))
     gamma, gamma_dot = model.gamma_at(phase), model.gamma_dot_at(phase)
     delta = r - gamma
-    A_gamma, dA_gamma = _simulator_on_cycle(system, model, phase)
+    if on_cycle is None:
+        on_cycle = simulator_on_cycle(system, model)
+    terms = on_cycle(phase)  # (..., N, 3, d, 1 + d)
+    A_gamma, dA_gamma = terms[..., 0], terms[..., 1:]
 
     def apply(a: Tensor, v: Tensor) -> Tensor:
         return (a @ v.unsqueeze(-1)).squeeze(-1)
@@ -97,7 +105,8 @@ def models_on(system: LocomotionSystem, model: LocalConnectionModel, phase: Tens
 
 
 def observed_view(system: LocomotionSystem, traj: Trajectory, regression,
-                  model: LocalConnectionModel, clean: Trajectory | None = None):
+                  model: LocalConnectionModel, clean: Trajectory | None = None, *,
+                  on_cycle: FourierSeries | None = None):
     """The observed body velocity the way ``regression`` sees it, and every model of
     :data:`MODELS` on the same samples.
 
@@ -109,6 +118,7 @@ def observed_view(system: LocomotionSystem, traj: Trajectory, regression,
     Args:
         traj: the prepared trajectory the model was fitted to (one model per batch element).
         clean: its noise-free twin, smoothed (:func:`clean_trajectory`), or None.
+        on_cycle: :func:`simulator_on_cycle` of ``system`` and ``model``, when already computed.
 
     Returns:
         ``(observed (..., N, 3), {model: (..., N, 3)})``, NaN where an element has fewer samples.
@@ -119,24 +129,31 @@ def observed_view(system: LocomotionSystem, traj: Trajectory, regression,
         twin = skill.regression_view(clean.with_fields(phase=traj.phase), regression, model,
                                      pool=False, flatten=False)
         truth_in = (twin.r, twin.r_dot)
-    return view.xi, models_on(system, model, view.phase, view.r, view.r_dot, truth_in)
+    return view.xi, models_on(system, model, view.phase, view.r, view.r_dot, truth_in,
+                              on_cycle=on_cycle)
 
 
-def _simulator_on_cycle(system, model, phase: Tensor, n_grid: int = 256):
-    """``A(γ(φ))`` and ``∂A/∂r(γ(φ))`` at every sample's phase ``(..., T)``.
+def simulator_on_cycle(system: LocomotionSystem, model: LocalConnectionModel, *,
+                       n_grid: int = 256) -> FourierSeries:
+    """The simulator along the model's cycle: ``A(γ(φ))`` and ``∂A/∂r(γ(φ))`` in phase.
 
     Both are smooth periodic functions of phase, so they are evaluated exactly on ``n_grid``
     equispaced phases per cycle and trigonometrically interpolated (harmonics up to
     ``n_grid/2 − 1``; their coefficients decay exponentially) -- far cheaper than an autograd
-    Jacobian at every sample.
+    Jacobian at every sample. Computed once, it serves every set of samples of the same model
+    (:func:`reference_models`, :func:`observed_view`).
+
+    Returns:
+        one :class:`~torchconn.phase.fourier.FourierSeries` with batch dims
+        ``model.batch_shape`` and values ``(3, d, 1 + d)``: ``[..., 0]`` is ``A`` and
+        ``[..., 1:]`` is ``∂A/∂r`` (``[..., k, i, 1 + j] = ∂A^k_i/∂r_j``).
     """
-    grid = torch.arange(n_grid, dtype=phase.dtype, device=phase.device) * (2 * math.pi / n_grid)
-    batch = model.batch_shape
-    gamma = model.gamma_at(grid.expand(batch + (n_grid,)))
-    order = n_grid // 2 - 1
-    a = fit_fourier(grid, system.connection(gamma), order, value_ndim=2)
-    da = fit_fourier(grid, system.connection_jacobian(gamma), order, value_ndim=3)
-    return a(phase), da(phase)
+    dtype, device = model.gamma.coeffs.dtype, model.gamma.coeffs.device
+    grid = torch.arange(n_grid, dtype=dtype, device=device) * (2 * math.pi / n_grid)
+    gamma = model.gamma_at(grid.expand(model.batch_shape + (n_grid,)))
+    terms = torch.cat([system.connection(gamma)[..., None], system.connection_jacobian(gamma)],
+                      -1)  # (..., n_grid, 3, d, 1 + d)
+    return fourier_on_grid(terms, n_grid // 2 - 1, value_ndim=3)
 
 
 def clean_trajectory(traj: Trajectory) -> Trajectory:

@@ -44,7 +44,9 @@ def scan_states(combine: Callable[[Elements, Elements], Elements],
             tuples of tensors elementwise in time; must be associative.
         apply: ``apply(s, e)`` is the state ``e(s)``.
         first: the state ``s_0``, tensors ``(...)``.
-        maps: the maps ``e_1 … e_{T-1}``, tensors ``(T - 1, ...)``.
+        maps: the maps ``e_1 … e_{T-1}``, tensors ``(T - 1, ...)``; a tensor of time size 1
+            is a part shared by every map (e.g. the covariance part of identical Kalman
+            steps): it is composed once per round instead of once per pair.
         reverse: run from the end instead: ``s_{T-1} = first`` and ``s_t = e_t(s_{t+1})`` with
             ``maps[t]`` the map ``e_t`` for ``t = 0 … T-2``.
 
@@ -55,15 +57,20 @@ def scan_states(combine: Callable[[Elements, Elements], Elements],
     if reverse:
         flipped = scan_states(combine, apply, first, [e.flip(0) for e in maps])
         return tuple(s.flip(0) for s in flipped)
-    n_maps = maps[0].shape[0]
+    n_maps = max(e.shape[0] for e in maps)
     if n_maps == 0:
         return tuple(f[None] for f in first)
+
+    def take(e: Tensor, sl: slice) -> Tensor:  # a part shared by all maps (time size 1) stays
+        return e if e.shape[0] == 1 and n_maps > 1 else e[sl]
+
     pairs = n_maps // 2
     even = scan_states(combine, apply, first,
-                       combine(tuple(e[0:2 * pairs:2] for e in maps),
-                               tuple(e[1:2 * pairs:2] for e in maps)))  # s_0, s_2, ...
+                       combine(tuple(take(e, slice(0, 2 * pairs, 2)) for e in maps),
+                               tuple(take(e, slice(1, 2 * pairs, 2)) for e in maps)))  # s_0, s_2..
     n_odd = (n_maps + 1) // 2
-    odd = apply(tuple(s[:n_odd] for s in even), tuple(e[0::2] for e in maps))  # s_1, s_3, ...
+    odd = apply(tuple(s[:n_odd] for s in even),
+                tuple(take(e, slice(0, None, 2)) for e in maps))  # s_1, s_3, ...
     out = []
     for ev, od in zip(even, odd, strict=True):
         full = ev.new_empty((n_maps + 1,) + ev.shape[1:])

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from .. import _checks
 
-__all__ = ["FourierSeries", "fit_fourier", "fourier_design"]
+__all__ = ["FourierSeries", "fit_fourier", "fourier_design", "fourier_on_grid"]
 
 # Relative size below which a mean term counts as zero in FourierSeries.integral.
 _MEAN_TOL = 1e-12
@@ -294,3 +294,38 @@ def fit_fourier(
     L = torch.linalg.cholesky(G)
     coef = torch.cholesky_solve(rhs, L)  # (..., n, V)
     return FourierSeries(coef.reshape(batch + (n,) + value_shape), value_ndim)
+
+
+def fourier_on_grid(values: Tensor, order: int, *, value_ndim: int = 0) -> FourierSeries:
+    """The least-squares Fourier series through samples on the equispaced grid ``2πj/N``.
+
+    On that grid the design's columns up to harmonic ``K < N/2`` are orthogonal, so the fit of
+    :func:`fit_fourier` (unweighted, no ridge) is the discrete Fourier transform -- the same
+    coefficients to rounding, from one real FFT instead of a normal-matrix factorisation per
+    batch element.
+
+    Args:
+        values: ``(..., N, *value_shape)`` at phases ``φ_j = 2πj/N``, ``j = 0 … N−1``; finite.
+        order: highest harmonic ``K`` with ``2K < N``.
+        value_ndim: number of trailing value dims.
+
+    Returns:
+        :class:`FourierSeries` with ``coeffs (..., 2K+1, *value_shape)``.
+    """
+    _checks.integer(order, "order", fn="fourier_on_grid")
+    _checks.integer(value_ndim, "value_ndim", fn="fourier_on_grid")
+    _checks.tensor(values, "values", "(..., N, *value_shape)", fn="fourier_on_grid",
+                   valid=lambda t: t.ndim > value_ndim and t.is_floating_point())
+    axis = values.ndim - value_ndim - 1
+    n = values.shape[axis]
+    if 2 * order >= n:
+        raise ValueError(f"fourier_on_grid: order {order} needs more than {2 * order} grid "
+                         f"samples (harmonics below N/2), got N = {n}")
+    if not bool(torch.isfinite(values).all()):
+        raise ValueError("fourier_on_grid: values must be finite")
+    # f = a0 + Σ a_k cos kφ + b_k sin kφ has DFT coefficients N a0 and N (a_k − i b_k) / 2
+    spec = torch.fft.rfft(values, dim=axis).narrow(axis, 0, order + 1) * (2.0 / n)
+    a, b = spec.real, -spec.imag
+    harmonics = torch.stack([a.narrow(axis, 1, order), b.narrow(axis, 1, order)], axis + 1)
+    coeffs = torch.cat([a.narrow(axis, 0, 1) / 2, harmonics.flatten(axis, axis + 1)], axis)
+    return FourierSeries(coeffs, value_ndim)

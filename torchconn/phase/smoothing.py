@@ -51,11 +51,21 @@ _MU_GRID = torch.linspace(-10.0, 6.0, 65).tolist()
 # while a smooth signal sampled at >= ~30 samples per cycle is suppressed to (w dt)^k
 _DIFF_ORDER = 4
 _PRIOR_SCALE = 1e4
-#: on a CPU the parallel scan is used for at most this many rows (batch elements × channels)
-#: per model order: the sequential loop's cost per sample is mostly per-step overhead shared by
-#: all rows, the scan's is proportional to the rows (benchmarks/bench_smoother.py, one thread:
-#: at 1,000-4,000 samples the scan is 3-7x faster for 11 rows, even near 220 (order 2) and
-#: 44-110 (order 3), and slower beyond)
+#: the least precision the noise estimates and the recursions run in: their covariance updates
+#: cancel digits (``P − P²/(P + R)`` under the vague prior and on noise-free data), which in
+#: float32 left only rounding -- NaN on a constant channel, a singular solve on a noise-free line,
+#: derivatives 5-60 % off on simulated recordings; a capped float32 prior still put 66 % errors
+#: on the first samples' derivatives. Results come back in the input's dtype.
+_WORK_DTYPE = torch.float64
+# the smallest noise variance, relative to the data's spread (noise-free data)
+_NOISE_FLOOR = 1e-12
+#: on a CPU the parallel scan is used for rows with drop-outs for at most this many rows (batch
+#: elements × channels) per model order: the sequential loop's cost per sample is mostly
+#: per-step overhead shared by all rows, the scan's is proportional to the rows
+#: (benchmarks/bench_smoother.py, one thread: at 1,000-4,000 samples with 5 % drop-outs the
+#: scan is 3-7x faster for 11 rows, even near 220 (order 2) and 44-110 (order 3), and slower
+#: beyond). Rows without drop-outs share their covariance steps and take the scan at any size
+#: (1,920 samples: 2.8-3x faster than the loop at 220-880 rows, order 2; 2.3x at 220, order 3)
 _SCAN_MAX_ROWS_CPU = {2: 256, 3: 64}
 #: samples (rows × time) per scan chunk: the scan keeps ~0.45 (order 2) to ~0.9 kB per sample
 _SCAN_CHUNK_SAMPLES = 1 << 20
@@ -119,6 +129,15 @@ def _measurement_variance(y: Tensor) -> Tensor:
     return (1.4826 * mad) ** 2 / math.comb(2 * _DIFF_ORDER, _DIFF_ORDER)
 
 
+def _spread(y: Tensor) -> Tensor:
+    """A positive size per row of ``y (B, T)``: its variance, else (a constant row) its mean
+    square, else (all zero) 1 -> ``(B,)``. Floors scaled by it never underflow in the
+    covariance products, which gave NaN on constant channels."""
+    v = _nanvar(y)
+    v = torch.where(v > 0, v, torch.nanmean(y * y, dim=-1))
+    return torch.where(v > 0, v, torch.ones_like(v))
+
+
 def _prior(y: Tensor, finite: Tensor, order: int, dt: float) -> tuple[Tensor, Tensor]:
     """Vague initial state: first finite sample, zero rates, variances from the data's spread."""
     B, T = y.shape
@@ -129,7 +148,11 @@ def _prior(y: Tensor, finite: Tensor, order: int, dt: float) -> tuple[Tensor, Te
     for k in range(1, order):
         # mean square, not variance, of the differences: a steady drift must fit in the prior
         scales.append(torch.nanmean(torch.diff(y, n=k, dim=-1) ** 2, dim=-1) / dt ** (2 * k))
-    var = torch.nan_to_num(torch.stack(scales, -1), nan=1.0) + torch.finfo(y.dtype).tiny
+    scales = torch.nan_to_num(torch.stack(scales, -1), nan=1.0)
+    # a rate (or spread) that is exactly zero gets the noise floor's size instead
+    floor = _NOISE_FLOOR * _spread(y)[:, None] * torch.tensor(
+        [dt ** (-2 * k) for k in range(order)], dtype=y.dtype, device=y.device)
+    var = torch.where(scales > 0, scales, floor) + torch.finfo(y.dtype).tiny
     # vague: 1e4 times the data's own scale, so the prior's pull on the start is ~1e-4 of it
     return x0, torch.diag_embed(_PRIOR_SCALE * var)
 
@@ -259,8 +282,12 @@ def _rts_scan(y, finite, F, Q1, q, R, x0, P0) -> Tensor:
     f0 = F[0]  # y_t = x_t[0] + v = F[0] x_{t-1} + (noise of variance S)
     # samples 1..T-1: predict with (F, Q) then update with y_t
     S = q * Q1[0, 0] + R  # (B,)
-    K = m[1:, None, :] * (q * Q1[:, 0, None] / S)[None]  # (T-1, n, B) Kalman gains
-    info = m[1:] / S  # (T-1, B)
+    # without drop-outs after the first sample every step has the same gain, covariance and
+    # information: those parts get time size 1 and are composed once per scan round, not once
+    # per pair of samples (the means still are)
+    mk = m[1:2] if bool(finite[:, 1:].all()) else m[1:]  # (1 or T-1, B)
+    K = mk[:, None, :] * (q * Q1[:, 0, None] / S)[None]  # (1 or T-1, n, B) Kalman gains
+    info = mk / S  # (1 or T-1, B)
     elements = (
         Fb - K[:, :, None, :] * f0[None, None, :, None],
         K * yt[1:, None, :],
@@ -340,26 +367,33 @@ def _gcv_noise_ratio(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float
     # leave a kink at the mirror point whose spectrum looks like signal to GCV
     t = torch.linspace(-1.0, 1.0, T, dtype=y.dtype, device=y.device)
     z = z - z.mean(-1, keepdim=True)
-    z = z - (z @ t / (t @ t))[:, None] * t
+    z = z - ((z * t).sum(-1) / (t @ t))[:, None] * t  # per row: z @ t rounds with the batch size
     z = torch.cat([z, z.flip(-1)], -1)
     power = torch.fft.fft(z).abs() ** 2  # (B, 2T)
     S = _unit_spectrum(F, Q1, 2 * T)
     g = torch.tensor(_MU_GRID, dtype=y.dtype, device=y.device)  # log10 of q dt^(2n-1) / R
     lam = 10.0**g / dt ** (2 * order - 1)
     H = torch.where(torch.isinf(S), torch.ones_like(S), lam[:, None] * S / (lam[:, None] * S + 1))
-    rss = power @ ((1 - H) ** 2).mT  # (B, G)
+    # one product per row (batched), not one matrix product of all rows: with one row that is a
+    # different BLAS path whose rounding differs
+    weights = ((1 - H) ** 2).mT  # (2T, G)
+    rss = torch.bmm(power[:, None, :], weights.expand(power.shape[0], -1, -1))[:, 0]  # (B, G)
     gcv = torch.log(rss) - 2 * torch.log1p(-H.mean(-1))
     G = g.numel()
     i = gcv.argmin(-1).clamp(1, G - 2)
     l0, l1, l2 = (gcv.gather(-1, (i + o)[:, None])[:, 0] for o in (-1, 0, 1))
     curv = l0 - 2 * l1 + l2
     off = torch.where(curv > 0, 0.5 * (l0 - l2) / curv, torch.zeros_like(curv)).clamp(-1, 1)
-    return 10.0 ** (g[i] + off * (g[1] - g[0])) / dt ** (2 * order - 1)
+    # exp, not 10 ** x: torch's scalar-base power rounds the elements of a short tensor's tail
+    # differently (a last-ulp change with the batch size), and a row's noise ratio -- hence
+    # everything after it -- must not depend on the other rows of its batch
+    log_ratio = (g[i] + off * (g[1] - g[0])) * math.log(10.0)
+    return torch.exp(log_ratio) / dt ** (2 * order - 1)
 
 
 def _default_noise(yb, fb, F, Q1, dt, q, R) -> tuple[Tensor, Tensor]:
     """Fill in the noise parameters ``q, R (B,)`` that were not given (None) for rows ``yb``."""
-    tiny = 1e-12 * _nanvar(yb) + torch.finfo(yb.dtype).tiny  # keeps S > 0 for noise-free data
+    tiny = _NOISE_FLOOR * _spread(yb) + torch.finfo(yb.dtype).tiny  # S > 0 for noise-free data
     if R is None:
         R = _measurement_variance(yb)
         R = torch.where(torch.isfinite(R), R, torch.zeros_like(R))
@@ -390,12 +424,15 @@ def noise_parameters(y: Tensor, dt: float, *, order: int = 2) -> tuple[Tensor, T
         raise ValueError(f"noise_parameters: order must be 2 or 3, got {order!r}")
     if not y.is_floating_point():
         y = y.to(torch.get_default_dtype())
+    out_dtype = y.dtype
+    y = y.to(torch.promote_types(y.dtype, _WORK_DTYPE))
     T, C = y.shape[-2:]
     yb = y.movedim(-1, -2).reshape(-1, T)
     fb = torch.isfinite(yb)
     F, Q1 = _model(order, float(dt), y.dtype, y.device)
     q, R = _default_noise(yb, fb, F, Q1, float(dt), None, None)
-    return q.reshape(y.shape[:-2] + (C,)), R.reshape(y.shape[:-2] + (C,))
+    return (q.reshape(y.shape[:-2] + (C,)).to(out_dtype),
+            R.reshape(y.shape[:-2] + (C,)).to(out_dtype))
 
 
 def rts_smooth(
@@ -429,14 +466,16 @@ def rts_smooth(
         algorithm: how the filter and smoother run over time -- ``"scan"``: two parallel
             (log-depth) associative scans, a few large tensor operations per round, for GPUs
             and for few rows; ``"loop"``: one Python step per sample (the reference); ``"auto"``
-            (default): the scan off the CPU, and on the CPU for at most 256 rows (order 2) or
-            64 rows (order 3), rows being batch elements × channels -- where it measured faster.
+            (default): the scan off the CPU, and on the CPU for data without drop-outs (after
+            the first sample) or for at most 256 rows (order 2) or 64 rows (order 3), rows
+            being batch elements × channels -- where it measured faster.
             Both give the same result to rounding (≤ 1e-10 relative in float64 on
             well-conditioned data; the scan is the more accurate across long drop-outs).
 
     Returns:
-        ``(values, derivatives)``, both ``(..., T, C)``: smoothed positions and their time
-        derivatives, finite everywhere.
+        ``(values, derivatives)``, both ``(..., T, C)`` in ``y``'s dtype: smoothed positions and
+        their time derivatives, finite everywhere. Lower precisions (float32) are computed in
+        float64 and rounded back: the covariance recursions lose too many digits in float32.
 
     Raises:
         ValueError: bad shapes/arguments, or a channel that is NaN at every sample.
@@ -455,6 +494,8 @@ def rts_smooth(
         raise ValueError(f"rts_smooth: dt must be a positive sampling interval, got {dt}")
     if not y.is_floating_point():
         y = y.to(torch.get_default_dtype())
+    out_dtype = y.dtype
+    y = y.to(torch.promote_types(y.dtype, _WORK_DTYPE))
     T, C = y.shape[-2:]
     batch = y.shape[:-2]
     finite = torch.isfinite(y)
@@ -495,7 +536,8 @@ def rts_smooth(
     x0, P0 = _prior(yb, fb, order, dt)
 
     if algorithm == "auto":
-        scan = yb.device.type != "cpu" or yb.shape[0] <= _SCAN_MAX_ROWS_CPU[order]
+        scan = (yb.device.type != "cpu" or yb.shape[0] <= _SCAN_MAX_ROWS_CPU[order]
+                or bool(fb[:, 1:].all()))
         algorithm = "scan" if scan else "loop"
     if algorithm == "loop":
         xs = _rts_loop(yb, fb, F, Q1, q, R, x0, P0)  # (B, T, n)
@@ -506,7 +548,7 @@ def rts_smooth(
                       x0[i:i + step], P0[i:i + step])
             for i in range(0, yb.shape[0], step)
         ])
-    out = xs[..., :2].reshape(batch + (C, T, 2)).movedim(-3, -2)  # (..., T, C, 2)
+    out = xs[..., :2].reshape(batch + (C, T, 2)).movedim(-3, -2).to(out_dtype)  # (..., T, C, 2)
     return out[..., 0], out[..., 1]
 
 

@@ -295,8 +295,8 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     rank_deficient = failed | (dead.any(-1) & (not tolerate_dead))
     condition = torch.where(rank_deficient, torch.inf, bound)
 
-    rss = (yw - xw @ beta).square().sum(-2)  # (b, K)
-    sum_w = w.sum(-1)
+    rss = _row_sum((yw - xw @ beta).square(), -2)  # (b, K)
+    sum_w = _row_sum(w, -1)
     if binary and no_ridge:
         dof = sum_w - p
         cov_diag = l_inv.square().sum(-2)  # diag(A⁻¹)
@@ -308,8 +308,8 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
         # instead of forming G₂ and two P³ products with it
         xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w
         q = xww @ (l_inv.mT @ l_inv)
-        dof = sum_w - (q * xww).sum((-2, -1))
-        cov_diag = q.square().sum(-2)
+        dof = sum_w - _row_sum((q * xww).sum(-1), -1)
+        cov_diag = _row_sum(q.square(), -2)
     else:
         # sandwich for kernel weights / ridge: Cov = σ² A⁻¹ (XᵀW²X) A⁻¹, and the effective
         # residual dof  Σw − 2 tr(A⁻¹G₂) + tr(A⁻¹G A⁻¹G₂)  that makes σ̂² unbiased
@@ -330,6 +330,13 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     se = se.masked_fill(dead.unsqueeze(-1), torch.nan)
     rms = (rss / sum_w.unsqueeze(-1)).sqrt()
     return beta, se, rms, condition, (w > 0).sum(-1), kappa
+
+
+def _row_sum(x: Tensor, dim: int) -> Tensor:
+    """Sum over the bins' padded rows in sample order (a running sum): trailing zero rows leave
+    it unchanged, so a bin's sum does not depend on how far the batch pads its rows (torch's
+    cascade ``sum`` rounds with the padded length)."""
+    return x.cumsum(dim).select(dim, -1)
 
 
 def _triangular_inverse(chol: Tensor) -> Tensor:

@@ -66,6 +66,7 @@ class MetricFit:
             corrected normal matrix was not positive definite); None for the paper's model.
         cov_M: ``(..., M, q, q)`` covariance of the ``q = d(d+1)/2`` metric coefficients (tied
             model only).
+        order: ``(...)`` Fourier order of ``M(φ)`` (tied model only).
     """
 
     M: Tensor
@@ -84,6 +85,7 @@ class MetricFit:
     se_M_gamma_dot: Tensor | None = None
     noise_correction: Tensor | None = None
     cov_M: Tensor | None = None
+    order: Tensor | None = None
 
 
 def metric_n_coef(d: int, with_metric_derivative: bool) -> int:
@@ -205,6 +207,10 @@ def metric_regression(
 _CORRECTION_STEPS = (1.0, 0.9, 0.75, 0.5, 0.25, 0.0)
 #: rows of the design built at once (bounds memory: rows × coefficients × 8 bytes)
 _ROW_CHUNK = 2048
+#: blocks of whole cycles held out in turn to choose the order of ``M(φ)``
+_ORDER_FOLDS = 5
+#: standard errors by which a lower order must beat the largest on the held-out blocks
+_ORDER_Z = 1.0
 
 
 def tied_metric_n_coef(d: int, order: int, derivative_order: int | None) -> int:
@@ -238,6 +244,7 @@ def tied_metric_regression(
     order: int = 6,
     derivative_order: int | None = 2,
     noise_variance: Tensor | None = None,
+    held_out_order: bool = False,
     min_samples_per_coef: float = 3.0,
     max_condition: float | None = None,
 ) -> MetricFit:
@@ -278,6 +285,10 @@ def tied_metric_regression(
         order, derivative_order: Fourier orders of ``M(φ)`` and ``∂M/∂r(φ)``.
         noise_variance: ``(..., d)`` or ``(d,)`` variance of the noise on ``velocity``;
             None: no correction.
+        held_out_order: choose the Fourier order of ``M(φ)`` per batch element in
+            ``0 … order`` by held-out blocks of whole cycles (:func:`_held_out_orders`; the
+            harmonics above it get zero coefficients, so ``coef`` keeps the layout of
+            ``order``); False: ``order``.
         min_samples_per_coef: fewest valid samples per coefficient.
         max_condition: largest condition number of the equilibrated normal matrix (default
             1e12 in float64).
@@ -285,7 +296,8 @@ def tied_metric_regression(
     Returns:
         :class:`MetricFit` at ``phase_m``: ``coef``/``se_coef`` are the ``(..., P)``
         coefficients; ``n_samples`` and ``residual_rms`` count the samples nearest each
-        ``phase_m``; ``condition`` and ``noise_correction`` are the fit's, repeated per phase.
+        ``phase_m``; ``condition`` and ``noise_correction`` are the fit's, repeated per phase;
+        ``order`` ``(...)`` the order of ``M(φ)`` used.
 
     Raises:
         ValueError: too few samples, or a metric the data do not identify (the shape velocity
@@ -350,31 +362,55 @@ def tied_metric_regression(
             f = torch.cat([f, (fd.unsqueeze(-1) * delta[..., rows, None, :]).flatten(-2)], -1)
         return f
 
-    # normal equations and the noise's contributions, accumulated over row chunks
+    # whole cycles of phase: the clusters of the standard errors and the held-out blocks
+    cyc = torch.floor(ph / (2 * math.pi))
+    cyc = torch.where(valid, cyc, torch.inf)
+    cyc = cyc - cyc.amin(-1, keepdim=True)
+    cyc = torch.where(valid, cyc, 0.0).to(torch.int64)
+    n_c = int(cyc.max()) + 1 if cyc.numel() else 1
+    folds = _ORDER_FOLDS if held_out_order else 1
+    fold = torch.div(cyc * folds, cyc.amax(-1, keepdim=True) + 1, rounding_mode="floor")
+
+    # normal equations and the noise's contributions per block of cycles, over row chunks
     n = ph.shape[-1]
     g_n = p // q
-    gram = delta.new_zeros(batch + (p, p))
-    rhs = delta.new_zeros(batch + (p,))
-    s2 = delta.new_zeros(batch + (g_n, g_n * d * d))
-    s0 = delta.new_zeros(batch + (g_n, g_n))
-    fy = delta.new_zeros(batch + (g_n,))
+    gram = delta.new_zeros(batch + (folds, p, p))
+    rhs = delta.new_zeros(batch + (folds, p))
+    s2 = delta.new_zeros(batch + (folds, g_n, g_n * d * d))
+    s0 = delta.new_zeros(batch + (folds, g_n, g_n))
+    fy = delta.new_zeros(batch + (folds, g_n))
     for start in range(0, n, _ROW_CHUNK):
         rows = slice(start, min(start + _ROW_CHUNK, n))
         f = features(rows) * w[..., rows, None]  # zero rows for missing samples
         vr = v[..., rows, :]
         quad = vr[..., iu] * vr[..., ju]
         x = (f.unsqueeze(-1) * quad.unsqueeze(-2)).flatten(-2)
-        gram += x.mT @ x
-        rhs += (x * y[..., rows, None]).sum(-2)
         vv = (vr.unsqueeze(-1) * vr.unsqueeze(-2)).flatten(-2)
-        s2 += f.mT @ (f.unsqueeze(-1) * vv.unsqueeze(-2)).flatten(-2)
-        s0 += f.mT @ f
-        fy += (f * y[..., rows, None]).sum(-2)
-    corr_g, corr_h = _noise_terms(s2.unflatten(-1, (g_n, d, d)), s0, fy, sig, iu, ju, on_diag)
+        fvv = (f.unsqueeze(-1) * vv.unsqueeze(-2)).flatten(-2)
+        for b in range(folds):
+            sel = (fold[..., rows, None] == b).to(dtype) if folds > 1 else 1.0
+            xb, fb = x * sel, f * sel
+            gram[..., b, :, :] += xb.mT @ x
+            rhs[..., b, :] += (xb * y[..., rows, None]).sum(-2)
+            s2[..., b, :, :] += fb.mT @ fvv
+            s0[..., b, :, :] += fb.mT @ f
+            fy[..., b, :] += (fb * y[..., rows, None]).sum(-2)
+    corr_g, corr_h = _noise_terms(s2.unflatten(-1, (g_n, d, d)), s0, fy, sig.unsqueeze(-2), iu,
+                                  ju, on_diag)  # per block
+    diag = gram.sum(-3).diagonal(dim1=-2, dim2=-1)
+    inv = torch.where(diag <= 0, 1.0, diag.rsqrt())
+    chosen = torch.full(batch, order, dtype=torch.int64, device=dev)
+    if held_out_order:
+        chosen = _held_out_orders(gram - corr_g, rhs - corr_h, inv, order, q)
+    # the harmonics above each element's order are dropped (zero coefficients)
+    feature = torch.arange(p, device=dev) // q
+    drop = (feature >= 2 * chosen[..., None] + 1) & (feature < 2 * order + 1)  # (..., p)
+    keep = (~drop).to(dtype)
+    both = keep.unsqueeze(-1) * keep.unsqueeze(-2)
+    gram, corr_g = gram.sum(-3) * both, corr_g.sum(-3) * both
+    rhs, corr_h = rhs.sum(-2) * keep, corr_h.sum(-2) * keep
 
-    diag = gram.diagonal(dim1=-2, dim2=-1)
-    dead = diag <= 0
-    inv = torch.where(dead, 1.0, diag.rsqrt())
+    dead = gram.diagonal(dim1=-2, dim2=-1) <= 0
     eye = torch.eye(p, dtype=dtype, device=dev)
     shrink = torch.full(batch, float("nan"), dtype=dtype, device=dev)
     chol = eye.expand(batch + (p, p)).clone()
@@ -391,7 +427,7 @@ def tied_metric_regression(
     shrink = shrink.nan_to_num(0.0)
     g_final = (gram - shrink[..., None, None] * corr_g) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
     ev = torch.linalg.eigvalsh(g_final + torch.diag_embed(dead.to(dtype)))
-    condition = torch.where(failed | dead.any(-1) | (ev[..., 0] <= 0), torch.inf,
+    condition = torch.where(failed | (dead & ~drop).any(-1) | (ev[..., 0] <= 0), torch.inf,
                             ev[..., -1] / ev[..., 0].clamp(min=torch.finfo(dtype).tiny))
     bad = ~(condition <= max_condition)
     if bool(bad.any()):
@@ -417,11 +453,6 @@ def tied_metric_regression(
             "biased towards smaller values", _wls.IllConditionedBinWarning, stacklevel=2)
 
     # cluster-robust sandwich over whole cycles, on the corrected regressors
-    cyc = torch.floor(ph / (2 * math.pi))
-    cyc = torch.where(valid, cyc, torch.inf)
-    cyc = cyc - cyc.amin(-1, keepdim=True)
-    cyc = torch.where(valid, cyc, 0.0).to(torch.int64)
-    n_c = int(cyc.max()) + 1 if cyc.numel() else 1
     sums = delta.new_zeros(batch + (n_c, p))
     sse = delta.new_zeros(batch + (m,))
     cnt = delta.new_zeros(batch + (m,))
@@ -436,6 +467,7 @@ def tied_metric_regression(
         sums.scatter_add_(-2, cyc[..., rows, None].expand(x.shape), x * resid.unsqueeze(-1))
         sse.scatter_add_(-1, near[..., rows], resid.square())
         cnt.scatter_add_(-1, near[..., rows], w[..., rows])
+    sums = sums * keep.unsqueeze(-2)
     n_clusters = (sums.abs().sum(-1) > 0).sum(-1).to(dtype)
     meat = (sums.mT @ sums) * (n_clusters / (n_clusters - 1).clamp(min=1))[..., None, None]
     l_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
@@ -480,8 +512,61 @@ def tied_metric_regression(
         residual_rms=(sse / cnt.clamp(min=1)).sqrt(), condition=per_phase(condition),
         ridge=torch.zeros_like(per_phase(condition)), coef=beta, se_coef=se,
         se_power_on_cycle=se_p, M_gamma_dot=m_gd, se_M_gamma_dot=se_m_gd,
-        noise_correction=per_phase(shrink), cov_M=cov_m,
+        noise_correction=per_phase(shrink), cov_M=cov_m, order=chosen,
     )
+
+
+def _held_out_orders(gram: Tensor, rhs: Tensor, inv: Tensor, order: int, q: int) -> Tensor:
+    """The Fourier order of ``M(φ)`` in ``0 … order`` with the least held-out error over
+    blocks of whole cycles, per batch element.
+
+    Each block's noise-corrected normal equations ``G_b β = h_b`` (``G_b = X̂_bᵀX̂_b − C_b``,
+    ``h_b = X̂_bᵀy_b − c_b``) make ``β ᵀG_b β − 2βᵀh_b`` an unbiased estimate of the block's
+    noise-free squared prediction error of ``β`` up to a constant (the noise's contributions
+    ``C_b, c_b`` are removed as in the fit), so the coefficients fitted on the other blocks are
+    scored on it without the noisy regressors favouring attenuated models. Among ``order``
+    and the lower orders whose summed loss beats ``order``'s by more than :data:`_ORDER_Z`
+    standard errors of the difference (from its spread over the blocks), the one with the least
+    summed loss is chosen (the lowest on ties); an order whose fit on the other blocks is not
+    positive definite scores infinity (``order`` when every order does).
+
+    Args:
+        gram: ``(..., F, P, P)`` corrected normal matrices per block (``P`` in the layout of
+            ``order``: feature ``a = column // q``, the first ``2·order+1`` those of ``M(φ)``);
+            rhs: ``(..., F, P)``; inv: ``(..., P)`` equilibration of the whole fit.
+        order: largest order; q: metric coefficients per feature.
+
+    Returns:
+        ``(...)`` int64 orders.
+    """
+    p = gram.shape[-1]
+    train_g = gram.sum(-3, keepdim=True) - gram
+    train_h = rhs.sum(-2, keepdim=True) - rhs
+    scale = inv.unsqueeze(-2)  # (..., 1, P)
+    feature = torch.arange(p, device=gram.device) // q
+    dead = train_g.diagonal(dim1=-2, dim2=-1) <= 0
+    losses = []
+    for k in range(order + 1):
+        drop = ((feature >= 2 * k + 1) & (feature < 2 * order + 1)) | dead  # (..., F, P)
+        keep = (~drop).to(gram)
+        a = (train_g * (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
+             + torch.diag_embed(drop.to(gram)))
+        c, info = torch.linalg.cholesky_ex(a)
+        beta = torch.cholesky_solve((train_h * scale * keep).unsqueeze(-1), c)[..., 0] * scale
+        loss = (beta.unsqueeze(-2) @ gram @ beta.unsqueeze(-1))[..., 0, 0] - 2 * (beta * rhs).sum(-1)
+        losses.append(torch.where(info == 0, loss, torch.inf))
+    losses = torch.stack(losses, -1)  # (..., F, order + 1)
+    # a lower order than ``order`` only where it predicts the held-out blocks better by more
+    # than _ORDER_Z standard errors of the difference (over the blocks): a harmonic dropped
+    # by chance biases M̂ beyond its bands
+    diff = losses - losses[..., -1:]
+    n_f = diff.shape[-2]
+    spread = (n_f / max(n_f - 1, 1) * (diff - diff.mean(-2, keepdim=True)).square().sum(-2)).sqrt()
+    total = losses.sum(-2)
+    allowed = (diff.sum(-2) + _ORDER_Z * spread < 0) | ~torch.isfinite(total[..., -1:])
+    allowed[..., -1] = True
+    best = torch.where(allowed & torch.isfinite(total), total, torch.inf).argmin(-1)
+    return torch.where(torch.isfinite(total).any(-1), best, order)
 
 
 def _noise_terms(s2: Tensor, s0: Tensor, fy: Tensor, sig: Tensor, iu: Tensor, ju: Tensor,

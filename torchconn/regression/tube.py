@@ -93,10 +93,14 @@ class TubeRegression(Regression):
             separate linear and quadratic terms (torchconn 0.1's method, kept for comparison;
             it does not converge, see the README).
         metric_order, metric_derivative_order: Fourier orders in phase of the tied model's
-            ``M(φ)`` and ``∂M/∂r(φ)`` (None: no derivative term; it is also left out when the
-            data hold fewer than 3 usable samples per coefficient with it, e.g. a 9-link trial
-            of 30 cycles). Chosen by measurement on
-            3- and 5-link gaits other than the benchmark's (README, "Known limits").
+            ``M(φ)`` (the largest considered when ``metric_held_out_order``) and ``∂M/∂r(φ)``
+            (None: no derivative term; it is also left out when the data hold fewer than 3
+            usable samples per coefficient with it, e.g. a 9-link trial of 30 cycles). Chosen
+            by measurement on 3- and 5-link gaits other than the benchmark's (README, "Known
+            limits").
+        metric_held_out_order: choose the order of ``M(φ)`` in ``0 … metric_order`` from the
+            data, by the noise-corrected error on held-out blocks of whole cycles (lower orders
+            where the noise leaves the higher harmonics unresolved); False: ``metric_order``.
         metric_noise_correction: estimate the shapes' observation noise (from the uncorrected
             fit's power residuals) and remove its contribution to the tied model's normal
             equations.
@@ -115,6 +119,7 @@ class TubeRegression(Regression):
     metric_method: Literal["tied", "paper"] = "tied"
     metric_order: int = option(6, ge=0)
     metric_derivative_order: int | None = option(1, ge=0)
+    metric_held_out_order: bool = True
     metric_noise_correction: bool = True
 
     def __post_init__(self) -> None:
@@ -205,7 +210,9 @@ class TubeRegression(Regression):
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
                   "batch_shape": list(batch), "window": window, "metric_window": metric_window,
-                  "metric_noise_std": noise, **connection_meta,
+                  "metric_noise_std": noise,
+                  "metric_order": (None if metric_fit is None or metric_fit.order is None
+                                   else metric_fit.order.tolist()), **connection_meta,
                   "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
 
@@ -280,8 +287,11 @@ class TubeRegression(Regression):
                 stacklevel=3)
             derivative = None
         orders = dict(order=self.metric_order, derivative_order=derivative)
-        fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders,
-                                     min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
+        # the order is chosen in the final fit: the noise-corrected one when there is one
+        fit = tied_metric_regression(
+            offset, v, power, phase, centres, gamma_dot_m, **orders,
+            held_out_order=self.metric_held_out_order and not self.metric_noise_correction,
+            min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         noise = None
         if self.metric_noise_correction:
             # the noise from the uncorrected fit's residuals (the power channel is noise-free),
@@ -291,6 +301,7 @@ class TubeRegression(Regression):
             noise = omega2.sqrt().tolist()
             fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m,
                                          **orders, noise_variance=2 * omega2 / traj.dt**2,
+                                         held_out_order=self.metric_held_out_order,
                                          min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         return fit, noise
 

@@ -23,6 +23,7 @@ from ..evaluation.models import (
     observed_view,
     phase_bin_errors,
     reference_models,
+    simulator_on_cycle,
 )
 from ..physics.gaits import reference_gait
 from ..physics.systems import NLinkSwimmer
@@ -176,11 +177,13 @@ def run_cell(config: SweepConfig, cell: Cell, *,
 
     t0 = clock()
     clean = clean_trajectory(traj) if noisy else None
-    preds = reference_models(system, estimator.model_, estimator.trajectory_, clean)
+    on_cycle = simulator_on_cycle(system, estimator.model_)  # shared by both sets of samples
+    preds = reference_models(system, estimator.model_, estimator.trajectory_, clean,
+                             on_cycle=on_cycle)
     # against the observations the way the regression saw them (raw interval differences for
     # the noise-aware regression), every model on the same samples
     observed = observed_view(system, estimator.trajectory_, estimator.regression,
-                             estimator.model_, clean)
+                             estimator.model_, clean, on_cycle=on_cycle)
     _collect(out, config, cell, preds, observed, estimator.trajectory_)
     out.timings["evaluation"] = clock() - t0
     return out
