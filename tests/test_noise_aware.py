@@ -553,8 +553,7 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
     cycle = est.cycle.fit(prep)
     reg = NoiseAwareRegression(metric=False)
     full = reg.fit(prep, cycle)
-    # several groups: clean trials at h = 1, noisy ones at the longest interval (a tenth of a
-    # cycle, 6 samples)
+    # several groups: clean trials at h = 1, noisy ones at longer intervals
     assert len(set(full.meta["velocity_interval"])) >= 2 and len(set(full.meta["windows"])) >= 2
     groups = [[i] for i in range(8)] + [[0, 1, 2, 3], [1, 3, 5], [7, 6, 5, 4, 3, 2, 1, 0], [2, 6]]
     for group in groups:
@@ -569,6 +568,60 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
         # the standard errors' row sums round with the batch's padded bin length (the
         # solver's, shared with TubeRegression): equal to the last few bits
         torch.testing.assert_close(part.bins.A_se, full.bins.A_se[idx], rtol=1e-12, atol=0)
+
+
+def test_an_interval_the_bins_cannot_support_falls_back_to_a_shorter_one():
+    """One 9-link trial of 8 cycles at ω = 0.01 (the small sweep's cell): the noise rule asks
+    for the longest interval, a quarter cycle, where the filtered rows overlap so much that
+    some bins cannot be fitted (condition number > 1e12). The trial then takes the first
+    shorter interval whose bins can all be fitted, on its own data only: beside a trial that
+    needs no fall-back its fit is the same, bit for bit."""
+    from torchconn.physics.gaits import reference_gait
+
+    seeds = np.array([44, 41])
+    clean = simulate(NLinkSwimmer(9), reference_gait("9link"), eta=0.025, n_cycles=8,
+                     samples_per_cycle=64, seeds=seeds)
+    est = ConnectionEstimator()
+    prep = est.prepare(observe(clean, 0.01, seeds=seeds))
+    cycle = est.cycle.fit(prep)
+    reg = NoiseAwareRegression(metric=False)
+    rule = reg.noise_setup(prep, pool=False)[2].tolist()
+    assert rule[0] == 16  # a quarter of 64 samples per cycle
+    with pytest.raises(ValueError, match="cannot be fitted reliably"):
+        reg.replace(velocity_interval=rule[0]).fit(prep[:1], _index_cycle(cycle, [0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", IllConditionedBinWarning)  # no bin left unfitted
+        both = reg.fit(prep, cycle)
+        alone = reg.fit(prep[:1], _index_cycle(cycle, [0]))
+    h = both.meta["velocity_interval"]
+    assert 1 <= h[0] < rule[0] and h[1] == rule[1], (h, rule)
+    assert alone.meta["velocity_interval"] == h[:1]
+    assert bool(both.bins.A.isfinite().all())
+    for name in ("c", "b", "A", "dA"):
+        assert torch.equal(getattr(alone.bins, name), getattr(both.bins, name)[:1]), name
+
+
+def test_missing_samples_shorten_the_pooled_interval():
+    """The triangle filter needs all ``h + 1`` samples of an interval: with a quarter of the
+    samples missing at random, the noise rule's interval keeps too few rows for any bin
+    width, and the pooled fit falls back to a shorter interval instead of failing."""
+    seeds = np.array([61, 62])
+    traj = observe(simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12,
+                            samples_per_cycle=64, seeds=seeds), 0.01, seeds=seeds)
+    lost = torch.rand(traj.r.shape[:-1], generator=torch.Generator().manual_seed(0)) < 0.25
+    traj = traj.with_fields(pose=traj.pose.masked_fill(lost[..., None], float("nan")),
+                            r=traj.r.masked_fill(lost[..., None], float("nan")))
+    est = ConnectionEstimator(pool=True)
+    prep = est.prepare(traj)
+    cycle = est.cycle.fit(prep, pool=True)
+    reg = NoiseAwareRegression(metric=False)
+    rule = int(reg.noise_setup(prep, pool=True)[2])
+    assert rule > 2
+    with pytest.raises(ValueError, match="cannot be fitted reliably"):
+        reg.replace(velocity_interval=rule).fit(prep, cycle, pool=True)
+    model = reg.fit(prep, cycle, pool=True)
+    assert 1 <= model.meta["velocity_interval"] < rule
+    assert bool(model.bins.A.isfinite().all())
 
 
 def test_noise_setup_uses_each_trials_own_samples_per_cycle():

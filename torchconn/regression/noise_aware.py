@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -43,6 +44,7 @@ from ..phase.limit_cycle import phase_rate
 from ..physics import se2
 from ..trajectory import Trajectory, pool_batch
 from . import _wls
+from ._wls import IllConditionedBinWarning
 from .binning import BinIndex, assign_bins
 from .connection import ConnectionFit, _blocks, _connection_fit
 from .tube import TubeRegression, _auto_window, _auto_windows
@@ -693,6 +695,9 @@ _MAX_INTERVAL_CYCLES = 1 / 4
 #: multiples 2 and 3 instead: 1.13); the strongly curved 3-link reference gait gets 2-3
 #: spacings, circle gaits 3-4
 _INTERVAL_MULTIPLES = (1.5, 2.0)
+#: where no bin width can be fitted at an interval (the pooled reference, or an unpooled
+#: element's own), the interval is divided by this (:func:`_shorter_interval`) until one can
+_FALLBACK_INTERVAL_DIVISOR = 1.5
 _CANDIDATE_WINDOWS = (1.0, 2.0, 3.0, 4.0)
 #: unpooled elements (no choice yet) widen their bins with the noise: by this many bin spacings
 #: per unit of the noise ratio (see noise_ratio), up to _MAX_NOISE_WINDOW spacings
@@ -772,13 +777,33 @@ class NoiseAwareRegression(TubeRegression):
         g_dot = gamma_dot_m.expand(batch + (m, d)).reshape(n, m, d)
         var_flat = var.reshape(n, d)
         by_h = _intervals_by_h(flat, h_flat, traj.dt)
-        parts = []
-        for g, (hg, wg) in enumerate(groups.tolist()):
-            idx = torch.nonzero(inverse == g).flatten()
-            iv = _take_intervals(by_h[int(hg)], idx)
-            bins = assign_bins(iv.phase, n_bins, window=wg, kernel=self.kernel)
-            parts.append((idx, noise_aware_regression(iv, bins, g_m[idx], g_dot[idx],
-                                                      var_flat[idx], **opts)))
+        parts, h_flat = [], h_flat.clone()
+        pending = torch.ones(n, dtype=torch.bool, device=h_flat.device)
+        while bool(pending.any()):
+            # an element whose bins cannot all be fitted at its chosen interval (too few
+            # independent rows for the overlapping filter) tries a shorter one
+            # (_shorter_interval); at h = 1, or a given velocity_interval, on_ill_conditioned
+            # applies
+            keys = torch.stack([h_flat.to(windows), windows], -1)
+            groups, inverse = torch.unique(keys[pending], dim=0, return_inverse=True)
+            todo = torch.nonzero(pending).flatten()
+            for g, (hg, wg) in enumerate(groups.tolist()):
+                hg = int(hg)
+                idx = todo[inverse == g]
+                if hg not in by_h:
+                    by_h.update(_intervals_by_h(flat, torch.tensor([hg]), traj.dt))
+                iv = _take_intervals(by_h[hg], idx)
+                bins = assign_bins(iv.phase, n_bins, window=wg, kernel=self.kernel)
+                args = (iv, bins, g_m[idx], g_dot[idx], var_flat[idx])
+                if hg == 1 or self.velocity_interval:  # nothing shorter to try
+                    parts.append((idx, noise_aware_regression(*args, **opts)))
+                    pending[idx] = False
+                    continue
+                fit, bad = _flagged_fit(args, opts)
+                parts.append((idx[~bad], _take_fit(fit, ~bad)))
+                pending[idx[~bad]] = False
+                h_flat[idx[bad]] = _shorter_interval(hg)
+        h = h_flat.reshape(batch)
         meta = {"velocity_interval": h.tolist(), "noise_ratio": ratio.tolist(),
                 "noise_r": var.sqrt().tolist(), "windows": windows.reshape(batch).tolist()}
         return _scatter_fits(parts, n, batch), float(windows.max()), meta
@@ -803,7 +828,7 @@ class NoiseAwareRegression(TubeRegression):
         """
         d = traj.shape_dim
         longest = max(2, int(_samples_per_cycle(traj) * _MAX_INTERVAL_CYCLES))
-        views, fits, scores, errors = {}, {}, {}, []
+        views, fits, scores = {}, {}, {}
 
         def candidate(h: int, w: float | None) -> tuple[int, float]:
             if h not in views:
@@ -818,11 +843,8 @@ class NoiseAwareRegression(TubeRegression):
             if key not in scores:
                 bins = assign_bins(views[h].phase, self.n_bins, window=key[1],
                                    kernel=self.kernel)
-                try:
-                    fit = noise_aware_regression(views[h], bins, gamma_m, gamma_dot_m, var,
-                                                 **opts)
-                except ValueError as err:  # bins too sparse at this width: not a candidate
-                    errors.append(err)
+                fit, bad = _flagged_fit((views[h], bins, gamma_m, gamma_dot_m, var), opts)
+                if bool(bad):  # bins too sparse at this width: not a candidate
                     scores[key] = math.inf
                     return key
                 v = float(fit.se_A.square().nansum())
@@ -836,16 +858,24 @@ class NoiseAwareRegression(TubeRegression):
             return key
 
         h0 = int(self.velocity_interval or h0)
-        least = candidate(h0, self.window)[1]  # the reference
-        widths = [least] if self.window else [max(least, w) for w in _CANDIDATE_WINDOWS]
-        best = min((candidate(h0, w) for w in widths), key=scores.__getitem__)
+        while True:
+            least = candidate(h0, self.window)[1]  # the reference
+            widths = [least] if self.window else [max(least, w) for w in _CANDIDATE_WINDOWS]
+            best = min((candidate(h0, w) for w in widths), key=scores.__getitem__)
+            if best in fits or h0 == 1 or self.velocity_interval:
+                break
+            # no width can be fitted at this interval (too few independent rows for the
+            # overlapping filter, or rows lost to missing samples: it needs all h + 1 of them)
+            h0 = _shorter_interval(h0)
+        if best not in fits:  # none can be fitted: on_ill_conditioned decides (e.g. raises)
+            bins = assign_bins(views[h0].phase, self.n_bins, window=least, kernel=self.kernel)
+            fit = noise_aware_regression(views[h0], bins, gamma_m, gamma_dot_m, var, **opts)
+            return fit, h0, least, []
         if not self.velocity_interval:
             for f in _INTERVAL_MULTIPLES:
                 h = min(longest, max(1, round(h0 * f)), traj.n_samples - 1)
                 key = candidate(h, best[1])
                 best = min(best, key, key=scores.__getitem__)
-        if best not in fits:  # no candidate could be fitted
-            raise errors[0]
         table = [[h, w, sc] for (h, w), sc in scores.items() if math.isfinite(sc)]
         return fits[best], best[0], best[1], table
 
@@ -989,6 +1019,30 @@ def _rate_gain(h: int, kernel: str) -> float:
         return 2 / h
     a, _ = _filter_taps(h, kernel)
     return _autocorrelation(a, 0) / _autocorrelation(_weights(h, kernel), 0)
+
+
+def _shorter_interval(h: int) -> int:
+    """The interval tried when the bins cannot be fitted at ``h > 1``: ``h / 1.5`` rounded,
+    shorter by at least one sample (16, 11, 7, 5, 3, 2, 1)."""
+    return max(1, min(h - 1, round(h / _FALLBACK_INTERVAL_DIVISOR)))
+
+
+def _flagged_fit(args: tuple, opts: dict) -> tuple[ConnectionFit, Tensor]:
+    """:func:`noise_aware_regression` ``(*args, **opts)`` with the bins it cannot fit left NaN
+    (no warning, whatever ``on_ill_conditioned``) and ``(...)`` whether each batch element has
+    such a bin. An element without one gets what ``opts`` would give it, bit for bit."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        fit = noise_aware_regression(*args, **{**opts, "on_ill_conditioned": "warn"})
+    p = fit.coef.shape[-2]
+    return fit, _wls.unfittable(fit.n_samples, fit.condition, p, fit.coef.dtype).any(-1)
+
+
+def _take_fit(fit: ConnectionFit, sel: Tensor) -> ConnectionFit:
+    """Batch elements ``sel`` of a fit with one batch dim."""
+    return dataclasses.replace(fit, **{f.name: getattr(fit, f.name)[sel]
+                                       for f in dataclasses.fields(fit)
+                                       if getattr(fit, f.name) is not None})
 
 
 def _samples_per_cycle(traj: Trajectory) -> float:
