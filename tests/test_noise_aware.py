@@ -601,10 +601,14 @@ def test_an_interval_the_bins_cannot_support_falls_back_to_a_shorter_one():
         assert torch.equal(getattr(alone.bins, name), getattr(both.bins, name)[:1]), name
 
 
-def test_missing_samples_shorten_the_pooled_interval():
+def test_missing_samples_shorten_the_interval_or_take_the_box_filter():
     """The triangle filter needs all ``h + 1`` samples of an interval: with a quarter of the
     samples missing at random, the noise rule's interval keeps too few rows for any bin
-    width, and the pooled fit falls back to a shorter interval instead of failing."""
+    width. The pooled fit then falls back to a shorter interval, and tries the box filter
+    (which needs only the interval's two ends), instead of failing; the held-out check and
+    the observed view use the filter it took."""
+    from torchconn.regression.skill import regression_view
+
     seeds = np.array([61, 62])
     traj = observe(simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12,
                             samples_per_cycle=64, seeds=seeds), 0.01, seeds=seeds)
@@ -617,11 +621,29 @@ def test_missing_samples_shorten_the_pooled_interval():
     reg = NoiseAwareRegression(metric=False)
     rule = int(reg.noise_setup(prep, pool=True)[2])
     assert rule > 2
-    with pytest.raises(ValueError, match="cannot be fitted reliably"):
-        reg.replace(velocity_interval=rule).fit(prep, cycle, pool=True)
+
+    def rows(kernel):
+        return int(interval_samples(prep.pose, prep.r, prep.phase, prep.dt, rule,
+                                    kernel).r_dot.isfinite().all(-1).sum())
+
+    assert rows("triangle") < 0.2 * rows("box")  # 0.75^(h+1) of the rows against 0.75^2
     model = reg.fit(prep, cycle, pool=True)
-    assert 1 <= model.meta["velocity_interval"] < rule
+    meta = model.meta
     assert bool(model.bins.A.isfinite().all())
+    scores = meta["interval_window_scores"]
+    assert any(row[-1] == "box" for row in scores) and any(len(row) == 3 for row in scores)
+    assert meta["velocity_kernel"] == "box" or 1 <= meta["velocity_interval"] < rule, meta
+    view = regression_view(prep, reg, model, pool=True, flatten=False)
+    iv = interval_samples(prep.pose, prep.r, prep.phase, prep.dt, meta["velocity_interval"],
+                          meta["velocity_kernel"])
+    assert torch.equal(view.xi.nan_to_num(), iv.xi.nan_to_num())
+
+
+def test_complete_data_keep_the_triangle_filter(clean30):
+    """Without missing samples the box's search does not run (it would only cost fits)."""
+    model = _fit(_recording(0.005, n_cycles=10, n_trials=2)).model_
+    assert model.meta["velocity_kernel"] == "triangle"
+    assert all(len(row) == 3 for row in model.meta["interval_window_scores"])
 
 
 def test_noise_setup_uses_each_trials_own_samples_per_cycle():
@@ -658,3 +680,23 @@ def test_one_noise_level_for_all_joints_of_a_trial():
     assert float(est.pooled_variance(0)[1, 0]) == 0.5
     pooled = est.pooled_variance(1, channels=True)  # one rig: mean 1.05, se 0.29
     torch.testing.assert_close(pooled, torch.full((3,), 1.05, dtype=F64))
+
+
+def test_noise_corrected_score_uses_the_filters_noise_gains():
+    """The held-out score's input-noise correction (``cross_validate(noise_corrected=True)``)
+    takes the noise of the samples the model sees: the filter's gains
+    (``interval_noise_gains``), not the box's ``σ²/2`` and ``2σ²/(hΔt)²`` (3.5x and 1.6x too much
+    for a triangle over 8 samples)."""
+    from torchconn.regression.skill import _noise_of
+
+    traj = _recording(0.005, n_cycles=10, n_trials=2)
+    model = _fit(traj).model_
+    meta = model.meta
+    h, kernel = meta["velocity_interval"], meta["velocity_kernel"]
+    assert kernel == "triangle" and h > 2
+    var_delta, var_rate = _noise_of(model, traj.dt, pool=True)
+    g_delta, g_rate = interval_noise_gains(h, traj.dt, kernel)
+    sigma2 = torch.tensor(meta["noise_r"], dtype=F64).square()
+    torch.testing.assert_close(var_delta, sigma2 * g_delta)
+    torch.testing.assert_close(var_rate, sigma2 * g_rate)
+    assert g_delta < 0.5 / 2 and g_rate < 2 / (h * traj.dt) ** 2

@@ -761,10 +761,11 @@ class NoiseAwareRegression(TubeRegression):
         d, n_bins = traj.shape_dim, self.n_bins
         var, ratio, h = self.noise_setup(traj, pool)
         if pool:
-            fit, h, window, scores = self._chosen_fit(traj, var, int(h), gamma_m, gamma_dot_m,
-                                                      opts)
-            meta = {"velocity_interval": h, "noise_ratio": float(ratio),
-                    "noise_r": var.sqrt().tolist(), "interval_window_scores": scores}
+            fit, h, window, kernel, scores = self._chosen_fit(traj, var, ratio, int(h),
+                                                              gamma_m, gamma_dot_m, opts)
+            meta = {"velocity_interval": h, "velocity_kernel": kernel,
+                    "noise_ratio": float(ratio), "noise_r": var.sqrt().tolist(),
+                    "interval_window_scores": scores}
             return fit, window, meta
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
@@ -804,14 +805,15 @@ class NoiseAwareRegression(TubeRegression):
                 pending[idx[~bad]] = False
                 h_flat[idx[bad]] = _shorter_interval(hg)
         h = h_flat.reshape(batch)
-        meta = {"velocity_interval": h.tolist(), "noise_ratio": ratio.tolist(),
-                "noise_r": var.sqrt().tolist(), "windows": windows.reshape(batch).tolist()}
+        meta = {"velocity_interval": h.tolist(), "velocity_kernel": VELOCITY_KERNEL,
+                "noise_ratio": ratio.tolist(), "noise_r": var.sqrt().tolist(),
+                "windows": windows.reshape(batch).tolist()}
         return _scatter_fits(parts, n, batch), float(windows.max()), meta
 
-    def _chosen_fit(self, traj: Trajectory, var: Tensor, h0: int, gamma_m: Tensor,
-                    gamma_dot_m: Tensor, opts: dict):
-        """The pooled corrected fit at the velocity interval and bin width of least estimated
-        mean squared error of ``Â``.
+    def _chosen_fit(self, traj: Trajectory, var: Tensor, ratio: Tensor, h0: int,
+                    gamma_m: Tensor, gamma_dot_m: Tensor, opts: dict):
+        """The pooled corrected fit at the velocity interval, bin width and filter of least
+        estimated mean squared error of ``Â``.
 
         Longer intervals and wider bins lower the variance and add bias (they average ``A``
         over more of the cycle). With the candidate of the shortest interval and narrowest bins
@@ -822,17 +824,52 @@ class NoiseAwareRegression(TubeRegression):
         half-widths :data:`_CANDIDATE_WINDOWS` (at least the data-size rule's) at the noise
         rule's interval ``h0`` (:func:`velocity_interval_for`), then the intervals
         ``h0 · _INTERVAL_MULTIPLES`` at the best of them; ``window`` or ``velocity_interval``,
-        when given, fix theirs.
+        when given, fix theirs. Where no width can be fitted at ``h0``, shorter intervals
+        (:func:`_shorter_interval`) are tried first.
 
-        Returns the fit, ``h``, the window and the candidates' ``[h, window, MSE]`` (a list).
+        The triangle filter needs all ``h + 1`` samples of an interval, the box only its two
+        ends: where missing samples cost the triangle rows the box keeps, the box's search
+        (from its own noise rule's interval) runs too and the lower estimated MSE of the two
+        is taken (each at least its candidate's variance: the two searches' references
+        differ, and one made of few rows can give a negative estimate).
+
+        Returns the fit, ``h``, the window, the filter and the candidates' ``[h, window, MSE]``
+        (a list; ``[h, window, MSE, "box"]`` for the box's).
         """
+        kernels = {VELOCITY_KERNEL: int(self.velocity_interval or h0)}
+        if VELOCITY_KERNEL != "box":
+            h_box = int(self.velocity_interval or velocity_interval_for(
+                ratio, _samples_per_cycle(traj), "box"))
+            if _usable_rows(traj, kernels[VELOCITY_KERNEL], VELOCITY_KERNEL) < _usable_rows(
+                    traj, kernels[VELOCITY_KERNEL], "box"):
+                kernels["box"] = h_box
+        found = {k: self._search(traj, var, k, h, gamma_m, gamma_dot_m, opts)
+                 for k, h in kernels.items()}
+        fitted = {k: f for k, f in found.items() if f[0] is not None}
+        if not fitted:  # none can be fitted: on_ill_conditioned decides (e.g. raises)
+            view, h, window = found[VELOCITY_KERNEL][1]
+            bins = assign_bins(view.phase, self.n_bins, window=window, kernel=self.kernel)
+            fit = noise_aware_regression(view, bins, gamma_m, gamma_dot_m, var, **opts)
+            return fit, h, window, VELOCITY_KERNEL, []
+        kernel = min(fitted, key=lambda k: fitted[k][2])
+        fit, (_, h, window), _, _ = fitted[kernel]
+        table = [row + ([] if k == VELOCITY_KERNEL else [k])
+                 for k, f in fitted.items() for row in f[3]]
+        return fit, h, window, kernel, table
+
+    def _search(self, traj: Trajectory, var: Tensor, kernel: str, h0: int, gamma_m: Tensor,
+                gamma_dot_m: Tensor, opts: dict):
+        """:meth:`_chosen_fit`'s greedy search for one filter. Returns ``(fit, (view, h,
+        window), MSE, table)`` of the best candidate (its MSE at least its variance ``V_c``,
+        for the comparison of filters); ``fit`` is None (and the rest the shortest interval's
+        reference) where no candidate can be fitted."""
         d = traj.shape_dim
         longest = max(2, int(_samples_per_cycle(traj) * _MAX_INTERVAL_CYCLES))
-        views, fits, scores = {}, {}, {}
+        views, fits, scores, variances = {}, {}, {}, {}
 
         def candidate(h: int, w: float | None) -> tuple[int, float]:
             if h not in views:
-                view = interval_view(traj, h)
+                view = interval_view(traj, h, kernel)
                 views[h] = dataclasses.replace(
                     view, phase=pool_batch(view.phase, 0), r=pool_batch(view.r, 1),
                     r_dot=pool_batch(view.r_dot, 1), xi=pool_batch(view.xi, 1), h=h)
@@ -847,7 +884,7 @@ class NoiseAwareRegression(TubeRegression):
                 if bool(bad):  # bins too sparse at this width: not a candidate
                     scores[key] = math.inf
                     return key
-                v = float(fit.se_A.square().nansum())
+                v = variances[key] = float(fit.se_A.square().nansum())
                 if not fits:
                     scores[key] = v
                 else:
@@ -857,7 +894,6 @@ class NoiseAwareRegression(TubeRegression):
                 fits[key] = fit
             return key
 
-        h0 = int(self.velocity_interval or h0)
         while True:
             least = candidate(h0, self.window)[1]  # the reference
             widths = [least] if self.window else [max(least, w) for w in _CANDIDATE_WINDOWS]
@@ -865,19 +901,20 @@ class NoiseAwareRegression(TubeRegression):
             if best in fits or h0 == 1 or self.velocity_interval:
                 break
             # no width can be fitted at this interval (too few independent rows for the
-            # overlapping filter, or rows lost to missing samples: it needs all h + 1 of them)
+            # overlapping filter, or rows lost to missing samples)
             h0 = _shorter_interval(h0)
-        if best not in fits:  # none can be fitted: on_ill_conditioned decides (e.g. raises)
-            bins = assign_bins(views[h0].phase, self.n_bins, window=least, kernel=self.kernel)
-            fit = noise_aware_regression(views[h0], bins, gamma_m, gamma_dot_m, var, **opts)
-            return fit, h0, least, []
+        if best not in fits:
+            return None, (views[h0], h0, least), math.inf, []
         if not self.velocity_interval:
             for f in _INTERVAL_MULTIPLES:
                 h = min(longest, max(1, round(h0 * f)), traj.n_samples - 1)
                 key = candidate(h, best[1])
                 best = min(best, key, key=scores.__getitem__)
         table = [[h, w, sc] for (h, w), sc in scores.items() if math.isfinite(sc)]
-        return fits[best], best[0], best[1], table
+        # against another filter's search (another reference) the estimate is taken at least
+        # at the candidate's own variance: a squared bias below 0 is the reference's noise
+        mse = max(scores[best], variances[best])
+        return fits[best], (views[best[0]], best[0], best[1]), mse, table
 
     def _connection_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """The corrected fit, shrunk towards the smoothed one (:func:`blend_fits`)."""
@@ -1021,6 +1058,13 @@ def _rate_gain(h: int, kernel: str) -> float:
     return _autocorrelation(a, 0) / _autocorrelation(_weights(h, kernel), 0)
 
 
+def _usable_rows(traj: Trajectory, h: int, kernel: str) -> int:
+    """Interval samples of ``traj`` (all trials) with a finite target and regressors."""
+    iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt, h, kernel)
+    ok = iv.xi.isfinite().all(-1) & iv.r_dot.isfinite().all(-1) & iv.r.isfinite().all(-1)
+    return int((ok & iv.phase.isfinite()).sum())
+
+
 def _shorter_interval(h: int) -> int:
     """The interval tried when the bins cannot be fitted at ``h > 1``: ``h / 1.5`` rounded,
     shorter by at least one sample (16, 11, 7, 5, 3, 2, 1)."""
@@ -1063,7 +1107,8 @@ def _flatten_batch(traj: Trajectory) -> Trajectory:
 _KERNEL_CHUNK = 32
 
 
-def _intervals_by_h(flat: Trajectory, h: Tensor, dt: float) -> dict[int, IntervalSamples]:
+def _intervals_by_h(flat: Trajectory, h: Tensor, dt: float, kernel: str = VELOCITY_KERNEL
+                    ) -> dict[int, IntervalSamples]:
     """:func:`interval_samples` ``(n, T − h, ·)`` of every element of a flattened trajectory
     ``(n, T, ·)`` for each distinct interval in ``h (n,)``, each element's values independent
     of the other elements (bit for bit).
@@ -1080,7 +1125,7 @@ def _intervals_by_h(flat: Trajectory, h: Tensor, dt: float) -> dict[int, Interva
         pose, r, phase = (nn.functional.pad(x, (0, 0, 0, pad) if x.ndim == 3 else (0, pad),
                                             value=float("nan"))
                           for x in (flat.pose, flat.r, flat.phase))
-        iv = interval_samples(pose, r, phase, dt, hg)
+        iv = interval_samples(pose, r, phase, dt, hg, kernel)
         out[hg] = _take_intervals(iv, slice(None), T - hg)
     return out
 
@@ -1108,18 +1153,18 @@ def _scatter_fits(parts, n: int, batch: tuple) -> ConnectionFit:
     return ConnectionFit(**out)
 
 
-def interval_view(traj: Trajectory, h) -> IntervalSamples:
+def interval_view(traj: Trajectory, h, kernel: str = VELOCITY_KERNEL) -> IntervalSamples:
     """:func:`interval_samples` of a trajectory with a per-element interval ``h`` (an int or a
     ``(...)`` tensor): ``(..., T − min h, ·)``, elements with a longer interval padded with NaN
     at the end (``.h`` is the shortest)."""
     h = torch.as_tensor(h, device=traj.pose.device)
     if h.ndim == 0:
-        return interval_samples(traj.pose, traj.r, traj.phase, traj.dt, int(h))
+        return interval_samples(traj.pose, traj.r, traj.phase, traj.dt, int(h), kernel)
     flat = _flatten_batch(traj)
     h_flat = h.reshape(-1)
     n = traj.n_samples - int(h_flat.min())
     out = None
-    for hg, iv in _intervals_by_h(flat, h_flat, traj.dt).items():
+    for hg, iv in _intervals_by_h(flat, h_flat, traj.dt, kernel).items():
         idx = torch.nonzero(h_flat == hg).flatten()
         vals = [v[idx] for v in (iv.phase, iv.r, iv.r_dot, iv.xi)]
         if out is None:

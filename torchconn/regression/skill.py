@@ -33,6 +33,7 @@ from .connection import split_coefficients
 from .held_out import leave_blocks_out
 from .model import LocalConnectionModel
 from .noise_aware import (
+    VELOCITY_KERNEL,
     NoiseAwareRegression,
     eiv_correction,
     interval_noise_gains,
@@ -140,7 +141,8 @@ def regression_view(traj: Trajectory, regression: Regression, model: LocalConnec
     and ``flatten``); the interval of a noise-aware model comes from its ``meta``."""
     if isinstance(regression, NoiseAwareRegression):
         iv = interval_view(traj, torch.as_tensor(model.meta["velocity_interval"],
-                                                 device=traj.r.device))
+                                                 device=traj.r.device),
+                           model.meta.get("velocity_kernel", VELOCITY_KERNEL))
         view = _View(iv.phase, iv.r, iv.r_dot, iv.xi)
     else:
         sm = traj.smoothed
@@ -266,12 +268,8 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
     kw = dict(dtype=r.dtype, device=r.device)
     var_delta = var_rate = None
     if isinstance(regression, NoiseAwareRegression):
-        var = torch.as_tensor(meta["noise_r"], **kw).square().expand(batch + (d,))
-        h = torch.as_tensor(meta["velocity_interval"], device=r.device).expand(batch)
-        gains = torch.tensor([interval_noise_gains(int(v), traj.dt)
-                              for v in h.reshape(n).tolist()], **kw)
-        var = var.reshape(n, d)
-        var_delta, var_rate = var * gains[:, :1], var * gains[:, 1:]
+        var_delta, var_rate = (v.reshape(n, d) for v in _interval_noise(meta, batch, traj.dt,
+                                                                         **kw))
     if window is None:
         window = _fold_windows(regression, meta, phase, fold, d)
     windows = torch.as_tensor(window, dtype=torch.float64, device=r.device).expand(
@@ -385,13 +383,24 @@ def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):
     """Noise variances of the view's ``δ`` and ``δ̇`` from a noise-aware model's ``meta``,
     shaped to broadcast against the view's ``(..., N, d)``."""
     kw = dict(dtype=model.phase_rate.dtype, device=model.phase_rate.device)
-    sigma2 = torch.as_tensor(model.meta["noise_r"], **kw).square()
-    h = torch.as_tensor(model.meta["velocity_interval"], **kw)
-    var_rate = 2 * sigma2 / (h[..., None] * dt) ** 2
-    var_delta = sigma2 / 2
+    batch = () if pool else tuple(torch.as_tensor(model.meta["velocity_interval"]).shape)
+    var_delta, var_rate = _interval_noise(model.meta, batch, dt, **kw)
     if not pool:
         var_rate, var_delta = var_rate.unsqueeze(-2), var_delta.unsqueeze(-2)
     return var_delta, var_rate
+
+
+def _interval_noise(meta: dict, batch: tuple, dt: float, **kw) -> tuple[Tensor, Tensor]:
+    """Noise variances ``(*batch, d)`` of ``δ`` and ``δ̇`` in a noise-aware fit's interval
+    samples, from its ``meta`` (noise level, velocity interval and filter; the gains of
+    :func:`~torchconn.regression.noise_aware.interval_noise_gains`)."""
+    sigma2 = torch.as_tensor(meta["noise_r"], **kw).square()
+    sigma2 = sigma2.expand(batch + sigma2.shape[-1:])
+    h = torch.as_tensor(meta["velocity_interval"]).expand(batch).reshape(-1).tolist()
+    kernel = meta.get("velocity_kernel", VELOCITY_KERNEL)
+    gains = torch.tensor([interval_noise_gains(int(v), dt, kernel) for v in h],
+                         **kw).reshape(batch + (2,))
+    return sigma2 * gains[..., :1], sigma2 * gains[..., 1:]
 
 
 def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
