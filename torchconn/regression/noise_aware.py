@@ -742,7 +742,10 @@ class NoiseAwareRegression(TubeRegression):
             (:func:`velocity_interval_for`), and a pooled fit then also tries longer ones.
             With ``window=None`` a pooled fit chooses the bins' width too, by the estimated
             error of ``Â`` (``meta["interval_window_scores"]``); unpooled elements widen it
-            with the noise.
+            with the noise. Where the bins cannot all be fitted at the chosen interval, a
+            shorter one is taken (``meta["velocity_interval"]`` is the one used); a pooled fit
+            on data with missing samples also tries the box filter
+            (``meta["velocity_kernel"]``).
         noise_band_low: lowest frequency (cycles per sample) of the noise fit; None: chosen
             per batch element and joint from the data (:func:`estimate_noise`).
         shrink_to_smoothed: combine with the smoothed estimate (:func:`blend_fits`); False:
@@ -792,7 +795,8 @@ class NoiseAwareRegression(TubeRegression):
                 hg = int(hg)
                 idx = todo[inverse == g]
                 if hg not in by_h:
-                    by_h.update(_intervals_by_h(flat, torch.tensor([hg]), traj.dt))
+                    shorter = torch.tensor([hg], device=h_flat.device)
+                    by_h.update(_intervals_by_h(flat, shorter, traj.dt))
                 iv = _take_intervals(by_h[hg], idx)
                 bins = assign_bins(iv.phase, n_bins, window=wg, kernel=self.kernel)
                 args = (iv, bins, g_m[idx], g_dot[idx], var_flat[idx])

@@ -383,7 +383,7 @@ def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):
     """Noise variances of the view's ``δ`` and ``δ̇`` from a noise-aware model's ``meta``,
     shaped to broadcast against the view's ``(..., N, d)``."""
     kw = dict(dtype=model.phase_rate.dtype, device=model.phase_rate.device)
-    batch = () if pool else tuple(torch.as_tensor(model.meta["velocity_interval"]).shape)
+    batch = () if pool else tuple(torch.as_tensor(model.meta["velocity_interval"], **kw).shape)
     var_delta, var_rate = _interval_noise(model.meta, batch, dt, **kw)
     if not pool:
         var_rate, var_delta = var_rate.unsqueeze(-2), var_delta.unsqueeze(-2)
@@ -396,7 +396,8 @@ def _interval_noise(meta: dict, batch: tuple, dt: float, **kw) -> tuple[Tensor, 
     :func:`~torchconn.regression.noise_aware.interval_noise_gains`)."""
     sigma2 = torch.as_tensor(meta["noise_r"], **kw).square()
     sigma2 = sigma2.expand(batch + sigma2.shape[-1:])
-    h = torch.as_tensor(meta["velocity_interval"]).expand(batch).reshape(-1).tolist()
+    h = torch.as_tensor(meta["velocity_interval"], device=kw.get("device")).expand(batch)
+    h = h.reshape(-1).tolist()
     kernel = meta.get("velocity_kernel", VELOCITY_KERNEL)
     gains = torch.tensor([interval_noise_gains(int(v), dt, kernel) for v in h],
                          **kw).reshape(batch + (2,))
