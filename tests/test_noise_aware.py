@@ -25,8 +25,11 @@ from torchconn.regression.connection import connection_design
 from torchconn.regression.noise_aware import (
     eiv_correction,
     estimate_noise,
+    interval_noise_gains,
     interval_samples,
     noise_aware_regression,
+    overlap_inflation,
+    velocity_interval_for,
 )
 from torchconn.regression.skill import PoorHeldOutSkillWarning
 
@@ -204,6 +207,99 @@ def test_interval_samples_are_mean_velocities_over_the_interval():
         interval_samples(pose, r, t, 0.1, 0)
 
 
+def test_triangle_filter_noise_gains_and_exact_velocities():
+    # white noise through the filter: variances σ² g_r and σ² g_ṙ, uncorrelated (Monte Carlo)
+    g = torch.Generator().manual_seed(2)
+    h, dt, sigma = 10, 0.05, 0.01
+    noise = sigma * torch.randn(400, 60, 1, generator=g, dtype=F64)
+    pose = torch.zeros(400, 60, 3, dtype=F64)
+    iv = interval_samples(pose, noise, torch.zeros(400, 60, dtype=F64), dt, h)
+    assert iv.kernel == "triangle"
+    g_r, g_rate = interval_noise_gains(h, dt)
+    r, rate = iv.r[:, 25, 0], iv.r_dot[:, 25, 0]
+    assert abs(float(r.var()) / (sigma**2 * g_r) - 1) < 0.2
+    assert abs(float(rate.var()) / (sigma**2 * g_rate) - 1) < 0.2
+    assert abs(float((r * rate).mean())) < 0.15 * (sigma**2 * (g_r * g_rate) ** 0.5)
+    # the box's closed form; the triangle's velocity gain is 16/(h+1)³ per Δt² for odd h
+    # (h + 1 steps of 4/(h+1)²), below the box's 2/h² from h = 4 on, 0.28 times at h = 24
+    assert interval_noise_gains(h, dt, "box") == (0.5, 2 / (h * dt) ** 2)
+    for hh in (5, 11, 25):
+        assert math.isclose(interval_noise_gains(hh, 1.0)[1], 16 / (hh + 1) ** 3)
+    assert interval_noise_gains(24, 1.0)[1] < 0.3 * interval_noise_gains(24, 1.0, "box")[1]
+    # a ramp and a constant twist come out exactly
+    t = torch.arange(40, dtype=F64) * dt
+    ramp = torch.stack([0.7 * t, -0.2 * t], -1)
+    twist = torch.tensor([0.3, -0.1, 0.4], dtype=F64)
+    from torchconn.physics import se2
+    pose = se2.exp(twist * t[:, None])
+    iv = interval_samples(pose, ramp, t, dt, h)
+    assert torch.allclose(iv.r_dot, torch.tensor([0.7, -0.2], dtype=F64).expand(30, 2))
+    assert torch.allclose(iv.r, ramp[:-h] + ramp[h] / 2)
+    assert torch.allclose(iv.xi, twist.expand(30, 3))
+
+
+def test_overlap_inflation_matches_the_variance_of_overlapping_rows():
+    # Monte Carlo: y = a·v observed through white position noise, both filtered alike and
+    # regressed on all overlapping rows; the slope's variance over repetitions is κ times the
+    # one the rows-independent formula gives
+    from torchconn.regression.binning import BinIndex
+
+    g = torch.Generator().manual_seed(3)
+    reps, T, h, dt = 600, 800, 12, 0.05
+    v = torch.randn(reps, T, 1, generator=g, dtype=F64)  # process velocities (noise-free)
+    x = torch.cumsum(v * dt, -2)
+    pos = 0.5 * x + 0.05 * torch.randn(reps, T, 1, generator=g, dtype=F64)
+    pose = torch.cat([pos, torch.zeros(reps, T, 2, dtype=F64)], -1)
+    iv = interval_samples(pose, x, torch.zeros(reps, T, dtype=F64), dt, h)
+    xs, ys = iv.r_dot[..., 0], iv.xi[..., 0]
+    xs, ys = xs - xs.mean(-1, keepdim=True), ys - ys.mean(-1, keepdim=True)
+    slope = (xs * ys).sum(-1) / xs.square().sum(-1)
+    resid = ys - slope[:, None] * xs
+    naive = resid.square().sum(-1) / (xs.shape[-1] - 2) / xs.square().sum(-1)
+    n = xs.shape[-1]
+    bins = BinIndex(index=torch.arange(n)[None], weight=torch.ones(1, n, dtype=F64),
+                    count=torch.tensor([n]), n_bins=1, n_points=n, window=0.5, kernel="box")
+    kappa = float(overlap_inflation(bins, h))
+    assert kappa > 3  # the correction matters here
+    assert abs(float(slope.var() / naive.mean()) / kappa - 1) < 0.2
+    assert float(overlap_inflation(bins, h, "box")) == 1.0
+
+
+def test_velocity_interval_from_the_filters_noise_gain():
+    ratio = torch.tensor([0.0, 0.19, 1.1, 5.0, 50.0], dtype=F64)
+    # the box: h = ⌈ratio / 0.05⌉ within [1, a quarter cycle]
+    assert velocity_interval_for(ratio, 126, "box").tolist() == [1, 4, 22, 31, 31]
+    h = velocity_interval_for(ratio, 126)
+    assert h.tolist() == sorted(h.tolist()) and h[0] == 1 and h[-1] == 31
+    for k in range(1, 4):  # the shortest whose noise part is at most 5 % of the process's
+        _, g_rate = interval_noise_gains(int(h[k]), 1.0)
+        _, g_short = interval_noise_gains(int(h[k]) - 1, 1.0)
+        from torchconn.regression.noise_aware import interval_weights
+
+        def frac(hh, gr, k=k):
+            return float(ratio[k]) / 2 * gr / float(interval_weights(hh).square().sum())
+        assert frac(int(h[k]), g_rate) <= 0.05 < frac(int(h[k]) - 1, g_short)
+
+
+def test_bins_and_interval_follow_the_gaits_curvature(clean30):
+    # the interval and bin width are chosen by the estimated error of Â: the strongly curved
+    # 3-link reference gait (A varies fast along it) gets narrower bins than the circle, and
+    # both are within the issue's targets against the swimmer's exact connection
+    from torchconn.physics.gaits import reference_gait
+
+    seeds = np.arange(4)
+    ref = observe(simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=30,
+                           samples_per_cycle=DT_SAMPLES, seeds=seeds), 0.005, seeds=seeds)
+    circle = _recording(0.005, clean=clean30)
+    fit_ref, fit_circle = _fit(ref), _fit(circle)
+    w_ref, w_circle = fit_ref.model_.meta["window"], fit_circle.model_.meta["window"]
+    assert w_ref < w_circle, (w_ref, w_circle)
+    for est in (fit_ref, fit_circle):
+        assert _errors(est)[0] < 0.07
+        scores = est.model_.meta["interval_window_scores"]
+        assert len(scores) >= 5  # windows at the noise's interval, then longer intervals
+
+
 def test_attenuation_bias_is_gone(clean30):
     traj = _recording(0.005, clean=clean30)
     err_new, scale_new = _errors(_fit(traj))
@@ -346,6 +442,10 @@ def test_blend_keeps_a_clear_correction_and_drops_one_within_its_noise():
     from torchconn.regression.noise_aware import blend_fits
 
     smoothed = _fit_fields(1.0, 0.01)
+
+    def blend_fits(smoothed, corrected, _blend=blend_fits):
+        return _blend(smoothed, corrected, variance_factor=2.0)
+
     # differs by 1 with standard errors 0.01: w = 1 - 2 * 0.01² / 1² per entry
     fit, w = blend_fits(smoothed, _fit_fields(2.0, 0.01))
     assert torch.allclose(w, torch.full((1, 4), 1 - 2e-4, dtype=F64))
@@ -453,8 +553,7 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
     cycle = est.cycle.fit(prep)
     reg = NoiseAwareRegression(metric=False)
     full = reg.fit(prep, cycle)
-    # several groups: clean trials at h = 1, noisy ones at the longest interval (a tenth of a
-    # cycle, 6 samples)
+    # several groups: clean trials at h = 1, noisy ones at longer intervals
     assert len(set(full.meta["velocity_interval"])) >= 2 and len(set(full.meta["windows"])) >= 2
     groups = [[i] for i in range(8)] + [[0, 1, 2, 3], [1, 3, 5], [7, 6, 5, 4, 3, 2, 1, 0], [2, 6]]
     for group in groups:
@@ -471,8 +570,84 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
         torch.testing.assert_close(part.bins.A_se, full.bins.A_se[idx], rtol=1e-12, atol=0)
 
 
+def test_an_interval_the_bins_cannot_support_falls_back_to_a_shorter_one():
+    """One 9-link trial of 8 cycles at ω = 0.01 (the small sweep's cell): the noise rule asks
+    for the longest interval, a quarter cycle, where the filtered rows overlap so much that
+    some bins cannot be fitted (condition number > 1e12). The trial then takes the first
+    shorter interval whose bins can all be fitted, on its own data only: beside a trial that
+    needs no fall-back its fit is the same, bit for bit."""
+    from torchconn.physics.gaits import reference_gait
+
+    seeds = np.array([44, 41])
+    clean = simulate(NLinkSwimmer(9), reference_gait("9link"), eta=0.025, n_cycles=8,
+                     samples_per_cycle=64, seeds=seeds)
+    est = ConnectionEstimator()
+    prep = est.prepare(observe(clean, 0.01, seeds=seeds))
+    cycle = est.cycle.fit(prep)
+    reg = NoiseAwareRegression(metric=False)
+    rule = reg.noise_setup(prep, pool=False)[2].tolist()
+    assert rule[0] == 16  # a quarter of 64 samples per cycle
+    with pytest.raises(ValueError, match="cannot be fitted reliably"):
+        reg.replace(velocity_interval=rule[0]).fit(prep[:1], _index_cycle(cycle, [0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", IllConditionedBinWarning)  # no bin left unfitted
+        both = reg.fit(prep, cycle)
+        alone = reg.fit(prep[:1], _index_cycle(cycle, [0]))
+    h = both.meta["velocity_interval"]
+    assert 1 <= h[0] < rule[0] and h[1] == rule[1], (h, rule)
+    assert alone.meta["velocity_interval"] == h[:1]
+    assert bool(both.bins.A.isfinite().all())
+    for name in ("c", "b", "A", "dA"):
+        assert torch.equal(getattr(alone.bins, name), getattr(both.bins, name)[:1]), name
+
+
+def test_missing_samples_shorten_the_interval_or_take_the_box_filter():
+    """The triangle filter needs all ``h + 1`` samples of an interval: with a quarter of the
+    samples missing at random, the noise rule's interval keeps too few rows for any bin
+    width. The pooled fit then falls back to a shorter interval, and tries the box filter
+    (which needs only the interval's two ends), instead of failing; the held-out check and
+    the observed view use the filter it took."""
+    from torchconn.regression.skill import regression_view
+
+    seeds = np.array([61, 62])
+    traj = observe(simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12,
+                            samples_per_cycle=64, seeds=seeds), 0.01, seeds=seeds)
+    lost = torch.rand(traj.r.shape[:-1], generator=torch.Generator().manual_seed(0)) < 0.25
+    traj = traj.with_fields(pose=traj.pose.masked_fill(lost[..., None], float("nan")),
+                            r=traj.r.masked_fill(lost[..., None], float("nan")))
+    est = ConnectionEstimator(pool=True)
+    prep = est.prepare(traj)
+    cycle = est.cycle.fit(prep, pool=True)
+    reg = NoiseAwareRegression(metric=False)
+    rule = int(reg.noise_setup(prep, pool=True)[2])
+    assert rule > 2
+
+    def rows(kernel):
+        return int(interval_samples(prep.pose, prep.r, prep.phase, prep.dt, rule,
+                                    kernel).r_dot.isfinite().all(-1).sum())
+
+    assert rows("triangle") < 0.2 * rows("box")  # 0.75^(h+1) of the rows against 0.75^2
+    model = reg.fit(prep, cycle, pool=True)
+    meta = model.meta
+    assert bool(model.bins.A.isfinite().all())
+    scores = meta["interval_window_scores"]
+    assert any(row[-1] == "box" for row in scores) and any(len(row) == 3 for row in scores)
+    assert meta["velocity_kernel"] == "box" or 1 <= meta["velocity_interval"] < rule, meta
+    view = regression_view(prep, reg, model, pool=True, flatten=False)
+    iv = interval_samples(prep.pose, prep.r, prep.phase, prep.dt, meta["velocity_interval"],
+                          meta["velocity_kernel"])
+    assert torch.equal(view.xi.nan_to_num(), iv.xi.nan_to_num())
+
+
+def test_complete_data_keep_the_triangle_filter(clean30):
+    """Without missing samples the box's search does not run (it would only cost fits)."""
+    model = _fit(_recording(0.005, n_cycles=10, n_trials=2)).model_
+    assert model.meta["velocity_kernel"] == "triangle"
+    assert all(len(row) == 3 for row in model.meta["interval_window_scores"])
+
+
 def test_noise_setup_uses_each_trials_own_samples_per_cycle():
-    """The longest velocity interval is a tenth of the trial's own cycle: a trial phased at
+    """The longest velocity interval is a quarter of the trial's own cycle: a trial phased at
     half the rate (twice the samples per cycle) beside it does not change it."""
     seeds = np.arange(2) + 510
     clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
@@ -482,7 +657,9 @@ def test_noise_setup_uses_each_trials_own_samples_per_cycle():
     reg = NoiseAwareRegression()
     _, ratio, h = reg.noise_setup(slow, pool=False)
     assert float(ratio.min()) > 1  # noisy enough for the longest interval
-    assert h.tolist() == [6, 12]  # floor(64 / 10), floor(128 / 10)
+    # trial 0 at its own cap, floor(63.97 / 4) (the batch's mean 96 samples per cycle would
+    # allow 24); trial 1 (128 per cycle, cap 32) beyond it
+    assert int(h[0]) == 15 and int(h[1]) > 15
     for i in range(2):
         assert reg.noise_setup(slow[i:i + 1], pool=False)[2].tolist() == [h.tolist()[i]]
 
@@ -503,3 +680,23 @@ def test_one_noise_level_for_all_joints_of_a_trial():
     assert float(est.pooled_variance(0)[1, 0]) == 0.5
     pooled = est.pooled_variance(1, channels=True)  # one rig: mean 1.05, se 0.29
     torch.testing.assert_close(pooled, torch.full((3,), 1.05, dtype=F64))
+
+
+def test_noise_corrected_score_uses_the_filters_noise_gains():
+    """The held-out score's input-noise correction (``cross_validate(noise_corrected=True)``)
+    takes the noise of the samples the model sees: the filter's gains
+    (``interval_noise_gains``), not the box's ``σ²/2`` and ``2σ²/(hΔt)²`` (3.5x and 1.6x too much
+    for a triangle over 8 samples)."""
+    from torchconn.regression.skill import _noise_of
+
+    traj = _recording(0.005, n_cycles=10, n_trials=2)
+    model = _fit(traj).model_
+    meta = model.meta
+    h, kernel = meta["velocity_interval"], meta["velocity_kernel"]
+    assert kernel == "triangle" and h > 2
+    var_delta, var_rate = _noise_of(model, traj.dt, pool=True)
+    g_delta, g_rate = interval_noise_gains(h, traj.dt, kernel)
+    sigma2 = torch.tensor(meta["noise_r"], dtype=F64).square()
+    torch.testing.assert_close(var_delta, sigma2 * g_delta)
+    torch.testing.assert_close(var_rate, sigma2 * g_rate)
+    assert g_delta < 0.5 / 2 and g_rate < 2 / (h * traj.dt) ** 2

@@ -383,6 +383,26 @@ def _chunks(n_bins_total: int, bytes_per_bin: int) -> list[slice]:
     return [slice(i, min(i + step, n_bins_total)) for i in range(0, n_bins_total, step)]
 
 
+def fit_limits(p: int, dtype: torch.dtype, min_samples: int | None = None,
+               max_condition: float | None = None) -> tuple[int, float]:
+    """The fewest samples and the largest condition number with which :func:`solve` fits a
+    bin of ``p`` coefficients (None: the defaults, ``p + 5`` and ``1e12`` in float64)."""
+    if min_samples is None:
+        min_samples = p + 5
+    if max_condition is None:
+        max_condition = 1e12 if dtype == torch.float64 else 1e-2 / torch.finfo(dtype).eps
+    return min_samples, max_condition
+
+
+def unfittable(count: Tensor, condition: Tensor, p: int, dtype: torch.dtype,
+               min_samples: int | None = None, max_condition: float | None = None) -> Tensor:
+    """The bins :func:`solve` cannot fit reliably (too few samples or ill-conditioned; what
+    ``on_ill_conditioned`` acts on), from their sample counts and condition numbers (same
+    shape)."""
+    min_samples, max_condition = fit_limits(p, dtype, min_samples, max_condition)
+    return (count < min_samples) | ~(condition <= max_condition)
+
+
 def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, ridge: float,
           min_samples: int | None, max_condition: float | None,
           on_ill_conditioned: str, correction: Correction | None = None) -> Solution:
@@ -403,10 +423,7 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
     if delta_max is not None and not delta_max > 0:
         raise ValueError(f"{fn}: delta_max must be positive or None, got {delta_max!r}")
     p = n_coef
-    if min_samples is None:
-        min_samples = p + 5
-    if max_condition is None:
-        max_condition = 1e12 if s.r.dtype == torch.float64 else 1e-2 / torch.finfo(s.r.dtype).eps
+    min_samples, max_condition = fit_limits(p, s.r.dtype, min_samples, max_condition)
     total, n_max = s.rows.shape
     dtype, dev = s.r.dtype, s.r.device
     lam = torch.full((total,), float(ridge), dtype=dtype, device=dev)
@@ -424,7 +441,7 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
                           correction=correction)
     beta, se, rms, cond, count, kappa = sol
     few = count < min_samples
-    ill = few | ~(cond <= max_condition)
+    ill = unfittable(count, cond, p, dtype, min_samples, max_condition)
     if bool(ill.any()):
         if on_ill_conditioned == "raise":
             raise ValueError(_ill_message(fn, s, ill, few, count, cond, p, min_samples,
@@ -437,7 +454,7 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
                 lam, beta, se, rms, cond = _add_ridge(s, design, fix, lam, beta, se, rms, cond,
                                                       delta_max, binary, max_condition,
                                                       correction)
-            ill = few | ~(cond <= max_condition)
+            ill = unfittable(count, cond, p, dtype, min_samples, max_condition)
             report += (f"Added a ridge to {fix.numel()} ill-conditioned bin(s) (largest "
                        f"{float(lam.max()):.3g}, relative to the unit diagonal of the "
                        f"standardised normal matrix; see the fit's .ridge)")

@@ -32,7 +32,13 @@ from .binning import assign_bins
 from .connection import split_coefficients
 from .held_out import leave_blocks_out
 from .model import LocalConnectionModel
-from .noise_aware import NoiseAwareRegression, eiv_correction, interval_view
+from .noise_aware import (
+    VELOCITY_KERNEL,
+    NoiseAwareRegression,
+    eiv_correction,
+    interval_noise_gains,
+    interval_view,
+)
 from .tube import Regression, TubeRegression, _auto_window, intercept_series
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
@@ -135,7 +141,8 @@ def regression_view(traj: Trajectory, regression: Regression, model: LocalConnec
     and ``flatten``); the interval of a noise-aware model comes from its ``meta``."""
     if isinstance(regression, NoiseAwareRegression):
         iv = interval_view(traj, torch.as_tensor(model.meta["velocity_interval"],
-                                                 device=traj.r.device))
+                                                 device=traj.r.device),
+                           model.meta.get("velocity_kernel", VELOCITY_KERNEL))
         view = _View(iv.phase, iv.r, iv.r_dot, iv.xi)
     else:
         sm = traj.smoothed
@@ -261,10 +268,8 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
     kw = dict(dtype=r.dtype, device=r.device)
     var_delta = var_rate = None
     if isinstance(regression, NoiseAwareRegression):
-        var = torch.as_tensor(meta["noise_r"], **kw).square().expand(batch + (d,))
-        span = torch.as_tensor(meta["velocity_interval"], **kw) * traj.dt
-        var_delta, var_rate = var / 2, 2 * var / span.expand(batch).unsqueeze(-1) ** 2
-        var_delta, var_rate = var_delta.reshape(n, d), var_rate.reshape(n, d)
+        var_delta, var_rate = (v.reshape(n, d) for v in _interval_noise(meta, batch, traj.dt,
+                                                                         **kw))
     if window is None:
         window = _fold_windows(regression, meta, phase, fold, d)
     windows = torch.as_tensor(window, dtype=torch.float64, device=r.device).expand(
@@ -343,8 +348,10 @@ def _fold_windows(regression: Regression, meta: dict, phase: Tensor, fold: Tenso
         return _auto_window(train, regression.n_bins, 1 + 2 * d + d * d,
                             regression.samples_per_regressor)
     ratio = torch.as_tensor(meta["noise_ratio"], dtype=torch.float64, device=phase.device)
-    if train.ndim == 1:
-        return regression._window(train, d, float(ratio))
+    if train.ndim == 1:  # pooled: the window the fit chose, widened as fewer cycles need
+        return max(float(meta["window"]), _auto_window(train, regression.n_bins,
+                                                       1 + 2 * d + d * d,
+                                                       regression.samples_per_regressor))
     return regression.element_windows(train.reshape(-1, train.shape[-1]), d,
                                       ratio.reshape(-1)).reshape(train.shape[:-1])
 
@@ -376,13 +383,25 @@ def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):
     """Noise variances of the view's ``δ`` and ``δ̇`` from a noise-aware model's ``meta``,
     shaped to broadcast against the view's ``(..., N, d)``."""
     kw = dict(dtype=model.phase_rate.dtype, device=model.phase_rate.device)
-    sigma2 = torch.as_tensor(model.meta["noise_r"], **kw).square()
-    h = torch.as_tensor(model.meta["velocity_interval"], **kw)
-    var_rate = 2 * sigma2 / (h[..., None] * dt) ** 2
-    var_delta = sigma2 / 2
+    batch = () if pool else tuple(torch.as_tensor(model.meta["velocity_interval"], **kw).shape)
+    var_delta, var_rate = _interval_noise(model.meta, batch, dt, **kw)
     if not pool:
         var_rate, var_delta = var_rate.unsqueeze(-2), var_delta.unsqueeze(-2)
     return var_delta, var_rate
+
+
+def _interval_noise(meta: dict, batch: tuple, dt: float, **kw) -> tuple[Tensor, Tensor]:
+    """Noise variances ``(*batch, d)`` of ``δ`` and ``δ̇`` in a noise-aware fit's interval
+    samples, from its ``meta`` (noise level, velocity interval and filter; the gains of
+    :func:`~torchconn.regression.noise_aware.interval_noise_gains`)."""
+    sigma2 = torch.as_tensor(meta["noise_r"], **kw).square()
+    sigma2 = sigma2.expand(batch + sigma2.shape[-1:])
+    h = torch.as_tensor(meta["velocity_interval"], device=kw.get("device")).expand(batch)
+    h = h.reshape(-1).tolist()
+    kernel = meta.get("velocity_kernel", VELOCITY_KERNEL)
+    gains = torch.tensor([interval_noise_gains(int(v), dt, kernel) for v in h],
+                         **kw).reshape(batch + (2,))
+    return sigma2 * gains[..., :1], sigma2 * gains[..., 1:]
 
 
 def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
