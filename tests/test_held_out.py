@@ -139,3 +139,32 @@ def test_a_complexity_the_recording_cannot_carry_is_reported(short):
     with pytest.warns(PoorHeldOutSkillWarning, match="cannot be fitted when one block"):
         est = ConnectionEstimator(regression=reg, complexity="fixed").fit(short)
     assert bool(est.held_out_skill_.unscored.all())
+
+
+
+def test_the_shape_terms_must_win_by_more_than_z_standard_errors_of_the_cycles():
+    from scipy import stats
+
+    gen = torch.Generator().manual_seed(0)
+    gaps = torch.randn(4, 6, 3, generator=gen, dtype=F64) - 0.6  # (trials, cycles, components)
+    gaps[1, 4:] = 0.0  # a trial with 4 scored cycles
+    gaps[2, :, 1] = 0.0  # a component tied in every cycle: never "better"
+    t = torch.full((4, 3), math.nan, dtype=F64)
+    for i in range(4):
+        for k in range(3):
+            g = gaps[i, :, k][gaps[i, :, k] != 0].numpy()
+            if len(g) > 1:
+                t[i, k] = float(stats.ttest_1samp(g, 0.0).statistic)
+    base = torch.full_like(gaps, 2.0)  # the phase average's squared error per cycle
+    for z in (0.0, 1.0, 2.5):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(skill, "FALLBACK_Z", z)
+            mp.setattr(skill, "FALLBACK_MARGIN", 0.0)
+            better = skill._clearly_better(torch.stack([gaps, base], -1))
+            assert torch.equal(better, torch.nan_to_num(t, nan=math.inf) < -z)
+            assert not bool(better[2, 1])
+            # and by more than a fraction of the phase average's error
+            mp.setattr(skill, "FALLBACK_MARGIN", 0.1)
+            wins = gaps.sum(-2) < -0.1 * base.sum(-2)
+            assert torch.equal(skill._clearly_better(torch.stack([gaps, base], -1)),
+                               better & wins)
