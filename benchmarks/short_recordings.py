@@ -8,7 +8,10 @@ component against the smoothed observed velocity (what the default regression is
 
 - ``fixed``: today's fixed complexity (48 bins, Fourier order 12, no ridge);
 - ``default``: ``ConnectionEstimator()`` -- complexity ``"auto"``: chosen by held-out error
-  over blocks of whole training cycles when the fixed one loses to the phase average there;
+  over blocks of whole training cycles when the fixed one loses to the phase average there,
+  each component falling back to the phase average where its shape terms do not clearly beat
+  it held out (``choice`` ends in ``/pa:x,y`` for v_x and v_y; such a component ties the
+  phase average exactly);
 - ``phase avg``: the training cycles' phase-averaged velocity (order of the default's series);
 - ``template``: the default model on the cycle, ``Â(γ)γ̇``;
 - ``exact A``: the swimmer's exact connection applied to the same smoothed noisy shapes and
@@ -220,10 +223,14 @@ def main(argv=None) -> int:
     p.add_argument("--skip-fixed", action="store_true", help="leave out the fixed column")
     p.add_argument("--margin", type=float, default=None,
                    help="skill.FALLBACK_MARGIN to measure (default: the library's)")
+    p.add_argument("--z", type=float, default=None,
+                   help="skill.FALLBACK_Z to measure (default: the library's)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     if args.margin is not None:
         skill.FALLBACK_MARGIN = args.margin
+    if args.z is not None:
+        skill.FALLBACK_Z = args.z
     return cost(args) if args.cost else table(args)
 
 

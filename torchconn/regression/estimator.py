@@ -247,10 +247,12 @@ class ConnectionEstimator:
                     held = self._held_out(traj, cycle, regression, model, choice)
         view = skill.regression_view(traj, regression, model, pool=self.pool)
         self.phase_average_ = skill.phase_average(view, regression.fourier_order)
-        if choice is not None:
+        if choice is not None and any(choice.phase_averaged_names()):
             # components whose shape terms lost to the phase average held out predict it
             model = skill.with_phase_average(model, self.phase_average_,
                                              choice.phase_average_mask(model.device))
+            # one order for both, so that score() finds them tied exactly
+            self.phase_average_ = skill.padded(self.phase_average_, model.c.order)
         self.trajectory_ = traj
         self.phaser_ = fitted_phaser
         self.limit_cycle_ = cycle
