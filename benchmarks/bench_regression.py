@@ -9,6 +9,13 @@ errors are sandwich estimates, against a weighted lstsq loop.
     python benchmarks/bench_regression.py [--trials 160] [--bins 16 32] [--loop-trials 20]
                                           [--threads 2] [--kernel tricube]
 
+Times are the best of ``--repeat`` runs, both wall-clock and CPU time of this process
+(``time.process_time``): with one thread on a shared, loaded machine the CPU time is the steadier
+measure (waiting for a core does not count), so both ratios are printed. The last lines per bin
+count give the ceiling of per-bin normal equations on this machine: the dense kernels alone, and
+the essential flops (the Gram matrix's lower half, Cholesky and triangular inverse) at the
+matmul peak.
+
 One trial holds 30 × 64 = 1920 samples, so at M = 32 a half-spacing window leaves 60 samples per
 bin for 81 regressors; the bins are widened to ``window = 0.5 · M / 16`` (overlapping, ~120
 samples each, every sample in M/16 bins) unless ``--window`` is given. The loop is timed on
@@ -94,7 +101,7 @@ def flops(n_rows_padded: int, p: int, k: int, n_systems: int, weighted: bool = F
 
 
 def primitive_floor(n_systems: int, n_rows: int, p: int, k: int, repeat: int) -> dict:
-    """Per-bin time (µs) of the three dense kernels every bin needs, on the real shapes."""
+    """Per-bin CPU time (µs) of the three dense kernels every bin needs, on the real shapes."""
     b = min(n_systems, 256)  # one cache-sized chunk, as the solver runs them
     xy = torch.randn(b, n_rows, p + k, dtype=torch.float64)
     gram = (xy.mT @ xy)[:, :p, :p].contiguous()
@@ -107,16 +114,28 @@ def primitive_floor(n_systems: int, n_rows: int, p: int, k: int, repeat: int) ->
         "(one triangular solve against I, before)":
             lambda: torch.linalg.solve_triangular(chol, eye, upper=False),
     }
-    return {name: best_of(fn, repeat) / b * 1e6 for name, fn in kernels.items()}
+    return {name: best_times(fn, repeat)[1] / b * 1e6 for name, fn in kernels.items()}
 
 
 def best_of(fn, repeat: int) -> float:
-    times = []
+    return best_times(fn, repeat)[0]
+
+
+def best_times(fn, repeat: int) -> tuple[float, float]:
+    """Best wall-clock and best CPU time (this process) of ``repeat`` runs of ``fn``."""
+    wall, cpu = [], []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return min(wall), min(cpu)
+
+
+def essential_flops(n_rows: int, p: int, k: int) -> float:
+    """Flops no per-bin normal-equation solver avoids: the lower half of ``[X|y]ᵀ[X|y]``,
+    Cholesky ``P³/3`` and the triangular inverse ``P³/3`` for the standard errors."""
+    return n_rows * (p + k) * (p + k + 1) + 2 * p**3 / 3
 
 
 def main(argv=None) -> int:
@@ -140,9 +159,10 @@ def main(argv=None) -> int:
 
     a = torch.randn(2048, 2048, dtype=torch.float64)
     a @ a
-    peak = 2 * 2048**3 / best_of(lambda: a @ a, 3) / 1e9
+    peak, peak_cpu = (2 * 2048**3 / t / 1e9 for t in best_times(lambda: a @ a, 3))
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; "
-          f"float64 matmul 2048² peak: {peak:.1f} GFLOP/s; load average "
+          f"float64 matmul 2048² peak: {peak:.1f} GFLOP/s wall, {peak_cpu:.1f} GFLOP/s CPU "
+          "(CPU time sums the threads); load average "
           + ", ".join(f"{x:.1f}" for x in os.getloadavg())
           + " (on a shared machine compare ratios within one run)")
 
@@ -162,16 +182,17 @@ def main(argv=None) -> int:
             return connection_regression(r, r_dot, xi, b, gm, gdm)
 
         fit = batched()
-        t_batched = best_of(batched, args.repeat)
+        t_batched, c_batched = best_times(batched, args.repeat)
         t_bin = best_of(lambda n_bins=n_bins, window=window: assign_bins(
             phase, n_bins, window=window, kernel=args.kernel), args.repeat)
 
         lt = min(args.loop_trials, args.trials)
         sl = slice(0, lt)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         ref = loop_reference(phase[sl], r[sl], r_dot[sl], xi[sl], gm, gdm, n_bins, window,
                              args.kernel)
         t_loop = (time.perf_counter() - t0) * args.trials / lt
+        c_loop = (time.process_time() - c0) * args.trials / lt
         ref = torch.from_numpy(np.stack(ref)).reshape(lt, n_bins, p, 3)
         err = ((fit.coef[sl] - ref).abs().max() / ref.abs().max()).item()
 
@@ -181,14 +202,22 @@ def main(argv=None) -> int:
         print(f"  batched (binning + regression + SEs): {t_batched * 1e3:8.1f} ms "
               f"(binning {t_bin * 1e3:.1f} ms)")
         print(f"  lstsq loop (scaled from {lt} trials): {t_loop * 1e3:8.1f} ms")
-        print(f"  speed-up: {t_loop / t_batched:.1f}x;  max rel. diff vs lstsq: {err:.2e}")
-        print(f"  batched: {gflop:.2f} GFLOP -> {gflop / t_batched:.1f} GFLOP/s "
-              f"({100 * gflop / t_batched / peak:.0f}% of matmul peak)")
+        print(f"  CPU time: batched {c_batched * 1e3:.1f} ms, loop {c_loop * 1e3:.1f} ms")
+        print(f"  speed-up: {t_loop / t_batched:.1f}x wall, {c_loop / c_batched:.1f}x CPU;  "
+              f"max rel. diff vs lstsq: {err:.2e}")
+        print(f"  batched: {gflop:.2f} GFLOP -> {gflop / t_batched:.1f} GFLOP/s wall "
+              f"({100 * gflop / t_batched / peak:.0f}% of matmul peak), "
+              f"{gflop / c_batched:.1f} GFLOP/s CPU ({100 * gflop / c_batched / peak_cpu:.0f}%)")
         n_sys = args.trials * n_bins
         floor = primitive_floor(n_sys, bins.max_count, p, 3, args.repeat)
-        per_bin = f"batched {t_batched / n_sys * 1e6:.0f} µs, loop {t_loop / n_sys * 1e6:.0f} µs"
-        print(f"  per bin: {per_bin}; dense kernels alone: "
-              + ", ".join(f"{k} {v:.0f} µs" for k, v in floor.items()))
+        loop_bin, batched_bin = c_loop / n_sys * 1e6, c_batched / n_sys * 1e6
+        print(f"  per bin (CPU): batched {batched_bin:.0f} µs, loop {loop_bin:.0f} µs; "
+              "dense kernels alone: " + ", ".join(f"{k} {v:.0f} µs" for k, v in floor.items()))
+        kernels = sum(v for k, v in floor.items() if not k.startswith("("))
+        at_peak = essential_flops(bins.max_count, p, 3) / (peak_cpu * 1e3)
+        print(f"  ceiling: the three kernels alone allow {loop_bin / kernels:.1f}x the loop; the "
+              f"essential flops at the matmul peak take {at_peak:.0f} µs per bin "
+              f"({loop_bin / at_peak:.1f}x); 15x needs {loop_bin / 15:.0f} µs per bin in all")
     return 0
 
 

@@ -164,6 +164,35 @@ def test_eiv_guard_scales_the_correction_down_instead_of_failing():
     assert bool(torch.isfinite(fit.A).all())
 
 
+def test_eiv_guard_scale_is_the_generalised_eigenvalue_bound():
+    # κ = min(1, 0.9 / λ_max) with λ_max the largest generalised eigenvalue of (corr, gram),
+    # here from scipy's generalised symmetric eigensolver, on bins where the full correction
+    # is safe (κ = 1, settled by the guard's positive-definiteness test), bins where it is
+    # not (κ < 1) and a bin whose Gram matrix is singular (κ = 0)
+    from scipy.linalg import eigh
+
+    from torchconn.regression._wls import _guarded_correction
+
+    g = torch.Generator().manual_seed(5)
+    b, n, d = 24, 60, 3
+    delta = 0.2 * torch.randn(b, n, d, generator=g, dtype=F64)
+    rate = 0.5 * torch.randn(b, n, d, generator=g, dtype=F64)
+    x = connection_design(delta, rate)
+    gram = x.mT @ x
+    gram[-1] = gram[-1, :, :1] @ gram[-1, :1, :] / gram[-1, 0, 0]  # rank one: singular
+    level = torch.logspace(-4, -1, b, dtype=F64).unsqueeze(-1)
+    corr = eiv_correction(gram, level * torch.ones(b, d, dtype=F64),
+                          4 * level * torch.ones(b, d, dtype=F64))
+    corrected, kappa = _guarded_correction(gram, corr)
+    lam = torch.tensor([eigh(c.numpy(), gm.numpy(), eigvals_only=True)[-1]
+                        for c, gm in zip(corr[:-1], gram[:-1], strict=True)], dtype=F64)
+    expected = torch.clamp(0.9 / lam, max=1.0)
+    assert bool((kappa[:-1] == 1).any()) and bool((kappa[:-1] < 1).any())
+    assert torch.allclose(kappa[:-1], expected, rtol=1e-9, atol=0)
+    assert float(kappa[-1]) == 0
+    assert torch.equal(corrected, gram - kappa[:, None, None] * corr)
+
+
 def test_bad_velocity_interval_and_too_few_cycles_are_clear():
     with pytest.raises(ValueError, match="velocity_interval"):
         NoiseAwareRegression(velocity_interval=0)

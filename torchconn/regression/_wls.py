@@ -194,20 +194,27 @@ def _guarded_correction(gram: Tensor, corr: Tensor) -> tuple[Tensor, Tensor]:
     (few samples, or more noise than signal there), where the full correction would leave an
     indefinite matrix: the largest generalised eigenvalue ``λ`` of ``(corr, gram)`` gives
     ``κ = min(1, _MAX_CORRECTION / λ)``.
+
+    ``λ < _MAX_CORRECTION`` exactly when ``_MAX_CORRECTION · gram − corr`` is positive definite,
+    so one Cholesky factorisation per bin settles the usual case (``κ = 1``); ``λ`` itself (a
+    triangular inverse, two products and a symmetric eigensolver, ~10x the cost) is computed
+    only for the bins that fail it (1.6 % of a 9-link noise-aware fit's bins, measured).
     """
-    p = gram.shape[-1]
-    eye = torch.eye(p, dtype=gram.dtype, device=gram.device)
     diag = gram.diagonal(dim1=-2, dim2=-1)
     # equilibrate and decouple all-zero columns so that the factorisation exists
     scale = torch.where(diag > 0, diag.sqrt(), 1.0)
     outer = scale.unsqueeze(-1) * scale.unsqueeze(-2)
     g_s = gram / outer + torch.diag_embed((diag <= 0).to(gram))
+    c_s = corr / outer
     chol, info = torch.linalg.cholesky_ex(g_s)
-    chol = torch.where((info != 0)[:, None, None], eye, chol)
-    l_inv = torch.linalg.solve_triangular(chol, eye.expand_as(gram), upper=False)
-    rel = l_inv @ (corr / outer) @ l_inv.mT
-    lam_max = torch.linalg.eigvalsh(0.5 * (rel + rel.mT))[..., -1]
-    kappa = torch.where(lam_max > _MAX_CORRECTION, _MAX_CORRECTION / lam_max, 1.0)
+    _, info_rest = torch.linalg.cholesky_ex(_MAX_CORRECTION * g_s - c_s)
+    kappa = gram.new_ones(gram.shape[0])
+    check = ((info == 0) & (info_rest != 0)).nonzero().flatten()
+    if check.numel():
+        l_inv = _triangular_inverse(chol[check])
+        rel = l_inv @ c_s[check] @ l_inv.mT
+        lam_max = torch.linalg.eigvalsh(0.5 * (rel + rel.mT))[..., -1]
+        kappa[check] = torch.where(lam_max > _MAX_CORRECTION, _MAX_CORRECTION / lam_max, 1.0)
     kappa = torch.where(info != 0, 0.0, kappa)  # already singular: left to the rank checks
     return gram - kappa[:, None, None] * corr, kappa
 
@@ -240,11 +247,13 @@ def ridge_cholesky(gram: Tensor, lam: Tensor | float
 
 
 def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
-               tolerate_dead: bool, correction: Tensor | None = None):
+               tolerate_dead: bool, correction: Correction | None = None, sel=None):
     """Solve one chunk of bins from ``xy = √w [X | y]`` ``(b, n, P + K)``; ``lam (b,)`` ridge.
 
-    ``correction (b, P, P)``, when given, is the expected noise part of ``XᵀWX`` (errors in
-    the regressors); it is subtracted under the guard of :func:`_guarded_correction`.
+    ``correction``, when given, maps this chunk's ``XᵀWX (b, P, P)`` (the bins ``sel``) to its
+    expected noise part (errors in the regressors), which is subtracted under the guard of
+    :func:`_guarded_correction`; it gets the ``XᵀWX`` block of the one ``[X|y]ᵀW[X|y]``
+    product (no second product of the design).
 
     One batched matmul forms ``[X|y]ᵀW[X|y]``; Cholesky is invariant to diagonal scaling (van der
     Sluis), so the unscaled normal matrix is factorised and the equilibrated quantities --
@@ -264,7 +273,7 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     if correction is None:
         kappa = gram.new_ones(gram.shape[0])
     else:
-        gram, kappa = _guarded_correction(gram, correction)
+        gram, kappa = _guarded_correction(gram, correction(gram, sel))
     # unless tolerated (a ridge was asked for) a dead column makes the bin rank-deficient:
     # infinite condition number
     chol, failed, dead, d2 = ridge_cholesky(gram, lam)
@@ -357,11 +366,8 @@ def _solve_bins(s: BinnedSamples, sel_list, design: Design, lam: Tensor, delta_m
     outs = []
     for sel in sel_list:
         xy, w = _chunk_design(s, sel, design, delta_max)
-        corr = None
-        if correction is not None:
-            xw = xy[..., : xy.shape[-1] - s.y.shape[-1]]
-            corr = correction(xw.mT @ xw, sel)
-        outs.append(_fit_chunk(xy, w, lam[sel], binary, s.y.shape[-1], tolerate_dead, corr))
+        outs.append(_fit_chunk(xy, w, lam[sel], binary, s.y.shape[-1], tolerate_dead,
+                               correction, sel))
     return [torch.cat(parts) for parts in zip(*outs, strict=True)]
 
 
