@@ -117,7 +117,8 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
         "/pa:" + ",".join(n.removeprefix("v_")[0] for n in c.phase_averaged_names())
         if c.phase_averaged_names() else "")
     held = est.held_out_skill_
-    out["warned"] = bool(held.worse_than_phase_average.any() | held.unscored.any())
+    out["warned"] = bool(held.worse_than_phase_average.any() | held.unscored.any()) or bool(
+        c is not None and c.phase_averaged_names())  # the fall-back warns too
     return out
 
 

@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
                             "fourier_order": est.complexity_.fourier_order,
                             "ridge": est.complexity_.ridge,
                             "components": list(COMPONENTS),
-                            "phase_averaged": est.complexity_.phase_average_mask().tolist()}),
+                            "phase_averaged": _nested_list(est.complexity_.phase_averaged)}),
             "held_out_skill": None if held_out is None else _skill_summary(held_out, folds),
             "outputs": outputs,
             "device": str(device),
@@ -315,6 +315,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     return run_command(PROG, body)
+
+
+def _nested_list(x):
+    """Nested tuples as nested lists (JSON)."""
+    return [_nested_list(v) for v in x] if isinstance(x, tuple) else x
 
 
 def _skill_summary(skill, n_folds: int) -> dict:

@@ -163,13 +163,15 @@ class ComplexityChoice:
     scores: tuple[tuple[int, int, float, float], ...]
     phase_averaged: tuple = (False, False, False)
 
-    def phase_average_mask(self, device=None) -> Tensor:
-        """:attr:`phase_averaged` as a bool tensor ``(..., 3)``."""
+    def phase_average_mask(self, device: torch.device | str) -> Tensor:
+        """:attr:`phase_averaged` as a bool tensor ``(..., 3)`` on ``device``."""
         return torch.tensor(self.phase_averaged, dtype=torch.bool, device=device)
 
     def phase_averaged_names(self) -> list[str]:
         """The components predicted by the phase-averaged velocity in some batch element."""
-        any_ = self.phase_average_mask().reshape(-1, 3).any(0).tolist()
+        def rows(x):
+            return [x] if not isinstance(x[0], tuple) else [r for v in x for r in rows(v)]
+        any_ = [any(col) for col in zip(*rows(self.phase_averaged), strict=True)]
         return [n for n, a in zip(COMPONENTS, any_, strict=True) if a]
 
 
