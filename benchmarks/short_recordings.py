@@ -4,9 +4,10 @@ Short recordings like tracked fish: one trial of 3-6 gait cycles, 4 joints (5-li
 capture noise ω = 0.005 on x, y, θ and every r_i (the paper's SDE, α = 0.05, η = 0.025,
 126 samples per cycle). The estimator is fitted to the first ``n`` cycles and scored on the
 next 4 cycles of the same trial (phased by the fitted phaser), as R² per body-velocity
-component against the smoothed observed velocity (what the default regression is fitted to):
+component against the observed velocity the way the default regression sees it (raw interval
+differences of the noisy poses for ``NoiseAwareRegression``):
 
-- ``fixed``: today's fixed complexity (48 bins, Fourier order 12, no ridge);
+- ``fixed``: the default regression at a fixed complexity (48 bins, Fourier order 12, no ridge);
 - ``default``: ``ConnectionEstimator()`` -- complexity ``"auto"``: chosen by held-out error
   over blocks of whole training cycles when the fixed one loses to the phase average there,
   each component falling back to the phase average where its shape terms do not clearly beat
@@ -14,8 +15,9 @@ component against the smoothed observed velocity (what the default regression is
   phase average exactly);
 - ``phase avg``: the training cycles' phase-averaged velocity (order of the default's series);
 - ``template``: the default model on the cycle, ``Â(γ)γ̇``;
-- ``exact A``: the swimmer's exact connection applied to the same smoothed noisy shapes and
-  shape velocities -- what a perfect estimate of ``A`` would score against this target.
+- ``exact A``: the swimmer's exact connection applied to the same noisy shapes and shape
+  velocities the regression sees -- what a perfect estimate of ``A`` would score against this
+  target.
 
 Only ``Phaser(min_cycles=2.5)`` differs from the defaults: a recording of exactly 3 cycles
 often phases to 2.9-3.0 and the default Phaser (3 cycles) refuses it.
@@ -81,13 +83,16 @@ def recording(n_links: int, kind: str, n_cycles: int, seed: int, omega: float):
 
 
 def _exact_r2(est: ConnectionEstimator, test, n_links: int) -> torch.Tensor:
-    """R² of the exact connection on the smoothed test recording (phase-free)."""
-    prepared = est.prepare(test)
-    sm = prepared.smoothed
-    pred = (NLinkSwimmer(n_links).connection(sm.r) @ sm.r_dot.unsqueeze(-1)).squeeze(-1)
-    y = sm.xi
-    sst = (y - y.mean(-2, keepdim=True)).square().sum(-2)
-    return (1 - (y - pred).square().sum(-2) / sst).reshape(-1)
+    """R² of the exact connection on the test recording, on the samples and against the
+    target the fitted regression sees (:func:`~torchconn.regression.skill.regression_view`:
+    raw interval differences for the noise-aware regression, the smoothed velocities for
+    ``TubeRegression``), phase-free."""
+    view = skill.regression_view(est.prepare(test), est.regression_, est.model_, pool=False,
+                                 flatten=False)
+    pred = (NLinkSwimmer(n_links).connection(view.r) @ view.r_dot.unsqueeze(-1)).squeeze(-1)
+    y = view.xi
+    sst = (y - y.nanmean(-2, keepdim=True)).square().nansum(-2)
+    return (1 - (y - pred).square().nansum(-2) / sst).reshape(-1)
 
 
 def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,

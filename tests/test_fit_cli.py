@@ -73,7 +73,7 @@ def test_fit_takes_any_stage_setting_and_refuses_bad_ones_by_name(recording, tmp
         (["--set", "smoother.order=4"], "RTSSmoother.order must be one of 2, 3, got 4"),
         (["--set", "estimator.phasr.order=2"],
          "unknown key 'phasr' (did you mean 'phaser'?)"),
-        (["--n-bins", "2"], "TubeRegression.n_bins must be >= 3, got 2"),
+        (["--n-bins", "2"], "NoiseAwareRegression.n_bins must be >= 3, got 2"),
     ):
         assert main([str(recording), "--links", "3", "--out", str(tmp_path / "x"), *extra]) == 2
         assert message in capsys.readouterr().err

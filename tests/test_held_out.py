@@ -106,6 +106,41 @@ def test_cross_validate_matches_the_refitting_one_when_nothing_is_rechosen(eight
     torch.testing.assert_close(down.r2_phase_average, refit.r2_phase_average)
 
 
+def test_the_check_scores_the_noise_aware_fit_as_blended_with_the_smoothed_one(eight):
+    """The held-out fits of a NoiseAwareRegression are combined as its fit combines them: the
+    smoothed regression refitted without each block (its own window rule on the other
+    blocks) plus the fit's weights times the corrected fit's difference from it. Scoring the
+    corrected estimate alone was pessimistic wherever the blend falls back."""
+    from torchconn.regression.tube import _auto_window
+
+    traj, cycle, _ = eight
+    reg = NoiseAwareRegression(metric=False, n_bins=16, fourier_order=4)
+    model, view, fold = _setup(traj, cycle, reg, pool=False)
+    w = torch.as_tensor(model.meta["corrected_weight"], dtype=F64)  # (2, 4): c, b, A, ∂A/∂r
+    assert bool((w < 1).any()) and bool((w > 0).any())
+    corrected = skill.held_out_coefficients(traj, reg, model, view, fold, 3, pool=False)
+    blended = skill.blended_held_out(traj, reg, model, corrected, 3, pool=False)[0]
+    sm, d = traj.smoothed, traj.shape_dim
+    sample_fold = skill._cycle_blocks(traj.phase, 3)
+    term = torch.tensor([0] + [1] * d + [2] * d + [3] * d * d)
+    # the window rule on the samples outside block 0, as for the corrected fits (the blocks
+    # are about equal)
+    window = _auto_window(torch.where(sample_fold == 0, torch.nan, traj.phase), 16,
+                          1 + 2 * d + d * d, reg.samples_per_regressor)
+    for f in range(3):
+        phase = torch.where(sample_fold == f, torch.nan, traj.phase)
+        bins = assign_bins(phase, 16, window=window, kernel="tricube")
+        smoothed = connection_regression(sm.r, sm.r_dot, sm.xi, bins, model.bins.gamma,
+                                         model.bins.gamma_dot).coef  # (2, M, P, 3)
+        weight = w[:, term][:, None, :, None]
+        _close(blended[f], smoothed + weight * (corrected[0, f] - smoothed))
+    # the check's score is the blend's: at least as good as the corrected estimate's alone
+    blend = skill.cross_validate(traj, cycle, reg, pool=False, model=model)
+    alone = skill.cross_validate(traj, cycle, reg.replace(shrink_to_smoothed=False),
+                                 pool=False)
+    assert float((blend.r2 - alone.r2).mean()) > 0
+
+
 @pytest.fixture(scope="module")
 def short():
     """One trial of the 5-link, 4 cycles, ω = 0.005: the default complexity overfits it."""

@@ -364,3 +364,60 @@ def test_observed_view_is_what_each_regression_sees():
             expected = est.model_.predict(prepared.phase, prepared.smoothed.r,
                                           prepared.smoothed.r_dot)
         assert torch.allclose(models["data_driven"], expected)
+
+
+def _index_cycle(cycle, idx):
+    """Batch elements ``idx`` of a fitted LimitCycle (its series and per-element tensors)."""
+    import dataclasses
+
+    def take(x):
+        return dataclasses.replace(x, coeffs=x.coeffs[idx]) if hasattr(x, "coeffs") else x[idx]
+
+    return dataclasses.replace(cycle, **{f.name: take(getattr(cycle, f.name))
+                                         for f in dataclasses.fields(cycle)})
+
+
+def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
+    """One model per trial (the sweep's setting): fitting a batch, each trial alone and in
+    other groupings and orders gives the same noise estimate, interval, window, blend weights
+    and coefficients, bit for bit (a sweep's results must not depend on its block size).
+    Trials at different noise levels fall in different (interval, window) groups."""
+    seeds = np.arange(8) + 500
+    omega = torch.tensor([0.0, 0.002, 0.005, 0.01] * 2, dtype=F64)
+    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
+                     seeds=seeds)
+    est = ConnectionEstimator()
+    prep = est.prepare(observe(clean, omega, seeds=seeds))
+    cycle = est.cycle.fit(prep)
+    reg = NoiseAwareRegression(metric=False)
+    full = reg.fit(prep, cycle)
+    assert len(set(full.meta["velocity_interval"])) >= 3  # several groups
+    groups = [[i] for i in range(8)] + [[0, 1, 2, 3], [1, 3, 5], [7, 6, 5, 4, 3, 2, 1, 0], [2, 6]]
+    for group in groups:
+        idx = torch.tensor(group)
+        part = reg.fit(prep[idx], _index_cycle(cycle, idx))
+        for key in ("velocity_interval", "noise_ratio", "noise_r", "windows",
+                    "corrected_weight"):
+            assert part.meta[key] == [full.meta[key][i] for i in group], (group, key)
+        for name in ("c", "b", "A", "dA"):
+            assert torch.equal(getattr(part.bins, name), getattr(full.bins, name)[idx]), (
+                group, name)
+        # the standard errors' row sums round with the batch's padded bin length (the
+        # solver's, shared with TubeRegression): equal to the last few bits
+        torch.testing.assert_close(part.bins.A_se, full.bins.A_se[idx], rtol=1e-12, atol=0)
+
+
+def test_noise_setup_uses_each_trials_own_samples_per_cycle():
+    """The longest velocity interval is a tenth of the trial's own cycle: a trial phased at
+    half the rate (twice the samples per cycle) beside it does not change it."""
+    seeds = np.arange(2) + 510
+    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
+                     seeds=seeds)
+    prep = ConnectionEstimator().prepare(observe(clean, 0.04, seeds=seeds))
+    slow = prep.with_fields(phase=torch.stack([prep.phase[0], prep.phase[1] / 2]))
+    reg = NoiseAwareRegression()
+    _, ratio, h = reg.noise_setup(slow, pool=False)
+    assert float(ratio.min()) > 1  # noisy enough for the longest interval
+    assert h.tolist() == [6, 12]  # floor(64 / 10), floor(128 / 10)
+    for i in range(2):
+        assert reg.noise_setup(slow[i:i + 1], pool=False)[2].tolist() == [h.tolist()[i]]

@@ -23,6 +23,7 @@ from torchconn.regression.estimator import (
     estimator_settings,
 )
 from torchconn.regression.metric import metric_n_coef, metric_regression
+from torchconn.regression.noise_aware import NoiseAwareRegression
 from torchconn.regression.tube import TubeRegression
 from torchconn.sweep.config import load_config
 from torchconn.trajectory import SmoothedState
@@ -69,10 +70,12 @@ def _previous_defaults(traj):
 
 def test_default_stages_reproduce_the_previous_defaults(recording):
     # 0.1's fixed complexity (the default "auto" keeps it unless it loses to the phase-averaged
-    # velocity on held-out cycles, which it does here by 0.002 in v_x of one trial), and 0.1's
-    # phase (the default is now order "auto" with SNR weights): both named options
+    # velocity on held-out cycles, which it does here by 0.002 in v_x of one trial), 0.1's
+    # phase (the default is now order "auto" with SNR weights) and 0.1's regression on the
+    # smoothed velocities (the default is now NoiseAwareRegression): all named options
     old_phaser = Phaser(order=3, weighting="coherence")
-    est = ConnectionEstimator(phaser=old_phaser, complexity="fixed").fit(recording)
+    est = ConnectionEstimator(phaser=old_phaser, regression=TubeRegression(),
+                              complexity="fixed").fit(recording)
     phase, gamma, coeffs, se_A = _previous_defaults(recording)
     model = est.model_
     torch.testing.assert_close(est.trajectory_.phase, phase, rtol=0, atol=1e-12)
@@ -97,10 +100,11 @@ def test_default_stages_reproduce_the_previous_defaults(recording):
 
 
 def test_flat_settings_of_0_1_still_work_with_a_warning(recording):
-    with pytest.warns(DeprecationWarning, match="regression=TubeRegression"):
+    # the flat keys set the fields of the default regression stage (NoiseAwareRegression)
+    with pytest.warns(DeprecationWarning, match="regression=NoiseAwareRegression"):
         old = ConnectionEstimator(n_bins=24, fourier_order=6, phase_order=4, cycle_order=5)
     new = ConnectionEstimator(phaser=Phaser(order=4), cycle=SelfConsistentCycle(order=5),
-                              regression=TubeRegression(n_bins=24, fourier_order=6))
+                              regression=NoiseAwareRegression(n_bins=24, fourier_order=6))
     assert old.get_params() == new.get_params()
     with pytest.raises(TypeError, match=r"'n_bin' \(did you mean 'n_bins'\?\)"):
         ConnectionEstimator(n_bin=24)
@@ -183,19 +187,25 @@ def test_sklearn_clone_gives_an_unfitted_estimator_with_equal_parameters(recordi
 def test_settings_tables_build_the_estimator_and_name_bad_keys():
     nested = estimator_from_settings({
         "pool": True, "phaser": {"order": 4},
-        "regression": {"method": "tube", "n_bins": 24, "fourier_order": 6, "kernel": "box"},
+        "regression": {"n_bins": 24, "fourier_order": 6, "kernel": "box"},
     })
     flat = estimator_from_settings({"pool": True, "phase_order": 4, "n_bins": 24,
                                     "fourier_order": 6, "kernel": "box"})
     assert nested.get_params() == flat.get_params()
     assert estimator_from_settings(estimator_settings(nested)).get_params() == nested.get_params()
-    assert estimator_settings(ConnectionEstimator())["regression"]["method"] == "tube"
+    assert estimator_settings(ConnectionEstimator())["regression"]["method"] == "noise_aware"
+    # today's method is the default; torchconn 0.1's stays selectable by name
+    tube = estimator_from_settings({"regression": {"method": "tube", "n_bins": 24,
+                                                   "fourier_order": 6}})
+    assert type(tube.regression) is TubeRegression and tube.regression.n_bins == 24
+    assert estimator_settings(tube)["regression"]["method"] == "tube"
     bad = [
         ({"regresion": {}}, r"estimator: unknown key 'regresion' \(did you mean 'regression'\?\)"),
         ({"regression": {"n_bin": 3}},
-         r"estimator.regression \(TubeRegression\): unknown key 'n_bin' \(did you mean 'n_bins'"),
+         r"estimator.regression \(NoiseAwareRegression\): unknown key 'n_bin' \(did you mean "
+         "'n_bins'"),
         ({"regression": {"n_bins": 4.5}},
-         "estimator.regression: TubeRegression.n_bins must be an integer, got 4.5"),
+         "estimator.regression: NoiseAwareRegression.n_bins must be an integer, got 4.5"),
         ({"smoother": {"method": "kalman"}}, r"estimator.smoother.method: unknown key 'kalman'"),
         ({"phaser": 3}, "estimator.phaser must be a table"),
         ({"pool": "yes"}, "estimator.pool must be true or false"),
@@ -230,7 +240,7 @@ trials = 1
                    "estimator.smoother.order=3", "estimator.cycle.order=5", "estimator.pool=true"):
         other = load_config(path, [change])
         assert other.fingerprint(other.experiments[0]) != config.fingerprint(exp), change
-    with pytest.raises(ValueError, match=r"\[estimator\].regression: TubeRegression.n_bins"):
+    with pytest.raises(ValueError, match=r"\[estimator\].regression: NoiseAwareRegression.n_bins"):
         load_config(path, ["estimator.regression.n_bins=2"])
 
 

@@ -171,10 +171,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--phase-order", type=_phase_order, metavar="K|auto",
                    help="Phaser correction order (estimator.phaser.order): an integer, or "
                    "'auto' (default) to choose it from the data")
-    p.add_argument("--regression", choices=("tube", "noise_aware"),
-                   help="tube: regress on Kalman-smoothed velocities (default); noise_aware: on "
-                   "raw differences with the motion-capture noise removed, shrunk towards the "
-                   "smoothed fit where the data cannot support the correction")
+    p.add_argument("--regression", choices=("noise_aware", "tube"),
+                   help="noise_aware (default): regress on raw differences with the "
+                   "motion-capture noise removed, shrunk towards the smoothed fit where the data "
+                   "cannot support the correction; tube: on Kalman-smoothed velocities "
+                   "(torchconn 0.1's method)")
     p.add_argument("--complexity", choices=("auto", "fixed", "cv"),
                    help="auto (default): --n-bins and --fourier-order as given unless the model "
                    "then predicts held-out cycles worse than their phase-averaged velocity, "

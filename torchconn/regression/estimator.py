@@ -8,7 +8,7 @@ optimizer=…)``::
         smoother=RTSSmoother(order=2),          # phase/smoothing.py: smooth(traj) -> traj
         phaser=Phaser(order="auto"),            # phase/phaser.py: fit(r) -> fitted, transform(r)
         cycle=SelfConsistentCycle(order=8),     # phase/limit_cycle.py: fit(traj) -> LimitCycle
-        regression=TubeRegression(n_bins=48),   # regression/tube.py: fit(traj, cycle) -> model
+        regression=NoiseAwareRegression(n_bins=48),  # regression/noise_aware.py: fit(traj, cycle)
         pool=False,                             # one model per trial, or one for all trials
     )
 
@@ -59,7 +59,7 @@ STAGES: dict[str, tuple[type, dict[str, type]]] = {
     "smoother": (Smoother, {"rts": RTSSmoother}),
     "phaser": (PhaseEstimator, {"phaser": Phaser}),
     "cycle": (CycleEstimator, {"self_consistent": SelfConsistentCycle}),
-    "regression": (Regression, {"tube": TubeRegression, "noise_aware": NoiseAwareRegression}),
+    "regression": (Regression, {"noise_aware": NoiseAwareRegression, "tube": TubeRegression}),
 }
 
 #: the estimator's own options besides its stages (settings-table keys beside the stages)
@@ -86,8 +86,10 @@ class ConnectionEstimator:
         smoother: smooths poses and shapes and derives velocities (:class:`RTSSmoother`).
         phaser: estimates the phase when none is given (:class:`Phaser`).
         cycle: fits the limit cycle γ(φ) to the phased shapes (:class:`SelfConsistentCycle`).
-        regression: fits the local model around the cycle (:class:`TubeRegression`;
-            :class:`NoiseAwareRegression` for recordings with motion-capture noise).
+        regression: fits the local model around the cycle (:class:`NoiseAwareRegression`:
+            raw interval differences corrected for the motion-capture noise, shrunk towards
+            the smoothed fit where the data cannot support the correction;
+            :class:`TubeRegression`: Kalman-smoothed velocities, torchconn 0.1's method).
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
         complexity: the regression's bins, Fourier order and ridge: ``"fixed"`` as given;
@@ -120,7 +122,7 @@ class ConnectionEstimator:
 
     Example::
 
-        est = ConnectionEstimator(regression=TubeRegression(n_bins=48, fourier_order=12))
+        est = ConnectionEstimator(regression=NoiseAwareRegression(n_bins=48, fourier_order=12))
         est.fit(traj)
         xi_hat = est.predict(traj)               # (..., T, 3)
         A_on_cycle = est.model_.connection(phi)  # (..., P, 3, d)
@@ -136,7 +138,7 @@ class ConnectionEstimator:
         smoother: Smoother = RTSSmoother(),
         phaser: PhaseEstimator = Phaser(),
         cycle: CycleEstimator = SelfConsistentCycle(),
-        regression: Regression = TubeRegression(),
+        regression: Regression = NoiseAwareRegression(),
         pool: bool = False,
         complexity: str = "auto",
         held_out_folds: int = 3,
@@ -150,7 +152,7 @@ class ConnectionEstimator:
             warnings.warn(
                 "ConnectionEstimator(" + ", ".join(f"{k}=…" for k in flat) + "): flat settings "
                 "are deprecated; set the stages' fields instead, e.g. "
-                "ConnectionEstimator(regression=TubeRegression(n_bins=…), phaser=Phaser(order=…))",
+                "ConnectionEstimator(regression=NoiseAwareRegression(n_bins=…), phaser=Phaser(order=…))",
                 DeprecationWarning, stacklevel=2,
             )
             stages = _apply_flat(dict(smoother=smoother, phaser=phaser, cycle=cycle,
@@ -558,7 +560,7 @@ def _prepare(traj, phase, smoother, phaser) -> tuple[Trajectory, PhaseEstimator 
 
 
 def fit_local_model(traj: Trajectory, cycle: LimitCycle,
-                    regression: Regression | EstimatorSettings = TubeRegression(), *,
+                    regression: Regression | EstimatorSettings = NoiseAwareRegression(), *,
                     pool: bool = False) -> LocalConnectionModel:
     """The regressions in every phase bin and their Fourier series in phase:
     ``regression.fit(traj, cycle, pool=pool)``.

@@ -30,7 +30,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .._options import option
 from ..phase.limit_cycle import phase_rate
@@ -39,7 +39,7 @@ from ..trajectory import Trajectory, pool_batch
 from . import _wls
 from .binning import BinIndex, assign_bins
 from .connection import ConnectionFit, _blocks, _connection_fit
-from .tube import TubeRegression, _auto_window
+from .tube import TubeRegression, _auto_window, _auto_windows
 
 __all__ = ["NoiseEstimate", "estimate_noise", "interval_samples", "IntervalSamples",
            "eiv_correction", "noise_aware_regression", "blend_fits", "NoiseAwareRegression", "interval_view",
@@ -316,14 +316,20 @@ class NoiseAwareRegression(TubeRegression):
     correction then removes most of the normal matrix and mostly adds variance), the result
     is shrunk towards the smoothed estimate (:func:`blend_fits`; the weights of the corrected
     estimate are ``model.meta["corrected_weight"]``). The metric is fitted as by
-    :class:`TubeRegression`.
+    :class:`TubeRegression`. It is :class:`~torchconn.regression.ConnectionEstimator`'s
+    default regression (settings table ``method = "noise_aware"``). Unpooled, a trial's
+    noise estimate, interval and windows do not depend on the other trials of the batch, and
+    its coefficients only through the solver's rounding, as :class:`TubeRegression`'s (bit for
+    bit on the 3-link; to 1e-13 on the 9-link, where MKL's kernels round with the memory
+    alignment of the bins' matrices unless ``MKL_CBWR=AUTO`` is set).
 
     Attributes (besides :class:`TubeRegression`'s):
         velocity_interval: samples per difference; None chooses it per batch element from the
             noise (:func:`velocity_interval_for`). With ``window=None`` the bins' width also
             grows with the noise.
         noise_band_low: lowest frequency (cycles per sample) of the noise fit; None: the 6th
-            harmonic of the gait (``6 / samples per cycle``, within [0.1, 0.3]).
+            harmonic of the gait (``6 / samples per cycle`` of each trial, rounded up to 0.01,
+            within [0.1, 0.3]).
         shrink_to_smoothed: combine with the smoothed estimate (:func:`blend_fits`); False:
             the corrected estimate alone (unbiased, but with one trial of a 9-link swimmer at
             ω ≥ 0.005 measured 2-4 times further off than the smoothed one).
@@ -360,11 +366,11 @@ class NoiseAwareRegression(TubeRegression):
         g_m = gamma_m.expand(batch + (m, d)).reshape(n, m, d)
         g_dot = gamma_dot_m.expand(batch + (m, d)).reshape(n, m, d)
         var_flat = var.reshape(n, d)
+        by_h = _intervals_by_h(flat, h_flat, traj.dt)
         parts = []
         for g, (hg, wg) in enumerate(groups.tolist()):
             idx = torch.nonzero(inverse == g).flatten()
-            sub = _take(flat, idx)
-            iv = interval_samples(sub.pose, sub.r, sub.phase, traj.dt, int(hg))
+            iv = _take_intervals(by_h[int(hg)], idx)
             bins = assign_bins(iv.phase, n_bins, window=wg, kernel=self.kernel)
             parts.append((idx, noise_aware_regression(iv, bins, g_m[idx], g_dot[idx],
                                                       var_flat[idx], **opts)))
@@ -392,19 +398,35 @@ class NoiseAwareRegression(TubeRegression):
 
     def element_windows(self, phase: Tensor, d: int, ratio: Tensor) -> Tensor:
         """Bin half-widths ``(n,)`` of unpooled elements ``phase (n, N)`` with noise ratios
-        ``ratio (n,)``: ``window``, or each element's :meth:`_window`, rounded to half bin
-        spacings so that few distinct windows (groups of elements regressed together) remain."""
-        widths = torch.tensor([self.window or self._window(phase[b:b + 1], d, float(ratio[b]))
-                               for b in range(phase.shape[0])], dtype=torch.float64,
-                              device=phase.device)
+        ``ratio (n,)``: ``window``, or each element's :meth:`_window` (from its own samples
+        and noise only), rounded to half bin spacings so that few distinct windows (groups of
+        elements regressed together) remain."""
+        if self.window:
+            widths = torch.full(phase.shape[:1], float(self.window), dtype=torch.float64,
+                                device=phase.device)
+        else:
+            size = _auto_windows(phase, self.n_bins, 1 + 2 * d + d * d,
+                                 self.samples_per_regressor)
+            noise = (1 + _WINDOW_PER_NOISE_RATIO * ratio.to(size)).clamp_max(_MAX_NOISE_WINDOW)
+            widths = torch.maximum(size, noise)
         return torch.round(widths * 2) / 2
 
     def noise_setup(self, traj: Trajectory, pool: bool):
         """Joint-angle noise variance ``(..., d)``, noise ratio and velocity interval ``(...)``
-        (``(d,)`` and scalars when ``pool``: the trials share one rig)."""
-        per_cycle = 2 * math.pi / float(phase_rate(traj.phase, traj.dt).nanmean() * traj.dt)
-        low = self.noise_band_low or min(max(6 / per_cycle, 0.1), 0.3)
-        noise = estimate_noise(traj.r, band=(low, 0.5))  # (..., d)
+        (``(d,)`` and scalars when ``pool``: the trials share one rig).
+
+        Unpooled, each batch element's are its own: its samples per cycle (which set the
+        noise band and the longest interval) come from its own phase rate, so a trial's fit
+        does not depend on the trials it shares a batch with (a sweep's cells)."""
+        per_cycle = 2 * math.pi / (phase_rate(traj.phase, traj.dt) * traj.dt)  # (...)
+        if pool:
+            per_cycle = per_cycle.nanmean()
+        if self.noise_band_low:
+            low = torch.full_like(per_cycle, self.noise_band_low)
+        else:
+            # the 6th harmonic, rounded up to 0.01 cycles per sample: few distinct bands
+            low = (torch.ceil(600 / per_cycle) / 100).clamp(0.1, 0.3)
+        noise = _estimate_noise_by_band(traj.r, low)  # (..., d)
         n_pool = traj.phase.ndim - 1 if pool else 0
         var = noise.pooled_variance(n_pool)
         q2 = noise.process.square()
@@ -415,6 +437,26 @@ class NoiseAwareRegression(TubeRegression):
         else:
             h = velocity_interval_for(ratio, per_cycle)
         return var, ratio, h
+
+
+def _estimate_noise_by_band(r: Tensor, low: Tensor) -> NoiseEstimate:
+    """:func:`estimate_noise` of ``r (..., T, d)`` with each element's band ``(low, 0.5)``,
+    ``low`` ``(...)`` (or one value for all): one call per distinct band."""
+    if low.ndim == 0 or bool((low == low.reshape(-1)[0]).all()):
+        return estimate_noise(r, band=(float(low.reshape(-1)[0]), 0.5))
+    batch = r.shape[:-2]
+    flat, low_flat = r.reshape((-1,) + r.shape[-2:]), low.expand(batch).reshape(-1)
+    parts = {}
+    for value in torch.unique(low_flat).tolist():
+        idx = torch.nonzero(low_flat == value).flatten()
+        parts[value] = (idx, estimate_noise(flat[idx], band=(value, 0.5)))
+    out = {}
+    for name in ("measurement", "process", "variance_se"):
+        full = flat.new_zeros((flat.shape[0], r.shape[-1]))
+        for idx, est in parts.values():
+            full[idx] = getattr(est, name)
+        out[name] = full.reshape(batch + (r.shape[-1],))
+    return NoiseEstimate(**out)
 
 
 def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
@@ -470,15 +512,18 @@ def noise_ratio(var: Tensor, process_var: Tensor) -> Tensor:
     return torch.where(q2 > 0, 2 * var.mean(-1) / q2.clamp_min(1e-300), 0.0)
 
 
-def velocity_interval_for(ratio: Tensor, samples_per_cycle: float) -> Tensor:
-    """Samples per difference ``(...)`` of the noise-aware regression, from the noise ratio.
+def velocity_interval_for(ratio: Tensor, samples_per_cycle: Tensor | float) -> Tensor:
+    """Samples per difference ``(...)`` of the noise-aware regression, from the noise ratio
+    ``(...)`` and the samples per cycle (a number, or ``(...)`` per element).
 
     Over ``h`` samples the process noise's variance grows as ``h`` and the measurement noise's
     stays, so ``h = ⌈ratio / _INTERVAL_NOISE_FRACTION⌉``, at least 1 and at most
-    :data:`_MAX_INTERVAL_CYCLES` of a cycle.
+    :data:`_MAX_INTERVAL_CYCLES` of a cycle (but never capped below 2).
     """
-    longest = max(2, int(samples_per_cycle * _MAX_INTERVAL_CYCLES))
-    return torch.ceil(ratio / _INTERVAL_NOISE_FRACTION).clamp(1, longest).long()
+    per_cycle = torch.as_tensor(samples_per_cycle, dtype=torch.float64, device=ratio.device)
+    longest = torch.floor(per_cycle * _MAX_INTERVAL_CYCLES).clamp_min(2)
+    h = torch.ceil(ratio / _INTERVAL_NOISE_FRACTION).clamp_min(1)
+    return torch.minimum(h.to(longest), longest).long()
 
 
 def _flatten_batch(traj: Trajectory) -> Trajectory:
@@ -489,10 +534,38 @@ def _flatten_batch(traj: Trajectory) -> Trajectory:
         phase=traj.phase.reshape(-1, T))
 
 
-def _take(traj: Trajectory, idx: Tensor) -> Trajectory:
-    """Batch elements ``idx`` of a flattened trajectory (pose, r, phase)."""
-    return Trajectory(t=traj.t, pose=traj.pose[idx], r=traj.r[idx]).with_fields(
-        phase=traj.phase[idx])
+#: torch's CPU elementwise kernels work in chunks of this many values (two AVX-512 vectors of
+#: float32) and round the remainder at a tensor's end differently (sin, atan2, ...)
+_KERNEL_CHUNK = 32
+
+
+def _intervals_by_h(flat: Trajectory, h: Tensor, dt: float) -> dict[int, IntervalSamples]:
+    """:func:`interval_samples` ``(n, T − h, ·)`` of every element of a flattened trajectory
+    ``(n, T, ·)`` for each distinct interval in ``h (n,)``, each element's values independent
+    of the other elements (bit for bit).
+
+    torch's elementwise kernels (sin, atan2, ...) round the values in the last, partial chunk
+    of a tensor differently from the rest, so an element's values would depend on where the
+    batch ends. Each interval is therefore computed over the whole batch (not over the elements
+    that use it) with the time axis NaN-padded to whole chunks: every element then starts on
+    a chunk boundary and no tensor ends in a partial chunk."""
+    T = flat.n_samples
+    out = {}
+    for hg in torch.unique(h).tolist():
+        pad = -(T - hg) % _KERNEL_CHUNK
+        pose, r, phase = (nn.functional.pad(x, (0, 0, 0, pad) if x.ndim == 3 else (0, pad),
+                                            value=float("nan"))
+                          for x in (flat.pose, flat.r, flat.phase))
+        iv = interval_samples(pose, r, phase, dt, hg)
+        out[hg] = _take_intervals(iv, slice(None), T - hg)
+    return out
+
+
+def _take_intervals(iv: IntervalSamples, idx, n: int | None = None) -> IntervalSamples:
+    """Batch elements ``idx`` (and the first ``n`` intervals) of flattened interval samples
+    ``(n, N, ·)``."""
+    return dataclasses.replace(iv, phase=iv.phase[idx, :n], r=iv.r[idx, :n],
+                               r_dot=iv.r_dot[idx, :n], xi=iv.xi[idx, :n])
 
 
 def _scatter_fits(parts, n: int, batch: tuple) -> ConnectionFit:
@@ -522,11 +595,9 @@ def interval_view(traj: Trajectory, h) -> IntervalSamples:
     h_flat = h.reshape(-1)
     n = traj.n_samples - int(h_flat.min())
     out = None
-    for hg in torch.unique(h_flat).tolist():
+    for hg, iv in _intervals_by_h(flat, h_flat, traj.dt).items():
         idx = torch.nonzero(h_flat == hg).flatten()
-        sub = _take(flat, idx)
-        iv = interval_samples(sub.pose, sub.r, sub.phase, traj.dt, int(hg))
-        vals = [iv.phase, iv.r, iv.r_dot, iv.xi]
+        vals = [v[idx] for v in (iv.phase, iv.r, iv.r_dot, iv.xi)]
         if out is None:
             out = [v.new_full((h_flat.numel(), n) + v.shape[2:], float("nan")) for v in vals]
         for o, v in zip(out, vals, strict=True):

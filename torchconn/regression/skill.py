@@ -270,7 +270,8 @@ def _held_out_skills(traj, cycle, regression, *, pool, n_folds, noise_corrected,
             train = traj.with_fields(phase=torch.where(sample_fold == f, torch.nan, traj.phase))
             models.append(reg.fit(train, cycle, pool=pool))
     else:
-        coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool)[0]
+        coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool)
+        coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool)[0]
         models = [with_coefficients(model, coef[f], reg.fourier_order) for f in range(n_folds)]
     return _score_folds(models, view, pool_batch(fold, 0) if pool else fold, reg, traj.dt,
                         pool, noise_corrected, phase_averaged,
@@ -444,6 +445,34 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
     return out.reshape(out.shape[:2] + batch + out.shape[3:])
 
 
+def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConnectionModel,
+                     coef: Tensor, n_folds: int, *, pool: bool,
+                     ridges: tuple[float, ...] | None = None) -> Tensor:
+    """Held-out coefficients ``coef (R, F, ..., M, P, 3)`` of a noise-aware regression that
+    shrinks towards the smoothed fit (``shrink_to_smoothed``), combined as its fit combines
+    them: the smoothed regression's own downdated fits ``β̂_s`` (on the smoothed samples, its
+    own window rule, same blocks of whole cycles) and the corrected ones ``β̂_c`` give
+    ``β̂_s + w (β̂_c − β̂_s)`` with the whole recording's weights ``w`` per trial and term
+    (``model.meta["corrected_weight"]``, as the window and the interval are the whole
+    recording's). Without this the check would score the corrected estimate alone, which is
+    far off where the fit falls back to the smoothed one. Other regressions: ``coef``."""
+    if not (isinstance(regression, NoiseAwareRegression) and regression.shrink_to_smoothed):
+        return coef
+    smoothed = TubeRegression(**{f.name: getattr(regression, f.name)
+                                 for f in dataclasses.fields(TubeRegression)})
+    sm = traj.smoothed
+    view = _View(traj.phase, sm.r, sm.r_dot, sm.xi)
+    coef_s = held_out_coefficients(traj, smoothed, model, view, _cycle_blocks(traj.phase, n_folds),
+                                   n_folds, pool=pool, ridges=ridges)
+    d = model.shape_dim
+    term = torch.tensor([0] + [1] * d + [2] * d + [3] * d * d, device=coef.device)
+    w = torch.as_tensor(model.meta["corrected_weight"], dtype=coef.dtype,
+                        device=coef.device)[..., term]  # (..., P)
+    w = w[..., None, :, None]  # (..., 1, P, 1): over bins and outputs
+    # exact ends, so that a bin only one of the two could fit keeps the other's coefficients
+    return torch.where(w == 1, coef, torch.where(w == 0, coef_s, coef_s + w * (coef - coef_s)))
+
+
 def _fold_windows(regression: Regression, meta: dict, phase: Tensor, fold: Tensor, d: int):
     """The bins' half-width(s) the regression's own rule gives on the samples outside one
     block (block 0; the blocks are about equal): a refit on fewer cycles widens its windows,
@@ -611,6 +640,7 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
     fold = _cycle_blocks(unflat.phase, n_folds)
     coef = held_out_coefficients(traj, base, model, unflat, fold, n_folds, pool=pool,
                                  ridges=RIDGE_GRID)
+    coef = blended_held_out(traj, base, model, coef, n_folds, pool=pool, ridges=RIDGE_GRID)
     flat_fold = pool_batch(fold, 0) if pool else fold
     cycles = _cycle_index(unflat.phase, pool)
     out = []

@@ -342,10 +342,18 @@ def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:
 
 def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
     """Half-width (in bin spacings) holding ``per_regressor`` samples per regressor on average
-    in the batch element with the fewest finite samples; at least 1, at most a quarter cycle
-    (a window must stay local for the first-order model to hold)."""
-    fewest = float(torch.isfinite(phase).sum(-1).min())
-    per_spacing = fewest / n_bins
+    in the batch element with the fewest finite samples (the widest of
+    :func:`_auto_windows`)."""
+    return float(_auto_windows(phase, n_bins, n_regressors, per_regressor).max())
+
+
+def _auto_windows(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float
+                  ) -> Tensor:
+    """Per batch element of ``phase (..., N)``: the half-width ``(...)`` (in bin spacings,
+    float64) holding ``per_regressor`` samples per regressor on average in its windows; at
+    least 1, at most a quarter cycle (a window must stay local for the first-order model to
+    hold). Each element's width depends on its own samples only."""
+    per_spacing = torch.isfinite(phase).sum(-1).to(torch.float64) / n_bins
     # a tricube window of half-width w spacings carries the weight of ~1.2 w spacings
     window = per_regressor * n_regressors / (1.2 * per_spacing)
-    return float(min(max(window, 1.0), n_bins / 4))
+    return window.clamp(1.0, n_bins / 4)
