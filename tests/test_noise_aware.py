@@ -105,6 +105,67 @@ def test_noise_estimate_on_swimmer_recordings(omega, clean30):
             assert torch.allclose(est.pooled_variance(1).sqrt(), sigma)
 
 
+def test_noise_estimate_standard_errors_are_calibrated_and_drop_outs_unbiased():
+    # closed form: 200 random walks (std q per sample) observed with white noise (std s), some
+    # with 5 % of the samples missing; (σ̂² − s²)/SE must scatter like a standard normal
+    g = torch.Generator().manual_seed(11)
+    n, q, s = 1000, 0.01, 0.004
+    walk = torch.cumsum(q * torch.randn(200, n, 2, generator=g, dtype=F64), -2)
+    x = walk + s * torch.randn(200, n, 2, generator=g, dtype=F64)
+    x[100:][torch.rand(100, n, generator=g) < 0.05] = float("nan")
+    est = estimate_noise(x)
+    z = (est.variance - s**2) / est.variance_se
+    assert abs(float(z[:100].mean())) < 0.3  # complete records; SE of the mean of 200 z: 0.07
+    for part in (z[:100], z[100:]):  # complete, with drop-outs
+        assert 0.8 < float(part.std()) < 1.25
+    # the bridged gaps' increments are not in the expectation: with 5 % of the samples
+    # missing σ̂² comes out about 6 % low (measured: 0.94); within 10 %
+    assert abs(float(est.variance[100:].mean()) / s**2 - 1) < 0.1
+    assert torch.allclose(est.process.square().mean().sqrt(), torch.tensor(q, dtype=F64),
+                          rtol=0.02)
+
+
+def test_noise_estimate_of_a_trial_does_not_depend_on_its_batch():
+    g = torch.Generator().manual_seed(2)
+    x = torch.cumsum(0.01 * torch.randn(6, 500, 3, generator=g, dtype=F64), -2)
+    x = x + 0.003 * torch.randn(6, 500, 3, generator=g, dtype=F64)
+    x[2, 40:60] = float("nan")
+    x[4, :, 1] = float("nan")  # a lost channel: no estimate, and the others unaffected
+    whole, part = estimate_noise(x), estimate_noise(x[2:3])
+    assert float(whole.measurement[4, 1]) == 0 and math.isinf(float(whole.variance_se[4, 1]))
+    assert torch.equal(estimate_noise(x[4:5, :, [0, 2]]).measurement, whole.measurement[4:5, [0, 2]])
+    for name in ("measurement", "process", "variance_se", "band_low"):
+        assert torch.equal(getattr(whole, name)[2:3], getattr(part, name))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n_links, gait, per_cycle", [(3, "reference", 300), (5, "circle", 126),
+                                                      (9, "reference", 126)])
+def test_noise_estimate_across_links_gaits_and_sampling(n_links, gait, per_cycle):
+    # the issue's check on seeds the band rule was not set on: 4 trials x 30 cycles of the
+    # paper's SDE; the joints' noise pooled over the trials (what the regression corrects for)
+    # within 20 % of the simulator's ω for ω >= 0.002, and nothing corrected on clean data
+    from torchconn.physics.gaits import reference_gait
+    d = n_links - 1
+    if gait == "reference":
+        g = reference_gait(f"{n_links}link")
+    else:  # a travelling wave, as benchmarks/accuracy.py's circle gait
+        lag = 2 * math.pi * torch.arange(d, dtype=F64) / max(d, 4)
+        coeffs = torch.zeros(3, d, dtype=F64)
+        coeffs[1], coeffs[2] = 0.9 * torch.cos(lag), 0.9 * torch.sin(lag)
+        g = FourierGait(coeffs)
+    seeds = np.arange(4) + 4000
+    clean = simulate(NLinkSwimmer(n_links), g, eta=0.025, n_cycles=30,
+                     samples_per_cycle=per_cycle, seeds=seeds)
+    for omega in (0.0, 0.002, 0.005, 0.01):
+        est = estimate_noise(observe(clean, omega, seeds=seeds).r)
+        rig = est.pooled_variance(1)  # (d,)
+        if omega == 0:
+            assert float(rig.mean().sqrt()) < 0.001
+        else:
+            assert abs(float(rig.mean().sqrt()) / omega - 1) < 0.2, (omega, rig.sqrt())
+
+
 def test_eiv_correction_is_the_expected_noise_part_of_the_gram_matrix():
     # Monte Carlo: E[X̃ᵀWX̃] − XᵀWX over noise draws equals the correction in expectation
     g = torch.Generator().manual_seed(1)
@@ -383,7 +444,8 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
     and coefficients, bit for bit (a sweep's results must not depend on its block size).
     Trials at different noise levels fall in different (interval, window) groups."""
     seeds = np.arange(8) + 500
-    omega = torch.tensor([0.0, 0.002, 0.005, 0.01] * 2, dtype=F64)
+    # (ω = 0.002 is not resolved by 12 cycles at 64 samples per cycle, README "Noise estimates")
+    omega = torch.tensor([0.0, 0.005, 0.01, 0.02] * 2, dtype=F64)
     clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
                      seeds=seeds)
     est = ConnectionEstimator()
@@ -391,7 +453,9 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
     cycle = est.cycle.fit(prep)
     reg = NoiseAwareRegression(metric=False)
     full = reg.fit(prep, cycle)
-    assert len(set(full.meta["velocity_interval"])) >= 3  # several groups
+    # several groups: clean trials at h = 1, noisy ones at the longest interval (a tenth of a
+    # cycle, 6 samples)
+    assert len(set(full.meta["velocity_interval"])) >= 2 and len(set(full.meta["windows"])) >= 2
     groups = [[i] for i in range(8)] + [[0, 1, 2, 3], [1, 3, 5], [7, 6, 5, 4, 3, 2, 1, 0], [2, 6]]
     for group in groups:
         idx = torch.tensor(group)
