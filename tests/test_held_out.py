@@ -174,3 +174,110 @@ def test_a_complexity_the_recording_cannot_carry_is_reported(short):
     with pytest.warns(PoorHeldOutSkillWarning, match="cannot be fitted when one block"):
         est = ConnectionEstimator(regression=reg, complexity="fixed").fit(short)
     assert bool(est.held_out_skill_.unscored.all())
+
+
+
+def test_the_shape_terms_must_win_by_more_than_z_standard_errors_of_the_cycles():
+    from scipy import stats
+
+    gen = torch.Generator().manual_seed(0)
+    gaps = torch.randn(4, 6, 3, generator=gen, dtype=F64) - 0.6  # (trials, cycles, components)
+    gaps[1, 4:] = 0.0  # a trial with 4 scored cycles
+    gaps[2, :, 1] = 0.0  # a component tied in every cycle: never "better"
+    t = torch.full((4, 3), math.nan, dtype=F64)
+    for i in range(4):
+        for k in range(3):
+            g = gaps[i, :, k][gaps[i, :, k] != 0].numpy()
+            if len(g) > 1:
+                t[i, k] = float(stats.ttest_1samp(g, 0.0).statistic)
+    base = torch.full_like(gaps, 2.0)  # the phase average's squared error per cycle
+    for z in (0.0, 1.0, 2.5):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(skill, "FALLBACK_Z", z)
+            mp.setattr(skill, "FALLBACK_MARGIN", 0.0)
+            better = skill._clearly_better(torch.stack([gaps, base], -1))
+            assert torch.equal(better, torch.nan_to_num(t, nan=math.inf) < -z)
+            assert not bool(better[2, 1])
+            # and by more than a fraction of the phase average's error
+            mp.setattr(skill, "FALLBACK_MARGIN", 0.1)
+            mp.setattr(skill, "FALLBACK_CYCLES", 5)  # 6 cycles: 5/6 of the margin, 4: all
+            n = (gaps != 0).sum(-2)
+            wins = gaps.sum(-2) < -0.1 * torch.where(n > 5, 5 / 6, 1.0) * base.sum(-2)
+            assert torch.equal(skill._clearly_better(torch.stack([gaps, base], -1)),
+                               better & wins)
+
+
+@pytest.fixture(scope="module")
+def short_and_later():
+    """One trial of the 5-link, ω = 0.005: 4 cycles to fit and the next 4 to score."""
+    traj = _recording(8, seed=SHORT_SEED).with_fields(power=None)
+    cut = 4 * SPC + 1
+    return traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
+
+
+SHORT_SEED = 8  # v_x (and v_y) fall back, ω keeps its connection
+
+
+def test_a_component_whose_shape_terms_lose_held_out_falls_back_to_the_phase_average(
+        short_and_later):
+    train, later = short_and_later
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        # TubeRegression: the fall-back's margin was measured with it (with the noise-aware
+        # regression's raw-difference target every component falls back on such recordings)
+        with pytest.warns(PoorHeldOutSkillWarning, match="predicts them by the phase-averaged"):
+            est = ConnectionEstimator(regression=TubeRegression()).fit(train)
+        warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
+        again = ConnectionEstimator(regression=TubeRegression()).fit(train)
+    choice = est.complexity_
+    assert choice == again.complexity_  # reproducible: whole cycles in order, nothing random
+    fallback = choice.phase_averaged[0]
+    assert fallback[0] and not fallback[2]  # v_x falls back, ω does not
+    assert choice.phase_averaged_names()[0] == "v_x"
+    model = est.model_
+    assert model.meta["phase_averaged"] == [list(fallback)]
+    # v_x: no shape terms, and the intercept is the least-squares Fourier series of the
+    # training data's observed v_x in phase (numpy's lstsq, independent of fit_fourier)
+    assert bool((model.b.coeffs[..., 0, :] == 0).all())
+    assert bool((model.A.coeffs[..., 0, :] == 0).all())
+    assert bool((model.dA.coeffs[..., 0, :, :] == 0).all())
+    assert bool((model.A.coeffs[..., 2, :] != 0).any())  # ω keeps its connection
+    sm, phase = est.trajectory_.smoothed, est.trajectory_.phase
+    ok = torch.isfinite(phase[0])
+    k = est.regression_.fourier_order
+    harmonics = torch.arange(1, k + 1, dtype=F64)
+    ph = phase[0, ok, None]
+    design = torch.cat([torch.ones_like(ph), torch.stack(
+        [torch.cos(harmonics * ph), torch.sin(harmonics * ph)], -1).flatten(-2)], -1)
+    coef = np.linalg.lstsq(design.numpy(), sm.xi[0, ok, 0].numpy(), rcond=None)[0]
+    grid = torch.linspace(0, 2 * math.pi, 50, dtype=F64)
+    g_design = torch.cat([torch.ones(50, 1, dtype=F64), torch.stack(
+        [torch.cos(harmonics * grid[:, None]), torch.sin(harmonics * grid[:, None])],
+        -1).flatten(-2)], -1)
+    gen = torch.Generator().manual_seed(1)
+    r, r_dot = torch.randn(2, 1, 50, 4, generator=gen, dtype=F64)  # any shape: v_x ignores it
+    pred = model.predict(grid[None], r, r_dot)[0, :, 0]
+    torch.testing.assert_close(pred, g_design @ torch.from_numpy(coef), rtol=0, atol=1e-10)
+    # held out, on the training cycles and on the later ones, v_x ties the phase average
+    # exactly, and ω keeps beating it
+    for s in (est.held_out_skill_, est.score(later)):
+        assert float(s.r2[..., 0]) == float(s.r2_phase_average[..., 0])
+        assert float(s.r2[..., 2]) > float(s.r2_phase_average[..., 2])
+        assert not bool(s.worse_than_phase_average[..., 0].any())
+    # the estimator's cross_validate agrees with the fit's own check
+    assert torch.equal(est.cross_validate(3).r2, est.held_out_skill_.r2)
+
+
+def test_no_component_falls_back_on_a_long_recording():
+    long = _recording(15, n_trials=2, seed=1).with_fields(power=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        warnings.simplefilter("error", PoorHeldOutSkillWarning)
+        auto = ConnectionEstimator(pool=True).fit(long)
+        cv = ConnectionEstimator(pool=True, complexity="cv").fit(long)
+    for est in (auto, cv):  # every component keeps its shape terms
+        assert est.complexity_ is None or est.complexity_.phase_averaged == (False,) * 3
+        assert "phase_averaged" not in est.model_.meta
+        plain = est.regression_.fit(est.trajectory_, est.limit_cycle_, pool=True)
+        assert torch.equal(est.model_.A.coeffs, plain.A.coeffs)
+        assert bool((est.held_out_skill_.r2 > est.held_out_skill_.r2_phase_average).all())

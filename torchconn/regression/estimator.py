@@ -94,9 +94,10 @@ class ConnectionEstimator:
             which Phaser's phase 0 provides) instead of one model per trial.
         complexity: the regression's bins, Fourier order and ridge: ``"fixed"`` as given;
             ``"cv"`` chosen by held-out error over blocks of whole cycles
-            (:func:`~torchconn.regression.skill.select_complexity`); ``"auto"`` (default): as
-            given, unless the fit loses to the phase-averaged velocity on held-out blocks
-            (short recordings), then chosen as by ``"cv"``.
+            (:func:`~torchconn.regression.skill.select_complexity`), where each component
+            keeps its shape terms only when they beat the phase-averaged velocity held out;
+            ``"auto"`` (default): as given, unless the fit loses to the phase-averaged
+            velocity on held-out blocks (short recordings), then chosen as by ``"cv"``.
         held_out_folds: blocks of whole cycles of the held-out check every fit runs (0: no
             check). The fit warns (:class:`~torchconn.regression.skill.PoorHeldOutSkillWarning`)
             where the model predicts held-out cycles worse than their phase-averaged velocity.
@@ -113,7 +114,9 @@ class ConnectionEstimator:
     - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`;
     - ``regression_``: the regression stage fitted (``regression`` with the chosen complexity);
     - ``complexity_``: the :class:`~torchconn.regression.skill.ComplexityChoice` when the
-      complexity was chosen by held-out error, else None;
+      complexity was chosen by held-out error, else None; its ``phase_averaged`` names the
+      components (per trial) predicted by the phase-averaged velocity because their shape
+      terms did not beat it on held-out cycles (their rows of ``b``, ``A``, ``∂A/∂r`` are 0);
     - ``held_out_skill_``: the held-out :class:`~torchconn.regression.skill.Skill` of the
       check (None when ``held_out_folds=0`` or the regression is not a built-in one).
 
@@ -229,7 +232,8 @@ class ConnectionEstimator:
                 if self.complexity != "auto" or not skill.downdates(regression):
                     raise
                 model = None  # too many coefficients for this recording: choose them below
-            held = None if model is None else self._held_out(traj, cycle, regression, model)
+            held = None if model is None else self._held_out(traj, cycle, regression, model,
+                                                             choice)
             if self.complexity == "auto" and (model is None or (held is not None and bool(
                     (held.worse_than_phase_average | held.unscored[..., None]).any()))):
                 # the given complexity overfits this recording: choose it by held-out error
@@ -242,7 +246,15 @@ class ConnectionEstimator:
                     # no candidate fits 2 of 3 blocks: keep the given one (the check warns)
                 else:
                     model = regression.fit(traj, cycle, pool=self.pool)
-                    held = self._held_out(traj, cycle, regression, model)
+                    held = self._held_out(traj, cycle, regression, model, choice)
+        view = skill.regression_view(traj, regression, model, pool=self.pool)
+        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
+        if choice is not None and any(choice.phase_averaged_names()):
+            # components whose shape terms lost to the phase average held out predict it
+            model = skill.with_phase_average(model, self.phase_average_,
+                                             choice.phase_average_mask(model.device))
+            # one order for both, so that score() finds them tied exactly
+            self.phase_average_ = skill.padded(self.phase_average_, model.c.order)
         self.trajectory_ = traj
         self.phaser_ = fitted_phaser
         self.limit_cycle_ = cycle
@@ -251,8 +263,6 @@ class ConnectionEstimator:
         self.held_out_skill_ = held
         settings = estimator_settings(self, regression)
         self.model_ = dataclasses.replace(model, meta={**(model.meta or {}), "settings": settings})
-        view = skill.regression_view(traj, regression, self.model_, pool=self.pool)
-        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
         if held is not None:
             held.warn_if_poor(stacklevel=3, choice=choice)
         return self
@@ -260,14 +270,17 @@ class ConnectionEstimator:
     def _folds(self) -> int:
         return self.held_out_folds or 3
 
-    def _held_out(self, traj, cycle, regression, model) -> skill.Skill | None:
-        """The held-out check's skill (downdated fits), or None when it is off."""
+    def _held_out(self, traj, cycle, regression, model, choice=None) -> skill.Skill | None:
+        """The held-out check's skill (downdated fits; the components ``choice`` gave to the
+        phase average predicted by it), or None when it is off."""
         if not self.held_out_folds or not skill.downdates(regression):
             return None
+        mask = None if choice is None else choice.phase_average_mask(model.device)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
             return skill.cross_validate(traj, cycle, regression, pool=self.pool,
-                                        n_folds=self.held_out_folds, model=model)
+                                        n_folds=self.held_out_folds, model=model,
+                                        phase_averaged=mask)
 
     # ------------------------------------------------------------------ held-out skill
     def score(self, traj: Trajectory, phase: Tensor | None = None) -> skill.Skill:
@@ -286,8 +299,11 @@ class ConnectionEstimator:
         """Held-out skill on the training recordings over ``n_folds`` blocks of whole cycles
         (:func:`~torchconn.regression.skill.cross_validate`)."""
         model = self._fitted()
-        return skill.cross_validate(self.trajectory_, self.limit_cycle_, self.regression_,
-                                    pool=self.pool, n_folds=n_folds, model=model)
+        choice = self.complexity_
+        return skill.cross_validate(
+            self.trajectory_, self.limit_cycle_, self.regression_, pool=self.pool,
+            n_folds=n_folds, model=model,
+            phase_averaged=None if choice is None else choice.phase_average_mask(model.device))
 
     def check_held_out(self, n_folds: int = 3) -> skill.Skill:
         """:meth:`cross_validate`, warning (:class:`~torchconn.regression.skill.

@@ -41,7 +41,12 @@ from .noise_aware import (
 from .tube import Regression, TubeRegression, _auto_window, intercept_series
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
-           "RIDGE_GRID", "regression_view", "cross_validate", "select_complexity", "skill"]
+           "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "COMPONENTS",
+           "regression_view", "cross_validate",
+           "select_complexity", "skill", "with_phase_average"]
+
+#: the body-velocity components, in the order of the last axis of ξ
+COMPONENTS = ("v_x", "v_y", "omega")
 
 #: (n_bins, fourier_order) candidates of :func:`select_complexity`, simplest first
 COMPLEXITY_GRID = ((12, 3), (24, 6), (48, 12))
@@ -52,6 +57,23 @@ RIDGE_GRID = (0.0, 0.1, 1.0, 10.0)
 #: long recordings the candidates' losses differ by less than their noise (measured: 5-link,
 #: ω = 0.01, 0.38879 with a ridge vs 0.38884 without, and Â 48 % vs 10 % off)
 RIDGE_MIN_GAIN = 0.01
+#: a component keeps the shape terms (``b``, ``A``, ``∂A/∂r``) only when they lower its
+#: held-out squared error below the phase-averaged velocity's by more than ``FALLBACK_Z``
+#: standard errors (over the held-out cycles) and by more than the fraction
+#: ``FALLBACK_MARGIN`` of it; otherwise it is predicted by the phase-averaged velocity alone
+#: (:func:`select_complexity`). Held-out blocks of the training cycles flatter the shape
+#: terms against later cycles: measured on 40 short 5-link recordings (ω = 0.005, 3-6
+#: cycles, 2 gaits, seeds 30-34; the later 4 cycles scored), v_x lost to the phase average
+#: on the later cycles in 14 of 40 with no margin, 5 with 0.2 and 2 with 0.3 (whatever the
+#: z in 0-2), and no setting lost nowhere
+FALLBACK_Z = 1.0
+FALLBACK_MARGIN = 0.3
+#: the margin applies in full up to this many held-out cycles and falls as ``1/n`` past it,
+#: as the optimism of an in-sample error does (``∝ p/n``); it was measured on 3-6 cycles
+#: only, and on long recordings the standard-error rule alone decides (measured: 5-link,
+#: 4 x 30 cycles, ω = 0.005, the shape terms lower v_y's held-out error by 22 %, short of
+#: a full margin of 30 %)
+FALLBACK_CYCLES = 6
 
 
 class PoorHeldOutSkillWarning(UserWarning):
@@ -105,8 +127,18 @@ class Skill:
             return
         worse = self.worse_than_phase_average.reshape(-1, 3).any(0)
         if not bool(worse.any()):
+            fallback = [] if choice is None else choice.phase_averaged_names()
+            if fallback:
+                warnings.warn(
+                    f"the shape terms do not predict held-out cycles of {', '.join(fallback)} "
+                    "better than their phase-averaged velocity, so the model predicts "
+                    f"{'it' if len(fallback) == 1 else 'them'} by the phase-averaged velocity "
+                    "of the training data: the rows of b̂, Â and ∂Â/∂r for "
+                    f"{', '.join(fallback)} are 0, not estimated from this recording; record "
+                    "more cycles to estimate them", PoorHeldOutSkillWarning,
+                    stacklevel=stacklevel)
             return
-        names = [n for n, w in zip(("v_x", "v_y", "omega"), worse.tolist(), strict=True) if w]
+        names = [n for n, w in zip(COMPONENTS, worse.tolist(), strict=True) if w]
         warnings.warn(
             f"the model predicts held-out cycles worse than their phase-averaged velocity for "
             f"{', '.join(names)} (held-out R² {_fmt(self.r2)} vs phase average "
@@ -118,12 +150,34 @@ class Skill:
 
 @dataclass(frozen=True)
 class ComplexityChoice:
-    """What :func:`select_complexity` chose, and every candidate's mean held-out ``SSE/SST``."""
+    """What :func:`select_complexity` chose, and every candidate's mean held-out ``SSE/SST``
+    (each component at the better of the model and the phase-averaged velocity, as chosen).
+
+    Attributes:
+        n_bins, fourier_order, ridge: the regression's complexity.
+        scores: ``(n_bins, fourier_order, ridge, loss)`` of every candidate.
+        phase_averaged: nested tuples of bools shaped ``(..., 3)`` (the model's batch dims,
+            components ``v_x, v_y, ω``): True where the component is predicted by the
+            phase-averaged velocity of the training data, its shape terms set to 0, because
+            they did not beat it on held-out cycles (:data:`FALLBACK_Z`).
+    """
 
     n_bins: int
     fourier_order: int
     ridge: float
     scores: tuple[tuple[int, int, float, float], ...]
+    phase_averaged: tuple = (False, False, False)
+
+    def phase_average_mask(self, device: torch.device | str) -> Tensor:
+        """:attr:`phase_averaged` as a bool tensor ``(..., 3)`` on ``device``."""
+        return torch.tensor(self.phase_averaged, dtype=torch.bool, device=device)
+
+    def phase_averaged_names(self) -> list[str]:
+        """The components predicted by the phase-averaged velocity in some batch element."""
+        def rows(x):
+            return [x] if not isinstance(x[0], tuple) else [r for v in x for r in rows(v)]
+        any_ = [any(col) for col in zip(*rows(self.phase_averaged), strict=True)]
+        return [n for n, a in zip(COMPONENTS, any_, strict=True) if a]
 
 
 @dataclass(frozen=True)
@@ -158,12 +212,13 @@ def phase_average(view: _View, order: int):
 
 def skill(model: LocalConnectionModel, baseline, view: _View) -> Skill:
     """:class:`Skill` of ``model`` and ``baseline`` (a phase-averaged velocity) on ``view``."""
-    return _from_sums(*_sums(model, baseline, view, None))
+    return _from_sums(*_sums(model, baseline, view, None)[:6])
 
 
 def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
                    pool: bool, n_folds: int = 3, noise_corrected: bool = False,
-                   model: LocalConnectionModel | None = None, refit: bool = False) -> Skill:
+                   model: LocalConnectionModel | None = None, refit: bool = False,
+                   phase_averaged: Tensor | None = None) -> Skill:
     """Held-out skill over ``n_folds`` contiguous blocks of whole cycles of every trial.
 
     Each block in turn is left out of the regression and scored; the phase and the limit
@@ -181,6 +236,10 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     ``model``: the regression's fit to the whole recording, when already at hand (its
     ``meta`` gives the window, interval and noise level).
 
+    ``phase_averaged``: ``(..., 3)`` bool, components each fold's model predicts by the
+    phase-averaged velocity of its training blocks (:func:`with_phase_average`, as
+    :func:`select_complexity` chose): their skill equals the baseline's.
+
     ``noise_corrected`` (noise-aware regressions): subtract from the model's squared error the
     part the joint-angle noise of the held-out *inputs* adds (:func:`_input_noise_variance`),
     so that the score ranks models by how well they predict from the true shapes. Without it,
@@ -194,6 +253,15 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     """
     if isinstance(n_folds, bool) or not isinstance(n_folds, int) or n_folds < 2:
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
+    return _held_out_skills(traj, cycle, regression, pool=pool, n_folds=n_folds,
+                            noise_corrected=noise_corrected, model=model, refit=refit,
+                            phase_averaged=phase_averaged)[0]
+
+
+def _held_out_skills(traj, cycle, regression, *, pool, n_folds, noise_corrected, model, refit,
+                     phase_averaged, gaps=False) -> tuple[Skill, Tensor | None]:
+    """:func:`cross_validate`'s skill, and with ``gaps`` the model's observed SSE minus the
+    phase average's per held-out cycle (:func:`_score_folds`)."""
     reg = regression.replace(metric=False)
     if model is None:
         model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
@@ -211,22 +279,100 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
         coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool)[0]
         models = [with_coefficients(model, coef[f], reg.fourier_order) for f in range(n_folds)]
     return _score_folds(models, view, pool_batch(fold, 0) if pool else fold, reg, traj.dt,
-                        pool, noise_corrected)
+                        pool, noise_corrected, phase_averaged,
+                        _cycle_index(unflat.phase, pool) if gaps else None)
 
 
 def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
-                 noise_corrected: bool) -> Skill:
+                 noise_corrected: bool, phase_averaged: Tensor | None = None,
+                 cycle: Tensor | None = None) -> tuple[Skill, Tensor | None]:
     """:class:`Skill` of ``models[f]`` on block ``f`` of ``view``, summed over the blocks,
-    beside the phase-averaged velocity of the other blocks."""
-    sums = []
+    beside the phase-averaged velocity of the other blocks (noise-corrected as asked); with
+    ``cycle`` (:func:`_cycle_index`) also, per held-out cycle, the ``SSE`` of the model
+    minus that of the phase average and the phase average's own ``(..., C, 3, 2)``, as
+    observed: the model's error on the noisy inputs, what a user's held-out data show.
+
+    ``phase_averaged``: ``(..., 3)`` components each fold's model predicts by that baseline."""
+    sums, gaps = [], []
+    n_cycles = None if cycle is None else int(cycle.amax()) + 1
     for f, fold_model in enumerate(models):
         base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
                                    view.r_dot, view.xi), reg.fourier_order)
+        if phase_averaged is not None:
+            fold_model = with_phase_average(fold_model, base, phase_averaged)
+            base = padded(base, fold_model.c.order)  # the same sums: an exact tie
         noise = None
         if noise_corrected and isinstance(reg, NoiseAwareRegression):
             noise = _noise_of(fold_model, dt, pool)
         sums.append(_sums(fold_model, base, view, fold == f, noise))
-    return _from_sums(*[sum(parts) for parts in zip(*sums, strict=True)])
+        if cycle is not None:
+            gaps.append(_cycle_gaps(fold_model, base, view, fold == f, cycle, n_cycles))
+    total = [sum(parts) for parts in zip(*sums, strict=True)]
+    per_cycle = None
+    if cycle is not None:  # (..., C, 3, 2): the model's SSE minus the phase average's, its
+        per_cycle = torch.stack([sum(g[0] for g in gaps), sum(g[1] for g in gaps)], -1)
+    return _from_sums(total[0] - total[6], *total[1:6]), per_cycle
+
+
+def _cycle_gaps(model, baseline, view: _View, mask: Tensor, cycle: Tensor, n_cycles: int
+                ) -> tuple[Tensor, Tensor]:
+    """``(..., C, 3)`` squared error of ``model`` minus that of ``baseline``, and that of
+    ``baseline``, over the samples ``mask``, summed per cycle ``cycle (..., N)`` (in
+    ``[0, C)``, -1: none)."""
+    ok, phase, r, r_dot, y = _scored(view, mask & (cycle >= 0))
+    w = ok[..., None].to(y)
+    base = (y - baseline(phase)).square() * w
+    gap = (y - model.predict(phase, r, r_dot)).square() * w - base
+    index = torch.where(ok, cycle, n_cycles).unsqueeze(-1).expand(gap.shape)
+    out = gap.new_zeros(gap.shape[:-2] + (n_cycles + 1, 3))
+    return tuple(out.scatter_add(-2, index, x)[..., :-1, :] for x in (gap, base))
+
+
+def _scored(view: _View, mask: Tensor | None):
+    """The samples of ``view`` to score: ``ok (..., N)`` (finite, and in ``mask``), and
+    phase, r, r_dot, xi with the others set to 0 (so that nothing NaN reaches a sum)."""
+    ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
+    ok &= torch.isfinite(view.r).all(-1) & torch.isfinite(view.r_dot).all(-1)
+    if mask is not None:
+        ok &= mask
+    return (ok, torch.where(ok, view.phase, 0.0), torch.where(ok[..., None], view.r, 0.0),
+            torch.where(ok[..., None], view.r_dot, 0.0), torch.where(ok[..., None], view.xi, 0.0))
+
+
+def with_phase_average(model: LocalConnectionModel, baseline: FourierSeries,
+                       components: Tensor) -> LocalConnectionModel:
+    """``model`` predicting the components ``components`` (``(..., 3)`` bool, broadcasting
+    against its batch dims) by ``baseline``, a phase-averaged velocity (value shape ``(3,)``):
+    their intercept ``c`` becomes the baseline's series, their rows of ``b``, ``A`` and
+    ``∂A/∂r`` 0, so that :meth:`~LocalConnectionModel.predict` gives exactly the baseline's
+    values for them. ``meta["phase_averaged"]`` records the mask; the per-bin estimates
+    (``model.bins``) are kept as the regression made them."""
+    mask = torch.as_tensor(components, dtype=torch.bool, device=model.device)
+    if not bool(mask.any()):
+        return model
+    order = max(model.c.order, baseline.order)
+    c, base = padded(model.c, order).coeffs, padded(baseline, order).coeffs
+    coeffs = torch.where(mask.unsqueeze(-2), base.to(c), c)
+
+    def zeroed(series: FourierSeries) -> FourierSeries:
+        m = mask.reshape(mask.shape[:-1] + (1, 3) + (1,) * (series.value_ndim - 1))
+        return FourierSeries(series.coeffs.masked_fill(m, 0.0), series.value_ndim)
+
+    meta = {**(model.meta or {}), "phase_averaged": mask.tolist()}
+    return dataclasses.replace(model, c=FourierSeries(coeffs, 1), b=zeroed(model.b),
+                               A=zeroed(model.A), dA=zeroed(model.dA), meta=meta)
+
+
+def padded(series: FourierSeries, order: int) -> FourierSeries:
+    """``series`` with zero harmonics up to ``order`` (at least its own). Evaluating a
+    fallen-back component and its baseline through series of one order gives bit-equal
+    values (series of different orders differ in the last bit)."""
+    c = series.coeffs
+    extra = 2 * (order - series.order)
+    if extra <= 0:
+        return series
+    pad = c.new_zeros(c.shape[:series._axis] + (extra,) + tuple(series.value_shape))
+    return FourierSeries(torch.cat([c, pad], dim=series._axis), series.value_ndim)
 
 
 def downdates(regression: Regression) -> bool:
@@ -395,10 +541,21 @@ def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):
 
 
 def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
-                      pool: bool, n_folds: int = 3) -> tuple[Regression, ComplexityChoice]:
+                      pool: bool, n_folds: int = 3, fallback_ok: bool = True
+                      ) -> tuple[Regression, ComplexityChoice]:
     """The bins, Fourier order and ridge of least mean held-out ``SSE/SST`` among
     :data:`COMPLEXITY_GRID` x :data:`RIDGE_GRID` (:func:`cross_validate`, noise-corrected);
     a ridge only when it gains more than :data:`RIDGE_MIN_GAIN` over no ridge.
+
+    Per component and batch element the phase-averaged velocity (the model without shape
+    terms, ``b = A = ∂A/∂r = 0``) is a candidate too: a component whose shape terms do not
+    lower the held-out squared error of the observed (noisy) inputs below the phase
+    average's by more than :data:`FALLBACK_Z` standard errors (of the sum over held-out
+    cycles of the per-cycle differences) is predicted by the phase average
+    (:attr:`ComplexityChoice.phase_averaged`, :func:`with_phase_average`), and scores the
+    phase average's loss in the mean. The three components are separate least-squares
+    problems on one design, so dropping one's shape terms leaves the others' fits unchanged.
+    ``fallback_ok=False``: every component keeps its shape terms.
 
     The blocks are whole cycles in order and nothing is random: the same data give the same
     choice. For the built-in regressions one fit per ``(n_bins, fourier_order)`` and one pass
@@ -410,11 +567,18 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
         ValueError: no candidate can be fitted on ``n_folds − 1`` blocks (too few cycles),
             naming the first failure.
     """
-    scores, failed = [], []
+    scores, failed, fallbacks = [], [], {}
     for n_bins, order in COMPLEXITY_GRID:
-        for ridge, s in _candidate_skills(traj, cycle, regression, n_bins, order, pool,
-                                          n_folds, failed):
-            scores.append((n_bins, order, ridge, float((1 - s.r2).mean())))
+        for ridge, s, gaps in _candidate_skills(traj, cycle, regression, n_bins, order,
+                                                pool, n_folds, failed):
+            loss, base = 1 - s.r2, 1 - s.r2_phase_average
+            # the shape terms must beat the baseline on the held-out data as observed (the
+            # noisy inputs); the candidates are ranked by the noise-corrected loss
+            fallback = (~_clearly_better(gaps) if fallback_ok
+                        else torch.zeros_like(base, dtype=torch.bool))
+            scores.append((n_bins, order, ridge, float(torch.where(fallback, base,
+                                                                   loss).mean())))
+            fallbacks[n_bins, order, ridge] = fallback
     if not scores:
         raise ValueError(f"select_complexity: no candidate could be fitted on {n_folds - 1} of "
                          f"{n_folds} blocks of cycles ({failed[0]}); record more cycles")
@@ -426,13 +590,39 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
             best = best_plain
     n_bins, order, ridge, _ = best
     choice = ComplexityChoice(n_bins=n_bins, fourier_order=order, ridge=ridge,
-                              scores=tuple(scores))
+                              scores=tuple(scores),
+                              phase_averaged=_nested_tuple(fallbacks[n_bins, order, ridge]))
     return regression.replace(n_bins=n_bins, fourier_order=order, ridge=ridge), choice
 
 
+def _clearly_better(gaps: Tensor) -> Tensor:
+    """``(..., 3)`` True where the model's held-out squared error is below the phase
+    average's by more than :data:`FALLBACK_Z` standard errors of the sum of the per-cycle
+    differences and by more than the fraction :data:`FALLBACK_MARGIN` of the phase average's
+    (scaled by ``FALLBACK_CYCLES / n`` past ``n = FALLBACK_CYCLES`` held-out cycles);
+    ``gaps (..., C, 3, 2)``: per cycle the difference and the phase average's squared error
+    (cycles without scored samples, difference 0, left out)."""
+    diff, base = gaps.unbind(-1)
+    scored = diff != 0
+    n = scored.sum(-2)
+    total = diff.sum(-2)
+    mean = total / n.clamp(min=1)
+    var = ((diff - mean.unsqueeze(-2)).square() * scored).sum(-2) / (n - 1).clamp(min=1)
+    margin = FALLBACK_MARGIN * (FALLBACK_CYCLES / n.clamp(min=1)).clamp(max=1)
+    return ((n > 1) & (total < -FALLBACK_Z * (var * n).sqrt())
+            & (total < -margin * base.sum(-2)))
+
+
+def _nested_tuple(mask: Tensor) -> tuple:
+    def tup(x):
+        return tuple(tup(v) for v in x) if isinstance(x, list) else bool(x)
+    return tup(mask.tolist())
+
+
 def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, failed):
-    """``(ridge, Skill)`` of every ridge in :data:`RIDGE_GRID` at ``(n_bins, order)``, noise-
-    corrected; a candidate that cannot be fitted is left out and named in ``failed``."""
+    """``(ridge, Skill, gaps)`` of every ridge in :data:`RIDGE_GRID` at ``(n_bins, order)``:
+    the noise-corrected skill and the observed SSE of the model minus the phase average's per
+    held-out cycle ``(..., C, 3)``; a candidate that cannot be fitted is left out and named in ``failed``."""
     base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
@@ -440,9 +630,10 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
             out = []
             for ridge in RIDGE_GRID:
                 try:
-                    out.append((ridge, cross_validate(
+                    out.append((ridge, *_held_out_skills(
                         traj, cycle, base.replace(ridge=ridge), pool=pool, n_folds=n_folds,
-                        noise_corrected=True, refit=True)))
+                        noise_corrected=True, model=None, refit=True, phase_averaged=None,
+                        gaps=True)))
                 except ValueError as err:
                     failed.append(f"{n_bins} bins, ridge {ridge:g}: {err}")
             return out
@@ -460,48 +651,59 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
                                  ridges=RIDGE_GRID)
     coef = blended_held_out(traj, base, model, coef, n_folds, pool=pool, ridges=RIDGE_GRID)
     flat_fold = pool_batch(fold, 0) if pool else fold
+    cycles = _cycle_index(unflat.phase, pool)
     out = []
     for k, ridge in enumerate(RIDGE_GRID):
         models = [with_coefficients(model, coef[k, f], order) for f in range(n_folds)]
-        s = _score_folds(models, view, flat_fold, base, traj.dt, pool, noise_corrected=True)
+        s, gaps = _score_folds(models, view, flat_fold, base, traj.dt, pool,
+                                         noise_corrected=True, cycle=cycles)
         if bool(s.unscored.any()):
             failed.append(f"{n_bins} bins, ridge {ridge:g}: some bins cannot be fitted "
                           f"without one of the {n_folds} blocks of cycles")
             continue
-        out.append((ridge, s))
+        out.append((ridge, s, gaps))
     return out
 
 
 def _cycle_blocks(phase: Tensor, n_folds: int) -> Tensor:
     """``(..., N)`` block index in ``[0, n_folds)`` of contiguous whole cycles per trial
     (-1 where the phase is NaN)."""
-    start = torch.nan_to_num(phase, nan=float("inf")).amin(-1, keepdim=True)
-    cyc = torch.floor((phase - start) / (2 * math.pi))
+    cyc = _cycles(phase)
     n_cyc = torch.nan_to_num(cyc, nan=-1.0).amax(-1, keepdim=True) + 1
     fold = torch.floor(cyc * n_folds / n_cyc)
     return torch.where(torch.isfinite(fold), fold, -1.0).long()
 
 
+def _cycles(phase: Tensor) -> Tensor:
+    """``(..., N)`` whole cycles since each trial's first sample (float, NaN where the phase
+    is NaN)."""
+    start = torch.nan_to_num(phase, nan=float("inf")).amin(-1, keepdim=True)
+    return torch.floor((phase - start) / (2 * math.pi))
+
+
+def _cycle_index(phase: Tensor, pool: bool) -> Tensor:
+    """``(..., N)`` (pooled: ``(N,)``, as :func:`regression_view` flattens) index of every
+    sample's cycle, distinct across trials, -1 where the phase is NaN."""
+    cyc = _cycles(phase)
+    per_trial = int(torch.nan_to_num(cyc, nan=0.0).amax()) + 1
+    trial = torch.arange(math.prod(phase.shape[:-1]), device=phase.device).reshape(
+        phase.shape[:-1] + (1,))
+    index = torch.where(torch.isfinite(cyc), cyc + trial * per_trial * pool, -1.0).long()
+    return pool_batch(index, 0) if pool else index
+
+
 def _sums(model: LocalConnectionModel, baseline, view: _View, mask: Tensor | None,
           noise=None):
-    """SSE of model, baseline and template over the scored samples; Σy, Σy², count.
-
-    ``noise``: ``(var_delta, var_rate)`` of the inputs; the model's SSE is then corrected by
-    :func:`_input_noise_variance`."""
-    ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
-    ok &= torch.isfinite(view.r).all(-1) & torch.isfinite(view.r_dot).all(-1)
-    if mask is not None:
-        ok &= mask
-    phase = torch.where(ok, view.phase, 0.0)
-    r = torch.where(ok[..., None], view.r, 0.0)
-    r_dot = torch.where(ok[..., None], view.r_dot, 0.0)
-    y = torch.where(ok[..., None], view.xi, 0.0)
+    """SSE of model, baseline and template over the scored samples; Σy, Σy², count; and the
+    part of the model's SSE the inputs' noise adds (:func:`_input_noise_variance`; 0 without
+    ``noise``, the inputs' ``(var_delta, var_rate)``)."""
+    ok, phase, r, r_dot, y = _scored(view, mask)
     w = ok.to(y.dtype)[..., None]
     preds = (model.predict(phase, r, r_dot), baseline(phase), model.c(phase))
     sse = [((y - p).square() * w).sum(-2) for p in preds]
-    if noise is not None:
-        sse[0] = sse[0] - (_input_noise_variance(model, phase, r, r_dot, *noise) * w).sum(-2)
-    return (*sse, (y * w).sum(-2), (y.square() * w).sum(-2), w.sum(-2)[..., 0])
+    noise_sse = torch.zeros_like(sse[0]) if noise is None else (
+        _input_noise_variance(model, phase, r, r_dot, *noise) * w).sum(-2)
+    return (*sse, (y * w).sum(-2), (y.square() * w).sum(-2), w.sum(-2)[..., 0], noise_sse)
 
 
 def _input_noise_variance(model: LocalConnectionModel, phase: Tensor, r: Tensor,
