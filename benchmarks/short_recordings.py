@@ -10,9 +10,9 @@ differences of the noisy poses for ``NoiseAwareRegression``):
 - ``fixed``: the default regression at a fixed complexity (48 bins, Fourier order 12, no ridge);
 - ``default``: ``ConnectionEstimator()`` -- complexity ``"auto"``: chosen by held-out error
   over blocks of whole training cycles when the fixed one loses to the phase average there,
-  each component falling back to the phase average where its shape terms do not clearly beat
-  it held out (``choice`` ends in ``/pa:x,y`` for v_x and v_y; such a component ties the
-  phase average exactly);
+  each component predicted by the full model, by the connection alone (``ĉ + Âδ̇``,
+  ``choice`` ends in ``/A:x,y`` for v_x and v_y) or by the phase average (``/pa:x,y``; such a
+  component ties it exactly), whichever clearly wins held out (``skill._choose_terms``);
 - ``phase avg``: the training cycles' phase-averaged velocity (order of the default's series);
 - ``template``: the default model on the cycle, ``Â(γ)γ̇``;
 - ``exact A``: the swimmer's exact connection applied to the same noisy shapes and shape
@@ -118,12 +118,13 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
     out.update(default=s.r2.reshape(-1), phase_avg=s.r2_phase_average.reshape(-1),
                template=s.r2_template.reshape(-1), exact=_exact_r2(est, test, n_links))
     c = est.complexity_
-    out["choice"] = "fixed" if c is None else f"{c.n_bins}/{c.fourier_order}/{c.ridge:g}" + (
-        "/pa:" + ",".join(n.removeprefix("v_")[0] for n in c.phase_averaged_names())
-        if c.phase_averaged_names() else "")
+    out["choice"] = "fixed" if c is None else f"{c.n_bins}/{c.fourier_order}/{c.ridge:g}" + "".join(
+        f"/{tag}:" + ",".join(n.removeprefix("v_")[0] for n in names)
+        for tag, names in (("pa", c.phase_averaged_names()), ("A", c.connection_only_names()))
+        if names)
     held = est.held_out_skill_
     out["warned"] = bool(held.worse_than_phase_average.any() | held.unscored.any()) or bool(
-        c is not None and c.phase_averaged_names())  # the fall-back warns too
+        c is not None and (c.phase_averaged_names() or c.connection_only_names()))  # both warn
     return out
 
 
@@ -231,12 +232,16 @@ def main(argv=None) -> int:
                    help="skill.FALLBACK_MARGIN to measure (default: the library's)")
     p.add_argument("--z", type=float, default=None,
                    help="skill.FALLBACK_Z to measure (default: the library's)")
+    p.add_argument("--offset-z", type=float, default=None,
+                   help="skill.OFFSET_TERMS_Z to measure (default: the library's)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     if args.margin is not None:
         skill.FALLBACK_MARGIN = args.margin
     if args.z is not None:
         skill.FALLBACK_Z = args.z
+    if args.offset_z is not None:
+        skill.OFFSET_TERMS_Z = args.offset_z
     return cost(args) if args.cost else table(args)
 
 

@@ -215,7 +215,7 @@ def short_and_later():
     return traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
 
 
-SHORT_SEED = 8  # v_x (and v_y) fall back, ω keeps its connection
+SHORT_SEED = 7  # v_y falls back to the phase average, v_x and ω keep the connection alone
 
 
 def test_a_component_whose_shape_terms_lose_held_out_falls_back_to_the_phase_average(
@@ -223,49 +223,81 @@ def test_a_component_whose_shape_terms_lose_held_out_falls_back_to_the_phase_ave
     train, later = short_and_later
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
-        # TubeRegression: the fall-back's margin was measured with it (with the noise-aware
-        # regression's raw-difference target every component falls back on such recordings)
-        with pytest.warns(PoorHeldOutSkillWarning, match="predicts them by the phase-averaged"):
-            est = ConnectionEstimator(regression=TubeRegression()).fit(train)
+        with pytest.warns(PoorHeldOutSkillWarning, match="predicts it by the phase-averaged"):
+            est = ConnectionEstimator().fit(train)  # the noise-aware default
         warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
-        again = ConnectionEstimator(regression=TubeRegression()).fit(train)
+        again = ConnectionEstimator().fit(train)
     choice = est.complexity_
     assert choice == again.complexity_  # reproducible: whole cycles in order, nothing random
-    fallback = choice.phase_averaged[0]
-    assert fallback[0] and not fallback[2]  # v_x falls back, ω does not
-    assert choice.phase_averaged_names()[0] == "v_x"
+    fallback, conn = choice.phase_averaged[0], choice.connection_only[0]
+    assert fallback == (False, True, False) and conn == (True, False, True)
+    assert choice.phase_averaged_names() == ["v_y"]
+    assert choice.connection_only_names() == ["v_x", "omega"]
     model = est.model_
     assert model.meta["phase_averaged"] == [list(fallback)]
-    # v_x: no shape terms, and the intercept is the least-squares Fourier series of the
-    # training data's observed v_x in phase (numpy's lstsq, independent of fit_fourier)
-    assert bool((model.b.coeffs[..., 0, :] == 0).all())
-    assert bool((model.A.coeffs[..., 0, :] == 0).all())
-    assert bool((model.dA.coeffs[..., 0, :, :] == 0).all())
-    assert bool((model.A.coeffs[..., 2, :] != 0).any())  # ω keeps its connection
-    sm, phase = est.trajectory_.smoothed, est.trajectory_.phase
-    ok = torch.isfinite(phase[0])
+    assert model.meta["connection_only"] == [list(conn)]
+    # v_y: no shape terms; v_x and ω: Â kept, b̂ and ∂Â/∂r rows 0
+    assert bool((model.b.coeffs == 0).all()) and bool((model.dA.coeffs == 0).all())
+    assert bool((model.A.coeffs[..., 1, :] == 0).all())
+    plain = est.regression_.fit(est.trajectory_, est.limit_cycle_, pool=False)
+    for k in (0, 2):  # the connection is the regression's own, untouched
+        assert torch.equal(model.A.coeffs[..., k, :], plain.A.coeffs[..., k, :])
+        assert torch.equal(model.c.coeffs[..., k], plain.c.coeffs[..., k])
+    # v_y's intercept is the least-squares Fourier series of the training data's observed
+    # v_y in phase, as the regression sees it (numpy's lstsq, independent of fit_fourier)
+    view = skill.regression_view(est.trajectory_, est.regression_, plain, pool=False)
+    ok = torch.isfinite(view.phase[0]) & torch.isfinite(view.xi[0]).all(-1)
     k = est.regression_.fourier_order
     harmonics = torch.arange(1, k + 1, dtype=F64)
-    ph = phase[0, ok, None]
-    design = torch.cat([torch.ones_like(ph), torch.stack(
-        [torch.cos(harmonics * ph), torch.sin(harmonics * ph)], -1).flatten(-2)], -1)
-    coef = np.linalg.lstsq(design.numpy(), sm.xi[0, ok, 0].numpy(), rcond=None)[0]
+
+    def design(ph):
+        return torch.cat([torch.ones_like(ph), torch.stack(
+            [torch.cos(harmonics * ph), torch.sin(harmonics * ph)], -1).flatten(-2)], -1)
+
+    coef = np.linalg.lstsq(design(view.phase[0, ok, None]).numpy(),
+                           view.xi[0, ok, 1].numpy(), rcond=None)[0]
     grid = torch.linspace(0, 2 * math.pi, 50, dtype=F64)
-    g_design = torch.cat([torch.ones(50, 1, dtype=F64), torch.stack(
-        [torch.cos(harmonics * grid[:, None]), torch.sin(harmonics * grid[:, None])],
-        -1).flatten(-2)], -1)
     gen = torch.Generator().manual_seed(1)
-    r, r_dot = torch.randn(2, 1, 50, 4, generator=gen, dtype=F64)  # any shape: v_x ignores it
-    pred = model.predict(grid[None], r, r_dot)[0, :, 0]
-    torch.testing.assert_close(pred, g_design @ torch.from_numpy(coef), rtol=0, atol=1e-10)
-    # held out, on the training cycles and on the later ones, v_x ties the phase average
+    r, r_dot = torch.randn(2, 1, 50, 4, generator=gen, dtype=F64)  # any shape: v_y ignores it
+    pred = model.predict(grid[None], r, r_dot)[0, :, 1]
+    torch.testing.assert_close(pred, design(grid[:, None]) @ torch.from_numpy(coef), rtol=0,
+                               atol=1e-10)
+    # held out, on the training cycles and on the later ones, v_y ties the phase average
     # exactly, and ω keeps beating it
     for s in (est.held_out_skill_, est.score(later)):
-        assert float(s.r2[..., 0]) == float(s.r2_phase_average[..., 0])
+        assert float(s.r2[..., 1]) == float(s.r2_phase_average[..., 1])
         assert float(s.r2[..., 2]) > float(s.r2_phase_average[..., 2])
-        assert not bool(s.worse_than_phase_average[..., 0].any())
+        assert not bool(s.worse_than_phase_average.any())
     # the estimator's cross_validate agrees with the fit's own check
     assert torch.equal(est.cross_validate(3).r2, est.held_out_skill_.r2)
+
+
+def test_the_terms_choice_presumes_the_simpler_model_on_few_cycles_only():
+    """_choose_terms on made-up per-cycle gaps: the same evidence chooses the connection alone
+    over 4 held-out cycles and keeps the full model over 12."""
+    def gaps(full, conn, n):  # per-cycle SSE gaps (model - phase average), phase average 10
+        g = torch.tensor([[full, conn]], dtype=F64).repeat(n, 1)
+        sign = torch.tensor([1.0, -1.0] * (n // 2), dtype=F64)[:, None]
+        g = g + 0.05 * sign * torch.tensor([1.0, -1.0], dtype=F64)  # opposite scatter
+        base = torch.full((n, 3), 10.0, dtype=F64)
+        return (torch.stack([g[:, :1].expand(n, 3), base], -1),
+                torch.stack([g[:, 1:].expand(n, 3), base], -1))
+
+    # both models beat the phase average clearly; the full one beats the connection by
+    # less than OFFSET_TERMS_Z standard errors (0.05 per cycle, scatter 0.1)
+    few, many = gaps(-2.0, -1.95, 4), gaps(-2.0, -1.95, 12)
+    fallback, conn = skill._choose_terms(*few)
+    assert not bool(fallback.any()) and bool(conn.all())
+    fallback, conn = skill._choose_terms(*many)
+    assert not bool(fallback.any()) and not bool(conn.any())
+    # models no better than the phase average: it predicts, few cycles or many
+    for n in (4, 12):
+        worse = gaps(0.5, 0.5, n)
+        fallback, conn = skill._choose_terms(*worse)
+        assert bool(fallback.all()) and not bool(conn.any())
+    # many cycles and a connection clearly better than the full model: the connection alone
+    fallback, conn = skill._choose_terms(*gaps(-1.0, -2.0, 12))
+    assert not bool(fallback.any()) and bool(conn.all())
 
 
 def test_no_component_falls_back_on_a_long_recording():
@@ -275,9 +307,13 @@ def test_no_component_falls_back_on_a_long_recording():
         warnings.simplefilter("error", PoorHeldOutSkillWarning)
         auto = ConnectionEstimator(pool=True).fit(long)
         cv = ConnectionEstimator(pool=True, complexity="cv").fit(long)
-    for est in (auto, cv):  # every component keeps its shape terms
-        assert est.complexity_ is None or est.complexity_.phase_averaged == (False,) * 3
+    for est in (auto, cv):  # every component keeps its shape terms, offset terms included
+        assert est.complexity_ is None or (
+            est.complexity_.phase_averaged == (False,) * 3
+            and est.complexity_.connection_only == (False,) * 3)
         assert "phase_averaged" not in est.model_.meta
+        assert "connection_only" not in est.model_.meta
         plain = est.regression_.fit(est.trajectory_, est.limit_cycle_, pool=True)
-        assert torch.equal(est.model_.A.coeffs, plain.A.coeffs)
+        for name in ("c", "A", "b", "dA"):
+            assert torch.equal(getattr(est.model_, name).coeffs, getattr(plain, name).coeffs)
         assert bool((est.held_out_skill_.r2 > est.held_out_skill_.r2_phase_average).all())

@@ -271,7 +271,9 @@ def main(argv: list[str] | None = None) -> int:
                             "fourier_order": est.complexity_.fourier_order,
                             "ridge": est.complexity_.ridge,
                             "components": list(COMPONENTS),
-                            "phase_averaged": _nested_list(est.complexity_.phase_averaged)}),
+                            "phase_averaged": _nested_list(est.complexity_.phase_averaged),
+                            "connection_only": _nested_list(
+                                est.complexity_.connection_only)}),
             "held_out_skill": None if held_out is None else _skill_summary(held_out, folds),
             "outputs": outputs,
             "device": str(device),
@@ -294,6 +296,10 @@ def main(argv: list[str] | None = None) -> int:
                 print("predicted by the phase-averaged velocity (the shape terms did not beat "
                       "it on held-out cycles; their rows of A, b and dA/dr are 0, not "
                       f"estimated): {', '.join(c.phase_averaged_names())}")
+            if c.connection_only_names():
+                print("predicted by the connection alone (the offset terms did not add to it "
+                      "on held-out cycles; their rows of b and dA/dr are 0, not estimated, A "
+                      f"is kept): {', '.join(c.connection_only_names())}")
         if held_out is not None:
             print(f"held-out R² (v_x, v_y, omega), each of {folds} blocks of whole cycles "
                   "left out in turn:")

@@ -33,6 +33,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from .. import _checks
@@ -232,10 +233,10 @@ class ConnectionEstimator:
                 if self.complexity != "auto" or not skill.downdates(regression):
                     raise
                 model = None  # too many coefficients for this recording: choose them below
-            held = None if model is None else self._held_out(traj, cycle, regression, model,
-                                                             choice)
+            held, full = (None, None) if model is None else self._held_out(
+                traj, cycle, regression, model, choice, terms=self.complexity == "auto")
             if self.complexity == "auto" and (model is None or (held is not None and bool(
-                    (held.worse_than_phase_average | held.unscored[..., None]).any()))):
+                    (held.worse_than_phase_average | held.unscored[..., None] | ~full).any()))):
                 # the given complexity overfits this recording: choose it by held-out error
                 try:
                     regression, choice = skill.select_complexity(
@@ -246,13 +247,15 @@ class ConnectionEstimator:
                     # no candidate fits 2 of 3 blocks: keep the given one (the check warns)
                 else:
                     model = regression.fit(traj, cycle, pool=self.pool)
-                    held = self._held_out(traj, cycle, regression, model, choice)
+                    held = self._held_out(traj, cycle, regression, model, choice)[0]
         view = skill.regression_view(traj, regression, model, pool=self.pool)
         self.phase_average_ = skill.phase_average(view, regression.fourier_order)
-        if choice is not None and any(choice.phase_averaged_names()):
-            # components whose shape terms lost to the phase average held out predict it
+        if choice is not None and (choice.phase_averaged_names()
+                                   or choice.connection_only_names()):
+            # components whose shape terms lost to the phase average held out predict it;
+            # those whose offset terms did not help keep the connection alone
             model = skill.with_phase_average(model, self.phase_average_,
-                                             choice.phase_average_mask(model.device))
+                                             *_masks(choice, model.device))
             # one order for both, so that score() finds them tied exactly
             self.phase_average_ = skill.padded(self.phase_average_, model.c.order)
         self.trajectory_ = traj
@@ -270,17 +273,24 @@ class ConnectionEstimator:
     def _folds(self) -> int:
         return self.held_out_folds or 3
 
-    def _held_out(self, traj, cycle, regression, model, choice=None) -> skill.Skill | None:
+    def _held_out(self, traj, cycle, regression, model, choice=None, terms=False
+                  ) -> tuple[skill.Skill | None, Tensor]:
         """The held-out check's skill (downdated fits; the components ``choice`` gave to the
-        phase average predicted by it), or None when it is off."""
+        phase average or the connection alone predicted so), or None when it is off; and
+        ``(..., 3)`` True where the full model is the one to keep (``terms``:
+        :func:`~torchconn.regression.skill.checked_terms`; else all True)."""
+        every = torch.ones(3, dtype=torch.bool, device=model.device)
         if not self.held_out_folds or not skill.downdates(regression):
-            return None
-        mask = None if choice is None else choice.phase_average_mask(model.device)
+            return None, every
+        fallback, conn = _masks(choice, model.device)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
+            if terms and choice is None:
+                return skill.checked_terms(traj, cycle, regression, model, pool=self.pool,
+                                           n_folds=self.held_out_folds)
             return skill.cross_validate(traj, cycle, regression, pool=self.pool,
                                         n_folds=self.held_out_folds, model=model,
-                                        phase_averaged=mask)
+                                        phase_averaged=fallback, connection_only=conn), every
 
     # ------------------------------------------------------------------ held-out skill
     def score(self, traj: Trajectory, phase: Tensor | None = None) -> skill.Skill:
@@ -299,11 +309,10 @@ class ConnectionEstimator:
         """Held-out skill on the training recordings over ``n_folds`` blocks of whole cycles
         (:func:`~torchconn.regression.skill.cross_validate`)."""
         model = self._fitted()
-        choice = self.complexity_
+        fallback, conn = _masks(self.complexity_, model.device)
         return skill.cross_validate(
             self.trajectory_, self.limit_cycle_, self.regression_, pool=self.pool,
-            n_folds=n_folds, model=model,
-            phase_averaged=None if choice is None else choice.phase_average_mask(model.device))
+            n_folds=n_folds, model=model, phase_averaged=fallback, connection_only=conn)
 
     def check_held_out(self, n_folds: int = 3) -> skill.Skill:
         """:meth:`cross_validate`, warning (:class:`~torchconn.regression.skill.
@@ -375,6 +384,15 @@ class ConnectionEstimator:
         changed = [f"{k}={v!r}" for k, v in self.get_params(deep=False).items()
                    if v != getattr(default, k)]
         return "ConnectionEstimator(" + ", ".join(changed) + ")"
+
+
+def _masks(choice: "skill.ComplexityChoice | None", device) -> tuple[Tensor | None,
+                                                                   Tensor | None]:
+    """The components ``choice`` predicts by the phase average and by the connection alone,
+    ``(..., 3)`` bool each (None, None without a choice)."""
+    if choice is None:
+        return None, None
+    return choice.phase_average_mask(device), choice.connection_only_mask(device)
 
 
 def _check_arguments(*, pool: Any, complexity: Any, held_out_folds: Any, **stages: Any) -> None:

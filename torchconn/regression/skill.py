@@ -41,8 +41,9 @@ from .noise_aware import (
 from .tube import Regression, TubeRegression, _auto_window, intercept_series
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
-           "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "COMPONENTS",
-           "regression_view", "cross_validate",
+           "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
+           "COMPONENTS",
+           "regression_view", "cross_validate", "checked_terms",
            "select_complexity", "skill", "with_phase_average"]
 
 #: the body-velocity components, in the order of the last axis of ξ
@@ -57,23 +58,30 @@ RIDGE_GRID = (0.0, 0.1, 1.0, 10.0)
 #: long recordings the candidates' losses differ by less than their noise (measured: 5-link,
 #: ω = 0.01, 0.38879 with a ridge vs 0.38884 without, and Â 48 % vs 10 % off)
 RIDGE_MIN_GAIN = 0.01
-#: a component keeps the shape terms (``b``, ``A``, ``∂A/∂r``) only when they lower its
-#: held-out squared error below the phase-averaged velocity's by more than ``FALLBACK_Z``
-#: standard errors (over the held-out cycles) and by more than the fraction
-#: ``FALLBACK_MARGIN`` of it; otherwise it is predicted by the phase-averaged velocity alone
-#: (:func:`select_complexity`). Held-out blocks of the training cycles flatter the shape
-#: terms against later cycles: measured on 40 short 5-link recordings (ω = 0.005, 3-6
-#: cycles, 2 gaits, seeds 30-34; the later 4 cycles scored), v_x lost to the phase average
-#: on the later cycles in 14 of 40 with no margin, 5 with 0.2 and 2 with 0.3 (whatever the
-#: z in 0-2), and no setting lost nowhere
-FALLBACK_Z = 1.0
-FALLBACK_MARGIN = 0.3
+#: per component, three models compete on held-out cycles (:func:`select_complexity`): the
+#: full model, the connection alone (``ĉ + Âδ̇``: the rows of ``b̂`` and ``∂Â/∂r`` set to 0),
+#: and the phase-averaged velocity. A model counts only when it lowers the component's
+#: held-out squared error below the phase average's by more than ``FALLBACK_Z`` standard
+#: errors (over the held-out cycles) and by more than the fraction ``FALLBACK_MARGIN`` of it;
+#: when neither does, the component is predicted by the phase-averaged velocity alone.
+#: Held-out blocks of the training cycles flatter the shape terms against later cycles: on
+#: short recordings the swimmer's shape offsets wander, and later cycles reach offsets 2-5x
+#: those of the training cycles, where ``b̂δ`` and ``∂Â/∂r`` extrapolate (measured with the
+#: noise-aware default, 5-link, ω = 0.005, 3-6 cycles, 3 gaits, tuning seeds 30-34, the later
+#: 4 cycles scored: lost to the phase average in 37 of 180 components without a fall-back,
+#: 17 with the connection alone everywhere, 4 with these settings; percomp's earlier
+#: full-model-or-phase-average rule, ``z = 1`` and 30 %, left 5 losses but 149 ties: v_x and
+#: v_y fell back in 54-56 of 59 recordings)
+FALLBACK_Z = 2.5
+FALLBACK_MARGIN = 0.1
 #: the margin applies in full up to this many held-out cycles and falls as ``1/n`` past it,
 #: as the optimism of an in-sample error does (``∝ p/n``); it was measured on 3-6 cycles
-#: only, and on long recordings the standard-error rule alone decides (measured: 5-link,
-#: 4 x 30 cycles, ω = 0.005, the shape terms lower v_y's held-out error by 22 %, short of
-#: a full margin of 30 %)
+#: only, and on long recordings the standard-error rule alone decides
 FALLBACK_CYCLES = 6
+#: the rows of ``b̂`` and ``∂Â/∂r`` are kept only when the full model's held-out squared error
+#: is below the connection alone's by more than this many standard errors (seeds 30-34: 3 and
+#: 4 gave the same losses; 3 keeps them wherever the data clearly ask for them)
+OFFSET_TERMS_Z = 3.0
 
 
 class PoorHeldOutSkillWarning(UserWarning):
@@ -128,6 +136,14 @@ class Skill:
         worse = self.worse_than_phase_average.reshape(-1, 3).any(0)
         if not bool(worse.any()):
             fallback = [] if choice is None else choice.phase_averaged_names()
+            reduced = [] if choice is None else choice.connection_only_names()
+            if reduced:
+                warnings.warn(
+                    f"the offset terms b̂ and ∂Â/∂r did not improve the held-out prediction of "
+                    f"{', '.join(reduced)} beyond the connection Â alone, so their rows are 0 "
+                    "(not estimated from this recording; Â is kept); record more cycles, or "
+                    "cycles that leave the gait further, to estimate them",
+                    PoorHeldOutSkillWarning, stacklevel=stacklevel)
             if fallback:
                 warnings.warn(
                     f"the shape terms do not predict held-out cycles of {', '.join(fallback)} "
@@ -160,6 +176,10 @@ class ComplexityChoice:
             components ``v_x, v_y, ω``): True where the component is predicted by the
             phase-averaged velocity of the training data, its shape terms set to 0, because
             they did not beat it on held-out cycles (:data:`FALLBACK_Z`).
+        connection_only: likewise: True where the component keeps ``ĉ`` and its row of
+            ``Â`` but its rows of ``b̂`` and ``∂Â/∂r`` are set to 0, because the connection
+            alone beat the phase average on held-out cycles and those terms did not clearly
+            add to it (:data:`OFFSET_TERMS_Z`).
     """
 
     n_bins: int
@@ -167,17 +187,31 @@ class ComplexityChoice:
     ridge: float
     scores: tuple[tuple[int, int, float, float], ...]
     phase_averaged: tuple = (False, False, False)
+    connection_only: tuple = (False, False, False)
 
     def phase_average_mask(self, device: torch.device | str) -> Tensor:
         """:attr:`phase_averaged` as a bool tensor ``(..., 3)`` on ``device``."""
         return torch.tensor(self.phase_averaged, dtype=torch.bool, device=device)
 
+    def connection_only_mask(self, device: torch.device | str) -> Tensor:
+        """:attr:`connection_only` as a bool tensor ``(..., 3)`` on ``device``."""
+        return torch.tensor(self.connection_only, dtype=torch.bool, device=device)
+
     def phase_averaged_names(self) -> list[str]:
         """The components predicted by the phase-averaged velocity in some batch element."""
-        def rows(x):
-            return [x] if not isinstance(x[0], tuple) else [r for v in x for r in rows(v)]
-        any_ = [any(col) for col in zip(*rows(self.phase_averaged), strict=True)]
-        return [n for n, a in zip(COMPONENTS, any_, strict=True) if a]
+        return _names(self.phase_averaged)
+
+    def connection_only_names(self) -> list[str]:
+        """The components whose ``b̂`` and ``∂Â/∂r`` rows are 0 in some batch element."""
+        return _names(self.connection_only)
+
+
+def _names(mask: tuple) -> list[str]:
+    """The components True in some row of a nested ``(..., 3)`` tuple of bools."""
+    def rows(x):
+        return [x] if not isinstance(x[0], tuple) else [r for v in x for r in rows(v)]
+    any_ = [any(col) for col in zip(*rows(mask), strict=True)]
+    return [n for n, a in zip(COMPONENTS, any_, strict=True) if a]
 
 
 @dataclass(frozen=True)
@@ -218,7 +252,8 @@ def skill(model: LocalConnectionModel, baseline, view: _View) -> Skill:
 def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
                    pool: bool, n_folds: int = 3, noise_corrected: bool = False,
                    model: LocalConnectionModel | None = None, refit: bool = False,
-                   phase_averaged: Tensor | None = None) -> Skill:
+                   phase_averaged: Tensor | None = None,
+                   connection_only: Tensor | None = None) -> Skill:
     """Held-out skill over ``n_folds`` contiguous blocks of whole cycles of every trial.
 
     Each block in turn is left out of the regression and scored; the phase and the limit
@@ -238,7 +273,9 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
 
     ``phase_averaged``: ``(..., 3)`` bool, components each fold's model predicts by the
     phase-averaged velocity of its training blocks (:func:`with_phase_average`, as
-    :func:`select_complexity` chose): their skill equals the baseline's.
+    :func:`select_complexity` chose): their skill equals the baseline's. ``connection_only``:
+    ``(..., 3)`` bool, components whose rows of ``b̂`` and ``∂Â/∂r`` each fold's model sets
+    to 0 (likewise).
 
     ``noise_corrected`` (noise-aware regressions): subtract from the model's squared error the
     part the joint-angle noise of the held-out *inputs* adds (:func:`_input_noise_variance`),
@@ -255,13 +292,39 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
     return _held_out_skills(traj, cycle, regression, pool=pool, n_folds=n_folds,
                             noise_corrected=noise_corrected, model=model, refit=refit,
-                            phase_averaged=phase_averaged)[0]
+                            phase_averaged=phase_averaged, connection_only=connection_only)
 
 
 def _held_out_skills(traj, cycle, regression, *, pool, n_folds, noise_corrected, model, refit,
-                     phase_averaged, gaps=False) -> tuple[Skill, Tensor | None]:
-    """:func:`cross_validate`'s skill, and with ``gaps`` the model's observed SSE minus the
-    phase average's per held-out cycle (:func:`_score_folds`)."""
+                     phase_averaged=None, connection_only=None, variants=False):
+    """:func:`cross_validate`'s skill; with ``variants`` instead :func:`_variant_scores` of the
+    fold models (noise-corrected)."""
+    reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
+                                                   n_folds=n_folds, refit=refit)
+    if variants:
+        return _variant_scores(models, view, fold, reg, traj.dt, pool, cycles)
+    return _score_folds(models, view, fold, reg, traj.dt, pool, noise_corrected,
+                        phase_averaged, connection_only)[0]
+
+
+def checked_terms(traj: Trajectory, cycle: LimitCycle, regression: Regression,
+                  model: LocalConnectionModel, *, pool: bool, n_folds: int = 3
+                  ) -> tuple[Skill, Tensor]:
+    """The held-out check of a fit at a given complexity, from one set of fold fits:
+    :func:`cross_validate`'s skill, and ``(..., 3)`` True where :func:`_choose_terms` keeps
+    the full model (False: the phase average or the connection alone predicts that
+    component better held out, and :func:`select_complexity` should choose)."""
+    reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
+                                                   n_folds=n_folds, refit=False)
+    held = _score_folds(models, view, fold, reg, traj.dt, pool, False)[0]
+    (_, gaps), (_, gaps_conn) = _variant_scores(models, view, fold, reg, traj.dt, pool, cycles)
+    fallback, conn = _choose_terms(gaps, gaps_conn)
+    return held, ~(fallback | conn)
+
+
+def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
+    """The regression (metric off), its fits without each of ``n_folds`` blocks of cycles,
+    the view they are scored on, its block index and its cycle index (:func:`_cycle_index`)."""
     reg = regression.replace(metric=False)
     if model is None:
         model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
@@ -278,13 +341,24 @@ def _held_out_skills(traj, cycle, regression, *, pool, n_folds, noise_corrected,
         coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool)
         coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool)[0]
         models = [with_coefficients(model, coef[f], reg.fourier_order) for f in range(n_folds)]
-    return _score_folds(models, view, pool_batch(fold, 0) if pool else fold, reg, traj.dt,
-                        pool, noise_corrected, phase_averaged,
-                        _cycle_index(unflat.phase, pool) if gaps else None)
+    return (reg, models, view, pool_batch(fold, 0) if pool else fold,
+            _cycle_index(unflat.phase, pool))
+
+
+def _variant_scores(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
+                    cycle: Tensor) -> tuple[tuple[Skill, Tensor], tuple[Skill, Tensor]]:
+    """:func:`_score_folds` (noise-corrected, with the per-cycle gaps) of the fold models as
+    fitted and of the connection alone (their rows of ``b̂`` and ``∂Â/∂r`` set to 0): the
+    candidates of :func:`_choose_terms`."""
+    every = torch.ones(3, dtype=torch.bool, device=view.phase.device)
+    return (_score_folds(models, view, fold, reg, dt, pool, True, cycle=cycle),
+            _score_folds(models, view, fold, reg, dt, pool, True, connection_only=every,
+                         cycle=cycle))
 
 
 def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
                  noise_corrected: bool, phase_averaged: Tensor | None = None,
+                 connection_only: Tensor | None = None,
                  cycle: Tensor | None = None) -> tuple[Skill, Tensor | None]:
     """:class:`Skill` of ``models[f]`` on block ``f`` of ``view``, summed over the blocks,
     beside the phase-averaged velocity of the other blocks (noise-corrected as asked); with
@@ -292,14 +366,15 @@ def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, 
     minus that of the phase average and the phase average's own ``(..., C, 3, 2)``, as
     observed: the model's error on the noisy inputs, what a user's held-out data show.
 
-    ``phase_averaged``: ``(..., 3)`` components each fold's model predicts by that baseline."""
+    ``phase_averaged``: ``(..., 3)`` components each fold's model predicts by that baseline;
+    ``connection_only``: ``(..., 3)`` components whose ``b̂`` and ``∂Â/∂r`` rows it zeroes."""
     sums, gaps = [], []
     n_cycles = None if cycle is None else int(cycle.amax()) + 1
     for f, fold_model in enumerate(models):
         base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
                                    view.r_dot, view.xi), reg.fourier_order)
-        if phase_averaged is not None:
-            fold_model = with_phase_average(fold_model, base, phase_averaged)
+        if phase_averaged is not None or connection_only is not None:
+            fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
             base = padded(base, fold_model.c.order)  # the same sums: an exact tie
         noise = None
         if noise_corrected and isinstance(reg, NoiseAwareRegression):
@@ -340,27 +415,41 @@ def _scored(view: _View, mask: Tensor | None):
 
 
 def with_phase_average(model: LocalConnectionModel, baseline: FourierSeries,
-                       components: Tensor) -> LocalConnectionModel:
+                       components: Tensor | None,
+                       connection_only: Tensor | None = None) -> LocalConnectionModel:
     """``model`` predicting the components ``components`` (``(..., 3)`` bool, broadcasting
-    against its batch dims) by ``baseline``, a phase-averaged velocity (value shape ``(3,)``):
-    their intercept ``c`` becomes the baseline's series, their rows of ``b``, ``A`` and
-    ``∂A/∂r`` 0, so that :meth:`~LocalConnectionModel.predict` gives exactly the baseline's
-    values for them. ``meta["phase_averaged"]`` records the mask; the per-bin estimates
-    (``model.bins``) are kept as the regression made them."""
-    mask = torch.as_tensor(components, dtype=torch.bool, device=model.device)
-    if not bool(mask.any()):
-        return model
-    order = max(model.c.order, baseline.order)
-    c, base = padded(model.c, order).coeffs, padded(baseline, order).coeffs
-    coeffs = torch.where(mask.unsqueeze(-2), base.to(c), c)
+    against its batch dims; None: none) by ``baseline``, a phase-averaged velocity (value
+    shape ``(3,)``): their intercept ``c`` becomes the baseline's series, their rows of ``b``,
+    ``A`` and ``∂A/∂r`` 0, so that :meth:`~LocalConnectionModel.predict` gives exactly the
+    baseline's values for them. The components ``connection_only`` (same shape) keep ``c``
+    and ``A`` and get rows of ``b`` and ``∂A/∂r`` of 0: ``c + Aδ̇``. ``meta["phase_averaged"]``
+    and ``meta["connection_only"]`` record the masks (each only when some entry is True); the
+    per-bin estimates (``model.bins``) are kept as the regression made them."""
+    def as_mask(x):
+        return (torch.zeros(3, dtype=torch.bool, device=model.device) if x is None
+                else torch.as_tensor(x, dtype=torch.bool, device=model.device))
 
-    def zeroed(series: FourierSeries) -> FourierSeries:
-        m = mask.reshape(mask.shape[:-1] + (1, 3) + (1,) * (series.value_ndim - 1))
+    mask, offsets = as_mask(components), as_mask(connection_only)
+    mask, offsets = torch.broadcast_tensors(mask, offsets)
+    if not bool((mask | offsets).any()):
+        return model
+    c = model.c
+    if bool(mask.any()):
+        order = max(model.c.order, baseline.order)
+        coeffs, base = padded(model.c, order).coeffs, padded(baseline, order).coeffs
+        c = FourierSeries(torch.where(mask.unsqueeze(-2), base.to(coeffs), coeffs), 1)
+
+    def zeroed(series: FourierSeries, m: Tensor) -> FourierSeries:
+        m = m.reshape(m.shape[:-1] + (1, 3) + (1,) * (series.value_ndim - 1))
         return FourierSeries(series.coeffs.masked_fill(m, 0.0), series.value_ndim)
 
-    meta = {**(model.meta or {}), "phase_averaged": mask.tolist()}
-    return dataclasses.replace(model, c=FourierSeries(coeffs, 1), b=zeroed(model.b),
-                               A=zeroed(model.A), dA=zeroed(model.dA), meta=meta)
+    meta = dict(model.meta or {})
+    for key, m in (("phase_averaged", mask), ("connection_only", offsets)):
+        if bool(m.any()):
+            meta[key] = m.tolist()
+    return dataclasses.replace(model, c=c, b=zeroed(model.b, mask | offsets),
+                               A=zeroed(model.A, mask), dA=zeroed(model.dA, mask | offsets),
+                               meta=meta)
 
 
 def padded(series: FourierSeries, order: int) -> FourierSeries:
@@ -547,15 +636,19 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
     :data:`COMPLEXITY_GRID` x :data:`RIDGE_GRID` (:func:`cross_validate`, noise-corrected);
     a ridge only when it gains more than :data:`RIDGE_MIN_GAIN` over no ridge.
 
-    Per component and batch element the phase-averaged velocity (the model without shape
-    terms, ``b = A = ∂A/∂r = 0``) is a candidate too: a component whose shape terms do not
-    lower the held-out squared error of the observed (noisy) inputs below the phase
-    average's by more than :data:`FALLBACK_Z` standard errors (of the sum over held-out
-    cycles of the per-cycle differences) is predicted by the phase average
-    (:attr:`ComplexityChoice.phase_averaged`, :func:`with_phase_average`), and scores the
-    phase average's loss in the mean. The three components are separate least-squares
-    problems on one design, so dropping one's shape terms leaves the others' fits unchanged.
-    ``fallback_ok=False``: every component keeps its shape terms.
+Per component and batch element two simpler models are candidates too
+    (:func:`_choose_terms`): the connection alone (``ĉ + Âδ̇``, the rows of ``b`` and
+    ``∂A/∂r`` 0; :attr:`ComplexityChoice.connection_only`) and the phase-averaged velocity
+    (``b = A = ∂A/∂r = 0``; :attr:`ComplexityChoice.phase_averaged`), both made by
+    :func:`with_phase_average`. A model with shape terms counts only when it lowers the
+    held-out squared error of the observed (noisy) inputs below the phase average's by more
+    than :data:`FALLBACK_Z` standard errors (of the sum over held-out cycles of the
+    per-cycle differences) and :data:`FALLBACK_MARGIN` of it; the full model is kept over the
+    connection alone only when it is better by more than :data:`OFFSET_TERMS_Z` standard
+    errors. Each candidate scores the loss of the model chosen per component in the mean.
+    The three components are separate least-squares problems on one design, so one's choice
+    leaves the others' fits unchanged. ``fallback_ok=False``: every component keeps the full
+    model.
 
     The blocks are whole cycles in order and nothing is random: the same data give the same
     choice. For the built-in regressions one fit per ``(n_bins, fourier_order)`` and one pass
@@ -569,16 +662,18 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
     """
     scores, failed, fallbacks = [], [], {}
     for n_bins, order in COMPLEXITY_GRID:
-        for ridge, s, gaps in _candidate_skills(traj, cycle, regression, n_bins, order,
-                                                pool, n_folds, failed):
-            loss, base = 1 - s.r2, 1 - s.r2_phase_average
-            # the shape terms must beat the baseline on the held-out data as observed (the
-            # noisy inputs); the candidates are ranked by the noise-corrected loss
-            fallback = (~_clearly_better(gaps) if fallback_ok
-                        else torch.zeros_like(base, dtype=torch.bool))
-            scores.append((n_bins, order, ridge, float(torch.where(fallback, base,
-                                                                   loss).mean())))
-            fallbacks[n_bins, order, ridge] = fallback
+        for ridge, (s, gaps), (s_conn, gaps_conn) in _candidate_skills(
+                traj, cycle, regression, n_bins, order, pool, n_folds, failed):
+            # the models must beat the baseline on the held-out data as observed (the noisy
+            # inputs); the candidates are ranked by the noise-corrected loss
+            if fallback_ok:
+                fallback, conn = _choose_terms(gaps, gaps_conn)
+            else:
+                fallback = conn = torch.zeros_like(s.r2, dtype=torch.bool)
+            loss = torch.where(fallback, 1 - s.r2_phase_average,
+                               torch.where(conn, 1 - s_conn.r2, 1 - s.r2))
+            scores.append((n_bins, order, ridge, float(loss.mean())))
+            fallbacks[n_bins, order, ridge] = fallback, conn
     if not scores:
         raise ValueError(f"select_complexity: no candidate could be fitted on {n_folds - 1} of "
                          f"{n_folds} blocks of cycles ({failed[0]}); record more cycles")
@@ -589,9 +684,10 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
         if best[3] > (1 - RIDGE_MIN_GAIN) * best_plain[3]:
             best = best_plain
     n_bins, order, ridge, _ = best
+    fallback, conn = fallbacks[n_bins, order, ridge]
     choice = ComplexityChoice(n_bins=n_bins, fourier_order=order, ridge=ridge,
-                              scores=tuple(scores),
-                              phase_averaged=_nested_tuple(fallbacks[n_bins, order, ridge]))
+                              scores=tuple(scores), phase_averaged=_nested_tuple(fallback),
+                              connection_only=_nested_tuple(conn))
     return regression.replace(n_bins=n_bins, fourier_order=order, ridge=ridge), choice
 
 
@@ -603,14 +699,48 @@ def _clearly_better(gaps: Tensor) -> Tensor:
     ``gaps (..., C, 3, 2)``: per cycle the difference and the phase average's squared error
     (cycles without scored samples, difference 0, left out)."""
     diff, base = gaps.unbind(-1)
+    n = (diff != 0).sum(-2)
+    margin = FALLBACK_MARGIN * (FALLBACK_CYCLES / n.clamp(min=1)).clamp(max=1)
+    return _lower_by(diff, FALLBACK_Z) & (diff.sum(-2) < -margin * base.sum(-2))
+
+
+def _lower_by(diff: Tensor, z: float) -> Tensor:
+    """``(..., 3)`` True where the sum over cycles of ``diff (..., C, 3)`` (per-cycle
+    differences of squared errors; 0: a cycle without scored samples, left out) is below 0
+    by more than ``z`` standard errors (of that sum, from the cycles' scatter), over at least
+    2 cycles."""
     scored = diff != 0
     n = scored.sum(-2)
     total = diff.sum(-2)
     mean = total / n.clamp(min=1)
     var = ((diff - mean.unsqueeze(-2)).square() * scored).sum(-2) / (n - 1).clamp(min=1)
-    margin = FALLBACK_MARGIN * (FALLBACK_CYCLES / n.clamp(min=1)).clamp(max=1)
-    return ((n > 1) & (total < -FALLBACK_Z * (var * n).sqrt())
-            & (total < -margin * base.sum(-2)))
+    return (n > 1) & (total < -z * (var * n).sqrt())
+
+
+def _choose_terms(gaps: Tensor, gaps_conn: Tensor) -> tuple[Tensor, Tensor]:
+    """Per component ``(..., 3)``: (predict it by the phase average, predict it by the
+    connection alone). ``gaps``, ``gaps_conn`` ``(..., C, 3, 2)``: :func:`_score_folds`'s
+    per-cycle gaps of the full model and of the connection alone.
+
+    Up to :data:`FALLBACK_CYCLES` held-out cycles the simpler model is presumed: the full
+    model is kept when it beats the phase average (:func:`_clearly_better`) and either the
+    connection alone does not or the full model beats it by :data:`OFFSET_TERMS_Z` standard
+    errors; else the connection alone when it beats the phase average; else the phase
+    average. So few cycles do not span the offsets of later ones (the shape offsets' correlation
+    time is about 3 cycles of the paper's SDE), and ``b̂δ`` extrapolates on them.
+
+    Past :data:`FALLBACK_CYCLES` the full model is presumed: the phase average is taken only
+    when it beats both models by :data:`FALLBACK_Z` standard errors, the connection alone
+    only when it beats the full model by :data:`OFFSET_TERMS_Z`."""
+    diff, diff_conn = gaps[..., 0], gaps_conn[..., 0]
+    full, conn = _clearly_better(gaps), _clearly_better(gaps_conn)
+    keep = full & (_lower_by(diff - diff_conn, OFFSET_TERMS_Z) | ~conn)
+    short = ((diff != 0).sum(-2) <= FALLBACK_CYCLES)
+    fallback = torch.where(short, ~keep & ~conn,
+                           _lower_by(-diff, FALLBACK_Z) & _lower_by(-diff_conn, FALLBACK_Z))
+    conn_only = torch.where(short, ~keep & conn,
+                            ~fallback & _lower_by(diff_conn - diff, OFFSET_TERMS_Z))
+    return fallback, conn_only
 
 
 def _nested_tuple(mask: Tensor) -> tuple:
@@ -620,9 +750,11 @@ def _nested_tuple(mask: Tensor) -> tuple:
 
 
 def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, failed):
-    """``(ridge, Skill, gaps)`` of every ridge in :data:`RIDGE_GRID` at ``(n_bins, order)``:
-    the noise-corrected skill and the observed SSE of the model minus the phase average's per
-    held-out cycle ``(..., C, 3)``; a candidate that cannot be fitted is left out and named in ``failed``."""
+    """``(ridge, (Skill, gaps), (Skill, gaps))`` of every ridge in :data:`RIDGE_GRID` at
+    ``(n_bins, order)``: of the model as fitted and of the connection alone
+    (:func:`_variant_scores`), the noise-corrected skill and per held-out cycle the observed
+    SSE minus the phase average's; a candidate that cannot be fitted is left out and named in
+    ``failed``."""
     base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
@@ -632,8 +764,7 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
                 try:
                     out.append((ridge, *_held_out_skills(
                         traj, cycle, base.replace(ridge=ridge), pool=pool, n_folds=n_folds,
-                        noise_corrected=True, model=None, refit=True, phase_averaged=None,
-                        gaps=True)))
+                        noise_corrected=True, model=None, refit=True, variants=True)))
                 except ValueError as err:
                     failed.append(f"{n_bins} bins, ridge {ridge:g}: {err}")
             return out
@@ -655,13 +786,12 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
     out = []
     for k, ridge in enumerate(RIDGE_GRID):
         models = [with_coefficients(model, coef[k, f], order) for f in range(n_folds)]
-        s, gaps = _score_folds(models, view, flat_fold, base, traj.dt, pool,
-                                         noise_corrected=True, cycle=cycles)
-        if bool(s.unscored.any()):
+        full, conn = _variant_scores(models, view, flat_fold, base, traj.dt, pool, cycles)
+        if bool(full[0].unscored.any()):
             failed.append(f"{n_bins} bins, ridge {ridge:g}: some bins cannot be fitted "
                           f"without one of the {n_folds} blocks of cycles")
             continue
-        out.append((ridge, s, gaps))
+        out.append((ridge, full, conn))
     return out
 
 
