@@ -117,3 +117,7 @@ def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tm
     assert len(fallback) == 3 and all(isinstance(x, bool) for x in fallback)
     assert model.meta.get("phase_averaged", [False] * 3) == fallback
     assert ("predicted by the phase-averaged velocity" in text) == any(fallback)
+    conn = chosen["connection_only"]
+    assert len(conn) == 3 and all(isinstance(x, bool) for x in conn)
+    assert model.meta.get("connection_only", [False] * 3) == conn
+    assert ("predicted by the connection alone" in text) == any(conn)

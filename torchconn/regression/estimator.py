@@ -96,9 +96,11 @@ class ConnectionEstimator:
         complexity: the regression's bins, Fourier order and ridge: ``"fixed"`` as given;
             ``"cv"`` chosen by held-out error over blocks of whole cycles
             (:func:`~torchconn.regression.skill.select_complexity`), where each component
-            keeps its shape terms only when they beat the phase-averaged velocity held out;
-            ``"auto"`` (default): as given, unless the fit loses to the phase-averaged
-            velocity on held-out blocks (short recordings), then chosen as by ``"cv"``.
+            is predicted by the full model, the connection alone or the phase-averaged
+            velocity, whichever clearly wins held out;
+            ``"auto"`` (default): as given, unless on held-out blocks the fit loses to the
+            phase-averaged velocity or a component's full model is not the one to keep
+            (short recordings), then chosen as by ``"cv"``.
         held_out_folds: blocks of whole cycles of the held-out check every fit runs (0: no
             check). The fit warns (:class:`~torchconn.regression.skill.PoorHeldOutSkillWarning`)
             where the model predicts held-out cycles worse than their phase-averaged velocity.
@@ -117,7 +119,9 @@ class ConnectionEstimator:
     - ``complexity_``: the :class:`~torchconn.regression.skill.ComplexityChoice` when the
       complexity was chosen by held-out error, else None; its ``phase_averaged`` names the
       components (per trial) predicted by the phase-averaged velocity because their shape
-      terms did not beat it on held-out cycles (their rows of ``b``, ``A``, ``∂A/∂r`` are 0);
+      terms did not beat it on held-out cycles (their rows of ``b``, ``A``, ``∂A/∂r`` are 0),
+      its ``connection_only`` those predicted by ``c + Aδ̇`` because ``b`` and ``∂A/∂r`` did
+      not add to the connection held out (their rows of ``b`` and ``∂A/∂r`` are 0, ``A`` kept);
     - ``held_out_skill_``: the held-out :class:`~torchconn.regression.skill.Skill` of the
       check (None when ``held_out_folds=0`` or the regression is not a built-in one).
 
