@@ -200,9 +200,7 @@ def test_the_shape_terms_must_win_by_more_than_z_standard_errors_of_the_cycles()
             assert not bool(better[2, 1])
             # and by more than a fraction of the phase average's error
             mp.setattr(skill, "FALLBACK_MARGIN", 0.1)
-            mp.setattr(skill, "FALLBACK_CYCLES", 5)  # 6 cycles: 5/6 of the margin, 4: all
-            n = (gaps != 0).sum(-2)
-            wins = gaps.sum(-2) < -0.1 * torch.where(n > 5, 5 / 6, 1.0) * base.sum(-2)
+            wins = gaps.sum(-2) < -0.1 * base.sum(-2)
             assert torch.equal(skill._clearly_better(torch.stack([gaps, base], -1)),
                                better & wins)
 
@@ -274,7 +272,7 @@ def test_a_component_whose_shape_terms_lose_held_out_falls_back_to_the_phase_ave
 
 def test_the_terms_choice_presumes_the_simpler_model_on_few_cycles_only():
     """_choose_terms on made-up per-cycle gaps: the same evidence chooses the connection alone
-    over 4 held-out cycles and keeps the full model over 12."""
+    on a short recording (4 held-out cycles) and keeps the full model on a longer one (12)."""
     def gaps(full, conn, n):  # per-cycle SSE gaps (model - phase average), phase average 10
         g = torch.tensor([[full, conn]], dtype=F64).repeat(n, 1)
         sign = torch.tensor([1.0, -1.0] * (n // 2), dtype=F64)[:, None]
@@ -286,18 +284,25 @@ def test_the_terms_choice_presumes_the_simpler_model_on_few_cycles_only():
     # both models beat the phase average clearly; the full one beats the connection by
     # less than OFFSET_TERMS_Z standard errors (0.05 per cycle, scatter 0.1)
     few, many = gaps(-2.0, -1.95, 4), gaps(-2.0, -1.95, 12)
-    fallback, conn = skill._choose_terms(*few)
+    fallback, conn = skill._choose_terms(*few, True)
     assert not bool(fallback.any()) and bool(conn.all())
-    fallback, conn = skill._choose_terms(*many)
+    fallback, conn = skill._choose_terms(*many, False)
     assert not bool(fallback.any()) and not bool(conn.any())
     # models no better than the phase average: it predicts, few cycles or many
     for n in (4, 12):
         worse = gaps(0.5, 0.5, n)
-        fallback, conn = skill._choose_terms(*worse)
+        fallback, conn = skill._choose_terms(*worse, n == 4)
         assert bool(fallback.all()) and not bool(conn.any())
     # many cycles and a connection clearly better than the full model: the connection alone
-    fallback, conn = skill._choose_terms(*gaps(-1.0, -2.0, 12))
+    fallback, conn = skill._choose_terms(*gaps(-1.0, -2.0, 12), False)
     assert not bool(fallback.any()) and bool(conn.all())
+    # "short": the phase spans at most FALLBACK_CYCLES cycles, rounded (pooled: summed)
+    spans = torch.tensor([[3.0], [6.05], [6.6], [30.0]], dtype=F64)  # cycles per trial
+    phase = 2 * math.pi * spans * torch.linspace(0, 1, 200, dtype=F64) + 1.0
+    phase[0, :20] = math.nan  # a gap at the start shortens the span
+    assert skill.few_cycles(phase, pool=False).tolist() == [True, True, False, False]
+    assert not bool(skill.few_cycles(phase[:2], pool=True))  # 2.7 + 6.05 cycles pooled
+    assert bool(skill.few_cycles(phase[:1], pool=True))
 
 
 def test_no_component_falls_back_on_a_long_recording():

@@ -237,8 +237,13 @@ class ConnectionEstimator:
                 if self.complexity != "auto" or not skill.downdates(regression):
                     raise
                 model = None  # too many coefficients for this recording: choose them below
+            # on few cycles the check also asks whether each component's full model is the
+            # one to keep (a simpler one is presumed there; on more cycles only where the
+            # full model loses to the phase average, and the choice below decides)
             held, full = (None, None) if model is None else self._held_out(
-                traj, cycle, regression, model, choice, terms=self.complexity == "auto")
+                traj, cycle, regression, model, choice,
+                terms=self.complexity == "auto"
+                and bool(skill.few_cycles(traj.phase, self.pool).any()))
             if self.complexity == "auto" and (model is None or (held is not None and bool(
                     (held.worse_than_phase_average | held.unscored[..., None] | ~full).any()))):
                 # the given complexity overfits this recording: choose it by held-out error

@@ -43,7 +43,7 @@ from .tube import Regression, TubeRegression, _auto_window, intercept_series
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
            "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
            "COMPONENTS",
-           "regression_view", "cross_validate", "checked_terms",
+           "regression_view", "cross_validate", "checked_terms", "few_cycles",
            "select_complexity", "skill", "with_phase_average"]
 
 #: the body-velocity components, in the order of the last axis of ξ
@@ -69,14 +69,16 @@ RIDGE_MIN_GAIN = 0.01
 #: those of the training cycles, where ``b̂δ`` and ``∂Â/∂r`` extrapolate (measured with the
 #: noise-aware default, 5-link, ω = 0.005, 3-6 cycles, 3 gaits, tuning seeds 30-34, the later
 #: 4 cycles scored: lost to the phase average in 37 of 180 components without a fall-back,
-#: 17 with the connection alone everywhere, 4 with these settings; percomp's earlier
+#: 17 with the connection alone everywhere, 1 with these settings (4 if the auto fit's check
+#: does not choose too, :func:`checked_terms`; held out, seeds 10-14 / 20-24: 37 / 21 -> 5 / 1,
+#: all under 0.03 in R²); percomp's earlier
 #: full-model-or-phase-average rule, ``z = 1`` and 30 %, left 5 losses but 149 ties: v_x and
 #: v_y fell back in 54-56 of 59 recordings)
 FALLBACK_Z = 2.5
 FALLBACK_MARGIN = 0.1
-#: the margin applies in full up to this many held-out cycles and falls as ``1/n`` past it,
-#: as the optimism of an in-sample error does (``∝ p/n``); it was measured on 3-6 cycles
-#: only, and on long recordings the standard-error rule alone decides
+#: on recordings of up to this many cycles the simpler model is presumed, on longer ones the
+#: full model (:func:`few_cycles`, :func:`_choose_terms`): the rule and its margin were
+#: measured on 3-6 cycles only
 FALLBACK_CYCLES = 6
 #: the rows of ``b̂`` and ``∂Â/∂r`` are kept only when the full model's held-out squared error
 #: is below the connection alone's by more than this many standard errors (seeds 30-34: 3 and
@@ -246,7 +248,7 @@ def phase_average(view: _View, order: int):
 
 def skill(model: LocalConnectionModel, baseline, view: _View) -> Skill:
     """:class:`Skill` of ``model`` and ``baseline`` (a phase-averaged velocity) on ``view``."""
-    return _from_sums(*_sums(model, baseline, view, None)[:6])
+    return _from_sums(*_sums(model, baseline, view, None)[0][:6])
 
 
 def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
@@ -316,10 +318,27 @@ def checked_terms(traj: Trajectory, cycle: LimitCycle, regression: Regression,
     component better held out, and :func:`select_complexity` should choose)."""
     reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
                                                    n_folds=n_folds, refit=False)
-    held = _score_folds(models, view, fold, reg, traj.dt, pool, False)[0]
-    (_, gaps), (_, gaps_conn) = _variant_scores(models, view, fold, reg, traj.dt, pool, cycles)
-    fallback, conn = _choose_terms(gaps, gaps_conn)
+    held, gaps = _score_folds(models, view, fold, reg, traj.dt, pool, False, cycle=cycles)
+    every = torch.ones(3, dtype=torch.bool, device=view.phase.device)
+    gaps_conn = _score_folds(models, view, fold, reg, traj.dt, pool, False,
+                             connection_only=every, cycle=cycles)[1]
+    fallback, conn = _choose_terms(gaps, gaps_conn, few_cycles(traj.phase, pool))
     return held, ~(fallback | conn)
+
+
+def few_cycles(phase: Tensor, pool: bool) -> Tensor:
+    """``(...)`` (pooled: ``()``) True where a batch element (pooled: the trials together)
+    spans at most :data:`FALLBACK_CYCLES` cycles of ``phase (..., T)``, rounded: where
+    :func:`_choose_terms` presumes the simpler model (and the auto fit's check runs
+    :func:`checked_terms`). A recording of 6 cycles spans 5.9-6.1 of its estimated phase, and
+    its held-out blocks hold 7 partial cycles, so the span, not the cycles seen, is counted."""
+    finite = torch.isfinite(phase)
+    span = (torch.where(finite, phase, -math.inf).amax(-1)
+            - torch.where(finite, phase, math.inf).amin(-1)) / (2 * math.pi)
+    span = span.clamp(min=0)  # a trial without phase: 0 cycles
+    if pool:
+        span = span.sum()
+    return torch.round(span) <= FALLBACK_CYCLES
 
 
 def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
@@ -379,28 +398,14 @@ def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, 
         noise = None
         if noise_corrected and isinstance(reg, NoiseAwareRegression):
             noise = _noise_of(fold_model, dt, pool)
-        sums.append(_sums(fold_model, base, view, fold == f, noise))
-        if cycle is not None:
-            gaps.append(_cycle_gaps(fold_model, base, view, fold == f, cycle, n_cycles))
+        fold_sums, fold_gaps = _sums(fold_model, base, view, fold == f, noise, cycle, n_cycles)
+        sums.append(fold_sums)
+        gaps.append(fold_gaps)
     total = [sum(parts) for parts in zip(*sums, strict=True)]
     per_cycle = None
     if cycle is not None:  # (..., C, 3, 2): the model's SSE minus the phase average's, its
         per_cycle = torch.stack([sum(g[0] for g in gaps), sum(g[1] for g in gaps)], -1)
     return _from_sums(total[0] - total[6], *total[1:6]), per_cycle
-
-
-def _cycle_gaps(model, baseline, view: _View, mask: Tensor, cycle: Tensor, n_cycles: int
-                ) -> tuple[Tensor, Tensor]:
-    """``(..., C, 3)`` squared error of ``model`` minus that of ``baseline``, and that of
-    ``baseline``, over the samples ``mask``, summed per cycle ``cycle (..., N)`` (in
-    ``[0, C)``, -1: none)."""
-    ok, phase, r, r_dot, y = _scored(view, mask & (cycle >= 0))
-    w = ok[..., None].to(y)
-    base = (y - baseline(phase)).square() * w
-    gap = (y - model.predict(phase, r, r_dot)).square() * w - base
-    index = torch.where(ok, cycle, n_cycles).unsqueeze(-1).expand(gap.shape)
-    out = gap.new_zeros(gap.shape[:-2] + (n_cycles + 1, 3))
-    return tuple(out.scatter_add(-2, index, x)[..., :-1, :] for x in (gap, base))
 
 
 def _scored(view: _View, mask: Tensor | None):
@@ -636,7 +641,7 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
     :data:`COMPLEXITY_GRID` x :data:`RIDGE_GRID` (:func:`cross_validate`, noise-corrected);
     a ridge only when it gains more than :data:`RIDGE_MIN_GAIN` over no ridge.
 
-Per component and batch element two simpler models are candidates too
+    Per component and batch element two simpler models are candidates too
     (:func:`_choose_terms`): the connection alone (``ĉ + Âδ̇``, the rows of ``b`` and
     ``∂A/∂r`` 0; :attr:`ComplexityChoice.connection_only`) and the phase-averaged velocity
     (``b = A = ∂A/∂r = 0``; :attr:`ComplexityChoice.phase_averaged`), both made by
@@ -645,7 +650,9 @@ Per component and batch element two simpler models are candidates too
     than :data:`FALLBACK_Z` standard errors (of the sum over held-out cycles of the
     per-cycle differences) and :data:`FALLBACK_MARGIN` of it; the full model is kept over the
     connection alone only when it is better by more than :data:`OFFSET_TERMS_Z` standard
-    errors. Each candidate scores the loss of the model chosen per component in the mean.
+    errors (on recordings of up to :data:`FALLBACK_CYCLES` cycles, :func:`few_cycles`; on
+    longer ones the full model is kept unless a simpler one is better by as many standard
+    errors). Each candidate scores the loss of the model chosen per component in the mean.
     The three components are separate least-squares problems on one design, so one's choice
     leaves the others' fits unchanged. ``fallback_ok=False``: every component keeps the full
     model.
@@ -661,13 +668,14 @@ Per component and batch element two simpler models are candidates too
             naming the first failure.
     """
     scores, failed, fallbacks = [], [], {}
+    short = few_cycles(traj.phase, pool)
     for n_bins, order in COMPLEXITY_GRID:
         for ridge, (s, gaps), (s_conn, gaps_conn) in _candidate_skills(
                 traj, cycle, regression, n_bins, order, pool, n_folds, failed):
             # the models must beat the baseline on the held-out data as observed (the noisy
             # inputs); the candidates are ranked by the noise-corrected loss
             if fallback_ok:
-                fallback, conn = _choose_terms(gaps, gaps_conn)
+                fallback, conn = _choose_terms(gaps, gaps_conn, short)
             else:
                 fallback = conn = torch.zeros_like(s.r2, dtype=torch.bool)
             loss = torch.where(fallback, 1 - s.r2_phase_average,
@@ -694,14 +702,11 @@ Per component and batch element two simpler models are candidates too
 def _clearly_better(gaps: Tensor) -> Tensor:
     """``(..., 3)`` True where the model's held-out squared error is below the phase
     average's by more than :data:`FALLBACK_Z` standard errors of the sum of the per-cycle
-    differences and by more than the fraction :data:`FALLBACK_MARGIN` of the phase average's
-    (scaled by ``FALLBACK_CYCLES / n`` past ``n = FALLBACK_CYCLES`` held-out cycles);
+    differences and by more than the fraction :data:`FALLBACK_MARGIN` of the phase average's;
     ``gaps (..., C, 3, 2)``: per cycle the difference and the phase average's squared error
     (cycles without scored samples, difference 0, left out)."""
     diff, base = gaps.unbind(-1)
-    n = (diff != 0).sum(-2)
-    margin = FALLBACK_MARGIN * (FALLBACK_CYCLES / n.clamp(min=1)).clamp(max=1)
-    return _lower_by(diff, FALLBACK_Z) & (diff.sum(-2) < -margin * base.sum(-2))
+    return _lower_by(diff, FALLBACK_Z) & (diff.sum(-2) < -FALLBACK_MARGIN * base.sum(-2))
 
 
 def _lower_by(diff: Tensor, z: float) -> Tensor:
@@ -717,25 +722,27 @@ def _lower_by(diff: Tensor, z: float) -> Tensor:
     return (n > 1) & (total < -z * (var * n).sqrt())
 
 
-def _choose_terms(gaps: Tensor, gaps_conn: Tensor) -> tuple[Tensor, Tensor]:
+def _choose_terms(gaps: Tensor, gaps_conn: Tensor, short: Tensor | bool
+                  ) -> tuple[Tensor, Tensor]:
     """Per component ``(..., 3)``: (predict it by the phase average, predict it by the
     connection alone). ``gaps``, ``gaps_conn`` ``(..., C, 3, 2)``: :func:`_score_folds`'s
-    per-cycle gaps of the full model and of the connection alone.
+    per-cycle gaps of the full model and of the connection alone; ``short`` ``(...)``: the
+    recording spans at most :data:`FALLBACK_CYCLES` cycles (:func:`few_cycles`).
 
-    Up to :data:`FALLBACK_CYCLES` held-out cycles the simpler model is presumed: the full
+    On short recordings the simpler model is presumed: the full
     model is kept when it beats the phase average (:func:`_clearly_better`) and either the
     connection alone does not or the full model beats it by :data:`OFFSET_TERMS_Z` standard
     errors; else the connection alone when it beats the phase average; else the phase
-    average. So few cycles do not span the offsets of later ones (the shape offsets' correlation
-    time is about 3 cycles of the paper's SDE), and ``b̂δ`` extrapolates on them.
+    average: few cycles do not span the shape offsets of later ones (their correlation time
+    is about 3 cycles in the paper's SDE), so ``b̂δ`` and ``∂Â/∂r δ̇⊗δ`` extrapolate there.
 
-    Past :data:`FALLBACK_CYCLES` the full model is presumed: the phase average is taken only
+    On longer ones the full model is presumed: the phase average is taken only
     when it beats both models by :data:`FALLBACK_Z` standard errors, the connection alone
     only when it beats the full model by :data:`OFFSET_TERMS_Z`."""
     diff, diff_conn = gaps[..., 0], gaps_conn[..., 0]
     full, conn = _clearly_better(gaps), _clearly_better(gaps_conn)
     keep = full & (_lower_by(diff - diff_conn, OFFSET_TERMS_Z) | ~conn)
-    short = ((diff != 0).sum(-2) <= FALLBACK_CYCLES)
+    short = torch.as_tensor(short, device=diff.device).unsqueeze(-1)
     fallback = torch.where(short, ~keep & ~conn,
                            _lower_by(-diff, FALLBACK_Z) & _lower_by(-diff_conn, FALLBACK_Z))
     conn_only = torch.where(short, ~keep & conn,
@@ -823,17 +830,26 @@ def _cycle_index(phase: Tensor, pool: bool) -> Tensor:
 
 
 def _sums(model: LocalConnectionModel, baseline, view: _View, mask: Tensor | None,
-          noise=None):
+          noise=None, cycle: Tensor | None = None, n_cycles: int = 0):
     """SSE of model, baseline and template over the scored samples; Σy, Σy², count; and the
     part of the model's SSE the inputs' noise adds (:func:`_input_noise_variance`; 0 without
-    ``noise``, the inputs' ``(var_delta, var_rate)``)."""
+    ``noise``, the inputs' ``(var_delta, var_rate)``). With ``cycle`` (``(..., N)`` index in
+    ``[0, n_cycles)``, -1: none) also ``(..., n_cycles, 3)`` the model's squared error minus
+    the baseline's and the baseline's, summed per cycle (else None)."""
     ok, phase, r, r_dot, y = _scored(view, mask)
     w = ok.to(y.dtype)[..., None]
     preds = (model.predict(phase, r, r_dot), baseline(phase), model.c(phase))
-    sse = [((y - p).square() * w).sum(-2) for p in preds]
+    squares = [(y - p).square() * w for p in preds]
+    sse = [x.sum(-2) for x in squares]
     noise_sse = torch.zeros_like(sse[0]) if noise is None else (
         _input_noise_variance(model, phase, r, r_dot, *noise) * w).sum(-2)
-    return (*sse, (y * w).sum(-2), (y.square() * w).sum(-2), w.sum(-2)[..., 0], noise_sse)
+    sums = (*sse, (y * w).sum(-2), (y.square() * w).sum(-2), w.sum(-2)[..., 0], noise_sse)
+    if cycle is None:
+        return sums, None
+    index = torch.where(ok & (cycle >= 0), cycle, n_cycles).unsqueeze(-1).expand(y.shape)
+    out = y.new_zeros(y.shape[:-2] + (n_cycles + 1, 3))
+    return sums, tuple(out.scatter_add(-2, index, x)[..., :-1, :]
+                       for x in (squares[0] - squares[1], squares[1]))
 
 
 def _input_noise_variance(model: LocalConnectionModel, phase: Tensor, r: Tensor,
