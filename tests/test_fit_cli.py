@@ -108,4 +108,16 @@ def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tm
     text = capsys.readouterr().out
     assert "complexity chosen by held-out error" in text
     assert "held-out R² (v_x, v_y, omega)" in text and "phase-averaged velocity" in text
-    assert LocalConnectionModel.load(out / "model.npz").batch_shape == ()
+    model = LocalConnectionModel.load(out / "model.npz")
+    assert model.batch_shape == ()
+    # the per-component choice: fit.json, the model's meta and the printout agree
+    chosen = json.loads((out / "fit.json").read_text())["complexity"]
+    assert chosen["components"] == ["v_x", "v_y", "omega"]
+    fallback = chosen["phase_averaged"]
+    assert len(fallback) == 3 and all(isinstance(x, bool) for x in fallback)
+    assert model.meta.get("phase_averaged", [False] * 3) == fallback
+    assert ("predicted by the phase-averaged velocity" in text) == any(fallback)
+    conn = chosen["connection_only"]
+    assert len(conn) == 3 and all(isinstance(x, bool) for x in conn)
+    assert model.meta.get("connection_only", [False] * 3) == conn
+    assert ("predicted by the connection alone" in text) == any(conn)

@@ -174,3 +174,151 @@ def test_a_complexity_the_recording_cannot_carry_is_reported(short):
     with pytest.warns(PoorHeldOutSkillWarning, match="cannot be fitted when one block"):
         est = ConnectionEstimator(regression=reg, complexity="fixed").fit(short)
     assert bool(est.held_out_skill_.unscored.all())
+
+
+
+def test_the_shape_terms_must_win_by_more_than_z_standard_errors_of_the_cycles():
+    from scipy import stats
+
+    gen = torch.Generator().manual_seed(0)
+    gaps = torch.randn(4, 6, 3, generator=gen, dtype=F64) - 0.6  # (trials, cycles, components)
+    gaps[1, 4:] = 0.0  # a trial with 4 scored cycles
+    gaps[2, :, 1] = 0.0  # a component tied in every cycle: never "better"
+    t = torch.full((4, 3), math.nan, dtype=F64)
+    for i in range(4):
+        for k in range(3):
+            g = gaps[i, :, k][gaps[i, :, k] != 0].numpy()
+            if len(g) > 1:
+                t[i, k] = float(stats.ttest_1samp(g, 0.0).statistic)
+    base = torch.full_like(gaps, 2.0)  # the phase average's squared error per cycle
+    for z in (0.0, 1.0, 2.5):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(skill, "FALLBACK_Z", z)
+            mp.setattr(skill, "FALLBACK_MARGIN", 0.0)
+            better = skill._clearly_better(torch.stack([gaps, base], -1))
+            assert torch.equal(better, torch.nan_to_num(t, nan=math.inf) < -z)
+            assert not bool(better[2, 1])
+            # and by more than a fraction of the phase average's error
+            mp.setattr(skill, "FALLBACK_MARGIN", 0.1)
+            wins = gaps.sum(-2) < -0.1 * base.sum(-2)
+            assert torch.equal(skill._clearly_better(torch.stack([gaps, base], -1)),
+                               better & wins)
+
+
+@pytest.fixture(scope="module")
+def short_and_later():
+    """One trial of the 5-link, ω = 0.005: 4 cycles to fit and the next 4 to score."""
+    traj = _recording(8, seed=SHORT_SEED).with_fields(power=None)
+    cut = 4 * SPC + 1
+    return traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
+
+
+SHORT_SEED = 7  # v_y falls back to the phase average, v_x and ω keep the connection alone
+
+
+def test_a_component_whose_shape_terms_lose_held_out_falls_back_to_the_phase_average(
+        short_and_later):
+    train, later = short_and_later
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        with pytest.warns(PoorHeldOutSkillWarning, match="predicts it by the phase-averaged"):
+            est = ConnectionEstimator().fit(train)  # the noise-aware default
+        warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
+        again = ConnectionEstimator().fit(train)
+    choice = est.complexity_
+    assert choice == again.complexity_  # reproducible: whole cycles in order, nothing random
+    fallback, conn = choice.phase_averaged[0], choice.connection_only[0]
+    assert fallback == (False, True, False) and conn == (True, False, True)
+    assert choice.phase_averaged_names() == ["v_y"]
+    assert choice.connection_only_names() == ["v_x", "omega"]
+    model = est.model_
+    assert model.meta["phase_averaged"] == [list(fallback)]
+    assert model.meta["connection_only"] == [list(conn)]
+    # v_y: no shape terms; v_x and ω: Â kept, b̂ and ∂Â/∂r rows 0
+    assert bool((model.b.coeffs == 0).all()) and bool((model.dA.coeffs == 0).all())
+    assert bool((model.A.coeffs[..., 1, :] == 0).all())
+    plain = est.regression_.fit(est.trajectory_, est.limit_cycle_, pool=False)
+    for k in (0, 2):  # the connection is the regression's own, untouched
+        assert torch.equal(model.A.coeffs[..., k, :], plain.A.coeffs[..., k, :])
+        assert torch.equal(model.c.coeffs[..., k], plain.c.coeffs[..., k])
+    # v_y's intercept is the least-squares Fourier series of the training data's observed
+    # v_y in phase, as the regression sees it (numpy's lstsq, independent of fit_fourier)
+    view = skill.regression_view(est.trajectory_, est.regression_, plain, pool=False)
+    ok = torch.isfinite(view.phase[0]) & torch.isfinite(view.xi[0]).all(-1)
+    k = est.regression_.fourier_order
+    harmonics = torch.arange(1, k + 1, dtype=F64)
+
+    def design(ph):
+        return torch.cat([torch.ones_like(ph), torch.stack(
+            [torch.cos(harmonics * ph), torch.sin(harmonics * ph)], -1).flatten(-2)], -1)
+
+    coef = np.linalg.lstsq(design(view.phase[0, ok, None]).numpy(),
+                           view.xi[0, ok, 1].numpy(), rcond=None)[0]
+    grid = torch.linspace(0, 2 * math.pi, 50, dtype=F64)
+    gen = torch.Generator().manual_seed(1)
+    r, r_dot = torch.randn(2, 1, 50, 4, generator=gen, dtype=F64)  # any shape: v_y ignores it
+    pred = model.predict(grid[None], r, r_dot)[0, :, 1]
+    torch.testing.assert_close(pred, design(grid[:, None]) @ torch.from_numpy(coef), rtol=0,
+                               atol=1e-10)
+    # held out, on the training cycles and on the later ones, v_y ties the phase average
+    # exactly, and ω keeps beating it
+    for s in (est.held_out_skill_, est.score(later)):
+        assert float(s.r2[..., 1]) == float(s.r2_phase_average[..., 1])
+        assert float(s.r2[..., 2]) > float(s.r2_phase_average[..., 2])
+        assert not bool(s.worse_than_phase_average.any())
+    # the estimator's cross_validate agrees with the fit's own check
+    assert torch.equal(est.cross_validate(3).r2, est.held_out_skill_.r2)
+
+
+def test_the_terms_choice_presumes_the_simpler_model_on_few_cycles_only():
+    """_choose_terms on made-up per-cycle gaps: the same evidence chooses the connection alone
+    on a short recording (4 held-out cycles) and keeps the full model on a longer one (12)."""
+    def gaps(full, conn, n):  # per-cycle SSE gaps (model - phase average), phase average 10
+        g = torch.tensor([[full, conn]], dtype=F64).repeat(n, 1)
+        sign = torch.tensor([1.0, -1.0] * (n // 2), dtype=F64)[:, None]
+        g = g + 0.05 * sign * torch.tensor([1.0, -1.0], dtype=F64)  # opposite scatter
+        base = torch.full((n, 3), 10.0, dtype=F64)
+        return (torch.stack([g[:, :1].expand(n, 3), base], -1),
+                torch.stack([g[:, 1:].expand(n, 3), base], -1))
+
+    # both models beat the phase average clearly; the full one beats the connection by
+    # less than OFFSET_TERMS_Z standard errors (0.05 per cycle, scatter 0.1)
+    few, many = gaps(-2.0, -1.95, 4), gaps(-2.0, -1.95, 12)
+    fallback, conn = skill._choose_terms(*few, True)
+    assert not bool(fallback.any()) and bool(conn.all())
+    fallback, conn = skill._choose_terms(*many, False)
+    assert not bool(fallback.any()) and not bool(conn.any())
+    # models no better than the phase average: it predicts, few cycles or many
+    for n in (4, 12):
+        worse = gaps(0.5, 0.5, n)
+        fallback, conn = skill._choose_terms(*worse, n == 4)
+        assert bool(fallback.all()) and not bool(conn.any())
+    # many cycles and a connection clearly better than the full model: the connection alone
+    fallback, conn = skill._choose_terms(*gaps(-1.0, -2.0, 12), False)
+    assert not bool(fallback.any()) and bool(conn.all())
+    # "short": the phase spans at most FALLBACK_CYCLES cycles, rounded (pooled: summed)
+    spans = torch.tensor([[3.0], [6.05], [6.6], [30.0]], dtype=F64)  # cycles per trial
+    phase = 2 * math.pi * spans * torch.linspace(0, 1, 200, dtype=F64) + 1.0
+    phase[0, :20] = math.nan  # a gap at the start shortens the span
+    assert skill.few_cycles(phase, pool=False).tolist() == [True, True, False, False]
+    assert not bool(skill.few_cycles(phase[:2], pool=True))  # 2.7 + 6.05 cycles pooled
+    assert bool(skill.few_cycles(phase[:1], pool=True))
+
+
+def test_no_component_falls_back_on_a_long_recording():
+    long = _recording(15, n_trials=2, seed=1).with_fields(power=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        warnings.simplefilter("error", PoorHeldOutSkillWarning)
+        auto = ConnectionEstimator(pool=True).fit(long)
+        cv = ConnectionEstimator(pool=True, complexity="cv").fit(long)
+    for est in (auto, cv):  # every component keeps its shape terms, offset terms included
+        assert est.complexity_ is None or (
+            est.complexity_.phase_averaged == (False,) * 3
+            and est.complexity_.connection_only == (False,) * 3)
+        assert "phase_averaged" not in est.model_.meta
+        assert "connection_only" not in est.model_.meta
+        plain = est.regression_.fit(est.trajectory_, est.limit_cycle_, pool=True)
+        for name in ("c", "A", "b", "dA"):
+            assert torch.equal(getattr(est.model_, name).coeffs, getattr(plain, name).coeffs)
+        assert bool((est.held_out_skill_.r2 > est.held_out_skill_.r2_phase_average).all())

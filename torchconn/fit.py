@@ -53,7 +53,7 @@ from .regression.estimator import (
 )
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
-from .regression.skill import PoorHeldOutSkillWarning
+from .regression.skill import COMPONENTS, PoorHeldOutSkillWarning
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
@@ -269,7 +269,11 @@ def main(argv: list[str] | None = None) -> int:
             "complexity": (None if est.complexity_ is None else
                            {"n_bins": est.complexity_.n_bins,
                             "fourier_order": est.complexity_.fourier_order,
-                            "ridge": est.complexity_.ridge}),
+                            "ridge": est.complexity_.ridge,
+                            "components": list(COMPONENTS),
+                            "phase_averaged": _nested_list(est.complexity_.phase_averaged),
+                            "connection_only": _nested_list(
+                                est.complexity_.connection_only)}),
             "held_out_skill": None if held_out is None else _skill_summary(held_out, folds),
             "outputs": outputs,
             "device": str(device),
@@ -288,6 +292,14 @@ def main(argv: list[str] | None = None) -> int:
             c = est.complexity_
             print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
                   f"{c.fourier_order}, ridge {c.ridge:g}")
+            if c.phase_averaged_names():
+                print("predicted by the phase-averaged velocity (the shape terms did not beat "
+                      "it on held-out cycles; their rows of A, b and dA/dr are 0, not "
+                      f"estimated): {', '.join(c.phase_averaged_names())}")
+            if c.connection_only_names():
+                print("predicted by the connection alone (the offset terms did not add to it "
+                      "on held-out cycles; their rows of b and dA/dr are 0, not estimated, A "
+                      f"is kept): {', '.join(c.connection_only_names())}")
         if held_out is not None:
             print(f"held-out R² (v_x, v_y, omega), each of {folds} blocks of whole cycles "
                   "left out in turn:")
@@ -310,6 +322,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     return run_command(PROG, body)
+
+
+def _nested_list(x):
+    """Nested tuples as nested lists (JSON)."""
+    return [_nested_list(v) for v in x] if isinstance(x, tuple) else x
 
 
 def _skill_summary(skill, n_folds: int) -> dict:

@@ -33,6 +33,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from .. import _checks
@@ -94,8 +95,11 @@ class ConnectionEstimator:
             which Phaser's phase 0 provides) instead of one model per trial.
         complexity: the regression's bins, Fourier order and ridge: ``"fixed"`` as given;
             ``"cv"`` chosen by held-out error over blocks of whole cycles
-            (:func:`~torchconn.regression.skill.select_complexity`); ``"auto"`` (default): as
-            given, unless the fit loses to the phase-averaged velocity on held-out blocks
+            (:func:`~torchconn.regression.skill.select_complexity`), where each component
+            is predicted by the full model, the connection alone or the phase-averaged
+            velocity, whichever clearly wins held out;
+            ``"auto"`` (default): as given, unless on held-out blocks the fit loses to the
+            phase-averaged velocity or a component's full model is not the one to keep
             (short recordings), then chosen as by ``"cv"``.
         held_out_folds: blocks of whole cycles of the held-out check every fit runs (0: no
             check). The fit warns (:class:`~torchconn.regression.skill.PoorHeldOutSkillWarning`)
@@ -113,7 +117,11 @@ class ConnectionEstimator:
     - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`;
     - ``regression_``: the regression stage fitted (``regression`` with the chosen complexity);
     - ``complexity_``: the :class:`~torchconn.regression.skill.ComplexityChoice` when the
-      complexity was chosen by held-out error, else None;
+      complexity was chosen by held-out error, else None; its ``phase_averaged`` names the
+      components (per trial) predicted by the phase-averaged velocity because their shape
+      terms did not beat it on held-out cycles (their rows of ``b``, ``A``, ``∂A/∂r`` are 0),
+      its ``connection_only`` those predicted by ``c + Aδ̇`` because ``b`` and ``∂A/∂r`` did
+      not add to the connection held out (their rows of ``b`` and ``∂A/∂r`` are 0, ``A`` kept);
     - ``held_out_skill_``: the held-out :class:`~torchconn.regression.skill.Skill` of the
       check (None when ``held_out_folds=0`` or the regression is not a built-in one).
 
@@ -229,9 +237,15 @@ class ConnectionEstimator:
                 if self.complexity != "auto" or not skill.downdates(regression):
                     raise
                 model = None  # too many coefficients for this recording: choose them below
-            held = None if model is None else self._held_out(traj, cycle, regression, model)
+            # on few cycles the check also asks whether each component's full model is the
+            # one to keep (a simpler one is presumed there; on more cycles only where the
+            # full model loses to the phase average, and the choice below decides)
+            held, full = (None, None) if model is None else self._held_out(
+                traj, cycle, regression, model, choice,
+                terms=self.complexity == "auto"
+                and bool(skill.few_cycles(traj.phase, self.pool).any()))
             if self.complexity == "auto" and (model is None or (held is not None and bool(
-                    (held.worse_than_phase_average | held.unscored[..., None]).any()))):
+                    (held.worse_than_phase_average | held.unscored[..., None] | ~full).any()))):
                 # the given complexity overfits this recording: choose it by held-out error
                 try:
                     regression, choice = skill.select_complexity(
@@ -242,7 +256,17 @@ class ConnectionEstimator:
                     # no candidate fits 2 of 3 blocks: keep the given one (the check warns)
                 else:
                     model = regression.fit(traj, cycle, pool=self.pool)
-                    held = self._held_out(traj, cycle, regression, model)
+                    held = self._held_out(traj, cycle, regression, model, choice)[0]
+        view = skill.regression_view(traj, regression, model, pool=self.pool)
+        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
+        if choice is not None and (choice.phase_averaged_names()
+                                   or choice.connection_only_names()):
+            # components whose shape terms lost to the phase average held out predict it;
+            # those whose offset terms did not help keep the connection alone
+            model = skill.with_phase_average(model, self.phase_average_,
+                                             *_masks(choice, model.device))
+            # one order for both, so that score() finds them tied exactly
+            self.phase_average_ = skill.padded(self.phase_average_, model.c.order)
         self.trajectory_ = traj
         self.phaser_ = fitted_phaser
         self.limit_cycle_ = cycle
@@ -251,8 +275,6 @@ class ConnectionEstimator:
         self.held_out_skill_ = held
         settings = estimator_settings(self, regression)
         self.model_ = dataclasses.replace(model, meta={**(model.meta or {}), "settings": settings})
-        view = skill.regression_view(traj, regression, self.model_, pool=self.pool)
-        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
         if held is not None:
             held.warn_if_poor(stacklevel=3, choice=choice)
         return self
@@ -260,14 +282,24 @@ class ConnectionEstimator:
     def _folds(self) -> int:
         return self.held_out_folds or 3
 
-    def _held_out(self, traj, cycle, regression, model) -> skill.Skill | None:
-        """The held-out check's skill (downdated fits), or None when it is off."""
+    def _held_out(self, traj, cycle, regression, model, choice=None, terms=False
+                  ) -> tuple[skill.Skill | None, Tensor]:
+        """The held-out check's skill (downdated fits; the components ``choice`` gave to the
+        phase average or the connection alone predicted so), or None when it is off; and
+        ``(..., 3)`` True where the full model is the one to keep (``terms``:
+        :func:`~torchconn.regression.skill.checked_terms`; else all True)."""
+        every = torch.ones(3, dtype=torch.bool, device=model.device)
         if not self.held_out_folds or not skill.downdates(regression):
-            return None
+            return None, every
+        fallback, conn = _masks(choice, model.device)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
+            if terms and choice is None:
+                return skill.checked_terms(traj, cycle, regression, model, pool=self.pool,
+                                           n_folds=self.held_out_folds)
             return skill.cross_validate(traj, cycle, regression, pool=self.pool,
-                                        n_folds=self.held_out_folds, model=model)
+                                        n_folds=self.held_out_folds, model=model,
+                                        phase_averaged=fallback, connection_only=conn), every
 
     # ------------------------------------------------------------------ held-out skill
     def score(self, traj: Trajectory, phase: Tensor | None = None) -> skill.Skill:
@@ -286,8 +318,10 @@ class ConnectionEstimator:
         """Held-out skill on the training recordings over ``n_folds`` blocks of whole cycles
         (:func:`~torchconn.regression.skill.cross_validate`)."""
         model = self._fitted()
-        return skill.cross_validate(self.trajectory_, self.limit_cycle_, self.regression_,
-                                    pool=self.pool, n_folds=n_folds, model=model)
+        fallback, conn = _masks(self.complexity_, model.device)
+        return skill.cross_validate(
+            self.trajectory_, self.limit_cycle_, self.regression_, pool=self.pool,
+            n_folds=n_folds, model=model, phase_averaged=fallback, connection_only=conn)
 
     def check_held_out(self, n_folds: int = 3) -> skill.Skill:
         """:meth:`cross_validate`, warning (:class:`~torchconn.regression.skill.
@@ -359,6 +393,15 @@ class ConnectionEstimator:
         changed = [f"{k}={v!r}" for k, v in self.get_params(deep=False).items()
                    if v != getattr(default, k)]
         return "ConnectionEstimator(" + ", ".join(changed) + ")"
+
+
+def _masks(choice: "skill.ComplexityChoice | None", device) -> tuple[Tensor | None,
+                                                                   Tensor | None]:
+    """The components ``choice`` predicts by the phase average and by the connection alone,
+    ``(..., 3)`` bool each (None, None without a choice)."""
+    if choice is None:
+        return None, None
+    return choice.phase_average_mask(device), choice.connection_only_mask(device)
 
 
 def _check_arguments(*, pool: Any, complexity: Any, held_out_folds: Any, **stages: Any) -> None:

@@ -42,7 +42,13 @@ from .noise_aware import (
 from .tube import Regression, TubeRegression, _auto_window, intercept_series
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
-           "RIDGE_GRID", "regression_view", "cross_validate", "select_complexity", "skill"]
+           "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
+           "COMPONENTS",
+           "regression_view", "cross_validate", "checked_terms", "few_cycles",
+           "select_complexity", "skill", "with_phase_average"]
+
+#: the body-velocity components, in the order of the last axis of ξ
+COMPONENTS = ("v_x", "v_y", "omega")
 
 #: (n_bins, fourier_order) candidates of :func:`select_complexity`, simplest first
 COMPLEXITY_GRID = ((12, 3), (24, 6), (48, 12))
@@ -53,6 +59,32 @@ RIDGE_GRID = (0.0, 0.1, 1.0, 10.0)
 #: long recordings the candidates' losses differ by less than their noise (measured: 5-link,
 #: ω = 0.01, 0.38879 with a ridge vs 0.38884 without, and Â 48 % vs 10 % off)
 RIDGE_MIN_GAIN = 0.01
+#: per component, three models compete on held-out cycles (:func:`select_complexity`): the
+#: full model, the connection alone (``ĉ + Âδ̇``: the rows of ``b̂`` and ``∂Â/∂r`` set to 0),
+#: and the phase-averaged velocity. A model counts only when it lowers the component's
+#: held-out squared error below the phase average's by more than ``FALLBACK_Z`` standard
+#: errors (over the held-out cycles) and by more than the fraction ``FALLBACK_MARGIN`` of it;
+#: when neither does, the component is predicted by the phase-averaged velocity alone.
+#: Held-out blocks of the training cycles flatter the shape terms against later cycles: on
+#: short recordings the swimmer's shape offsets wander, and later cycles reach offsets 2-5x
+#: those of the training cycles, where ``b̂δ`` and ``∂Â/∂r`` extrapolate (measured with the
+#: noise-aware default, 5-link, ω = 0.005, 3-6 cycles, 3 gaits, tuning seeds 30-34, the later
+#: 4 cycles scored: lost to the phase average in 37 of 180 components without a fall-back,
+#: 17 with the connection alone everywhere, 1 with these settings (4 if the auto fit's check
+#: does not choose too, :func:`checked_terms`; held out, seeds 10-14 / 20-24: 37 / 21 -> 5 / 1,
+#: all under 0.03 in R²); percomp's earlier
+#: full-model-or-phase-average rule, ``z = 1`` and 30 %, left 5 losses but 149 ties: v_x and
+#: v_y fell back in 54-56 of 59 recordings)
+FALLBACK_Z = 2.5
+FALLBACK_MARGIN = 0.1
+#: on recordings of up to this many cycles the simpler model is presumed, on longer ones the
+#: full model (:func:`few_cycles`, :func:`_choose_terms`): the rule and its margin were
+#: measured on 3-6 cycles only
+FALLBACK_CYCLES = 6
+#: the rows of ``b̂`` and ``∂Â/∂r`` are kept only when the full model's held-out squared error
+#: is below the connection alone's by more than this many standard errors (seeds 30-34: 3 and
+#: 4 gave the same losses; 3 keeps them wherever the data clearly ask for them)
+OFFSET_TERMS_Z = 3.0
 
 
 class PoorHeldOutSkillWarning(UserWarning):
@@ -106,8 +138,26 @@ class Skill:
             return
         worse = self.worse_than_phase_average.reshape(-1, 3).any(0)
         if not bool(worse.any()):
+            fallback = [] if choice is None else choice.phase_averaged_names()
+            reduced = [] if choice is None else choice.connection_only_names()
+            if reduced:
+                warnings.warn(
+                    f"the offset terms b̂ and ∂Â/∂r did not improve the held-out prediction of "
+                    f"{', '.join(reduced)} beyond the connection Â alone, so their rows are 0 "
+                    "(not estimated from this recording; Â is kept); record more cycles, or "
+                    "cycles that leave the gait further, to estimate them",
+                    PoorHeldOutSkillWarning, stacklevel=stacklevel)
+            if fallback:
+                warnings.warn(
+                    f"the shape terms do not predict held-out cycles of {', '.join(fallback)} "
+                    "better than their phase-averaged velocity, so the model predicts "
+                    f"{'it' if len(fallback) == 1 else 'them'} by the phase-averaged velocity "
+                    "of the training data: the rows of b̂, Â and ∂Â/∂r for "
+                    f"{', '.join(fallback)} are 0, not estimated from this recording; record "
+                    "more cycles to estimate them", PoorHeldOutSkillWarning,
+                    stacklevel=stacklevel)
             return
-        names = [n for n, w in zip(("v_x", "v_y", "omega"), worse.tolist(), strict=True) if w]
+        names = [n for n, w in zip(COMPONENTS, worse.tolist(), strict=True) if w]
         warnings.warn(
             f"the model predicts held-out cycles worse than their phase-averaged velocity for "
             f"{', '.join(names)} (held-out R² {_fmt(self.r2)} vs phase average "
@@ -119,12 +169,52 @@ class Skill:
 
 @dataclass(frozen=True)
 class ComplexityChoice:
-    """What :func:`select_complexity` chose, and every candidate's mean held-out ``SSE/SST``."""
+    """What :func:`select_complexity` chose, and every candidate's mean held-out ``SSE/SST``
+    (each component at the better of the model and the phase-averaged velocity, as chosen).
+
+    Attributes:
+        n_bins, fourier_order, ridge: the regression's complexity.
+        scores: ``(n_bins, fourier_order, ridge, loss)`` of every candidate.
+        phase_averaged: nested tuples of bools shaped ``(..., 3)`` (the model's batch dims,
+            components ``v_x, v_y, ω``): True where the component is predicted by the
+            phase-averaged velocity of the training data, its shape terms set to 0, because
+            they did not beat it on held-out cycles (:data:`FALLBACK_Z`).
+        connection_only: likewise: True where the component keeps ``ĉ`` and its row of
+            ``Â`` but its rows of ``b̂`` and ``∂Â/∂r`` are set to 0, because the connection
+            alone beat the phase average on held-out cycles and those terms did not clearly
+            add to it (:data:`OFFSET_TERMS_Z`).
+    """
 
     n_bins: int
     fourier_order: int
     ridge: float
     scores: tuple[tuple[int, int, float, float], ...]
+    phase_averaged: tuple = (False, False, False)
+    connection_only: tuple = (False, False, False)
+
+    def phase_average_mask(self, device: torch.device | str) -> Tensor:
+        """:attr:`phase_averaged` as a bool tensor ``(..., 3)`` on ``device``."""
+        return torch.tensor(self.phase_averaged, dtype=torch.bool, device=device)
+
+    def connection_only_mask(self, device: torch.device | str) -> Tensor:
+        """:attr:`connection_only` as a bool tensor ``(..., 3)`` on ``device``."""
+        return torch.tensor(self.connection_only, dtype=torch.bool, device=device)
+
+    def phase_averaged_names(self) -> list[str]:
+        """The components predicted by the phase-averaged velocity in some batch element."""
+        return _names(self.phase_averaged)
+
+    def connection_only_names(self) -> list[str]:
+        """The components whose ``b̂`` and ``∂Â/∂r`` rows are 0 in some batch element."""
+        return _names(self.connection_only)
+
+
+def _names(mask: tuple) -> list[str]:
+    """The components True in some row of a nested ``(..., 3)`` tuple of bools."""
+    def rows(x):
+        return [x] if not isinstance(x[0], tuple) else [r for v in x for r in rows(v)]
+    any_ = [any(col) for col in zip(*rows(mask), strict=True)]
+    return [n for n, a in zip(COMPONENTS, any_, strict=True) if a]
 
 
 @dataclass(frozen=True)
@@ -160,12 +250,14 @@ def phase_average(view: _View, order: int):
 
 def skill(model: LocalConnectionModel, baseline, view: _View) -> Skill:
     """:class:`Skill` of ``model`` and ``baseline`` (a phase-averaged velocity) on ``view``."""
-    return _from_sums(*_sums(model, baseline, view, None))
+    return _from_sums(*_sums(model, baseline, view, None)[0][:6])
 
 
 def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
                    pool: bool, n_folds: int = 3, noise_corrected: bool = False,
-                   model: LocalConnectionModel | None = None, refit: bool = False) -> Skill:
+                   model: LocalConnectionModel | None = None, refit: bool = False,
+                   phase_averaged: Tensor | None = None,
+                   connection_only: Tensor | None = None) -> Skill:
     """Held-out skill over ``n_folds`` contiguous blocks of whole cycles of every trial.
 
     Each block in turn is left out of the regression and scored; the phase and the limit
@@ -183,6 +275,12 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     ``model``: the regression's fit to the whole recording, when already at hand (its
     ``meta`` gives the window, interval and noise level).
 
+    ``phase_averaged``: ``(..., 3)`` bool, components each fold's model predicts by the
+    phase-averaged velocity of its training blocks (:func:`with_phase_average`, as
+    :func:`select_complexity` chose): their skill equals the baseline's. ``connection_only``:
+    ``(..., 3)`` bool, components whose rows of ``b̂`` and ``∂Â/∂r`` each fold's model sets
+    to 0 (likewise).
+
     ``noise_corrected`` (noise-aware regressions): subtract from the model's squared error the
     part the joint-angle noise of the held-out *inputs* adds (:func:`_input_noise_variance`),
     so that the score ranks models by how well they predict from the true shapes. Without it,
@@ -196,6 +294,58 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     """
     if isinstance(n_folds, bool) or not isinstance(n_folds, int) or n_folds < 2:
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
+    return _held_out_skills(traj, cycle, regression, pool=pool, n_folds=n_folds,
+                            noise_corrected=noise_corrected, model=model, refit=refit,
+                            phase_averaged=phase_averaged, connection_only=connection_only)
+
+
+def _held_out_skills(traj, cycle, regression, *, pool, n_folds, noise_corrected, model, refit,
+                     phase_averaged=None, connection_only=None, variants=False):
+    """:func:`cross_validate`'s skill; with ``variants`` instead :func:`_variant_scores` of the
+    fold models (noise-corrected)."""
+    reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
+                                                   n_folds=n_folds, refit=refit)
+    if variants:
+        return _variant_scores(models, view, fold, reg, traj.dt, pool, cycles)
+    return _score_folds(models, view, fold, reg, traj.dt, pool, noise_corrected,
+                        phase_averaged, connection_only)[0]
+
+
+def checked_terms(traj: Trajectory, cycle: LimitCycle, regression: Regression,
+                  model: LocalConnectionModel, *, pool: bool, n_folds: int = 3
+                  ) -> tuple[Skill, Tensor]:
+    """The held-out check of a fit at a given complexity, from one set of fold fits:
+    :func:`cross_validate`'s skill, and ``(..., 3)`` True where :func:`_choose_terms` keeps
+    the full model (False: the phase average or the connection alone predicts that
+    component better held out, and :func:`select_complexity` should choose)."""
+    reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
+                                                   n_folds=n_folds, refit=False)
+    held, gaps = _score_folds(models, view, fold, reg, traj.dt, pool, False, cycle=cycles)
+    every = torch.ones(3, dtype=torch.bool, device=view.phase.device)
+    gaps_conn = _score_folds(models, view, fold, reg, traj.dt, pool, False,
+                             connection_only=every, cycle=cycles)[1]
+    fallback, conn = _choose_terms(gaps, gaps_conn, few_cycles(traj.phase, pool))
+    return held, ~(fallback | conn)
+
+
+def few_cycles(phase: Tensor, pool: bool) -> Tensor:
+    """``(...)`` (pooled: ``()``) True where a batch element (pooled: the trials together)
+    spans at most :data:`FALLBACK_CYCLES` cycles of ``phase (..., T)``, rounded: where
+    :func:`_choose_terms` presumes the simpler model (and the auto fit's check runs
+    :func:`checked_terms`). A recording of 6 cycles spans 5.9-6.1 of its estimated phase, and
+    its held-out blocks hold 7 partial cycles, so the span, not the cycles seen, is counted."""
+    finite = torch.isfinite(phase)
+    span = (torch.where(finite, phase, -math.inf).amax(-1)
+            - torch.where(finite, phase, math.inf).amin(-1)) / (2 * math.pi)
+    span = span.clamp(min=0)  # a trial without phase: 0 cycles
+    if pool:
+        span = span.sum()
+    return torch.round(span) <= FALLBACK_CYCLES
+
+
+def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
+    """The regression (metric off), its fits without each of ``n_folds`` blocks of cycles,
+    the view they are scored on, its block index and its cycle index (:func:`_cycle_index`)."""
     reg = regression.replace(metric=False)
     if model is None:
         model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
@@ -212,23 +362,113 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
         coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool)
         coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool)[0]
         models = [with_coefficients(model, coef[f], reg.fourier_order) for f in range(n_folds)]
-    return _score_folds(models, view, pool_batch(fold, 0) if pool else fold, reg, traj.dt,
-                        pool, noise_corrected)
+    return (reg, models, view, pool_batch(fold, 0) if pool else fold,
+            _cycle_index(unflat.phase, pool))
+
+
+def _variant_scores(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
+                    cycle: Tensor) -> tuple[tuple[Skill, Tensor], tuple[Skill, Tensor]]:
+    """:func:`_score_folds` (noise-corrected, with the per-cycle gaps) of the fold models as
+    fitted and of the connection alone (their rows of ``b̂`` and ``∂Â/∂r`` set to 0): the
+    candidates of :func:`_choose_terms`."""
+    every = torch.ones(3, dtype=torch.bool, device=view.phase.device)
+    return (_score_folds(models, view, fold, reg, dt, pool, True, cycle=cycle),
+            _score_folds(models, view, fold, reg, dt, pool, True, connection_only=every,
+                         cycle=cycle))
 
 
 def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
-                 noise_corrected: bool) -> Skill:
+                 noise_corrected: bool, phase_averaged: Tensor | None = None,
+                 connection_only: Tensor | None = None,
+                 cycle: Tensor | None = None) -> tuple[Skill, Tensor | None]:
     """:class:`Skill` of ``models[f]`` on block ``f`` of ``view``, summed over the blocks,
-    beside the phase-averaged velocity of the other blocks."""
-    sums = []
+    beside the phase-averaged velocity of the other blocks (noise-corrected as asked); with
+    ``cycle`` (:func:`_cycle_index`) also, per held-out cycle, the ``SSE`` of the model
+    minus that of the phase average and the phase average's own ``(..., C, 3, 2)``, as
+    observed: the model's error on the noisy inputs, what a user's held-out data show.
+
+    ``phase_averaged``: ``(..., 3)`` components each fold's model predicts by that baseline;
+    ``connection_only``: ``(..., 3)`` components whose ``b̂`` and ``∂Â/∂r`` rows it zeroes."""
+    sums, gaps = [], []
+    n_cycles = None if cycle is None else int(cycle.amax()) + 1
     for f, fold_model in enumerate(models):
         base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
                                    view.r_dot, view.xi), reg.fourier_order)
+        if phase_averaged is not None or connection_only is not None:
+            fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
+            base = padded(base, fold_model.c.order)  # the same sums: an exact tie
         noise = None
         if noise_corrected and isinstance(reg, NoiseAwareRegression):
             noise = _noise_of(fold_model, dt, pool)
-        sums.append(_sums(fold_model, base, view, fold == f, noise))
-    return _from_sums(*[sum(parts) for parts in zip(*sums, strict=True)])
+        fold_sums, fold_gaps = _sums(fold_model, base, view, fold == f, noise, cycle, n_cycles)
+        sums.append(fold_sums)
+        gaps.append(fold_gaps)
+    total = [sum(parts) for parts in zip(*sums, strict=True)]
+    per_cycle = None
+    if cycle is not None:  # (..., C, 3, 2): the model's SSE minus the phase average's, its
+        per_cycle = torch.stack([sum(g[0] for g in gaps), sum(g[1] for g in gaps)], -1)
+    return _from_sums(total[0] - total[6], *total[1:6]), per_cycle
+
+
+def _scored(view: _View, mask: Tensor | None):
+    """The samples of ``view`` to score: ``ok (..., N)`` (finite, and in ``mask``), and
+    phase, r, r_dot, xi with the others set to 0 (so that nothing NaN reaches a sum)."""
+    ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
+    ok &= torch.isfinite(view.r).all(-1) & torch.isfinite(view.r_dot).all(-1)
+    if mask is not None:
+        ok &= mask
+    return (ok, torch.where(ok, view.phase, 0.0), torch.where(ok[..., None], view.r, 0.0),
+            torch.where(ok[..., None], view.r_dot, 0.0), torch.where(ok[..., None], view.xi, 0.0))
+
+
+def with_phase_average(model: LocalConnectionModel, baseline: FourierSeries,
+                       components: Tensor | None,
+                       connection_only: Tensor | None = None) -> LocalConnectionModel:
+    """``model`` predicting the components ``components`` (``(..., 3)`` bool, broadcasting
+    against its batch dims; None: none) by ``baseline``, a phase-averaged velocity (value
+    shape ``(3,)``): their intercept ``c`` becomes the baseline's series, their rows of ``b``,
+    ``A`` and ``∂A/∂r`` 0, so that :meth:`~LocalConnectionModel.predict` gives exactly the
+    baseline's values for them. The components ``connection_only`` (same shape) keep ``c``
+    and ``A`` and get rows of ``b`` and ``∂A/∂r`` of 0: ``c + Aδ̇``. ``meta["phase_averaged"]``
+    and ``meta["connection_only"]`` record the masks (each only when some entry is True); the
+    per-bin estimates (``model.bins``) are kept as the regression made them."""
+    def as_mask(x):
+        return (torch.zeros(3, dtype=torch.bool, device=model.device) if x is None
+                else torch.as_tensor(x, dtype=torch.bool, device=model.device))
+
+    mask, offsets = as_mask(components), as_mask(connection_only)
+    mask, offsets = torch.broadcast_tensors(mask, offsets)
+    if not bool((mask | offsets).any()):
+        return model
+    c = model.c
+    if bool(mask.any()):
+        order = max(model.c.order, baseline.order)
+        coeffs, base = padded(model.c, order).coeffs, padded(baseline, order).coeffs
+        c = FourierSeries(torch.where(mask.unsqueeze(-2), base.to(coeffs), coeffs), 1)
+
+    def zeroed(series: FourierSeries, m: Tensor) -> FourierSeries:
+        m = m.reshape(m.shape[:-1] + (1, 3) + (1,) * (series.value_ndim - 1))
+        return FourierSeries(series.coeffs.masked_fill(m, 0.0), series.value_ndim)
+
+    meta = dict(model.meta or {})
+    for key, m in (("phase_averaged", mask), ("connection_only", offsets)):
+        if bool(m.any()):
+            meta[key] = m.tolist()
+    return dataclasses.replace(model, c=c, b=zeroed(model.b, mask | offsets),
+                               A=zeroed(model.A, mask), dA=zeroed(model.dA, mask | offsets),
+                               meta=meta)
+
+
+def padded(series: FourierSeries, order: int) -> FourierSeries:
+    """``series`` with zero harmonics up to ``order`` (at least its own). Evaluating a
+    fallen-back component and its baseline through series of one order gives bit-equal
+    values (series of different orders differ in the last bit)."""
+    c = series.coeffs
+    extra = 2 * (order - series.order)
+    if extra <= 0:
+        return series
+    pad = c.new_zeros(c.shape[:series._axis] + (extra,) + tuple(series.value_shape))
+    return FourierSeries(torch.cat([c, pad], dim=series._axis), series.value_ndim)
 
 
 def downdates(regression: Regression) -> bool:
@@ -405,10 +645,27 @@ def _interval_noise(meta: dict, batch: tuple, dt: float, **kw) -> tuple[Tensor, 
 
 
 def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
-                      pool: bool, n_folds: int = 3) -> tuple[Regression, ComplexityChoice]:
+                      pool: bool, n_folds: int = 3, fallback_ok: bool = True
+                      ) -> tuple[Regression, ComplexityChoice]:
     """The bins, Fourier order and ridge of least mean held-out ``SSE/SST`` among
     :data:`COMPLEXITY_GRID` x :data:`RIDGE_GRID` (:func:`cross_validate`, noise-corrected);
     a ridge only when it gains more than :data:`RIDGE_MIN_GAIN` over no ridge.
+
+    Per component and batch element two simpler models are candidates too
+    (:func:`_choose_terms`): the connection alone (``ĉ + Âδ̇``, the rows of ``b`` and
+    ``∂A/∂r`` 0; :attr:`ComplexityChoice.connection_only`) and the phase-averaged velocity
+    (``b = A = ∂A/∂r = 0``; :attr:`ComplexityChoice.phase_averaged`), both made by
+    :func:`with_phase_average`. A model with shape terms counts only when it lowers the
+    held-out squared error of the observed (noisy) inputs below the phase average's by more
+    than :data:`FALLBACK_Z` standard errors (of the sum over held-out cycles of the
+    per-cycle differences) and :data:`FALLBACK_MARGIN` of it; the full model is kept over the
+    connection alone only when it is better by more than :data:`OFFSET_TERMS_Z` standard
+    errors (on recordings of up to :data:`FALLBACK_CYCLES` cycles, :func:`few_cycles`; on
+    longer ones the full model is kept unless a simpler one is better by as many standard
+    errors). Each candidate scores the loss of the model chosen per component in the mean.
+    The three components are separate least-squares problems on one design, so one's choice
+    leaves the others' fits unchanged. ``fallback_ok=False``: every component keeps the full
+    model.
 
     The blocks are whole cycles in order and nothing is random: the same data give the same
     choice. For the built-in regressions one fit per ``(n_bins, fourier_order)`` and one pass
@@ -420,11 +677,21 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
         ValueError: no candidate can be fitted on ``n_folds − 1`` blocks (too few cycles),
             naming the first failure.
     """
-    scores, failed = [], []
+    scores, failed, fallbacks = [], [], {}
+    short = few_cycles(traj.phase, pool)
     for n_bins, order in COMPLEXITY_GRID:
-        for ridge, s in _candidate_skills(traj, cycle, regression, n_bins, order, pool,
-                                          n_folds, failed):
-            scores.append((n_bins, order, ridge, float((1 - s.r2).mean())))
+        for ridge, (s, gaps), (s_conn, gaps_conn) in _candidate_skills(
+                traj, cycle, regression, n_bins, order, pool, n_folds, failed):
+            # the models must beat the baseline on the held-out data as observed (the noisy
+            # inputs); the candidates are ranked by the noise-corrected loss
+            if fallback_ok:
+                fallback, conn = _choose_terms(gaps, gaps_conn, short)
+            else:
+                fallback = conn = torch.zeros_like(s.r2, dtype=torch.bool)
+            loss = torch.where(fallback, 1 - s.r2_phase_average,
+                               torch.where(conn, 1 - s_conn.r2, 1 - s.r2))
+            scores.append((n_bins, order, ridge, float(loss.mean())))
+            fallbacks[n_bins, order, ridge] = fallback, conn
     if not scores:
         raise ValueError(f"select_complexity: no candidate could be fitted on {n_folds - 1} of "
                          f"{n_folds} blocks of cycles ({failed[0]}); record more cycles")
@@ -435,14 +702,76 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
         if best[3] > (1 - RIDGE_MIN_GAIN) * best_plain[3]:
             best = best_plain
     n_bins, order, ridge, _ = best
+    fallback, conn = fallbacks[n_bins, order, ridge]
     choice = ComplexityChoice(n_bins=n_bins, fourier_order=order, ridge=ridge,
-                              scores=tuple(scores))
+                              scores=tuple(scores), phase_averaged=_nested_tuple(fallback),
+                              connection_only=_nested_tuple(conn))
     return regression.replace(n_bins=n_bins, fourier_order=order, ridge=ridge), choice
 
 
+def _clearly_better(gaps: Tensor) -> Tensor:
+    """``(..., 3)`` True where the model's held-out squared error is below the phase
+    average's by more than :data:`FALLBACK_Z` standard errors of the sum of the per-cycle
+    differences and by more than the fraction :data:`FALLBACK_MARGIN` of the phase average's;
+    ``gaps (..., C, 3, 2)``: per cycle the difference and the phase average's squared error
+    (cycles without scored samples, difference 0, left out)."""
+    diff, base = gaps.unbind(-1)
+    return _lower_by(diff, FALLBACK_Z) & (diff.sum(-2) < -FALLBACK_MARGIN * base.sum(-2))
+
+
+def _lower_by(diff: Tensor, z: float) -> Tensor:
+    """``(..., 3)`` True where the sum over cycles of ``diff (..., C, 3)`` (per-cycle
+    differences of squared errors; 0: a cycle without scored samples, left out) is below 0
+    by more than ``z`` standard errors (of that sum, from the cycles' scatter), over at least
+    2 cycles."""
+    scored = diff != 0
+    n = scored.sum(-2)
+    total = diff.sum(-2)
+    mean = total / n.clamp(min=1)
+    var = ((diff - mean.unsqueeze(-2)).square() * scored).sum(-2) / (n - 1).clamp(min=1)
+    return (n > 1) & (total < -z * (var * n).sqrt())
+
+
+def _choose_terms(gaps: Tensor, gaps_conn: Tensor, short: Tensor | bool
+                  ) -> tuple[Tensor, Tensor]:
+    """Per component ``(..., 3)``: (predict it by the phase average, predict it by the
+    connection alone). ``gaps``, ``gaps_conn`` ``(..., C, 3, 2)``: :func:`_score_folds`'s
+    per-cycle gaps of the full model and of the connection alone; ``short`` ``(...)``: the
+    recording spans at most :data:`FALLBACK_CYCLES` cycles (:func:`few_cycles`).
+
+    On short recordings the simpler model is presumed: the full
+    model is kept when it beats the phase average (:func:`_clearly_better`) and either the
+    connection alone does not or the full model beats it by :data:`OFFSET_TERMS_Z` standard
+    errors; else the connection alone when it beats the phase average; else the phase
+    average: few cycles do not span the shape offsets of later ones (their correlation time
+    is about 3 cycles in the paper's SDE), so ``b̂δ`` and ``∂Â/∂r δ̇⊗δ`` extrapolate there.
+
+    On longer ones the full model is presumed: the phase average is taken only
+    when it beats both models by :data:`FALLBACK_Z` standard errors, the connection alone
+    only when it beats the full model by :data:`OFFSET_TERMS_Z`."""
+    diff, diff_conn = gaps[..., 0], gaps_conn[..., 0]
+    full, conn = _clearly_better(gaps), _clearly_better(gaps_conn)
+    keep = full & (_lower_by(diff - diff_conn, OFFSET_TERMS_Z) | ~conn)
+    short = torch.as_tensor(short, device=diff.device).unsqueeze(-1)
+    fallback = torch.where(short, ~keep & ~conn,
+                           _lower_by(-diff, FALLBACK_Z) & _lower_by(-diff_conn, FALLBACK_Z))
+    conn_only = torch.where(short, ~keep & conn,
+                            ~fallback & _lower_by(diff_conn - diff, OFFSET_TERMS_Z))
+    return fallback, conn_only
+
+
+def _nested_tuple(mask: Tensor) -> tuple:
+    def tup(x):
+        return tuple(tup(v) for v in x) if isinstance(x, list) else bool(x)
+    return tup(mask.tolist())
+
+
 def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, failed):
-    """``(ridge, Skill)`` of every ridge in :data:`RIDGE_GRID` at ``(n_bins, order)``, noise-
-    corrected; a candidate that cannot be fitted is left out and named in ``failed``."""
+    """``(ridge, (Skill, gaps), (Skill, gaps))`` of every ridge in :data:`RIDGE_GRID` at
+    ``(n_bins, order)``: of the model as fitted and of the connection alone
+    (:func:`_variant_scores`), the noise-corrected skill and per held-out cycle the observed
+    SSE minus the phase average's; a candidate that cannot be fitted is left out and named in
+    ``failed``."""
     base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
@@ -450,9 +779,9 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
             out = []
             for ridge in RIDGE_GRID:
                 try:
-                    out.append((ridge, cross_validate(
+                    out.append((ridge, *_held_out_skills(
                         traj, cycle, base.replace(ridge=ridge), pool=pool, n_folds=n_folds,
-                        noise_corrected=True, refit=True)))
+                        noise_corrected=True, model=None, refit=True, variants=True)))
                 except ValueError as err:
                     failed.append(f"{n_bins} bins, ridge {ridge:g}: {err}")
             return out
@@ -470,48 +799,67 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
                                  ridges=RIDGE_GRID)
     coef = blended_held_out(traj, base, model, coef, n_folds, pool=pool, ridges=RIDGE_GRID)
     flat_fold = pool_batch(fold, 0) if pool else fold
+    cycles = _cycle_index(unflat.phase, pool)
     out = []
     for k, ridge in enumerate(RIDGE_GRID):
         models = [with_coefficients(model, coef[k, f], order) for f in range(n_folds)]
-        s = _score_folds(models, view, flat_fold, base, traj.dt, pool, noise_corrected=True)
-        if bool(s.unscored.any()):
+        full, conn = _variant_scores(models, view, flat_fold, base, traj.dt, pool, cycles)
+        if bool(full[0].unscored.any()):
             failed.append(f"{n_bins} bins, ridge {ridge:g}: some bins cannot be fitted "
                           f"without one of the {n_folds} blocks of cycles")
             continue
-        out.append((ridge, s))
+        out.append((ridge, full, conn))
     return out
 
 
 def _cycle_blocks(phase: Tensor, n_folds: int) -> Tensor:
     """``(..., N)`` block index in ``[0, n_folds)`` of contiguous whole cycles per trial
     (-1 where the phase is NaN)."""
-    start = torch.nan_to_num(phase, nan=float("inf")).amin(-1, keepdim=True)
-    cyc = torch.floor((phase - start) / (2 * math.pi))
+    cyc = _cycles(phase)
     n_cyc = torch.nan_to_num(cyc, nan=-1.0).amax(-1, keepdim=True) + 1
     fold = torch.floor(cyc * n_folds / n_cyc)
     return torch.where(torch.isfinite(fold), fold, -1.0).long()
 
 
-def _sums(model: LocalConnectionModel, baseline, view: _View, mask: Tensor | None,
-          noise=None):
-    """SSE of model, baseline and template over the scored samples; Σy, Σy², count.
+def _cycles(phase: Tensor) -> Tensor:
+    """``(..., N)`` whole cycles since each trial's first sample (float, NaN where the phase
+    is NaN)."""
+    start = torch.nan_to_num(phase, nan=float("inf")).amin(-1, keepdim=True)
+    return torch.floor((phase - start) / (2 * math.pi))
 
-    ``noise``: ``(var_delta, var_rate)`` of the inputs; the model's SSE is then corrected by
-    :func:`_input_noise_variance`."""
-    ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
-    ok &= torch.isfinite(view.r).all(-1) & torch.isfinite(view.r_dot).all(-1)
-    if mask is not None:
-        ok &= mask
-    phase = torch.where(ok, view.phase, 0.0)
-    r = torch.where(ok[..., None], view.r, 0.0)
-    r_dot = torch.where(ok[..., None], view.r_dot, 0.0)
-    y = torch.where(ok[..., None], view.xi, 0.0)
+
+def _cycle_index(phase: Tensor, pool: bool) -> Tensor:
+    """``(..., N)`` (pooled: ``(N,)``, as :func:`regression_view` flattens) index of every
+    sample's cycle, distinct across trials, -1 where the phase is NaN."""
+    cyc = _cycles(phase)
+    per_trial = int(torch.nan_to_num(cyc, nan=0.0).amax()) + 1
+    trial = torch.arange(math.prod(phase.shape[:-1]), device=phase.device).reshape(
+        phase.shape[:-1] + (1,))
+    index = torch.where(torch.isfinite(cyc), cyc + trial * per_trial * pool, -1.0).long()
+    return pool_batch(index, 0) if pool else index
+
+
+def _sums(model: LocalConnectionModel, baseline, view: _View, mask: Tensor | None,
+          noise=None, cycle: Tensor | None = None, n_cycles: int = 0):
+    """SSE of model, baseline and template over the scored samples; Σy, Σy², count; and the
+    part of the model's SSE the inputs' noise adds (:func:`_input_noise_variance`; 0 without
+    ``noise``, the inputs' ``(var_delta, var_rate)``). With ``cycle`` (``(..., N)`` index in
+    ``[0, n_cycles)``, -1: none) also ``(..., n_cycles, 3)`` the model's squared error minus
+    the baseline's and the baseline's, summed per cycle (else None)."""
+    ok, phase, r, r_dot, y = _scored(view, mask)
     w = ok.to(y.dtype)[..., None]
     preds = (model.predict(phase, r, r_dot), baseline(phase), model.c(phase))
-    sse = [((y - p).square() * w).sum(-2) for p in preds]
-    if noise is not None:
-        sse[0] = sse[0] - (_input_noise_variance(model, phase, r, r_dot, *noise) * w).sum(-2)
-    return (*sse, (y * w).sum(-2), (y.square() * w).sum(-2), w.sum(-2)[..., 0])
+    squares = [(y - p).square() * w for p in preds]
+    sse = [x.sum(-2) for x in squares]
+    noise_sse = torch.zeros_like(sse[0]) if noise is None else (
+        _input_noise_variance(model, phase, r, r_dot, *noise) * w).sum(-2)
+    sums = (*sse, (y * w).sum(-2), (y.square() * w).sum(-2), w.sum(-2)[..., 0], noise_sse)
+    if cycle is None:
+        return sums, None
+    index = torch.where(ok & (cycle >= 0), cycle, n_cycles).unsqueeze(-1).expand(y.shape)
+    out = y.new_zeros(y.shape[:-2] + (n_cycles + 1, 3))
+    return sums, tuple(out.scatter_add(-2, index, x)[..., :-1, :]
+                       for x in (squares[0] - squares[1], squares[1]))
 
 
 def _input_noise_variance(model: LocalConnectionModel, phase: Tensor, r: Tensor,
