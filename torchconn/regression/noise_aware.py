@@ -735,18 +735,19 @@ def _harmonic_noise(series, se: Tensor, bins: BinIndex) -> tuple[Tensor, Tensor]
     with ``ν_k = Σ_s ρ(s) cos(2πks/M)``.
     """
     m, w = bins.n_bins, bins.window
-    grid = torch.linspace(-w, w, 801, dtype=torch.float64)
+    opts = dict(dtype=torch.float64, device=se.device)
+    grid = torch.linspace(-w, w, 801, **opts)
     x = grid.abs() / w
     kern = {"box": torch.ones_like(x), "tricube": (1 - x**3) ** 3,
             "epanechnikov": 1 - x**2}[bins.kernel]
     step = float(grid[1] - grid[0])
-    lags = torch.arange(-math.ceil(2 * w), math.ceil(2 * w) + 1, dtype=torch.float64)
+    lags = torch.arange(-math.ceil(2 * w), math.ceil(2 * w) + 1, **opts)
     shift = torch.round(lags / step).long()
     norm = float(kern.square().sum())
     rho = torch.stack([(kern[max(0, int(j)):len(kern) + min(0, int(j))]
                         * kern[max(0, -int(j)):len(kern) - max(0, int(j))]).sum()
                        for j in shift]) / norm
-    k = torch.arange(0, series.order + 1, dtype=torch.float64)
+    k = torch.arange(0, series.order + 1, **opts)
     nu = (rho * torch.cos(2 * math.pi * k[:, None] * lags / m)).sum(-1).clamp_min(0)
     nu = nu * torch.where(k > 0, 4.0, 1.0) / m
     values = tuple(range(-series.value_ndim, 0))
