@@ -584,9 +584,11 @@ class _CorrectedNormal:
     shape: tuple
 
     @staticmethod
-    def of(gram: Tensor, corr: Tensor, floor: Tensor) -> _CorrectedNormal:
+    def of(gram: Tensor, corr: Tensor, floor: Tensor,
+           nested: _LeadingFactors | None = None) -> _CorrectedNormal:
         """From ``gram, corr (..., P, P)`` (equilibrated, ``gram`` positive definite) and the
-        floor ``(...)`` of each element."""
+        floor ``(...)`` of each element; ``nested``: the factors of larger matrices whose
+        leading ``P × P`` blocks ``gram`` and ``corr`` are (computed there once for all sizes)."""
         shape, p = gram.shape[:-2], gram.shape[-1]
         g, c = gram.reshape(-1, p, p), corr.reshape(-1, p, p)
         floor = torch.as_tensor(floor, dtype=g.dtype, device=g.device).expand(shape).reshape(-1)
@@ -602,9 +604,12 @@ class _CorrectedNormal:
         ok = torch.ones_like(floored)
         applied = g.new_ones(g.shape[0])
         need = torch.nonzero(floored)[:, 0]
-        lower, info_g = torch.linalg.cholesky_ex(g[need])
-        half = torch.linalg.solve_triangular(lower, c[need], upper=False)  # L⁻¹ C
-        n = torch.linalg.solve_triangular(lower, half.mT, upper=False)  # L⁻¹ C L⁻ᵀ
+        factors = None if nested is None else nested.leading(need, p)
+        if factors is None:
+            lower, info_g = torch.linalg.cholesky_ex(g[need])
+            n = _LeadingFactors.whitened(lower, c[need])
+        else:
+            lower, n, info_g = factors
         nu, u = torch.linalg.eigh((n + n.mT) / 2)
         top = (1 - floor[need]).unsqueeze(-1)
         share = torch.where(nu > top, top / nu, 1.0)
@@ -647,6 +652,40 @@ class _CorrectedNormal:
             a = (t * self.scale.unsqueeze(-2)) @ t.mT
             chol[self.floored] = torch.linalg.cholesky_ex((a + a.mT) / 2)[0]
         return chol.reshape(self.shape + chol.shape[-2:])
+
+
+class _LeadingFactors:
+    """The Cholesky factor ``L`` of ``G`` and ``L⁻¹ C L⁻ᵀ`` of the largest of nested normal
+    matrices, computed once, on first use: for ``L`` lower triangular, those of a leading
+    block ``G[:P, :P], C[:P, :P]`` are the leading blocks of the largest's.
+
+    Args (of the constructor): gram, corr: ``(B, P', P')`` the largest matrices.
+    """
+
+    def __init__(self, gram: Tensor, corr: Tensor):
+        self._gram, self._corr = gram, corr
+        self._factors: tuple[Tensor, Tensor, Tensor] | None = None
+
+    @staticmethod
+    def whitened(lower: Tensor, corr: Tensor) -> Tensor:
+        """``L⁻¹ C L⁻ᵀ (..., P, P)`` from ``lower, corr (..., P, P)``."""
+        half = torch.linalg.solve_triangular(lower, corr, upper=False)  # L⁻¹ C
+        return torch.linalg.solve_triangular(lower, half.mT, upper=False)
+
+    def leading(self, idx: Tensor, p: int) -> tuple[Tensor, Tensor, Tensor] | None:
+        """``L, L⁻¹CL⁻ᵀ (n, P, P)`` and ``info (n,)`` (zeros) of the elements ``idx (n,)`` at
+        the leading size ``p``, or None where the largest ``G`` of one of them is not positive
+        definite (its factor is then computed at size ``p``)."""
+        if self._factors is None:
+            lower, info = torch.linalg.cholesky_ex(self._gram)
+            good = torch.nonzero(info == 0)[:, 0]
+            n = torch.zeros_like(lower)
+            n[good] = self.whitened(lower[good], self._corr[good])
+            self._factors = (lower, n, info)
+        lower, n, info = self._factors
+        if bool((info[idx] != 0).any()):
+            return None
+        return lower[idx, :p, :p], n[idx, :p, :p], info[idx]
 
 
 def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, inv: Tensor,
@@ -694,6 +733,10 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
     dead = train_g.diagonal(dim1=-2, dim2=-1) <= 0
     # the floor of the whole fit, so that it does not favour one order or block over another
     floor = _signal_floor(p, n_fold.sum(-1, keepdim=True)).expand(n_fold.shape)
+    scale, keep = inv.unsqueeze(-2), (~dead).to(gram)
+    both = (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
+    nested = _LeadingFactors((train_g * both + torch.diag_embed(dead.to(gram))).reshape(-1, p, p),
+                             (train_c * both).reshape(-1, p, p))
     losses = []
     for k in range(order + 1):
         c = p - n_m + (2 * k + 1) * q  # the order's columns: [:c], P_k = c
@@ -702,7 +745,7 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
         keep = (~drop).to(gram)
         both = (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
         normal = _CorrectedNormal.of(train_g[..., :c, :c] * both + torch.diag_embed(drop.to(gram)),
-                                     train_c[..., :c, :c] * both, floor)
+                                     train_c[..., :c, :c] * both, floor, nested)
         h = (train_h[..., :c] * scale - normal.correction_share(train_ch[..., :c] * scale)) * keep
         beta = normal.solve(h) * scale
         loss = ((beta.unsqueeze(-2) @ gram[..., :c, :c] @ beta.unsqueeze(-1))[..., 0, 0]
