@@ -604,7 +604,7 @@ class _CorrectedNormal:
         ok = torch.ones_like(floored)
         applied = g.new_ones(g.shape[0])
         need = torch.nonzero(floored)[:, 0]
-        factors = None if nested is None else nested.leading(need, p)
+        factors = None if nested is None or not need.numel() else nested.leading(need, p)
         if factors is None:
             lower, info_g = torch.linalg.cholesky_ex(g[need])
             n = _LeadingFactors.whitened(lower, c[need])
@@ -702,7 +702,8 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
     standard errors of the difference (from its spread over the blocks), the one with the least
     summed loss is chosen (the lowest on ties). The fits on the other blocks are floored as the
     final fit is (:class:`_CorrectedNormal`); an order whose raw normal matrix there is not
-    positive definite scores infinity (``order`` when every order does).
+    positive definite scores infinity (``order`` when every order does). Each order is solved
+    at its own size, on the factors of the largest order's fits (:class:`_LeadingFactors`).
 
     Args:
         gram: ``(..., F, P, P)`` raw normal matrices ``X̂_bᵀX̂_b`` per block (``P`` in the
@@ -721,7 +722,8 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
     # columns are then a leading block (the order's own size, not kept as identity rows: the
     # eigenvalue solve of the floor costs P³)
     n_m = (2 * order + 1) * q
-    perm = torch.cat([torch.arange(n_m, p), torch.arange(n_m)]).to(gram.device)
+    dev = gram.device
+    perm = torch.cat([torch.arange(n_m, p, device=dev), torch.arange(n_m, device=dev)])
     gram, corr = _principal(gram, perm), _principal(corr, perm)
     rhs, corr_h, inv = rhs[..., perm], corr_h[..., perm], inv[..., perm]
     train_g = gram.sum(-3, keepdim=True) - gram
