@@ -735,21 +735,20 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
     dead = train_g.diagonal(dim1=-2, dim2=-1) <= 0
     # the floor of the whole fit, so that it does not favour one order or block over another
     floor = _signal_floor(p, n_fold.sum(-1, keepdim=True)).expand(n_fold.shape)
-    scale, keep = inv.unsqueeze(-2), (~dead).to(gram)
+    # the largest order's equilibrated fits on the other blocks (dead columns as identity
+    # rows); each order's are their leading blocks
+    scale, keep = inv.unsqueeze(-2), (~dead).to(gram)  # (..., 1, P), (..., F, P)
     both = (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
-    nested = _LeadingFactors((train_g * both + torch.diag_embed(dead.to(gram))).reshape(-1, p, p),
-                             (train_c * both).reshape(-1, p, p))
+    train_g = train_g * both + torch.diag_embed(dead.to(gram))
+    train_c = train_c * both
+    nested = _LeadingFactors(train_g.reshape(-1, p, p), train_c.reshape(-1, p, p))
     losses = []
     for k in range(order + 1):
         c = p - n_m + (2 * k + 1) * q  # the order's columns: [:c], P_k = c
-        scale = inv[..., None, :c]  # (..., 1, P_k)
-        drop = dead[..., :c]  # (..., F, P_k)
-        keep = (~drop).to(gram)
-        both = (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
-        normal = _CorrectedNormal.of(train_g[..., :c, :c] * both + torch.diag_embed(drop.to(gram)),
-                                     train_c[..., :c, :c] * both, floor, nested)
-        h = (train_h[..., :c] * scale - normal.correction_share(train_ch[..., :c] * scale)) * keep
-        beta = normal.solve(h) * scale
+        normal = _CorrectedNormal.of(train_g[..., :c, :c], train_c[..., :c, :c], floor, nested)
+        h = (train_h[..., :c] * scale[..., :c]
+             - normal.correction_share(train_ch[..., :c] * scale[..., :c])) * keep[..., :c]
+        beta = normal.solve(h) * scale[..., :c]
         loss = ((beta.unsqueeze(-2) @ gram[..., :c, :c] @ beta.unsqueeze(-1))[..., 0, 0]
                 - 2 * (beta * rhs[..., :c]).sum(-1))
         losses.append(torch.where(normal.ok, loss, torch.inf))
