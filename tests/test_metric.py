@@ -120,7 +120,7 @@ def test_held_out_order_equals_refits_on_the_other_blocks():
     centres = torch.arange(8, dtype=F64) * (2 * math.pi / 8)
     gd = torch.stack([-torch.sin(centres), torch.cos(centres)], -1)
     data = [_harmonic_metric_data(40, 2, seed=0), _harmonic_metric_data(40, 0, seed=1)]
-    chosen = []
+    chosen, alone = [], []
     for phase, v, power in data:
         zeros = torch.zeros_like(v)
         fit = tied_metric_regression(zeros, v, power, phase, centres, gd, order=4,
@@ -147,6 +147,7 @@ def test_held_out_order_equals_refits_on_the_other_blocks():
         # the harmonics above the chosen order are zero
         assert bool((fit.coef[3 * (2 * int(fit.order) + 1):] == 0).all())
         chosen.append(int(fit.order))
+        alone.append(fit)
     # the second harmonic is resolved where the metric has it (a spurious third may come in
     # by chance: 3 on this seed); nothing above the first where the metric is constant
     assert chosen[0] >= 2 and chosen[1] <= 1
@@ -156,6 +157,12 @@ def test_held_out_order_equals_refits_on_the_other_blocks():
                                  centres, gd.expand(2, 8, 2), order=4, derivative_order=None,
                                  held_out_order=True)
     assert fit.order.tolist() == chosen
+    # ... and fits as it does alone: alone it is solved at its own order's size, in the batch
+    # the harmonics between its order and the other element's are kept as identity rows
+    for i, one in enumerate(alone):
+        for name in ("coef", "se_coef", "M", "se_M", "condition", "noise_correction"):
+            torch.testing.assert_close(getattr(fit, name)[i], getattr(one, name), rtol=1e-9,
+                                       atol=1e-12 * float(getattr(one, name).abs().max()))
 
 
 # ----------------------------------------------------------------------------- on the swimmer

@@ -403,6 +403,8 @@ def tied_metric_regression(
         fvv = (f.unsqueeze(-1) * vv.unsqueeze(-2)).flatten(-2)
         for b in range(folds):
             sel = (fold[..., rows, None] == b).to(dtype) if folds > 1 else 1.0
+            if folds > 1 and not bool(sel.any()):
+                continue  # the block has no rows here: its products would be exact zeros
             xb, fb = x * sel, f * sel
             gram[..., b, :, :] += xb.mT @ x
             rhs[..., b, :] += (xb * y[..., rows, None]).sum(-2)
@@ -417,24 +419,33 @@ def tied_metric_regression(
     if held_out_order:
         n_fold = torch.stack([(valid & (fold == b)).sum(-1) for b in range(folds)], -1)
         chosen = _held_out_orders(gram, corr_g, rhs, corr_h, inv, order, q, n_fold)
-    # the harmonics above each element's order are dropped (zero coefficients)
-    feature = torch.arange(p, device=dev) // q
-    drop = (feature >= 2 * chosen[..., None] + 1) & (feature < 2 * order + 1)  # (..., p)
+    # the harmonics above each element's order are dropped (zero coefficients): the fit is
+    # solved at the size of the batch's largest chosen order (``cols``), and the elements with
+    # a lower one keep their dropped columns as identity rows
+    top = int(chosen.max()) if chosen.numel() else order
+    cols = _order_columns(p, q, top, order, dev)  # (P',)
+    p_r = cols.numel()
+    feature = torch.arange(p, device=dev)[cols] // q
+    drop = (feature >= 2 * chosen[..., None] + 1) & (feature < 2 * order + 1)  # (..., P')
     keep = (~drop).to(dtype)
     both = keep.unsqueeze(-1) * keep.unsqueeze(-2)
-    gram, corr_g = gram.sum(-3) * both, corr_g.sum(-3) * both
-    rhs, corr_h = rhs.sum(-2) * keep, corr_h.sum(-2) * keep
+    gram, corr_g = _principal(gram.sum(-3), cols) * both, _principal(corr_g.sum(-3), cols) * both
+    rhs, corr_h = rhs.sum(-2)[..., cols] * keep, corr_h.sum(-2)[..., cols] * keep
+    inv = inv[..., cols]
 
     dead = gram.diagonal(dim1=-2, dim2=-1) <= 0
-    eye = torch.eye(p, dtype=dtype, device=dev)
+    eye = torch.eye(p_r, dtype=dtype, device=dev)
     scale = inv.unsqueeze(-1) * inv.unsqueeze(-2)
     floor = _signal_floor(p, n_valid)
     normal = _CorrectedNormal.of(gram * scale + torch.diag_embed(dead.to(dtype)),
                                  corr_g * scale, floor)
     chol, applied, ok = normal.cholesky(), normal.applied, normal.ok
     ev = torch.linalg.eigvalsh(chol @ chol.mT)
-    condition = torch.where(~ok | (dead & ~drop).any(-1) | (ev[..., 0] <= 0), torch.inf,
-                            ev[..., -1] / ev[..., 0].clamp(min=torch.finfo(dtype).tiny))
+    lo, hi = ev[..., 0], ev[..., -1]
+    if p_r < p:  # the left-out columns' identity rows, as in the layout of ``order``
+        lo, hi = lo.clamp(max=1.0), hi.clamp(min=1.0)
+    condition = torch.where(~ok | (dead & ~drop).any(-1) | (lo <= 0), torch.inf,
+                            hi / lo.clamp(min=torch.finfo(dtype).tiny))
     bad = ~(condition <= max_condition)
     if bool(bad.any()):
         where = [tuple(i) for i in torch.nonzero(bad).tolist()][:5] if batch else []
@@ -450,7 +461,8 @@ def tied_metric_regression(
               "(TubeRegression(metric=False); torchconn-fit: --metric no)"
         )
     h = rhs * inv - normal.correction_share(corr_h * inv)
-    beta = torch.cholesky_solve(h.unsqueeze(-1), chol)[..., 0] * inv
+    beta_r = torch.cholesky_solve(h.unsqueeze(-1), chol)[..., 0] * inv  # (..., P')
+    beta = beta_r.new_zeros(batch + (p,)).index_copy_(-1, cols, beta_r)
     if bool((applied < 1).any()):
         warnings.warn(
             f"{fn}: in some directions of the metric's coefficients the noise swamps the "
@@ -460,17 +472,18 @@ def tied_metric_regression(
             "biased towards smaller values", _wls.IllConditionedBinWarning, stacklevel=2)
 
     # cluster-robust sandwich over whole cycles, on the corrected regressors
-    sums = delta.new_zeros(batch + (n_c, p))
+    sums = delta.new_zeros(batch + (n_c, p_r))
+    kept_features = cols[::q] // q  # the features of the columns solved for
     sse = delta.new_zeros(batch + (m,))
     cnt = delta.new_zeros(batch + (m,))
     near = torch.remainder(torch.round(ph * (m / (2 * math.pi))), m).to(torch.int64)
     for start in range(0, n, _ROW_CHUNK):
         rows = slice(start, min(start + _ROW_CHUNK, n))
-        f = features(rows) * w[..., rows, None]
+        f = features(rows)[..., kept_features] * w[..., rows, None]
         vr = v[..., rows, :]
         quad = vr[..., iu] * vr[..., ju] - sig[..., None, iu] * on_diag
-        x = (f.unsqueeze(-1) * quad.unsqueeze(-2)).flatten(-2)
-        resid = (y[..., rows] - (x @ beta.unsqueeze(-1))[..., 0]) * w[..., rows]
+        x = (f.unsqueeze(-1) * quad.unsqueeze(-2)).flatten(-2)  # (..., n, P')
+        resid = (y[..., rows] - (x @ beta_r.unsqueeze(-1))[..., 0]) * w[..., rows]
         sums.scatter_add_(-2, cyc[..., rows, None].expand(x.shape), x * resid.unsqueeze(-1))
         sse.scatter_add_(-1, near[..., rows], resid.square())
         cnt.scatter_add_(-1, near[..., rows], w[..., rows])
@@ -479,7 +492,9 @@ def tied_metric_regression(
     meat = (sums.mT @ sums) * (n_clusters / (n_clusters - 1).clamp(min=1))[..., None, None]
     l_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
     g_inv = (l_inv.mT @ l_inv) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
-    cov = g_inv @ meat @ g_inv
+    cov_r = g_inv @ meat @ g_inv
+    cov = cov_r.new_zeros(batch + (p, p))
+    cov[..., cols[:, None], cols] = cov_r
     se = cov.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
 
     # evaluate at phase_m
@@ -549,7 +564,7 @@ class _CorrectedNormal:
     floor (``A = G − C``); only the others get the eigenvalue solve.
 
     Attributes (``B`` batch elements, flattened; ``P`` coefficients):
-        full: ``(B, P, P)`` Cholesky factor of ``G − C`` (valid where not ``floored``).
+        full: ``(B, P, P)`` Cholesky factor of ``G − C`` where not ``floored``.
         floored: ``(B,)`` bool, elements with a floored direction.
         lower, rotation: ``(n, P, P)`` ``L`` and ``U`` of the ``n`` floored elements;
             scale, share: ``(n, P)`` their ``1 − κν`` and ``κ``.
@@ -569,21 +584,32 @@ class _CorrectedNormal:
     shape: tuple
 
     @staticmethod
-    def of(gram: Tensor, corr: Tensor, floor: Tensor) -> _CorrectedNormal:
+    def of(gram: Tensor, corr: Tensor, floor: Tensor,
+           nested: _LeadingFactors | None = None) -> _CorrectedNormal:
         """From ``gram, corr (..., P, P)`` (equilibrated, ``gram`` positive definite) and the
-        floor ``(...)`` of each element."""
+        floor ``(...)`` of each element; ``nested``: the factors of larger matrices whose
+        leading ``P × P`` blocks ``gram`` and ``corr`` are (computed there once for all sizes)."""
         shape, p = gram.shape[:-2], gram.shape[-1]
         g, c = gram.reshape(-1, p, p), corr.reshape(-1, p, p)
         floor = torch.as_tensor(floor, dtype=g.dtype, device=g.device).expand(shape).reshape(-1)
         _, info = torch.linalg.cholesky_ex((1 - floor)[:, None, None] * g - c)
-        full, info_full = torch.linalg.cholesky_ex(g - c)
+        # G − C's factor only where the floor is not reached (the others are solved through
+        # the eigenvalues and keep an identity here)
+        easy = torch.nonzero(info == 0)[:, 0]
+        full = torch.eye(p, dtype=g.dtype, device=g.device).repeat(g.shape[0], 1, 1)
+        info_full = torch.zeros_like(info)
+        if easy.numel():
+            full[easy], info_full[easy] = torch.linalg.cholesky_ex(g[easy] - c[easy])
         floored = (info != 0) | (info_full != 0)
         ok = torch.ones_like(floored)
         applied = g.new_ones(g.shape[0])
         need = torch.nonzero(floored)[:, 0]
-        lower, info_g = torch.linalg.cholesky_ex(g[need])
-        half = torch.linalg.solve_triangular(lower, c[need], upper=False)  # L⁻¹ C
-        n = torch.linalg.solve_triangular(lower, half.mT, upper=False)  # L⁻¹ C L⁻ᵀ
+        factors = None if nested is None or not need.numel() else nested.leading(need, p)
+        if factors is None:
+            lower, info_g = torch.linalg.cholesky_ex(g[need])
+            n = _LeadingFactors.whitened(lower, c[need])
+        else:
+            lower, n, info_g = factors
         nu, u = torch.linalg.eigh((n + n.mT) / 2)
         top = (1 - floor[need]).unsqueeze(-1)
         share = torch.where(nu > top, top / nu, 1.0)
@@ -628,6 +654,40 @@ class _CorrectedNormal:
         return chol.reshape(self.shape + chol.shape[-2:])
 
 
+class _LeadingFactors:
+    """The Cholesky factor ``L`` of ``G`` and ``L⁻¹ C L⁻ᵀ`` of the largest of nested normal
+    matrices, computed once, on first use: for ``L`` lower triangular, those of a leading
+    block ``G[:P, :P], C[:P, :P]`` are the leading blocks of the largest's.
+
+    Args (of the constructor): gram, corr: ``(B, P', P')`` the largest matrices.
+    """
+
+    def __init__(self, gram: Tensor, corr: Tensor):
+        self._gram, self._corr = gram, corr
+        self._factors: tuple[Tensor, Tensor, Tensor] | None = None
+
+    @staticmethod
+    def whitened(lower: Tensor, corr: Tensor) -> Tensor:
+        """``L⁻¹ C L⁻ᵀ (..., P, P)`` from ``lower, corr (..., P, P)``."""
+        half = torch.linalg.solve_triangular(lower, corr, upper=False)  # L⁻¹ C
+        return torch.linalg.solve_triangular(lower, half.mT, upper=False)
+
+    def leading(self, idx: Tensor, p: int) -> tuple[Tensor, Tensor, Tensor] | None:
+        """``L, L⁻¹CL⁻ᵀ (n, P, P)`` and ``info (n,)`` (zeros) of the elements ``idx (n,)`` at
+        the leading size ``p``, or None where the largest ``G`` of one of them is not positive
+        definite (its factor is then computed at size ``p``)."""
+        if self._factors is None:
+            lower, info = torch.linalg.cholesky_ex(self._gram)
+            good = torch.nonzero(info == 0)[:, 0]
+            n = torch.zeros_like(lower)
+            n[good] = self.whitened(lower[good], self._corr[good])
+            self._factors = (lower, n, info)
+        lower, n, info = self._factors
+        if bool((info[idx] != 0).any()):
+            return None
+        return lower[idx, :p, :p], n[idx, :p, :p], info[idx]
+
+
 def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, inv: Tensor,
                      order: int, q: int, n_fold: Tensor) -> Tensor:
     """The Fourier order of ``M(φ)`` in ``0 … order`` with the least held-out error over
@@ -642,7 +702,8 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
     standard errors of the difference (from its spread over the blocks), the one with the least
     summed loss is chosen (the lowest on ties). The fits on the other blocks are floored as the
     final fit is (:class:`_CorrectedNormal`); an order whose raw normal matrix there is not
-    positive definite scores infinity (``order`` when every order does).
+    positive definite scores infinity (``order`` when every order does). Each order is solved
+    at its own size, on the factors of the largest order's fits (:class:`_LeadingFactors`).
 
     Args:
         gram: ``(..., F, P, P)`` raw normal matrices ``X̂_bᵀX̂_b`` per block (``P`` in the
@@ -657,27 +718,39 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
         ``(...)`` int64 orders.
     """
     p = gram.shape[-1]
+    # columns reordered once, those of ∂M/∂r(φ) first and M(φ)'s by harmonic: each order's
+    # columns are then a leading block (the order's own size, not kept as identity rows: the
+    # eigenvalue solve of the floor costs P³)
+    n_m = (2 * order + 1) * q
+    dev = gram.device
+    perm = torch.cat([torch.arange(n_m, p, device=dev), torch.arange(n_m, device=dev)])
+    gram, corr = _principal(gram, perm), _principal(corr, perm)
+    rhs, corr_h, inv = rhs[..., perm], corr_h[..., perm], inv[..., perm]
     train_g = gram.sum(-3, keepdim=True) - gram
     train_c = corr.sum(-3, keepdim=True) - corr
     gram = gram - corr  # the blocks' corrected normal matrices, for the held-out loss
     train_h = rhs.sum(-2, keepdim=True) - rhs
     train_ch = corr_h.sum(-2, keepdim=True) - corr_h
     rhs = rhs - corr_h
-    scale = inv.unsqueeze(-2)  # (..., 1, P)
-    feature = torch.arange(p, device=gram.device) // q
     dead = train_g.diagonal(dim1=-2, dim2=-1) <= 0
     # the floor of the whole fit, so that it does not favour one order or block over another
     floor = _signal_floor(p, n_fold.sum(-1, keepdim=True)).expand(n_fold.shape)
+    # the largest order's equilibrated fits on the other blocks (dead columns as identity
+    # rows); each order's are their leading blocks
+    scale, keep = inv.unsqueeze(-2), (~dead).to(gram)  # (..., 1, P), (..., F, P)
+    both = (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
+    train_g = train_g * both + torch.diag_embed(dead.to(gram))
+    train_c = train_c * both
+    nested = _LeadingFactors(train_g.reshape(-1, p, p), train_c.reshape(-1, p, p))
     losses = []
     for k in range(order + 1):
-        drop = ((feature >= 2 * k + 1) & (feature < 2 * order + 1)) | dead  # (..., F, P)
-        keep = (~drop).to(gram)
-        both = (scale * keep).unsqueeze(-1) * (scale * keep).unsqueeze(-2)
-        normal = _CorrectedNormal.of(train_g * both + torch.diag_embed(drop.to(gram)),
-                                     train_c * both, floor)
-        h = (train_h * scale - normal.correction_share(train_ch * scale)) * keep
-        beta = normal.solve(h) * scale
-        loss = (beta.unsqueeze(-2) @ gram @ beta.unsqueeze(-1))[..., 0, 0] - 2 * (beta * rhs).sum(-1)
+        c = p - n_m + (2 * k + 1) * q  # the order's columns: [:c], P_k = c
+        normal = _CorrectedNormal.of(train_g[..., :c, :c], train_c[..., :c, :c], floor, nested)
+        h = (train_h[..., :c] * scale[..., :c]
+             - normal.correction_share(train_ch[..., :c] * scale[..., :c])) * keep[..., :c]
+        beta = normal.solve(h) * scale[..., :c]
+        loss = ((beta.unsqueeze(-2) @ gram[..., :c, :c] @ beta.unsqueeze(-1))[..., 0, 0]
+                - 2 * (beta * rhs[..., :c]).sum(-1))
         losses.append(torch.where(normal.ok, loss, torch.inf))
     losses = torch.stack(losses, -1)  # (..., F, order + 1)
     # a lower order than ``order`` only where it predicts the held-out blocks better by more
@@ -691,6 +764,19 @@ def _held_out_orders(gram: Tensor, corr: Tensor, rhs: Tensor, corr_h: Tensor, in
     allowed[..., -1] = True
     best = torch.where(allowed & torch.isfinite(total), total, torch.inf).argmin(-1)
     return torch.where(torch.isfinite(total).any(-1), best, order)
+
+
+def _order_columns(p: int, q: int, k: int, order: int, device) -> Tensor:
+    """``(P_k,)`` int64 columns of the tied model at Fourier order ``k ≤ order`` of ``M(φ)``,
+    in the layout of ``order`` (``P`` columns, feature ``column // q``; the first
+    ``2·order+1`` features those of ``M(φ)``, the rest those of ``∂M/∂r(φ)``)."""
+    feature = torch.arange(p, device=device) // q
+    return torch.nonzero((feature < 2 * k + 1) | (feature >= 2 * order + 1))[:, 0]
+
+
+def _principal(x: Tensor, cols: Tensor) -> Tensor:
+    """``(..., P_k, P_k)`` the principal submatrix of ``x (..., P, P)`` on ``cols (P_k,)``."""
+    return x.index_select(-1, cols).index_select(-2, cols)
 
 
 def _noise_terms(s2: Tensor, s0: Tensor, fy: Tensor, sig: Tensor, iu: Tensor, ju: Tensor,
