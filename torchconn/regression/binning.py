@@ -77,6 +77,16 @@ class BinIndex:
         return out.reshape(self.index.shape + x.shape[-1:])
 
 
+def kernel_weight(s: Tensor, kernel: str) -> Tensor:
+    """A bin's weight at scaled distance ``s = |φ − φ_m| / window`` (``0 ≤ s ≤ 1``) from its
+    centre: ``"box"`` 1, ``"tricube"`` ``(1 − s³)³``, ``"epanechnikov"`` ``1 − s²``."""
+    if kernel == "box":
+        return torch.ones_like(s)
+    if kernel == "tricube":
+        return (1 - s**3) ** 3
+    return 1 - s**2
+
+
 def assign_bins(
     phase: Tensor, n_bins: int, *, window: float = 0.5, kernel: str = "box"
 ) -> BinIndex:
@@ -146,12 +156,6 @@ def assign_bins(
     offset = torch.gather(xs, -1, flat_pos).reshape(pos.shape) - centre.unsqueeze(-1)
     offset = torch.remainder(offset + m_bins / 2, m_bins) - m_bins / 2
     s = (offset.abs() / window).clamp_(max=1.0)
-    if kernel == "box":
-        weight = torch.ones_like(s)
-    elif kernel == "tricube":
-        weight = (1 - s**3) ** 3
-    else:
-        weight = 1 - s**2
-    weight = torch.where(filled, weight, 0.0)
+    weight = torch.where(filled, kernel_weight(s, kernel), 0.0)
     return BinIndex(index=index, weight=weight, count=count, n_bins=m_bins, n_points=n,
                     window=float(window), kernel=kernel)

@@ -46,7 +46,7 @@ from ..physics import se2
 from ..trajectory import Trajectory, pool_batch
 from . import _wls
 from ._wls import IllConditionedBinWarning
-from .binning import BinIndex, assign_bins
+from .binning import BinIndex, assign_bins, kernel_weight
 from .connection import ConnectionFit, _blocks, _connection_fit, connection_regression
 from .tube import TubeRegression, _auto_window, _auto_windows
 
@@ -751,8 +751,7 @@ def _harmonic_noise(series, se: Tensor, bins: BinIndex) -> tuple[Tensor, Tensor]
     opts = dict(dtype=torch.float64, device=se.device)
     grid = torch.linspace(-w, w, 801, **opts)
     x = grid.abs() / w
-    kern = {"box": torch.ones_like(x), "tricube": (1 - x**3) ** 3,
-            "epanechnikov": 1 - x**2}[bins.kernel]
+    kern = kernel_weight(x, bins.kernel)
     step = float(grid[1] - grid[0])
     lags = torch.arange(-math.ceil(2 * w), math.ceil(2 * w) + 1, **opts)
     shift = torch.round(lags / step).long()
