@@ -291,12 +291,12 @@ class ConnectionEstimator:
         every = torch.ones(3, dtype=torch.bool, device=model.device)
         if not self.held_out_folds or not skill.downdates(regression):
             return None, every
-        fallback, conn = _masks(choice, model.device)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
             if terms and choice is None:
                 return skill.checked_terms(traj, cycle, regression, model, pool=self.pool,
                                            n_folds=self.held_out_folds)
+            fallback, conn = _masks(choice, model.device)
             return skill.cross_validate(traj, cycle, regression, pool=self.pool,
                                         n_folds=self.held_out_folds, model=model,
                                         phase_averaged=fallback, connection_only=conn), every

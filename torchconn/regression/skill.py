@@ -320,10 +320,8 @@ def checked_terms(traj: Trajectory, cycle: LimitCycle, regression: Regression,
     component better held out, and :func:`select_complexity` should choose)."""
     reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
                                                    n_folds=n_folds, refit=False)
-    held, gaps = _score_folds(models, view, fold, reg, traj.dt, pool, False, cycle=cycles)
-    every = torch.ones(3, dtype=torch.bool, device=view.phase.device)
-    gaps_conn = _score_folds(models, view, fold, reg, traj.dt, pool, False,
-                             connection_only=every, cycle=cycles)[1]
+    (held, gaps), (_, gaps_conn) = _variant_scores(models, view, fold, reg, traj.dt, pool,
+                                                   cycles, noise_corrected=False)
     fallback, conn = _choose_terms(gaps, gaps_conn, few_cycles(traj.phase, pool))
     return held, ~(fallback | conn)
 
@@ -367,14 +365,15 @@ def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
 
 
 def _variant_scores(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
-                    cycle: Tensor) -> tuple[tuple[Skill, Tensor], tuple[Skill, Tensor]]:
-    """:func:`_score_folds` (noise-corrected, with the per-cycle gaps) of the fold models as
-    fitted and of the connection alone (their rows of ``b̂`` and ``∂Â/∂r`` set to 0): the
-    candidates of :func:`_choose_terms`."""
+                    cycle: Tensor, noise_corrected: bool = True
+                    ) -> tuple[tuple[Skill, Tensor], tuple[Skill, Tensor]]:
+    """:func:`_score_folds` (with the per-cycle gaps) of the fold models as fitted and of the
+    connection alone (their rows of ``b̂`` and ``∂Â/∂r`` set to 0): the candidates of
+    :func:`_choose_terms`."""
     every = torch.ones(3, dtype=torch.bool, device=view.phase.device)
-    return (_score_folds(models, view, fold, reg, dt, pool, True, cycle=cycle),
-            _score_folds(models, view, fold, reg, dt, pool, True, connection_only=every,
-                         cycle=cycle))
+    return (_score_folds(models, view, fold, reg, dt, pool, noise_corrected, cycle=cycle),
+            _score_folds(models, view, fold, reg, dt, pool, noise_corrected,
+                         connection_only=every, cycle=cycle))
 
 
 def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
