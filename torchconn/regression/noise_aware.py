@@ -857,6 +857,59 @@ def bin_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: IntervalS
     return dataclasses.replace(fit, A=estimate), added
 
 
+@dataclass(frozen=True)
+class _Search:
+    """One filter's search of the pooled choice (``NoiseAwareRegression._search``).
+
+    Attributes:
+        fit: the chosen candidate's fit; None where no candidate can be fitted, or none beats
+            the search's bound.
+        view, h, window: its pooled interval samples, interval and bin half-width (with no
+            fit: those at the shortest interval tried).
+        mse: its estimated MSE, at least its variance (inf with no fit).
+        table: ``[h, window, MSE]`` of every candidate that can be fitted, in the order
+            tried (those in ``skipped`` with their variance, a lower bound of the MSE).
+        skipped: ``[h, window]`` of the candidates whose bias correction was skipped.
+    """
+
+    fit: ConnectionFit | None
+    view: IntervalSamples
+    h: int
+    window: float
+    mse: float
+    table: list
+    skipped: list
+
+
+def _least_score(order: list, lower: dict, score, *, bound: float = math.inf,
+                 prune: bool = True) -> tuple:
+    """The first candidate in ``order`` of least ``score(key) -> (fit, score)``, scoring as
+    few as the lower bounds ``lower[key] <= score`` allow (branch and bound).
+
+    The candidates are scored in increasing bound (ties in ``order``) until the next bound
+    exceeds the least score found, or equals it and comes later in ``order``: none of the
+    rest can be first of least score. NaN scores count as ``inf``; a candidate must score
+    below ``bound`` (on a tie the bound wins). ``prune=False`` scores every candidate, in
+    ``order``.
+
+    Returns the chosen key (None where none scores below a finite ``bound``; where every
+    score is ``inf``, the first scored) and ``{key: (fit, score)}`` of those scored, in the
+    order scored.
+    """
+    rank = {key: i for i, key in enumerate(order)}
+    queue = sorted(order, key=lambda key: lower[key]) if prune else list(order)
+    done, best, least = {}, None, (bound, -1)
+    for key in queue:
+        if prune and (lower[key], rank[key]) > least:
+            break
+        fit, value = done[key] = score(key)
+        if (math.inf if math.isnan(value) else value, rank[key]) < least:
+            best, least = key, (value, rank[key])
+    if best is None and done and math.isinf(bound):
+        best = min(done, key=rank.__getitem__)
+    return best, done
+
+
 # ------------------------------------------------------------------------ the regression stage
 #: the velocity interval is the shortest at which the joint-angle noise adds at most this
 #: fraction of the process noise's variance to a filtered shape velocity
@@ -969,12 +1022,19 @@ class NoiseAwareRegression(TubeRegression):
             for the bias of the bins' phase windows and the velocity filter, computed from the
             fitted model (:func:`bin_bias_correction`); False: uncorrected (the previous
             version). Unpooled fits are not corrected yet.
+        full_search: correct every candidate of the pooled choice. By default a candidate
+            is corrected only while its uncorrected variance, a lower bound of its estimated
+            MSE, could still beat the best one corrected so far (branch and bound): the same
+            choice and fit bit for bit, and ``meta["interval_window_scores"]`` holds that
+            variance for the others (listed in ``meta["interval_window_bounds"]``). True is
+            for checks and comparisons of cost.
     """
 
     velocity_interval: int | None = option(None, ge=1)
     noise_band_low: float | None = option(None, gt=0, le=0.45)
     shrink_to_smoothed: bool = True
     bias_correction: bool = True
+    full_search: bool = False
 
     def _corrected_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """Unpooled batch elements may carry different noise (a sweep's noise levels), so each
@@ -983,11 +1043,11 @@ class NoiseAwareRegression(TubeRegression):
         d, n_bins = traj.shape_dim, self.n_bins
         var, ratio, h = self.noise_setup(traj, pool)
         if pool:
-            fit, h, window, kernel, scores = self._chosen_fit(traj, var, ratio, int(h),
-                                                              gamma_m, gamma_dot_m, opts)
+            fit, h, window, kernel, scores, skipped = self._chosen_fit(
+                traj, var, ratio, int(h), gamma_m, gamma_dot_m, opts)
             meta = {"velocity_interval": h, "velocity_kernel": kernel,
                     "noise_ratio": float(ratio), "noise_r": var.sqrt().tolist(),
-                    "interval_window_scores": scores}
+                    "interval_window_scores": scores, "interval_window_bounds": skipped}
             return fit, window, meta
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
@@ -1048,7 +1108,12 @@ class NoiseAwareRegression(TubeRegression):
         of the bias). The candidates are every pair of the half-widths
         :data:`_CANDIDATE_WINDOWS` (at least the data-size rule's) and the intervals ``h0`` and
         ``h0 · _CORRECTED_INTERVAL_MULTIPLES`` (``h0`` the noise rule's,
-        :func:`velocity_interval_for`; at most a quarter cycle).
+        :func:`velocity_interval_for`; at most a quarter cycle); the first of least ``MSE`` in
+        that order is taken. ``V_c`` comes from the uncorrected fit and ``V⁺``, ``‖B‖²`` are
+        ``≥ 0``, so ``V_c`` bounds ``MSE_c`` from below: the candidates are corrected in
+        increasing ``V`` until the next ``V`` exceeds the least ``MSE`` found (or equals it
+        and comes later in the order), and the rest cannot be chosen (branch and bound; the
+        same choice and fit as correcting all, bit for bit, unless ``full_search``).
 
         Without the correction (the previous version), the candidate of the shortest interval
         and narrowest bins (``0``, least bias) is the reference: ``MSE_c ≈ ‖Â_c − Â_0‖² − V_0
@@ -1067,43 +1132,59 @@ class NoiseAwareRegression(TubeRegression):
         ends: where missing samples cost the triangle rows the box keeps, the box's search
         (from its own noise rule's interval) runs too and the lower estimated MSE of the two
         is taken (each at least its candidate's variance: without the bias correction the two
-        searches' references differ, and one made of few rows can give a negative estimate).
+        searches' references differ, and one made of few rows can give a negative estimate;
+        on a tie the triangle). The box's candidates are then corrected only while their
+        ``V`` is below the triangle's MSE. Complete data (no NaN in the poses, shapes or
+        phase) lose no rows to either filter, and the rows are not counted.
 
-        Returns the fit, ``h``, the window, the filter and the candidates' ``[h, window, MSE]``
-        (a list; ``[h, window, MSE, "box"]`` for the box's).
+        Returns the fit, ``h``, the window, the filter, the candidates' ``[h, window, MSE]``
+        (a list; ``[h, window, MSE, "box"]`` for the box's) and the ``[h, window(, "box")]``
+        of the candidates whose correction was skipped (their table entry is ``V``, a lower
+        bound of their MSE, and at least the chosen one's).
         """
         kernels = {VELOCITY_KERNEL: int(self.velocity_interval or h0)}
-        if VELOCITY_KERNEL != "box":
+        if VELOCITY_KERNEL != "box" and _has_missing(traj):
             h_box = int(self.velocity_interval or velocity_interval_for(
                 ratio, _samples_per_cycle(traj), "box"))
             if _usable_rows(traj, kernels[VELOCITY_KERNEL], VELOCITY_KERNEL) < _usable_rows(
                     traj, kernels[VELOCITY_KERNEL], "box"):
                 kernels["box"] = h_box
         offsets = _one_sample_offsets(traj, gamma_m) if self.bias_correction else None
-        found = {k: self._search(traj, var, k, h, gamma_m, gamma_dot_m, opts, offsets)
-                 for k, h in kernels.items()}
-        fitted = {k: f for k, f in found.items() if f[0] is not None}
+        found, bound = {}, math.inf
+        for k, h in kernels.items():
+            # a later filter is taken only where its MSE is below the earlier ones'
+            found[k] = self._search(traj, var, k, h, gamma_m, gamma_dot_m, opts, offsets, bound)
+            if found[k].fit is not None:
+                bound = min(bound, found[k].mse)
+        fitted = {k: f for k, f in found.items() if f.fit is not None}
         if not fitted:  # none can be fitted: on_ill_conditioned decides (e.g. raises)
-            view, h, window = found[VELOCITY_KERNEL][1]
-            bins = assign_bins(view.phase, self.n_bins, window=window, kernel=self.kernel)
-            fit = noise_aware_regression(view, bins, gamma_m, gamma_dot_m, var, **opts)
-            return fit, h, window, VELOCITY_KERNEL, []
-        kernel = min(fitted, key=lambda k: fitted[k][2])
-        fit, (_, h, window), _, _ = fitted[kernel]
-        table = [row + ([] if k == VELOCITY_KERNEL else [k])
-                 for k, f in fitted.items() for row in f[3]]
-        return fit, h, window, kernel, table
+            f = found[VELOCITY_KERNEL]
+            fit = noise_aware_regression(f.view, self._bins(f.view, f.window), gamma_m,
+                                         gamma_dot_m, var, **opts)
+            return fit, f.h, f.window, VELOCITY_KERNEL, [], []
+        kernel = min(fitted, key=lambda k: fitted[k].mse)
+        best = fitted[kernel]
+
+        def tagged(rows: list, k: str) -> list:
+            return [row + ([] if k == VELOCITY_KERNEL else [k]) for row in rows]
+
+        table = [row for k, f in found.items() for row in tagged(f.table, k)]
+        skipped = [row for k, f in found.items() for row in tagged(f.skipped, k)]
+        return best.fit, best.h, best.window, kernel, table, skipped
 
     def _search(self, traj: Trajectory, var: Tensor, kernel: str, h0: int, gamma_m: Tensor,
-                gamma_dot_m: Tensor, opts: dict, offsets: _OneSampleOffsets | None):
-        """:meth:`_chosen_fit`'s search for one filter. Returns ``(fit, (view, h, window),
-        MSE, table)`` of the best candidate (its MSE at least its variance ``V_c``, for the
-        comparison of filters); ``fit`` is None (and the rest the shortest interval's
-        reference) where no candidate can be fitted. ``offsets``: the one-sample offsets the
-        bias correction models (:func:`_one_sample_offsets`), None without it."""
+                gamma_dot_m: Tensor, opts: dict, offsets: _OneSampleOffsets | None,
+                bound: float = math.inf) -> _Search:
+        """:meth:`_chosen_fit`'s search for one filter (:class:`_Search`). ``offsets``: the
+        one-sample offsets the bias correction models (:func:`_one_sample_offsets`), None
+        without it. ``bound``: an MSE to beat (another filter's; with the correction, a
+        candidate whose ``V`` is not below it is not corrected, and none beating it gives no
+        fit)."""
         d = traj.shape_dim
         longest = max(2, int(_samples_per_cycle(traj) * _MAX_INTERVAL_CYCLES))
-        views, fits, scores, variances = {}, {}, {}, {}
+        # per candidate (h, window), in the order tried: the variance V of the uncorrected
+        # fit (inf: it cannot be fitted) and the score (without the correction, at once)
+        views, fits, variances, scores = {}, {}, {}, {}
 
         def candidate(h: int, w: float | None) -> tuple[int, float]:
             if h not in views:
@@ -1115,56 +1196,74 @@ class NoiseAwareRegression(TubeRegression):
                 w = _auto_window(views[h].phase, self.n_bins, 1 + 2 * d + d * d,
                                  self.samples_per_regressor)
             key = (h, float(w))
-            if key in scores:
+            if key in variances:
                 return key
-            bins = assign_bins(views[h].phase, self.n_bins, window=key[1], kernel=self.kernel)
-            fit, bad = _flagged_fit((views[h], bins, gamma_m, gamma_dot_m, var), opts)
+            fit, bad = _flagged_fit((views[h], self._bins(views[h], key[1]), gamma_m,
+                                     gamma_dot_m, var), opts)
             if bool(bad):  # bins too sparse at this width: not a candidate
-                scores[key] = math.inf
+                variances[key] = scores[key] = math.inf
                 return key
             v = variances[key] = float(fit.se_A.square().nansum())
-            if offsets is not None:
-                corrected, added = bin_bias_correction(
-                    fit, traj, views[h], bins, gamma_m, gamma_dot_m, pool=True,
-                    offsets=offsets, **opts)
-                bias = float((corrected.A - fit.A).square().nansum())
-                scores[key] = v + float(added) + _RESIDUAL_BIAS_FRACTION * bias
-                fit = corrected
-            elif not fits:
-                scores[key] = v
-            else:
-                ref = next(iter(fits))
-                scores[key] = (float((fit.A - fits[ref].A).square().nansum()) - scores[ref]
-                               + 2 * v)
+            if offsets is None:
+                if not fits:
+                    scores[key] = v
+                else:
+                    ref = next(iter(fits))
+                    scores[key] = (float((fit.A - fits[ref].A).square().nansum())
+                                   - scores[ref] + 2 * v)
             fits[key] = fit
             return key
 
         while True:
             least = candidate(h0, self.window)[1]  # the narrowest window
             widths = [least] if self.window else [max(least, w) for w in _CANDIDATE_WINDOWS]
-            best = min((candidate(h0, w) for w in widths), key=scores.__getitem__)
-            if best in fits or h0 == 1 or self.velocity_interval:
+            first = [candidate(h0, w) for w in widths]
+            if any(k in fits for k in first) or h0 == 1 or self.velocity_interval:
                 break
             # no width can be fitted at this interval (too few independent rows for the
             # overlapping filter, or rows lost to missing samples)
             h0 = _shorter_interval(h0)
-        if best not in fits:
-            return None, (views[h0], h0, least), math.inf, []
-        if not self.velocity_interval:
-            multiples = (_CORRECTED_INTERVAL_MULTIPLES if offsets is not None
-                         else _INTERVAL_MULTIPLES)
-            intervals = sorted({min(longest, max(1, round(h0 * f)), traj.n_samples - 1)
-                                for f in multiples} - {h0})
-            # with the correction every pair of interval and width; without it the intervals
-            # at the best width
+        if not any(k in fits for k in first):
+            return _Search(None, views[h0], h0, least, math.inf, [], [])
+        intervals = [] if self.velocity_interval else sorted(
+            {min(longest, max(1, round(h0 * f)), traj.n_samples - 1)
+             for f in (_CORRECTED_INTERVAL_MULTIPLES if offsets is not None
+                       else _INTERVAL_MULTIPLES)} - {h0})
+        if offsets is None:  # the intervals at the best width
+            best = min(first, key=scores.__getitem__)
             for h in intervals:
-                for w in (widths if offsets is not None else [best[1]]):
-                    best = min(best, candidate(h, w), key=scores.__getitem__)
-        table = [[h, w, sc] for (h, w), sc in scores.items() if math.isfinite(sc)]
+                best = min(best, candidate(h, best[1]), key=scores.__getitem__)
+            fit = fits[best]
+        else:  # every pair of interval and width
+
+            def corrected(key: tuple[int, float]) -> tuple[ConnectionFit, float]:
+                view = views[key[0]]
+                fit, added = bin_bias_correction(
+                    fits[key], traj, view, self._bins(view, key[1]), gamma_m, gamma_dot_m,
+                    pool=True, offsets=offsets, **opts)
+                bias = float((fit.A - fits[key].A).square().nansum())
+                return fit, variances[key] + float(added) + _RESIDUAL_BIAS_FRACTION * bias
+
+            order = list(dict.fromkeys(first + [candidate(h, w) for h in intervals
+                                                for w in widths]))
+            best, done = _least_score([k for k in order if k in fits], variances, corrected,
+                                      bound=bound, prune=not self.full_search)
+            scores.update({k: score for k, (_, score) in done.items()})
+            fit = None if best is None else done[best][0]
+        # a candidate not corrected (branch and bound) enters the table with its V
+        table = [[h, w, scores.get((h, w), v)] for (h, w), v in variances.items()
+                 if math.isfinite(scores.get((h, w), v))]
+        skipped = [[h, w] for (h, w) in fits if (h, w) not in scores]
+        if best is None:  # no candidate beats the bound
+            return _Search(None, views[h0], h0, least, math.inf, table, skipped)
         # against another filter's search (another reference) the estimate is taken at least
         # at the candidate's own variance: a squared bias below 0 is the reference's noise
         mse = max(scores[best], variances[best])
-        return fits[best], (views[best[0]], best[0], best[1]), mse, table
+        return _Search(fit, views[best[0]], best[0], best[1], mse, table, skipped)
+
+    def _bins(self, view: IntervalSamples, window: float) -> BinIndex:
+        """The bins of pooled interval samples ``view`` at half-width ``window``."""
+        return assign_bins(view.phase, self.n_bins, window=window, kernel=self.kernel)
 
     def _connection_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """The corrected fit, shrunk towards the smoothed one (:func:`blend_fits`)."""
@@ -1313,6 +1412,13 @@ def _usable_rows(traj: Trajectory, h: int, kernel: str) -> int:
     iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt, h, kernel)
     ok = iv.xi.isfinite().all(-1) & iv.r_dot.isfinite().all(-1) & iv.r.isfinite().all(-1)
     return int((ok & iv.phase.isfinite()).sum())
+
+
+def _has_missing(traj: Trajectory) -> bool:
+    """Whether ``traj``'s poses, shapes or phase miss a sample (NaN). Without, every interval
+    of every filter has a finite target and regressors (:func:`_usable_rows` is the same for
+    all)."""
+    return not all(bool(x.isfinite().all()) for x in (traj.pose, traj.r, traj.phase))
 
 
 def _shorter_interval(h: int) -> int:
