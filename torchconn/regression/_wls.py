@@ -247,7 +247,8 @@ def ridge_cholesky(gram: Tensor, lam: Tensor | float
 
 
 def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
-               tolerate_dead: bool, correction: Correction | None = None, sel=None):
+               tolerate_dead: bool, correction: Correction | None = None, sel=None,
+               standard_errors: bool = True):
     """Solve one chunk of bins from ``xy = √w [X | y]`` ``(b, n, P + K)``; ``lam (b,)`` ridge.
 
     ``correction``, when given, maps this chunk's ``XᵀWX (b, P, P)`` (the bins ``sel``) to its
@@ -260,6 +261,10 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     ridge ``λ`` on the unit diagonal of every column but the intercept, condition number -- are
     expressed through the column scales ``dⱼ = √(XᵀWX)ⱼⱼ`` (each column's weighted RMS ·
     √Σw), so the condition number measures collinearity, not units.
+
+    ``standard_errors=False`` stops after the coefficients and the condition number (the
+    standard errors and residual RMS come back NaN): the residuals and the sandwich's
+    ``n·P²`` product are skipped, and the coefficients are the same bit for bit.
     """
     p = xy.shape[-1] - n_out
     xw, yw = xy[..., :p], xy[..., p:]
@@ -294,6 +299,10 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     bound = a_norm * l_norm1 * l_norm_inf
     rank_deficient = failed | (dead.any(-1) & (not tolerate_dead))
     condition = torch.where(rank_deficient, torch.inf, bound)
+    if not standard_errors:
+        beta = beta.masked_fill(dead.unsqueeze(-1), torch.nan)
+        nan = torch.full_like(beta, torch.nan)
+        return beta, nan, nan[:, 0], condition, (w > 0).sum(-1), kappa
 
     rss = _row_sum((yw - xw @ beta).square(), -2)  # (b, K)
     sum_w = _row_sum(w, -1)
@@ -369,12 +378,13 @@ def _triangular_inverse(chol: Tensor) -> Tensor:
 
 
 def _solve_bins(s: BinnedSamples, sel_list, design: Design, lam: Tensor, delta_max, binary,
-                tolerate_dead: bool, correction: Correction | None = None):
+                tolerate_dead: bool, correction: Correction | None = None,
+                standard_errors: bool = True):
     outs = []
     for sel in sel_list:
         xy, w = _chunk_design(s, sel, design, delta_max)
         outs.append(_fit_chunk(xy, w, lam[sel], binary, s.y.shape[-1], tolerate_dead,
-                               correction, sel))
+                               correction, sel, standard_errors))
     return [torch.cat(parts) for parts in zip(*outs, strict=True)]
 
 
@@ -405,7 +415,8 @@ def unfittable(count: Tensor, condition: Tensor, p: int, dtype: torch.dtype,
 
 def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, ridge: float,
           min_samples: int | None, max_condition: float | None,
-          on_ill_conditioned: str, correction: Correction | None = None) -> Solution:
+          on_ill_conditioned: str, correction: Correction | None = None,
+          standard_errors: bool = True) -> Solution:
     """Fit every bin of ``s`` with ``design`` (``n_coef`` columns, column 0 the intercept).
 
     Returns a flat :class:`Solution` over ``B·M`` bins. Standard errors are
@@ -414,6 +425,8 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
     calibrated for homoscedastic noise whatever the weights. Ill-conditioned bins are handled per
     ``on_ill_conditioned``. ``correction`` (errors in variables) subtracts the regressors' expected
     noise part from every bin's ``XᵀWX`` (see :func:`_guarded_correction`).
+    ``standard_errors=False``: the coefficients alone (bit for bit the same; ``se`` and
+    ``residual_rms`` NaN), for callers that use nothing else (:func:`_fit_chunk`).
     """
     if on_ill_conditioned not in _MODES:
         raise ValueError(f"{fn}: on_ill_conditioned must be one of {_MODES}, "
@@ -438,7 +451,7 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
                nan.clone().fill_(1.0)]
     else:
         sol = _solve_bins(s, chunks, design, lam, delta_max, binary, tolerate_dead=ridge > 0,
-                          correction=correction)
+                          correction=correction, standard_errors=standard_errors)
     beta, se, rms, cond, count, kappa = sol
     few = count < min_samples
     ill = unfittable(count, cond, p, dtype, min_samples, max_condition)
@@ -453,7 +466,7 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
             if fix.numel():
                 lam, beta, se, rms, cond = _add_ridge(s, design, fix, lam, beta, se, rms, cond,
                                                       delta_max, binary, max_condition,
-                                                      correction)
+                                                      correction, standard_errors)
             ill = unfittable(count, cond, p, dtype, min_samples, max_condition)
             report += (f"Added a ridge to {fix.numel()} ill-conditioned bin(s) (largest "
                        f"{float(lam.max()):.3g}, relative to the unit diagonal of the "
@@ -473,7 +486,7 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
 
 
 def _add_ridge(s, design, fix, lam, beta, se, rms, cond, delta_max, binary, max_condition,
-               correction=None):
+               correction=None, standard_errors=True):
     """Smallest ridge bringing each bin in ``fix`` to the target condition (a few tries)."""
     target = min(_RIDGE_TARGET_CONDITION, max_condition)
     xy, _ = _chunk_design(s, fix, design, delta_max)
@@ -491,7 +504,7 @@ def _add_ridge(s, design, fix, lam, beta, se, rms, cond, delta_max, binary, max_
     for _ in range(6):  # the intercept is unpenalised, so the prediction can fall short
         chunks = [fix[i:i + 256] for i in range(0, fix.numel(), 256)]
         b, e, r, c, _, _ = _solve_bins(s, chunks, design, lam, delta_max, binary, True,
-                                       correction)
+                                       correction, standard_errors)
         beta, se, rms, cond = beta.clone(), se.clone(), rms.clone(), cond.clone()
         beta[fix], se[fix], rms[fix], cond[fix] = b, e, r, c
         still = ~(cond[fix] <= max_condition)

@@ -90,6 +90,7 @@ def connection_regression(
     min_samples: int | None = None,
     max_condition: float | None = None,
     on_ill_conditioned: str = "raise",
+    standard_errors: bool = True,
 ) -> ConnectionFit:
     """Estimate ``A(γ_m)`` and ``∂A/∂r(γ_m)`` in every phase bin, all batches at once.
 
@@ -113,6 +114,10 @@ def connection_regression(
             a numerically rank-deficient design: ``"raise"`` a ValueError naming the bins,
             ``"warn"`` and return NaN for them, or ``"ridge"``: add the smallest ridge bringing
             the condition number to ``1e8`` and warn (bins with too few samples stay NaN).
+        standard_errors: False: the coefficients alone (the same bit for bit; the standard
+            errors and ``residual_rms`` are NaN), about half the work (the bias correction
+            of :func:`~torchconn.regression.noise_aware.bin_bias_correction` uses ``A``
+            alone).
 
     Returns:
         :class:`ConnectionFit`; ``...`` = the batch dims of ``r``. All 3 body-velocity
@@ -124,7 +129,7 @@ def connection_regression(
     p = 1 + 2 * d + d * d
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge,
                      min_samples=min_samples, max_condition=max_condition,
-                     on_ill_conditioned=on_ill_conditioned)
+                     on_ill_conditioned=on_ill_conditioned, standard_errors=standard_errors)
     return _connection_fit(sol.unflatten(s.batch_shape, s.n_bins), d)
 
 

@@ -845,7 +845,7 @@ def bin_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: IntervalS
         if pool:
             y = pool_batch(y, 1)
         model = connection_regression(samples.r, samples.r_dot, y, bins, gamma_m,
-                                      gamma_dot_m, **opts)
+                                      gamma_dot_m, standard_errors=False, **opts)
         estimate = observed - (model.A - a_series(centres))
     # the correction's own noise: harmonic k of Â enters it with the gain r_k ≈ |B_k| / |Â_k|
     # (the bias map's damping of that harmonic), so its noise grows by (1 + r_k)² − 1
