@@ -248,14 +248,15 @@ class ConnectionEstimator:
                     (held.worse_than_phase_average | held.unscored[..., None] | ~full).any()))):
                 # the given complexity overfits this recording: choose it by held-out error
                 try:
-                    regression, choice = skill.select_complexity(
+                    chosen, choice = skill.select_complexity(
                         traj, cycle, regression, pool=self.pool, n_folds=self._folds())
                 except ValueError:
                     if model is None:
                         raise
                     # no candidate fits 2 of 3 blocks: keep the given one (the check warns)
                 else:
-                    model = regression.fit(traj, cycle, pool=self.pool)
+                    model = _refit(chosen, regression, model, traj, cycle, self.pool)
+                    regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
         view = skill.regression_view(traj, regression, model, pool=self.pool)
         self.phase_average_ = skill.phase_average(view, regression.fourier_order)
@@ -393,6 +394,20 @@ class ConnectionEstimator:
         changed = [f"{k}={v!r}" for k, v in self.get_params(deep=False).items()
                    if v != getattr(default, k)]
         return "ConnectionEstimator(" + ", ".join(changed) + ")"
+
+
+def _refit(chosen: Regression, given: Regression, model: LocalConnectionModel | None,
+           traj: Trajectory, cycle: LimitCycle, pool: bool) -> LocalConnectionModel:
+    """The fit of the regression ``chosen`` by held-out error, after ``given`` fitted
+    ``model`` (None where it could not) to the same data: ``model`` itself where the choice is
+    the given complexity, else a new fit that takes the metric from ``model`` where its
+    settings are unchanged (:meth:`TubeRegression.fit`'s ``metric_from``): the same results
+    as fitting ``chosen`` afresh, without fitting anything twice."""
+    if model is not None and chosen == given:
+        return model
+    if isinstance(chosen, TubeRegression) and type(chosen) is type(given):
+        return chosen.fit(traj, cycle, pool=pool, metric_from=model)
+    return chosen.fit(traj, cycle, pool=pool)
 
 
 def _masks(choice: "skill.ComplexityChoice | None", device) -> tuple[Tensor | None,

@@ -42,6 +42,14 @@ __all__ = ["Regression", "TubeRegression"]
 
 #: fewest usable power samples per coefficient of the tied metric model
 _MIN_SAMPLES_PER_COEF = 3.0
+#: the fields of :class:`TubeRegression` that its tied metric's fit depends on (besides the
+#: data, the cycle and the pooling): the bins' centres and the metric's own settings
+METRIC_SETTINGS = ("n_bins", "metric", "metric_method", "metric_order",
+                   "metric_derivative_order", "metric_held_out_order", "metric_noise_correction",
+                   "metric_noise_level")
+#: the metric's per-bin fields of :class:`~torchconn.regression.model.BinEstimates`
+_METRIC_BIN_FIELDS = ("M", "M_se", "M_gamma_dot", "M_gamma_dot_se", "power_on_cycle",
+                      "power_on_cycle_se")
 
 
 class Regression(Options, abc.ABC):
@@ -148,14 +156,19 @@ class TubeRegression(Regression):
                 f"{self.n_bins}, got {self.intercept_order!r}"
             )
 
-    def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False
-            ) -> LocalConnectionModel:
+    def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False,
+            metric_from: LocalConnectionModel | None = None) -> LocalConnectionModel:
         """Regressions in every phase bin and their Fourier series in phase.
 
         Args:
             traj: a prepared trajectory (``smoothed`` and ``phase`` set), batch dims ``...``.
             cycle: its limit cycle (batch dims ``...``, or none when ``pool``).
             pool: fit one model to all trials together.
+            metric_from: a model that a regression of this class fitted to the same ``traj``,
+                ``cycle`` and ``pool`` (the estimator's fit before it chose the complexity):
+                where its tied metric was fitted with this regression's metric settings and
+                bins (:data:`METRIC_SETTINGS`), its per-bin metric is taken instead of fitted
+                again (the same numbers: nothing else enters the metric's fit).
 
         Returns:
             a :class:`LocalConnectionModel` with batch dims ``...`` (none when pooled).
@@ -186,26 +199,34 @@ class TubeRegression(Regression):
 
         fit, window, connection_meta = self._connection_fit(
             traj, pool, (phase, r, r_dot, xi), gamma_m, gamma_dot_m, opts, bins_for)
-        metric_fit, metric_window, noise = None, None, None
+        # the metric's per-bin estimates (BinEstimates' fields), window, noise and order
+        metric, metric_window, noise, metric_order = {}, None, None, None
         if self.metric is not False and power is not None:
-            if self.metric_method == "tied":
-                metric_fit, noise = self._tied_metric(traj, cycle, centres, gamma_dot_m, pool)
+            if self._same_metric(metric_from, pool):
+                metric = {k: getattr(metric_from.bins, k) for k in _METRIC_BIN_FIELDS}
+                noise = metric_from.meta["metric_noise_std"]
+                metric_order = metric_from.meta["metric_order"]
             else:
-                mbins, metric_window = bins_for(metric_n_coef(d, False))
-                metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
-                                               with_metric_derivative=False, **opts)
+                if self.metric_method == "tied":
+                    metric_fit, noise = self._tied_metric(traj, cycle, centres, gamma_dot_m,
+                                                          pool)
+                else:
+                    mbins, metric_window = bins_for(metric_n_coef(d, False))
+                    metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m,
+                                                   gamma_dot_m, with_metric_derivative=False,
+                                                   **opts)
+                metric = dict(zip(_METRIC_BIN_FIELDS, (
+                    metric_fit.M, metric_fit.se_M, metric_fit.M_gamma_dot,
+                    metric_fit.se_M_gamma_dot, metric_fit.power_on_cycle,
+                    metric_fit.se_power_on_cycle), strict=True))
+                metric_order = (None if metric_fit.order is None
+                                else metric_fit.order.tolist())
 
         estimates = BinEstimates(
             phase=centres, gamma=gamma_m, gamma_dot=gamma_dot_m,
             c=fit.c, b=fit.b, A=fit.A, dA=fit.dA,
             c_se=fit.se_c, b_se=fit.se_b, A_se=fit.se_A, dA_se=fit.se_dA,
-            n_samples=fit.n_samples,
-            M=None if metric_fit is None else metric_fit.M,
-            M_se=None if metric_fit is None else metric_fit.se_M,
-            M_gamma_dot=None if metric_fit is None else metric_fit.M_gamma_dot,
-            M_gamma_dot_se=None if metric_fit is None else metric_fit.se_M_gamma_dot,
-            power_on_cycle=None if metric_fit is None else metric_fit.power_on_cycle,
-            power_on_cycle_se=None if metric_fit is None else metric_fit.se_power_on_cycle,
+            n_samples=fit.n_samples, **metric,
         )
 
         def series(values: Tensor, ndim: int):
@@ -218,15 +239,25 @@ class TubeRegression(Regression):
             gamma=cycle.gamma, phase_rate=cycle.phase_rate,
             c=intercept_series(centres, fit.c, self.fourier_order, c_order), b=series(fit.b, 2),
             A=series(fit.A, 2), dA=series(fit.dA, 3),
-            M=None if metric_fit is None else series(metric_fit.M, 2),
+            M=series(metric["M"], 2) if metric else None,
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
                   "batch_shape": list(batch), "window": window, "metric_window": metric_window,
-                  "metric_noise_std": noise,
-                  "metric_order": (None if metric_fit is None or metric_fit.order is None
-                                   else metric_fit.order.tolist()), **connection_meta,
+                  "metric_noise_std": noise, "metric_order": metric_order,
+                  **connection_meta,
                   "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
+
+    def _same_metric(self, model: LocalConnectionModel | None, pool: bool) -> bool:
+        """Whether ``model`` (fitted to the same data and cycle, see :meth:`fit`) holds the
+        tied metric this regression would fit: the same bins and metric settings
+        (:data:`METRIC_SETTINGS`) and pooling."""
+        if model is None or model.bins.M is None or self.metric_method != "tied":
+            return False
+        settings = (model.meta or {}).get("settings", {})
+        given = settings.get("regression", {})
+        return settings.get("pool") == pool and all(
+            k in given and given[k] == getattr(self, k) for k in METRIC_SETTINGS)
 
     def intercept_orders(self, traj: Trajectory, pool: bool) -> Tensor | None:
         """The intercept's Fourier order ``(...)`` per batch element (``()`` when ``pool``) of a
