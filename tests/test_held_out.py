@@ -322,3 +322,41 @@ def test_no_component_falls_back_on_a_long_recording():
         for name in ("c", "A", "b", "dA"):
             assert torch.equal(getattr(est.model_, name).coeffs, getattr(plain, name).coeffs)
         assert bool((est.held_out_skill_.r2 > est.held_out_skill_.r2_phase_average).all())
+
+
+def _same_model(a, b):
+    """Every tensor of two models' bins and series equal bit for bit, and their meta."""
+    for name in ("c", "b", "A", "dA", "c_se", "b_se", "A_se", "dA_se", "M", "M_se",
+                 "M_gamma_dot", "M_gamma_dot_se", "power_on_cycle", "power_on_cycle_se"):
+        x, y = getattr(a.bins, name), getattr(b.bins, name)
+        assert x is not None and torch.equal(x, y), name
+    for name in ("c", "b", "A", "dA", "M"):
+        assert torch.equal(getattr(a, name).coeffs, getattr(b, name).coeffs), name
+    assert a.meta == b.meta
+
+
+def test_the_refit_after_the_complexity_choice_fits_nothing_twice(eight, monkeypatch):
+    """``ConnectionEstimator``'s refit with the chosen complexity equals a fresh fit of the
+    chosen regression bit for bit, but keeps the first fit when the choice is the given
+    complexity and takes its metric when the bins and metric settings are unchanged."""
+    from torchconn.regression import estimator as estimator_module
+
+    traj, cycle, _ = eight
+    given = NoiseAwareRegression()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        first = given.fit(traj, cycle)
+        calls = []
+        original = TubeRegression._tied_metric
+        monkeypatch.setattr(TubeRegression, "_tied_metric",
+                            lambda self, *a, **k: calls.append(1) or original(self, *a, **k))
+        assert estimator_module._refit(given, given, first, traj, cycle, False) is first
+        for chosen, metric_fits in ((given.replace(ridge=0.1, fourier_order=6), 0),
+                                    (given.replace(n_bins=24, fourier_order=6), 1),
+                                    (given.replace(metric_order=4), 1)):
+            calls.clear()
+            refit = estimator_module._refit(chosen, given, first, traj, cycle, False)
+            assert len(calls) == metric_fits, chosen
+            calls.clear()
+            _same_model(refit, chosen.fit(traj, cycle))
+            assert len(calls) == 1  # the fresh fit fits its metric

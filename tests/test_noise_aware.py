@@ -751,3 +751,94 @@ def test_harmonic_noise_of_overlapping_bins_matches_monte_carlo(window):
                                    se.expand(est.shape), bins)
     ratio = power.mean(0) / noise.mean(0)
     assert ((ratio > 0.85) & (ratio < 1.15)).all(), ratio
+
+
+def test_branch_and_bound_finds_the_first_candidate_of_least_score():
+    """``_least_score`` against scoring everything: the first key in the order with the least
+    score (ties included: bounds and scores on a coarse grid), below a given bound or not at
+    all, while scoring no candidate whose lower bound already loses."""
+    from torchconn.regression.noise_aware import _least_score
+
+    gen = torch.Generator().manual_seed(0)
+    pruned = 0
+    for trial in range(300):
+        n = int(torch.randint(1, 12, (), generator=gen))
+        lower = torch.randint(0, 6, (n,), generator=gen).tolist()
+        extra = torch.randint(0, 4, (n,), generator=gen).tolist()
+        order = [f"c{i}" for i in range(n)]
+        score = {k: float(lower[i] + extra[i]) for i, k in enumerate(order)}
+        bound = math.inf if trial % 3 else float(torch.randint(2, 8, (), generator=gen))
+        least = min(score.values())
+        expect = (next(k for k in order if score[k] == least) if least < bound else None)
+        scored = []
+
+        def score_of(key, scored=scored, score=score):
+            scored.append(key)
+            return key.upper(), score[key]
+
+        lower_of = {k: float(v) for k, v in zip(order, lower, strict=True)}
+        best, done = _least_score(order, lower_of, score_of, bound=bound)
+        assert best == expect, (trial, best, expect)
+        assert list(done) == scored and all(done[k] == (k.upper(), score[k]) for k in done)
+        full, _ = _least_score(order, lower_of, score_of, bound=bound, prune=False)
+        assert full == expect
+        # a candidate left unscored could not have been chosen
+        cut = min(least, bound)
+        for i, k in enumerate(order):
+            if k not in done:
+                pruned += 1
+                assert lower[i] > cut or (lower[i] == cut and (
+                    expect is None or i > order.index(expect)))
+    assert pruned > 100  # the test exercised the pruning
+
+
+@pytest.mark.parametrize("case", ["complete", "gappy"])
+def test_pruned_search_gives_the_full_searchs_choice_and_fit(case):
+    """The pooled choice corrects only the candidates whose variance could still beat the best
+    score (branch and bound): the model, its choice and meta are those of correcting every
+    candidate, bit for bit; the table's other entries are their variances, lower bounds of
+    their full scores and at least the chosen score. On gappy data the box filter's search
+    stops at the triangle's score."""
+    seeds = np.array([61, 62])
+    if case == "complete":
+        traj = _recording(0.005, n_cycles=10, n_trials=2, seed=3)
+    else:
+        traj = observe(simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12,
+                                samples_per_cycle=64, seeds=seeds), 0.01, seeds=seeds)
+        lost = torch.rand(traj.r.shape[:-1], generator=torch.Generator().manual_seed(0)) < 0.25
+        traj = traj.with_fields(pose=traj.pose.masked_fill(lost[..., None], float("nan")),
+                                r=traj.r.masked_fill(lost[..., None], float("nan")))
+    est = ConnectionEstimator(pool=True)
+    prep = est.prepare(traj)
+    cycle = est.cycle.fit(prep, pool=True)
+    pruned = NoiseAwareRegression(metric=False).fit(prep, cycle, pool=True)
+    full = NoiseAwareRegression(metric=False, full_search=True).fit(prep, cycle, pool=True)
+    for name in ("c", "b", "A", "dA", "c_se", "b_se", "A_se", "dA_se", "n_samples"):
+        assert torch.equal(getattr(pruned.bins, name), getattr(full.bins, name)), name
+    for name in ("c", "b", "A", "dA"):
+        assert torch.equal(getattr(pruned, name).coeffs, getattr(full, name).coeffs), name
+    meta_p, meta_f = dict(pruned.meta), dict(full.meta)
+    table_p, table_f = meta_p.pop("interval_window_scores"), meta_f.pop("interval_window_scores")
+    skipped = {tuple(row) for row in meta_p.pop("interval_window_bounds")}
+    assert meta_f.pop("interval_window_bounds") == []
+    for meta in (meta_p, meta_f):
+        meta["settings"]["regression"].pop("full_search")
+    assert meta_p == meta_f  # the interval, window, filter, noise, blend weights
+    assert 0 < len(skipped) < len(table_f)
+
+    def key(row):
+        return (row[0], row[1], *row[3:])
+
+    full_score = {key(row): row[2] for row in table_f}
+    assert [key(row) for row in table_p] == list(full_score)
+    kernel = meta_p["velocity_kernel"]
+    chosen = full_score[(meta_p["velocity_interval"], meta_p["window"],
+                         *([] if kernel == "triangle" else [kernel]))]
+    assert chosen == min(full_score.values())
+    for row in table_p:
+        if key(row) in skipped:
+            assert chosen <= row[2] <= full_score[key(row)], row
+        else:
+            assert row[2] == full_score[key(row)], row
+    if case == "gappy":
+        assert any(row[-1] == "box" for row in skipped)

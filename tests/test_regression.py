@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -446,3 +447,54 @@ def test_metric_matches_per_bin_lstsq():
             beta, se = _reference_fit(x, y, w)
             assert np.abs(fit.coef[b, m].numpy() - beta[:, 0]).max() <= 1e-10 * np.abs(beta).max()
             np.testing.assert_allclose(fit.se_coef[b, m].numpy(), se[:, 0], rtol=1e-8)
+
+
+def _collinear_data(d=2, n=3000, seed=6):
+    """Bins whose ``δ₂`` is ``0.5 δ₁`` up to 1e-8 (ill-conditioned; the ridge policy fixes
+    them) and 1e-3 noise on the body velocity, kernel weights."""
+    phi, r, r_dot, gen = tube_samples((), n, d, seed=seed)
+    system = AffineConnectionSystem.random(d, seed=seed)
+    r = r.clone()
+    r[..., 1] = 0.5 * r[..., 0] + 1e-8 * torch.randn(n, generator=gen, dtype=F64)
+    xi = system.body_velocity(r, r_dot) + 1e-3 * torch.randn(n, 3, generator=gen, dtype=F64)
+    return phi, r, r_dot, xi
+
+
+@pytest.mark.parametrize("case", ["plain", "ridge", "sparse_warn", "collinear_ridge"])
+def test_coefficients_alone_are_the_full_solvers_bit_for_bit(case):
+    """``standard_errors=False`` (the bias correction's regressions) skips the residuals and
+    the sandwich, and changes no coefficient, condition number, count or ridge by a bit,
+    also where the solver warns (NaN bins) or adds a ridge to ill-conditioned bins."""
+    d = 2
+    g_m, gd_m = cycle_at_centres(8, d)
+    opts = {}
+    if case in ("plain", "ridge"):
+        phi, r, r_dot, gen = tube_samples((3,), 1500, d, seed=1)
+        system = AffineConnectionSystem.random(d, seed=1)
+        xi = system.body_velocity(r, r_dot) + 0.01 * torch.randn(r.shape[:-1] + (3,),
+                                                                 generator=gen, dtype=F64)
+        opts = {"ridge": 0.5} if case == "ridge" else {}
+    elif case == "sparse_warn":
+        phi, r, r_dot, xi = _sparse_bin_data(d)
+        opts = {"on_ill_conditioned": "warn"}
+    else:
+        phi, r, r_dot, xi = _collinear_data(d)
+        opts = {"on_ill_conditioned": "ridge"}
+    # kernel weights (the sandwich), except where a bin must stay sparse
+    bins = (assign_bins(phi, 8) if case == "sparse_warn"
+            else assign_bins(phi, 8, window=1.5, kernel="tricube"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        full = connection_regression(r, r_dot, xi, bins, g_m, gd_m, **opts)
+        alone = connection_regression(r, r_dot, xi, bins, g_m, gd_m, standard_errors=False,
+                                      **opts)
+    for name in ("coef", "c", "b", "A", "dA", "condition", "n_samples", "ridge", "eiv_scale"):
+        a, b = getattr(full, name), getattr(alone, name)
+        assert torch.equal(a.nan_to_num(), b.nan_to_num()), name
+        assert torch.equal(a.isnan(), b.isnan()), name
+    assert bool(alone.se_A.isnan().all()) and bool(alone.residual_rms.isnan().all())
+    assert bool(full.se_A[full.A.isfinite()].isfinite().all())
+    if case == "collinear_ridge":
+        assert bool((alone.ridge > 0).any())  # the ridge path ran
+    if case == "sparse_warn":
+        assert bool(alone.A.isnan().any()) and bool(alone.A.isfinite().any())
