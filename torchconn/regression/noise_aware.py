@@ -754,7 +754,9 @@ def _harmonic_noise(series, se: Tensor, bins: BinIndex) -> tuple[Tensor, Tensor]
     kern = kernel_weight(x, bins.kernel)
     step = float(grid[1] - grid[0])
     lags = torch.arange(-math.ceil(2 * w), math.ceil(2 * w) + 1, **opts)
-    shift = torch.round(lags / step).long()
+    # a shift beyond the grid (the last lag, ⌈2w⌉ > 2w for a width that is not a whole or
+    # half spacing) has no overlap; clamped, its slices are empty
+    shift = torch.round(lags / step).long().clamp(-len(kern), len(kern))
     norm = float(kern.square().sum())
     rho = torch.stack([(kern[max(0, int(j)):len(kern) + min(0, int(j))]
                         * kern[max(0, -int(j)):len(kern) - max(0, int(j))]).sum()
