@@ -338,25 +338,29 @@ def _same_model(a, b):
 def test_the_refit_after_the_complexity_choice_fits_nothing_twice(eight, monkeypatch):
     """``ConnectionEstimator``'s refit with the chosen complexity equals a fresh fit of the
     chosen regression bit for bit, but keeps the first fit when the choice is the given
-    complexity and takes its metric when the bins and metric settings are unchanged."""
+    complexity, and takes the tied metric's coefficients from the first fit whenever the
+    metric's settings are unchanged (other bins only evaluate them elsewhere)."""
     from torchconn.regression import estimator as estimator_module
+    from torchconn.regression import tube as tube_module
 
     traj, cycle, _ = eight
     given = NoiseAwareRegression()
+    calls = []
+    original = tube_module.tied_metric_coefficients
+    monkeypatch.setattr(tube_module, "tied_metric_coefficients",
+                        lambda *a, **k: calls.append(1) or original(*a, **k))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        first = given.fit(traj, cycle)
-        calls = []
-        original = TubeRegression._tied_metric
-        monkeypatch.setattr(TubeRegression, "_tied_metric",
-                            lambda self, *a, **k: calls.append(1) or original(self, *a, **k))
-        assert estimator_module._refit(given, given, first, traj, cycle, False) is first
-        for chosen, metric_fits in ((given.replace(ridge=0.1, fourier_order=6), 0),
-                                    (given.replace(n_bins=24, fourier_order=6), 1),
-                                    (given.replace(metric_order=4), 1)):
+        cache = {}
+        first = estimator_module._fit(given, traj, cycle, False, cache)
+        assert calls and len(cache) == 1
+        assert estimator_module._refit(given, given, first, traj, cycle, False, cache) is first
+        for chosen, reused in ((given.replace(ridge=0.1, fourier_order=6), True),
+                               (given.replace(n_bins=24, fourier_order=6), True),
+                               (given.replace(metric_order=4), False)):
             calls.clear()
-            refit = estimator_module._refit(chosen, given, first, traj, cycle, False)
-            assert len(calls) == metric_fits, chosen
+            refit = estimator_module._refit(chosen, given, first, traj, cycle, False, cache)
+            assert (not calls) == reused, chosen
             calls.clear()
             _same_model(refit, chosen.fit(traj, cycle))
-            assert len(calls) == 1  # the fresh fit fits its metric
+            assert calls  # the fresh fit (no cache) fits its metric

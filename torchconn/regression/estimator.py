@@ -231,8 +231,9 @@ class ConnectionEstimator:
             if self.complexity == "cv":
                 regression, choice = skill.select_complexity(traj, cycle, regression,
                                                              pool=self.pool, n_folds=self._folds())
+            cache = {}  # the tied metric's coefficients, shared with a refit
             try:
-                model = regression.fit(traj, cycle, pool=self.pool)
+                model = _fit(regression, traj, cycle, self.pool, cache)
             except ValueError:
                 if self.complexity != "auto" or not skill.downdates(regression):
                     raise
@@ -255,7 +256,7 @@ class ConnectionEstimator:
                         raise
                     # no candidate fits 2 of 3 blocks: keep the given one (the check warns)
                 else:
-                    model = _refit(chosen, regression, model, traj, cycle, self.pool)
+                    model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
                     regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
         view = skill.regression_view(traj, regression, model, pool=self.pool)
@@ -396,18 +397,26 @@ class ConnectionEstimator:
         return "ConnectionEstimator(" + ", ".join(changed) + ")"
 
 
+def _fit(regression: Regression, traj: Trajectory, cycle: LimitCycle, pool: bool,
+         cache: dict) -> LocalConnectionModel:
+    """``regression.fit``, sharing ``cache`` (the tied metric's coefficients) between the fits
+    of one recording (:meth:`TubeRegression.fit`'s ``metric_cache``)."""
+    if isinstance(regression, TubeRegression):
+        return regression.fit(traj, cycle, pool=pool, metric_cache=cache)
+    return regression.fit(traj, cycle, pool=pool)
+
+
 def _refit(chosen: Regression, given: Regression, model: LocalConnectionModel | None,
-           traj: Trajectory, cycle: LimitCycle, pool: bool) -> LocalConnectionModel:
+           traj: Trajectory, cycle: LimitCycle, pool: bool, cache: dict
+           ) -> LocalConnectionModel:
     """The fit of the regression ``chosen`` by held-out error, after ``given`` fitted
-    ``model`` (None where it could not) to the same data: ``model`` itself where the choice is
-    the given complexity, else a new fit that takes the metric from ``model`` where its
-    settings are unchanged (:meth:`TubeRegression.fit`'s ``metric_from``): the same results
-    as fitting ``chosen`` afresh, without fitting anything twice."""
+    ``model`` (None where it could not) to the same data with ``cache``: ``model`` itself
+    where the choice is the given complexity, else a new fit that takes the metric's
+    coefficients from the cache where its settings are unchanged: the same results as fitting
+    ``chosen`` afresh, without fitting anything twice."""
     if model is not None and chosen == given:
         return model
-    if isinstance(chosen, TubeRegression) and type(chosen) is type(given):
-        return chosen.fit(traj, cycle, pool=pool, metric_from=model)
-    return chosen.fit(traj, cycle, pool=pool)
+    return _fit(chosen, traj, cycle, pool, cache)
 
 
 def _masks(choice: "skill.ComplexityChoice | None", device) -> tuple[Tensor | None,

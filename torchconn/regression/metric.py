@@ -37,7 +37,8 @@ from . import _wls
 from .binning import BinIndex
 
 __all__ = ["MetricFit", "metric_regression", "metric_design", "metric_n_coef",
-           "tied_metric_regression", "tied_metric_n_coef", "tied_metric_predict",
+           "tied_metric_regression", "tied_metric_coefficients", "TiedMetricCoefficients",
+           "tied_metric_n_coef", "tied_metric_predict",
            "power_noise_variance"]
 
 
@@ -319,15 +320,47 @@ def tied_metric_regression(
     """
     fn = "tied_metric_regression"
     delta = _wls._check_samples(offset, "offset", None, None, fn)
+    _check_phases(fn, phase_m, gamma_dot_m, tuple(delta.shape[:-2]), delta)
+    return tied_metric_coefficients(
+        offset, velocity, power, phase, order=order, derivative_order=derivative_order,
+        noise_variance=noise_variance, held_out_order=held_out_order,
+        min_samples_per_coef=min_samples_per_coef, max_condition=max_condition,
+    ).at(phase_m, gamma_dot_m)
+
+
+def _check_phases(fn: str, phase_m, gamma_dot_m, batch: tuple, like: Tensor) -> Tensor:
+    """``gamma_dot_m (..., M, d)`` checked against ``phase_m (M,)``, the batch and ``like``'s
+    ``d``, broadcast to the batch."""
+    if not isinstance(phase_m, Tensor) or phase_m.ndim != 1:
+        raise ValueError(f"{fn}: phase_m must be a 1-D tensor of phases (M,)")
+    return _wls._check_cycle(gamma_dot_m, "gamma_dot_m", batch, phase_m.shape[0],
+                             like.shape[-1], fn, like)
+
+
+def tied_metric_coefficients(
+    offset: Tensor,
+    velocity: Tensor,
+    power: Tensor,
+    phase: Tensor,
+    *,
+    order: int = 6,
+    derivative_order: int | None = 2,
+    noise_variance: Tensor | None = None,
+    held_out_order: bool = False,
+    min_samples_per_coef: float = 3.0,
+    max_condition: float | None = None,
+) -> TiedMetricCoefficients:
+    """:func:`tied_metric_regression`'s fit without the phases to report at: its coefficients,
+    their covariance and residuals (:class:`TiedMetricCoefficients`), which do not depend on
+    those phases; ``.at(phase_m, gamma_dot_m)`` gives the :class:`MetricFit` (the same bit for
+    bit). Arguments and errors as :func:`tied_metric_regression`'s."""
+    fn = "tied_metric_regression"
+    delta = _wls._check_samples(offset, "offset", None, None, fn)
     batch_n, d = tuple(delta.shape[:-1]), delta.shape[-1]
     v = _wls._check_samples(velocity, "velocity", batch_n, d, fn).to(delta)
     y = _wls._check_samples(power, "power", batch_n, 0, fn).to(delta)
     ph = _wls._check_samples(phase, "phase", batch_n, 0, fn).to(delta)
     batch = batch_n[:-1]
-    if not isinstance(phase_m, Tensor) or phase_m.ndim != 1:
-        raise ValueError(f"{fn}: phase_m must be a 1-D tensor of phases (M,)")
-    m = phase_m.shape[0]
-    gd = _wls._check_cycle(gamma_dot_m, "gamma_dot_m", batch, m, d, fn, delta)
     for name, k in (("order", order), ("derivative_order", derivative_order)):
         if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 0):
             raise ValueError(f"{fn}: {name} must be a non-negative int, got {k!r}")
@@ -474,9 +507,7 @@ def tied_metric_regression(
     # cluster-robust sandwich over whole cycles, on the corrected regressors
     sums = delta.new_zeros(batch + (n_c, p_r))
     kept_features = cols[::q] // q  # the features of the columns solved for
-    sse = delta.new_zeros(batch + (m,))
-    cnt = delta.new_zeros(batch + (m,))
-    near = torch.remainder(torch.round(ph * (m / (2 * math.pi))), m).to(torch.int64)
+    resids = []
     for start in range(0, n, _ROW_CHUNK):
         rows = slice(start, min(start + _ROW_CHUNK, n))
         f = features(rows)[..., kept_features] * w[..., rows, None]
@@ -485,8 +516,7 @@ def tied_metric_regression(
         x = (f.unsqueeze(-1) * quad.unsqueeze(-2)).flatten(-2)  # (..., n, P')
         resid = (y[..., rows] - (x @ beta_r.unsqueeze(-1))[..., 0]) * w[..., rows]
         sums.scatter_add_(-2, cyc[..., rows, None].expand(x.shape), x * resid.unsqueeze(-1))
-        sse.scatter_add_(-1, near[..., rows], resid.square())
-        cnt.scatter_add_(-1, near[..., rows], w[..., rows])
+        resids.append(resid)
     sums = sums * keep.unsqueeze(-2)
     n_clusters = (sums.abs().sum(-1) > 0).sum(-1).to(dtype)
     meat = (sums.mT @ sums) * (n_clusters / (n_clusters - 1).clamp(min=1))[..., None, None]
@@ -495,10 +525,72 @@ def tied_metric_regression(
     cov_r = g_inv @ meat @ g_inv
     cov = cov_r.new_zeros(batch + (p, p))
     cov[..., cols[:, None], cols] = cov_r
+    return TiedMetricCoefficients(
+        coef=beta, cov=cov, order=chosen, condition=condition, noise_correction=applied,
+        max_order=order, derivative_order=derivative_order, n_joints=d, phase=ph, weight=w,
+        residual=torch.cat(resids, -1) if resids else ph.new_zeros(ph.shape))
+
+
+@dataclass(frozen=True)
+class TiedMetricCoefficients:
+    """The fit of :func:`tied_metric_coefficients` (``...`` batch dims, ``P`` coefficients,
+    ``N`` samples): everything of :func:`tied_metric_regression` that does not depend on the
+    phases it reports at, so that one fit serves any bins (:meth:`at`).
+
+    Attributes:
+        coef: ``(..., P)`` coefficients (the layout of ``max_order``); cov: ``(..., P, P)``
+            their cluster-robust covariance.
+        order: ``(...)`` the order of ``M(φ)`` used; max_order, derivative_order: the orders
+            of the layout; n_joints: ``d``.
+        condition, noise_correction: ``(...)`` the fit's condition number and least share
+            of the noise correction applied.
+        phase, weight, residual: ``(..., N)`` the samples' phase (0 where excluded), weight
+            (0/1) and weighted power residual.
+    """
+
+    coef: Tensor
+    cov: Tensor
+    order: Tensor
+    condition: Tensor
+    noise_correction: Tensor
+    max_order: int
+    derivative_order: int | None
+    n_joints: int
+    phase: Tensor
+    weight: Tensor
+    residual: Tensor
+
+    def at(self, phase_m: Tensor, gamma_dot_m: Tensor) -> MetricFit:
+        """The :class:`MetricFit` at phases ``phase_m (M,)`` with ``γ̇`` there
+        ``gamma_dot_m (..., M, d)`` (see :func:`tied_metric_regression`)."""
+        batch, d = tuple(self.phase.shape[:-1]), self.n_joints
+        gd = _check_phases("tied_metric_regression", phase_m, gamma_dot_m, batch,
+                           self.phase.new_zeros(batch + (1, d)))
+        return _tied_at(self, phase_m, gd)
+
+
+def _tied_at(fit: TiedMetricCoefficients, phase_m: Tensor, gd: Tensor) -> MetricFit:
+    """:meth:`TiedMetricCoefficients.at` on checked inputs (``gd (..., M, d)`` broadcast)."""
+    ph, w, residual, beta, cov = fit.phase, fit.weight, fit.residual, fit.coef, fit.cov
+    order, derivative_order, d = fit.max_order, fit.derivative_order, fit.n_joints
+    chosen, condition, applied = fit.order, fit.condition, fit.noise_correction
+    batch = tuple(ph.shape[:-1])
+    n, m = ph.shape[-1], phase_m.shape[0]
+    dtype, dev = ph.dtype, ph.device
+    q = d * (d + 1) // 2
+    iu, ju = torch.triu_indices(d, d, device=dev)
     se = cov.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
+    # the residuals of the samples nearest each phase, summed in the fit's row chunks
+    sse = ph.new_zeros(batch + (m,))
+    cnt = ph.new_zeros(batch + (m,))
+    near = torch.remainder(torch.round(ph * (m / (2 * math.pi))), m).to(torch.int64)
+    for start in range(0, n, _ROW_CHUNK):
+        rows = slice(start, min(start + _ROW_CHUNK, n))
+        sse.scatter_add_(-1, near[..., rows], residual[..., rows].square())
+        cnt.scatter_add_(-1, near[..., rows], w[..., rows])
 
     # evaluate at phase_m
-    basis = fourier_design(phase_m.to(delta), order)  # (M, 2K+1)
+    basis = fourier_design(phase_m.to(ph), order)  # (M, 2K+1)
     n_m = (2 * order + 1) * q
     coef_m = basis @ beta[..., :n_m].unflatten(-1, (2 * order + 1, q))  # (..., M, q)
     cov_blk = cov[..., :n_m, :n_m].unflatten(-1, (2 * order + 1, q)).unflatten(-3, (
@@ -507,7 +599,7 @@ def tied_metric_regression(
     se_m = cov_m.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
     d_m = se_d = None
     if derivative_order is not None:
-        bd = fourier_design(phase_m.to(delta), derivative_order)
+        bd = fourier_design(phase_m.to(ph), derivative_order)
         blk = beta[..., n_m:].unflatten(-1, (2 * derivative_order + 1, d, q))
         d_m = _symmetric(torch.einsum("mh,...hkq->...mkq", bd, blk), d).movedim(-3, -1)
         var = cov[..., n_m:, n_m:].diagonal(dim1=-2, dim2=-1).unflatten(

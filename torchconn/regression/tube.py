@@ -32,9 +32,9 @@ from .metric import (
     metric_n_coef,
     metric_regression,
     power_noise_variance,
+    tied_metric_coefficients,
     tied_metric_n_coef,
     tied_metric_predict,
-    tied_metric_regression,
 )
 from .model import BinEstimates, LocalConnectionModel
 
@@ -42,11 +42,10 @@ __all__ = ["Regression", "TubeRegression"]
 
 #: fewest usable power samples per coefficient of the tied metric model
 _MIN_SAMPLES_PER_COEF = 3.0
-#: the fields of :class:`TubeRegression` that its tied metric's fit depends on (besides the
-#: data, the cycle and the pooling): the bins' centres and the metric's own settings
-METRIC_SETTINGS = ("n_bins", "metric", "metric_method", "metric_order",
-                   "metric_derivative_order", "metric_held_out_order", "metric_noise_correction",
-                   "metric_noise_level")
+#: the fields of :class:`TubeRegression` that its tied metric's coefficients depend on
+#: (besides the data, the cycle and the pooling; not the bins, where they are only evaluated)
+METRIC_SETTINGS = ("metric_order", "metric_derivative_order", "metric_held_out_order",
+                   "metric_noise_correction", "metric_noise_level")
 #: the metric's per-bin fields of :class:`~torchconn.regression.model.BinEstimates`
 _METRIC_BIN_FIELDS = ("M", "M_se", "M_gamma_dot", "M_gamma_dot_se", "power_on_cycle",
                       "power_on_cycle_se")
@@ -157,18 +156,19 @@ class TubeRegression(Regression):
             )
 
     def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False,
-            metric_from: LocalConnectionModel | None = None) -> LocalConnectionModel:
+            metric_cache: dict | None = None) -> LocalConnectionModel:
         """Regressions in every phase bin and their Fourier series in phase.
 
         Args:
             traj: a prepared trajectory (``smoothed`` and ``phase`` set), batch dims ``...``.
             cycle: its limit cycle (batch dims ``...``, or none when ``pool``).
             pool: fit one model to all trials together.
-            metric_from: a model that a regression of this class fitted to the same ``traj``,
-                ``cycle`` and ``pool`` (the estimator's fit before it chose the complexity):
-                where its tied metric was fitted with this regression's metric settings and
-                bins (:data:`METRIC_SETTINGS`), its per-bin metric is taken instead of fitted
-                again (the same numbers: nothing else enters the metric's fit).
+            metric_cache: a dict shared by fits of the same ``traj`` and ``cycle`` (the
+                estimator's fit and its refit after choosing the complexity): the tied
+                metric's coefficients are kept there under the pooling and the metric's
+                settings (:data:`METRIC_SETTINGS`; they do not depend on the bins, where they
+                are only evaluated) and taken from it by a fit with the same ones, instead of
+                fitted again (the same numbers bit for bit).
 
         Returns:
             a :class:`LocalConnectionModel` with batch dims ``...`` (none when pooled).
@@ -202,25 +202,18 @@ class TubeRegression(Regression):
         # the metric's per-bin estimates (BinEstimates' fields), window, noise and order
         metric, metric_window, noise, metric_order = {}, None, None, None
         if self.metric is not False and power is not None:
-            if self._same_metric(metric_from, pool):
-                metric = {k: getattr(metric_from.bins, k) for k in _METRIC_BIN_FIELDS}
-                noise = metric_from.meta["metric_noise_std"]
-                metric_order = metric_from.meta["metric_order"]
+            if self.metric_method == "tied":
+                coefficients, noise = self._tied_metric(traj, cycle, pool, metric_cache)
+                metric_fit = coefficients.at(centres, gamma_dot_m)
             else:
-                if self.metric_method == "tied":
-                    metric_fit, noise = self._tied_metric(traj, cycle, centres, gamma_dot_m,
-                                                          pool)
-                else:
-                    mbins, metric_window = bins_for(metric_n_coef(d, False))
-                    metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m,
-                                                   gamma_dot_m, with_metric_derivative=False,
-                                                   **opts)
-                metric = dict(zip(_METRIC_BIN_FIELDS, (
-                    metric_fit.M, metric_fit.se_M, metric_fit.M_gamma_dot,
-                    metric_fit.se_M_gamma_dot, metric_fit.power_on_cycle,
-                    metric_fit.se_power_on_cycle), strict=True))
-                metric_order = (None if metric_fit.order is None
-                                else metric_fit.order.tolist())
+                mbins, metric_window = bins_for(metric_n_coef(d, False))
+                metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
+                                               with_metric_derivative=False, **opts)
+            metric = dict(zip(_METRIC_BIN_FIELDS, (
+                metric_fit.M, metric_fit.se_M, metric_fit.M_gamma_dot,
+                metric_fit.se_M_gamma_dot, metric_fit.power_on_cycle,
+                metric_fit.se_power_on_cycle), strict=True))
+            metric_order = None if metric_fit.order is None else metric_fit.order.tolist()
 
         estimates = BinEstimates(
             phase=centres, gamma=gamma_m, gamma_dot=gamma_dot_m,
@@ -248,17 +241,6 @@ class TubeRegression(Regression):
                   "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
 
-    def _same_metric(self, model: LocalConnectionModel | None, pool: bool) -> bool:
-        """Whether ``model`` (fitted to the same data and cycle, see :meth:`fit`) holds the
-        tied metric this regression would fit: the same bins and metric settings
-        (:data:`METRIC_SETTINGS`) and pooling."""
-        if model is None or model.bins.M is None or self.metric_method != "tied":
-            return False
-        settings = (model.meta or {}).get("settings", {})
-        given = settings.get("regression", {})
-        return settings.get("pool") == pool and all(
-            k in given and given[k] == getattr(self, k) for k in METRIC_SETTINGS)
-
     def intercept_orders(self, traj: Trajectory, pool: bool) -> Tensor | None:
         """The intercept's Fourier order ``(...)`` per batch element (``()`` when ``pool``) of a
         prepared trajectory, or None where it is ``fourier_order`` by setting."""
@@ -284,13 +266,17 @@ class TubeRegression(Regression):
         fit = connection_regression(r, r_dot, xi, bins, gamma_m, gamma_dot_m, **opts)
         return fit, window, {}
 
-    def _tied_metric(self, traj: Trajectory, cycle: LimitCycle, centres: Tensor,
-                     gamma_dot_m: Tensor, pool: bool):
+    def _tied_metric(self, traj: Trajectory, cycle: LimitCycle, pool: bool,
+                     cache: dict | None = None):
         """The tied metric regression on the sample intervals of the raw recorded shapes.
 
-        Returns the :class:`~torchconn.regression.metric.MetricFit` at the bin centres and the
-        estimated shape-noise standard deviations (a list, JSON-ready; None without correction).
+        Returns its :class:`~torchconn.regression.metric.TiedMetricCoefficients` (to evaluate
+        at the bin centres) and the estimated shape-noise standard deviations (a list,
+        JSON-ready; None without correction); ``cache``: see :meth:`fit`'s ``metric_cache``.
         """
+        key = ("tied", pool, *(getattr(self, k) for k in METRIC_SETTINGS))
+        if cache is not None and key in cache:
+            return cache[key]
         if not bool(torch.isfinite(traj.power).any()):
             raise ValueError("the power column has no values (all empty or NaN): the metric "
                              "cannot be estimated; fit the connection alone with "
@@ -332,19 +318,20 @@ class TubeRegression(Regression):
         orders = dict(order=self.metric_order, derivative_order=derivative)
         noise, noise_variance = None, None
         if self.metric_noise_correction:
-            omega2 = self._metric_noise(traj, offset, v, power, phase, centres, gamma_dot_m,
-                                        orders, pool)  # (..., d)
+            omega2 = self._metric_noise(traj, offset, v, power, phase, orders,
+                                        pool)  # (..., d)
             noise = omega2.sqrt().tolist()
             noise_variance = 2 * omega2 / traj.dt**2
-        fit = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders,
-                                     noise_variance=noise_variance,
-                                     held_out_order=self.metric_held_out_order,
-                                     min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
+        fit = tied_metric_coefficients(offset, v, power, phase, **orders,
+                                       noise_variance=noise_variance,
+                                       held_out_order=self.metric_held_out_order,
+                                       min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
+        if cache is not None:
+            cache[key] = fit, noise
         return fit, noise
 
     def _metric_noise(self, traj: Trajectory, offset: Tensor, v: Tensor, power: Tensor,
-                      phase: Tensor, centres: Tensor, gamma_dot_m: Tensor, orders: dict,
-                      pool: bool) -> Tensor:
+                      phase: Tensor, orders: dict, pool: bool) -> Tensor:
         """The shapes' observation-noise variance ``(..., d)`` (one level for all joints, and
         for the pooled trials: they share the rig) by ``metric_noise_level``."""
         estimates = []
@@ -357,8 +344,8 @@ class TubeRegression(Regression):
                 return spectrum.pooled_variance(n_pool, channels=True).to(v)
             estimates.append(tuple(x.to(v) for x in spectrum.pooled_mean(n_pool, channels=True)))
         # from the uncorrected fit's power residuals (the power channel is noise-free)
-        first = tied_metric_regression(offset, v, power, phase, centres, gamma_dot_m, **orders,
-                                       min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
+        first = tied_metric_coefficients(offset, v, power, phase, **orders,
+                                         min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         predicted, m_v = tied_metric_predict(first.coef, offset, v, phase, **orders)
         residual = power_noise_variance(power - predicted, m_v, traj.dt, with_se=True)
         if self.metric_noise_level == "residuals":
