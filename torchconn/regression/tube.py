@@ -274,7 +274,7 @@ class TubeRegression(Regression):
         at the bin centres) and the estimated shape-noise standard deviations (a list,
         JSON-ready; None without correction); ``cache``: see :meth:`fit`'s ``metric_cache``.
         """
-        key = ("tied", pool, *(getattr(self, k) for k in METRIC_SETTINGS))
+        key = (type(self), pool, *(getattr(self, k) for k in METRIC_SETTINGS))
         if cache is not None and key in cache:
             return cache[key]
         if not bool(torch.isfinite(traj.power).any()):
