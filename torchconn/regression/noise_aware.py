@@ -55,7 +55,7 @@ __all__ = ["NoiseEstimate", "estimate_noise", "interval_samples", "IntervalSampl
            "eiv_correction", "noise_aware_regression", "blend_fits", "NoiseAwareRegression", "interval_view",
            "noise_ratio", "velocity_interval_for", "bin_bias_correction",
            "tie_connection_derivative", "derivative_bias_correction",
-           "phase_derivative_operator", "bin_correlation", "cycle_tangent"]
+           "phase_derivative_operator", "cycle_tangent"]
 
 #: the noise fit's spectrum: the mean of this many sine tapers' periodograms (Riedel and
 #: Sidorenko's multitaper). A gait's strong low harmonics leak into the band through a plain
@@ -879,27 +879,44 @@ def phase_derivative_operator(n_bins: int, order: int, *, dtype=torch.float64,
     return fit_fourier(centres, eye, order, value_ndim=1).derivative()(centres)
 
 
-def bin_correlation(n_bins: int, window: float, kernel: str, *, dtype=torch.float64,
-                    device=None) -> Tensor:
-    """``R (M, M)``: the correlation of the estimation errors of ``n_bins`` bins of half-width
-    ``window`` (bin spacings) and weights ``kernel``, from the overlap of their phase windows
-    (circulant in the bins' distance, :func:`_window_correlation`)."""
-    m = n_bins
-    lags, rho = _window_correlation(window, kernel, device)
-    eye = torch.eye(m, dtype=dtype, device=device)
-    out = torch.zeros_like(eye)
-    for lag, r in zip(lags.tolist(), rho.tolist(), strict=True):
-        out = out + r * torch.roll(eye, int(lag), 0)
-    return out
+def _lag_correlations(window: Tensor, kernel: str, *, dtype=torch.float64, device=None
+                      ) -> tuple[list[int], Tensor]:
+    """Integer lags ``(L,)`` (bin spacings, symmetric about 0) and the correlation ``ρ (..., L)``
+    of two bins' estimation errors at each lag (:func:`_window_correlation`) for bins of
+    half-width ``window (...)`` (0 beyond a window's own reach)."""
+    widths = window.to(torch.float64)
+    reach = math.ceil(2 * float(widths.max()))
+    lags = list(range(-reach, reach + 1))
+    rho = torch.zeros(widths.shape + (len(lags),), dtype=dtype, device=device)
+    for w in torch.unique(widths).tolist():  # few distinct windows
+        own, values = _window_correlation(w, kernel, device)
+        row = torch.zeros(len(lags), dtype=dtype, device=device)
+        row[[lag + reach for lag in own.long().tolist()]] = values.to(dtype)
+        rho[widths.to(rho.device) == w] = row
+    return lags, rho
 
 
 def cycle_tangent(gamma_m: Tensor) -> Tensor:
     """``γ'(φ_m) (..., M, d)``: the phase derivative at the bin centres of the cycle through
     ``gamma_m (..., M, d)`` (its Fourier series of the highest order the centres carry, as
-    :func:`_one_sample_offsets` interpolates it)."""
+    :func:`_one_sample_offsets` interpolates it; each batch element's own, bit for bit)."""
     m = gamma_m.shape[-2]
-    centres = torch.arange(m, dtype=gamma_m.dtype, device=gamma_m.device) * (2 * math.pi / m)
-    return fit_fourier(centres, gamma_m, (m - 1) // 2, value_ndim=1).derivative()(centres)
+    op = phase_derivative_operator(m, (m - 1) // 2, dtype=gamma_m.dtype, device=gamma_m.device)
+    return (op.unsqueeze(-1) * gamma_m.unsqueeze(-3)).sum(-2)
+
+
+#: significant bits kept of the tie's weights (:func:`_coarse`)
+_WEIGHT_BITS = 20
+
+
+def _coarse(x: Tensor) -> Tensor:
+    """``x`` rounded to :data:`_WEIGHT_BITS` significant bits (exactly: frexp, round, ldexp).
+    The standard errors round in their last bits with an unpooled batch's padded bin length
+    (the solver's row sums); weights built on them, so rounded, give each element the same
+    tie alone as beside other trials, bit for bit."""
+    mantissa, exponent = torch.frexp(x)
+    return torch.ldexp(torch.round(mantissa * 2.0**_WEIGHT_BITS) / 2.0**_WEIGHT_BITS,
+                       exponent.to(x.dtype))
 
 
 def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: Tensor,
@@ -919,7 +936,7 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
 
     ``dÂ/dφ`` is the derivative of the order-``order`` Fourier series of ``Â`` (the model's
     own, :func:`phase_derivative_operator`), and its variance is propagated through that
-    series from the bins' standard errors and their correlation (:func:`bin_correlation`):
+    series from the bins' standard errors and their correlation (:func:`_window_correlation`):
     the derivative amplifies harmonic ``k`` by ``k``, and under noise the weights follow.
 
     Args:
@@ -942,40 +959,43 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     d, m = a.shape[-1], a.shape[-3]
     opts = dict(dtype=a.dtype, device=a.device)
     op = phase_derivative_operator(m, order, **opts)
-    batch = a.shape[:-3]
-    widths = torch.as_tensor(window, dtype=torch.float64).expand(batch)
-    corr = a.new_zeros(batch + (m, m))
-    for w in torch.unique(widths).tolist():  # few distinct windows
-        corr[widths == w] = bin_correlation(m, w, kernel, **opts)
     usable = (torch.isfinite(a) & torch.isfinite(se_a)).flatten(-3).all(-1)  # (...)
     a0 = torch.where(usable[..., None, None, None], a, 0.0)
     s0 = torch.where(usable[..., None, None, None], se_a, 0.0)
-    slope = torch.einsum("mn,...nki->...mki", op, a0)
-    # var(Σ_n op[m, n] Â_n) = Σ_np op[m, n] op[m, p] ρ(n − p) se_n se_p, per entry
-    weighted = op.unsqueeze(-1).unsqueeze(-1) * s0.unsqueeze(-4)  # (..., M, M, 3, d)
-    var_slope = torch.einsum("...mnki,...np,...mpki->...mki", weighted, corr, weighted)
+    # products and sums along fixed dims only (no matrix products, whose rounding follows
+    # the batch's size): an unpooled element's tie is its own, bit for bit
+    slope = (op[:, :, None, None] * a0.unsqueeze(-4)).sum(-3)  # (..., M, 3, d)
+    # var(Σ_n op[m, n] Â_n) = Σ_n Σ_s op[m, n] op[m, n + s] ρ(s) se_n se_{n+s}, per entry
+    weighted = op[:, :, None, None] * s0.unsqueeze(-4)  # (..., M, M, 3, d)
+    lags, rho = _lag_correlations(torch.as_tensor(window).expand(a.shape[:-3]), kernel,
+                                  **opts)
+    var_slope = torch.zeros_like(slope)
+    for i, lag in enumerate(lags):
+        var_slope = var_slope + rho[..., i, None, None, None] * (
+            weighted * weighted.roll(-lag, -3)).sum(-3)
     tangent = cycle_tangent(gamma_m).expand(gamma_dot_m.shape)
     eye = torch.eye(d, **opts)
 
-    def inverse_variance(se: Tensor, value: Tensor) -> tuple[Tensor, Tensor]:
-        ok = torch.isfinite(se) & torch.isfinite(value) & (se > 0)
-        return (torch.where(ok, 1 / se.clamp_min(1e-300).square(), 0.0),
+    def inverse_variance(var: Tensor, value: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
+        ok = ok & torch.isfinite(var) & torch.isfinite(value) & (var > 0)
+        return (_coarse(torch.where(ok, 1 / var.clamp_min(1e-300), 0.0)),
                 torch.where(ok, value, 0.0))
 
-    w_d, direct = inverse_variance(fit.se_dA, fit.dA)  # (..., M, 3, d, d)
-    w_b, b = inverse_variance(fit.se_b, fit.b)  # (..., M, 3, d)
-    ok_slope = usable[..., None, None, None] & (var_slope > 0)
-    w_s = torch.where(ok_slope, 1 / var_slope.clamp_min(1e-300), 0.0)
-    # normal matrix over vec(D) (i, j): direct, + w_b[j] γ̇_i γ̇_i' [j = j'],
-    # + w_s[i] γ'_j γ'_j' [i = i']
-    normal = (torch.diag_embed(w_d.flatten(-2))
-              + torch.einsum("...mkj,...mi,...ml,jq->...mkijlq", w_b, gamma_dot_m,
-                             gamma_dot_m, eye).flatten(-4, -3).flatten(-2)
-              + torch.einsum("...mki,...mj,...mq,il->...mkijlq", w_s, tangent, tangent,
-                             eye).flatten(-4, -3).flatten(-2))
-    rhs = ((w_d * direct).flatten(-2)
-           + torch.einsum("...mkj,...mi->...mkij", w_b * b, gamma_dot_m).flatten(-2)
-           + torch.einsum("...mki,...mj->...mkij", w_s * slope, tangent).flatten(-2))
+    w_d, direct = inverse_variance(fit.se_dA.square(), fit.dA, True)  # (..., M, 3, d, d)
+    w_b, b = inverse_variance(fit.se_b.square(), fit.b, True)  # (..., M, 3, d)
+    w_s, slope = inverse_variance(var_slope, slope, usable[..., None, None, None])
+    # the normal matrix over vec(D), dims (i, j, i', j'): direct (diagonal), + w_b[j] γ̇_i γ̇_i'
+    # [j = j'], + w_s[i] γ'_j γ'_j' [i = i']
+    velocity = gamma_dot_m.unsqueeze(-2)  # (..., M, 1, d) against the rows k
+    along = tangent.unsqueeze(-2)
+    v_i, v_l = gamma_dot_m[..., None, :, None, None, None], gamma_dot_m[..., None, None, None, :, None]
+    t_j, t_q = tangent[..., None, None, :, None, None], tangent[..., None, None, None, None, :]
+    normal = (torch.diag_embed(w_d.flatten(-2)).unflatten(-1, (d, d)).unflatten(-3, (d, d))
+              + w_b[..., None, :, None, None] * (v_i * v_l) * eye[:, None, :]
+              + w_s[..., None, None, None] * (t_j * t_q) * eye[:, None, :, None]
+              ).flatten(-4, -3).flatten(-2)  # (..., M, 3, d², d²)
+    rhs = ((w_d * direct) + (w_b * b).unsqueeze(-2) * velocity.unsqueeze(-1)
+           + (w_s * slope).unsqueeze(-1) * along.unsqueeze(-2)).flatten(-2)
     chol, info = torch.linalg.cholesky_ex(normal)
     good = (info == 0).unsqueeze(-1)
     safe = torch.where(good.unsqueeze(-1), chol, torch.eye(d * d, **opts))
@@ -985,10 +1005,8 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
         # χ² of the three sources about the tied solution, against its degrees of freedom
         fitted = torch.where(good, solution, 0.0).unflatten(-1, (d, d))
         chi2 = ((w_d * (direct - fitted).square()).flatten(-2).sum(-1)
-                + (w_b * (b - torch.einsum("...mkij,...mi->...mkj", fitted, gamma_dot_m)
-                          ).square()).sum(-1)
-                + (w_s * (slope - torch.einsum("...mkij,...mj->...mki", fitted, tangent)
-                          ).square()).sum(-1))  # (..., M, 3)
+                + (w_b * (b - (fitted * velocity.unsqueeze(-1)).sum(-2)).square()).sum(-1)
+                + (w_s * (slope - (fitted * along.unsqueeze(-2)).sum(-1)).square()).sum(-1))
         n_obs = (w_d > 0).flatten(-2).sum(-1) + (w_b > 0).sum(-1) + (w_s > 0).sum(-1)
         dof = (n_obs - d * d).clamp_min(0).sum((-2, -1))
         ratio = torch.where(dof > 0, chi2.sum((-2, -1)) / dof.clamp_min(1), 1.0)
