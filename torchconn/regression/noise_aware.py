@@ -953,7 +953,8 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
 
     Returns:
         the fit with ``dA`` and ``se_dA`` tied (other fields unchanged). Non-finite estimates
-        enter with no weight (an element with a NaN bin of ``Â`` is tied to ``b̂`` alone).
+        enter with no weight (an element with a NaN bin of ``Â`` is tied to ``b̂`` alone); a
+        bin and row whose normal matrix cannot be factorised keeps the direct estimate.
     """
     a, se_a = fit.A, fit.se_A
     d, m = a.shape[-1], a.shape[-3]
@@ -1011,9 +1012,11 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
         dof = (n_obs - d * d).clamp_min(0).sum((-2, -1))
         ratio = torch.where(dof > 0, chi2.sum((-2, -1)) / dof.clamp_min(1), 1.0)
         var = var * ratio.clamp_min(1).reshape(ratio.shape + (1, 1, 1))
+    # a normal matrix that cannot be factorised (weights spanning ~1e16) keeps the direct
+    # estimate
     shape = fit.dA.shape
-    tied = torch.where(good, solution, math.nan).reshape(shape)
-    se = torch.where(good, var.clamp_min(0).sqrt(), math.nan).reshape(shape)
+    tied = torch.where(good, solution, fit.dA.flatten(-2)).reshape(shape)
+    se = torch.where(good, var.clamp_min(0).sqrt(), fit.se_dA.flatten(-2)).reshape(shape)
     return dataclasses.replace(fit, dA=tied, se_dA=se)
 
 
