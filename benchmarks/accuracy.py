@@ -7,8 +7,9 @@ one model per trial of 30 cycles at 64 samples per cycle, 3 trials, mean and ran
 Scored against the swimmer's exact connection on the *fitted* cycle, independently of the
 estimator: relative RMS error of ``Â(φ)`` against ``NLinkSwimmer(N).connection(γ̂(φ))`` (and of
 ``∂Â/∂r`` against the exact Jacobian, and its bands: the squared error at the bin centres
-over the squared standard errors, ``dA e²/se²``, 1 for honest bands), plus the scale factor ``s`` of the least-squares fit
-``Â ≈ s A`` (1 = no attenuation bias; below 1: Â shrunk towards 0).
+over the squared standard errors, ``dA e²/se²``, 1 for honest bands), plus the scale factor
+``s`` of the least-squares fit ``Â ≈ s A`` (1 = no attenuation bias; below 1: Â shrunk
+towards 0).
 
 Methods: ``tube`` = ``TubeRegression()`` (the default: Kalman-smoothed velocities);
 ``noise_aware`` = ``NoiseAwareRegression()`` (the noise-corrected estimate shrunk towards the
