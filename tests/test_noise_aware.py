@@ -904,3 +904,21 @@ def test_tie_off_is_the_direct_estimate_and_leaves_the_other_terms(clean30, monk
     for name in ("c", "b", "A", "c_se", "b_se", "A_se"):
         assert torch.equal(getattr(on.bins, name), getattr(off.bins, name)), name
     assert not torch.equal(on.bins.dA, off.bins.dA)
+
+
+def test_tube_keeps_its_direct_estimate_unless_asked_to_tie(clean30):
+    # method = "tube" stays the previous method (tie_derivative off by default there); asked
+    # to, it ties its own ∂Â/∂r to its b̂ and dÂ/dφ, which on the noise-free circle brings it
+    # closer to the exact Jacobian (its Â, b̂, ĉ untouched)
+    traj = _recording(0.0, clean=clean30)
+    plain, tied = (_fit(traj, TubeRegression, tie_derivative=t).model_ for t in (False, True))
+    assert "derivative" not in plain.meta and tied.meta["derivative"] == "tied"
+    for name in ("c", "b", "A", "A_se"):
+        assert torch.equal(getattr(plain.bins, name), getattr(tied.bins, name)), name
+    phi = torch.linspace(0, 2 * math.pi, 201, dtype=F64)[:-1]
+
+    def error(model):
+        true = NLinkSwimmer(3).connection_jacobian(model.gamma_at(phi))
+        return float((model.connection_jacobian(phi) - true).norm() / true.norm())
+
+    assert error(tied) < 0.75 * error(plain), (error(tied), error(plain))
