@@ -143,7 +143,8 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     slope = (op[:, :, None, None] * a0.unsqueeze(-4)).sum(-3)  # (..., M, 3, d)
     # var(Σ_n op[m, n] Â_n) = Σ_n Σ_s op[m, n] op[m, n + s] ρ(s) se_n se_{n+s}, per entry
     weighted = op[:, :, None, None] * s0.unsqueeze(-4)  # (..., M, M, 3, d)
-    lags, rho = _lag_correlations(torch.as_tensor(window).expand(a.shape[:-3]), kernel,
+    widths = torch.as_tensor(window, dtype=torch.float64, device=a.device)
+    lags, rho = _lag_correlations(widths.expand(a.shape[:-3]), kernel,
                                   **opts)
     var_slope = torch.zeros_like(slope)
     for i, lag in enumerate(lags):
