@@ -223,10 +223,12 @@ class TubeRegression(Regression):
         c_order = self.intercept_orders(traj, pool)
         if c_order is not None:
             connection_meta["intercept_order"] = c_order.tolist()
+        a_series, a_meta = self._a_series(centres, fit, window, pool)
+        connection_meta.update(a_meta)
         return LocalConnectionModel(
             gamma=cycle.gamma, phase_rate=cycle.phase_rate,
             c=intercept_series(centres, fit.c, self.fourier_order, c_order), b=series(fit.b, 2),
-            A=series(fit.A, 2), dA=series(fit.dA, 3),
+            A=a_series, dA=series(fit.dA, 3),
             M=None if metric_fit is None else series(metric_fit.M, 2),
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
@@ -236,6 +238,12 @@ class TubeRegression(Regression):
                                    else metric_fit.order.tolist()), **connection_meta,
                   "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
+
+    def _a_series(self, centres: Tensor, fit, window: float, pool: bool
+                  ) -> tuple[FourierSeries, dict]:
+        """The Fourier series of ``Â`` (order ``fourier_order``) and extra meta (none here;
+        :class:`~torchconn.regression.NoiseAwareRegression` may drop unresolved harmonics)."""
+        return fit_fourier(centres, fit.A, self.fourier_order, value_ndim=2), {}
 
     def intercept_orders(self, traj: Trajectory, pool: bool) -> Tensor | None:
         """The intercept's Fourier order ``(...)`` per batch element (``()`` when ``pool``) of a
