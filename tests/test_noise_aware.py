@@ -924,10 +924,10 @@ def test_tube_keeps_its_direct_estimate_unless_asked_to_tie(clean30):
     assert error(tied) < 0.75 * error(plain), (error(tied), error(plain))
 
 
-def test_a_pooled_fits_series_drops_the_harmonics_below_the_bins_noise(clean30):
+def test_a_pooled_fits_series_shrinks_the_harmonics_near_the_bins_noise(clean30):
     # Under noise the bins' errors of Â are mostly variance, and the high harmonics of its
-    # order-12 series carry more of it than of the connection: keeping only the harmonics
-    # whose power exceeds twice their noise expectation must bring Â closer to the exact
+    # order-12 series carry more of it than of the connection: shrinking each harmonic by how
+    # far its power stands out of its noise expectation must bring Â closer to the exact
     # connection. The bins are the same either way; off, the series is the plain order-12
     # least-squares series of the bins (the previous version).
     from torchconn.phase.fourier import fit_fourier
@@ -939,6 +939,6 @@ def test_a_pooled_fits_series_drops_the_harmonics_below_the_bins_noise(clean30):
     torch.testing.assert_close(off.model_.A.coeffs,
                                fit_fourier(centres, off.model_.bins.A, 12, value_ndim=2).coeffs,
                                rtol=0, atol=0)
-    kept = on.model_.meta["A_harmonics"]
-    assert 1 <= kept < 12, kept
+    factors = on.model_.meta["A_harmonic_factors"]
+    assert len(factors) == 13 and factors[0] == 1 and min(factors) < 0.5, factors
     assert _errors(on)[0] < _errors(off)[0], (_errors(on), _errors(off))

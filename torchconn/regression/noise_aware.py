@@ -763,18 +763,13 @@ def _harmonic_noise(series, se: Tensor, bins: BinIndex) -> tuple[Tensor, Tensor]
     return power, level.unsqueeze(-1) * nu.to(power)
 
 
-def _resolved_harmonics(series, se: Tensor, bins: BinIndex, *, z: float | None = None,
-                        scale: float | None = None) -> Tensor:
+def _resolved_harmonics(series, se: Tensor, bins: BinIndex) -> Tensor:
     """Mask ``(..., 2K+1, 1, …)`` of the harmonics of ``series`` (:func:`_harmonic_noise`)
     that stand out of its noise: the mean always, harmonic ``k`` when its power exceeds
-    ``z · max(1, (k / scale)²)`` times its noise (defaults :data:`_BIAS_HARMONIC_Z` and
-    :data:`_BIAS_HARMONIC_SCALE`, the bias correction's; ``scale=math.inf``: ``z`` for
-    every harmonic)."""
-    z = _BIAS_HARMONIC_Z if z is None else z
-    scale = _BIAS_HARMONIC_SCALE if scale is None else scale
+    :data:`_BIAS_HARMONIC_Z` ``· max(1, (k / _BIAS_HARMONIC_SCALE)²)`` times its noise."""
     power, noise = _harmonic_noise(series, se, bins)
     k = torch.arange(power.shape[-1], dtype=power.dtype, device=power.device)
-    bar = z * (k / scale).square().clamp_min(1)
+    bar = _BIAS_HARMONIC_Z * (k / _BIAS_HARMONIC_SCALE).square().clamp_min(1)
     resolved = power > bar * noise
     resolved[..., 0] = True
     keep = torch.cat([resolved[..., :1], resolved[..., 1:].repeat_interleave(2, -1)], -1)
@@ -996,15 +991,18 @@ _BIAS_HARMONIC_Z = 4.0
 #: with this scale 2 it gave 5.37 % at ω = 0.005 and 3.18 % at ω = 0.002 (3: 5.0 % at 0.002);
 #: ω = 0.01 10.1 % either way (none: 11.8 %)
 _BIAS_HARMONIC_SCALE = 2.0
-#: a pooled fit's series of ``Â`` keeps harmonic ``k`` when its power exceeds this many times
-#: its noise expectation (``NoiseAwareRegression.resolved_harmonics``). The bins' errors are
-#: mostly variance at ω > 0 (their squared errors about their squared standard errors), and a
-#: harmonic below its noise adds more of it than of the signal. Set on seeds 5-8 (3-/5-link
-#: circle and 0.7-circle or reference gaits, pooled 4 x 30 cycles, ω = 0-0.01, 64 cells): the
-#: sum of the mean Â errors 72.2 % (all harmonics) -> 67.7 / 60.0 / 59.7 / 62.8 % with 1 / 2 /
-#: 3 / 4; 2 was worse than all harmonics in 0 of the 64 cells, 3 in 3, 4 in 8 (shrinking each
-#: harmonic by 1 − noise/power instead: 59.4 %, worse in 3)
-_SERIES_HARMONIC_Z = 2.0
+#: a pooled fit's series of ``Â`` shrinks harmonic ``k`` by ``max(0, 1 − c · noise_k /
+#: power_k)`` with this ``c`` (``NoiseAwareRegression.resolved_harmonics``; ``noise_k`` the bins'
+#: noise expectation, :func:`_harmonic_noise`). Under noise the bins' errors are mostly
+#: variance, and a harmonic near its noise adds more of it than of the connection; ``c = 1`` is
+#: the estimated Wiener factor. Set on seeds 5-8 (3-/5-link circle and 0.7-circle or reference
+#: gaits, pooled 4 x 30 cycles, ω = 0-0.01, 64 cells; sum of the mean Â errors, all harmonics
+#: 72.2 %): c = 1 59.4 % and c = 0.5 62.3 % (worse than all harmonics in 3 / 2 cells, by at most
+#: 0.006 points), keeping the harmonics above 1 / 1.5 / 2 times their noise 67.7 / 62.9 / 60.0 %.
+#: It gains most on short recordings, and the convergence slope of ``Â``'s error with cycles
+#: (3-link circle, ω = 0.002, seeds 0-1, 10 / 30 / 90 cycles; issue 12 asks ≤ −0.35) was −0.43
+#: with all harmonics, −0.34 with c = 1, −0.32 keeping those above 2, −0.37 with c = 0.5
+_SERIES_SHRINK = 0.5
 
 
 @dataclass(frozen=True)
@@ -1068,11 +1066,11 @@ class NoiseAwareRegression(TubeRegression):
             pooled fit's tied ``∂Â/∂r`` is also corrected for the bins' bias
             (:func:`derivative_bias_correction`). False: the direct estimate (the previous
             version; ``Â``, ``b̂`` and ``ĉ`` are the same either way).
-        resolved_harmonics: a pooled fit's series of ``Â`` keeps only the harmonics (up to
-            ``fourier_order``) whose power stands out of the bins' noise,
-            :data:`_SERIES_HARMONIC_Z` times its expectation (:func:`_harmonic_noise`; the
-            count kept is ``meta["A_harmonics"]``); False: all of them (the previous
-            version). Unpooled fits keep all.
+        resolved_harmonics: a pooled fit's series of ``Â`` shrinks each harmonic (up to
+            ``fourier_order``) by how far its power stands out of the bins' noise
+            (:data:`_SERIES_SHRINK`, :func:`_harmonic_noise`; the factors are
+            ``meta["A_harmonic_factors"]``); False: the plain least-squares series (the previous
+            version). Unpooled fits are not shrunk.
     """
 
     velocity_interval: int | None = option(None, ge=1)
@@ -1316,15 +1314,19 @@ class NoiseAwareRegression(TubeRegression):
         return tied, "tied"
 
     def _a_series(self, centres: Tensor, fit: ConnectionFit, window: float, pool: bool):
-        """``Â``'s series, of the harmonics that stand out of the bins' noise when pooled
-        (``resolved_harmonics``), and the meta entries that record it."""
+        """``Â``'s series, each harmonic shrunk by how far it stands out of the bins' noise
+        when pooled (``resolved_harmonics``), and the meta entries that record it."""
         series, meta = super()._a_series(centres, fit, window, pool)
         if not (pool and self.resolved_harmonics):
             return series, meta
         bins = assign_bins(centres, self.n_bins, window=window, kernel=self.kernel)
-        keep = _resolved_harmonics(series, fit.se_A, bins, z=_SERIES_HARMONIC_Z, scale=math.inf)
-        kept = int(keep.reshape(-1)[1::2].sum())
-        return dataclasses.replace(series, coeffs=series.coeffs * keep), {"A_harmonics": kept}
+        power, noise = _harmonic_noise(series, fit.se_A, bins)  # (K + 1,)
+        factor = (1 - _SERIES_SHRINK * noise / power.clamp_min(1e-300)).clamp(0, 1)
+        factor[..., 0] = 1  # the mean
+        coeff_factor = torch.cat([factor[..., :1], factor[..., 1:].repeat_interleave(2, -1)], -1)
+        shrunk = series.coeffs * coeff_factor.reshape(coeff_factor.shape + (1, 1))
+        return (dataclasses.replace(series, coeffs=shrunk),
+                {"A_harmonic_factors": [round(float(f), 4) for f in factor.reshape(-1)]})
 
     def _window(self, phase: Tensor, d: int, ratio: float) -> float:
         """Bin half-width: the data-size rule, widened with the noise."""
