@@ -6,14 +6,17 @@ noise ω on x, y, θ and every r_i, in two settings: ``pooled`` (4 trials x 30 c
 one model per trial of 30 cycles at 64 samples per cycle, 3 trials, mean and range reported).
 Scored against the swimmer's exact connection on the *fitted* cycle, independently of the
 estimator: relative RMS error of ``Â(φ)`` against ``NLinkSwimmer(N).connection(γ̂(φ))`` (and of
-``∂Â/∂r`` against the exact Jacobian), plus the scale factor ``s`` of the least-squares fit
-``Â ≈ s A`` (1 = no attenuation bias; below 1: Â shrunk towards 0).
+``∂Â/∂r`` against the exact Jacobian, and its bands: the squared error at the bin centres
+over the squared standard errors, ``dA e²/se²``, 1 for honest bands), plus the scale factor
+``s`` of the least-squares fit ``Â ≈ s A`` (1 = no attenuation bias; below 1: Â shrunk
+towards 0).
 
 Methods: ``tube`` = ``TubeRegression()`` (the default: Kalman-smoothed velocities);
 ``noise_aware`` = ``NoiseAwareRegression()`` (the noise-corrected estimate shrunk towards the
 smoothed one where the data cannot support the correction);
 ``corrected`` = ``NoiseAwareRegression(shrink_to_smoothed=False)`` (the correction alone);
 ``uncorrected_bias`` = ``NoiseAwareRegression(bias_correction=False)`` (the bins' bias left in);
+``untied`` = ``NoiseAwareRegression(tie_derivative=False)`` (``∂Â/∂r`` the direct estimate);
 ``noise_aware_cv`` = the default with ``ConnectionEstimator.select_complexity``.
 
 Run by hand (minutes on 2 cores)::
@@ -100,7 +103,14 @@ def connection_errors(model, n_links: int, n_phase: int = 200) -> dict:
 
     dims = (-3, -2, -1)
     scale = (a_hat * a_true).sum(dims) / a_true.square().sum(dims)
-    return {"A": rel(a_hat, a_true), "dA": rel(da_hat, da_true), "scale": scale}
+    # the bands of ∂Â/∂r: squared error over squared standard error at the bin centres
+    bins = model.bins
+    da_bins = system.connection_jacobian(bins.gamma)
+    bin_dims = (-4, -3, -2, -1)
+    coverage = ((bins.dA - da_bins).square().nansum(bin_dims)
+                / bins.dA_se.square().nansum(bin_dims))
+    return {"A": rel(a_hat, a_true), "dA": rel(da_hat, da_true), "scale": scale,
+            "dA_coverage": coverage}
 
 
 def metric_errors(model, n_links: int) -> dict:
@@ -138,6 +148,7 @@ METHODS = {
     "noise_aware": NoiseAwareRegression(),
     "corrected": NoiseAwareRegression(shrink_to_smoothed=False),
     "uncorrected_bias": NoiseAwareRegression(bias_correction=False),
+    "untied": NoiseAwareRegression(tie_derivative=False),
     "noise_aware_cv": NoiseAwareRegression(),  # bins, order, ridge by select_complexity
 }
 
@@ -172,7 +183,7 @@ def main(argv=None) -> int:
     print("targets for Â (pooled, 3-/5-link): "
           + ", ".join(f"ω = {k:g}: ≤ {100 * v:g} %" for k, v in TARGETS.items()))
     print(f"{'links':>5} {'gait':>9} {'setting':>7} {'method':>14} {'omega':>6} "
-          f"{'A err':>16} {'dA err':>16} {'scale':>6} {'s/fit':>6} {'vs tube':>8}")
+          f"{'A err':>16} {'dA err':>16} {'scale':>6} {'s/fit':>6} {'vs tube':>8} {'dA e²/se²':>9}")
     for n in args.links:
         for gait in args.gaits:
             for setting in args.settings:
@@ -189,7 +200,9 @@ def main(argv=None) -> int:
                         print(f"{n:>5} {gait:>9} {setting:>7} {method:>14} {omega:>6.3f} "
                               f"{_pct(r['A']):>16} {_pct(r['dA']):>16} "
                               f"{float(torch.as_tensor(r['scale']).mean()):>6.3f} "
-                              f"{r['seconds']:>6.2f} {ratio}" + extra, flush=True)
+                              f"{r['seconds']:>6.2f} {ratio} "
+                              f"{float(torch.as_tensor(r['dA_coverage']).mean()):>9.2f}" + extra,
+                              flush=True)
     return 0
 
 

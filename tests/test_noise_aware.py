@@ -844,3 +844,194 @@ def test_pruned_search_gives_the_full_searchs_choice_and_fit(case):
             assert row[2] == full_score[key(row)], row
     if case == "gappy":
         assert any(row[-1] == "box" for row in skipped)
+
+
+def _tie_inputs(gen, n_rec, m=48, d=2, window=2.0):
+    """Synthetic per-bin terms around a circle ``γ = (cos φ, sin φ)`` (d = 2): a true
+    ``∂A/∂r`` consistent with ``Â``'s phase derivative (``D γ' = dA/dφ``, ``A`` of order 3),
+    ``b = Dᵀγ̇`` (``φ̇ = 1``), and the bins (tricube windows of ``window`` spacings) of
+    white-noise samples whose weighted means are ``Â``'s errors, so that neighbouring bins'
+    errors are correlated as real bins' are. Returns the truth, the noise-free fit fields
+    and ``Â``'s error with its standard error."""
+    centres = torch.arange(m, dtype=F64) * 2 * math.pi / m
+    gamma = torch.stack([centres.cos(), centres.sin()], -1)
+    tangent = torch.stack([-centres.sin(), centres.cos()], -1)
+    k = torch.arange(1, 4, dtype=F64)
+    amp = torch.randn(2, 3, 3, d, generator=gen, dtype=F64)  # cos / sin, harmonic, (3, d)
+    a = (torch.einsum("hkj,mh->mkj", amp[0], torch.cos(centres[:, None] * k))
+         + torch.einsum("hkj,mh->mkj", amp[1], torch.sin(centres[:, None] * k)))
+    slope = (torch.einsum("hkj,mh->mkj", amp[0], -k * torch.sin(centres[:, None] * k))
+             + torch.einsum("hkj,mh->mkj", amp[1], k * torch.cos(centres[:, None] * k)))
+    across = torch.stack([centres.cos(), centres.sin()], -1)  # the normal of the circle
+    x = torch.randn(3, d, generator=gen, dtype=F64)
+    # D = slope ⊗ γ' (|γ'| = 1) + x ⊗ n: D γ' = slope, and an across part
+    d_true = slope[..., None] * tangent[:, None, None, :] + (
+        x[None, :, :, None] * across[:, None, None, :])
+    b_true = torch.einsum("mkij,mi->mkj", d_true, tangent)
+    phase = torch.rand(n_rec, 4000, generator=gen, dtype=F64) * 2 * math.pi
+    bins = assign_bins(phase, m, window=window, kernel="tricube")
+    noise = torch.randn(n_rec, 4000, 3 * d, generator=gen, dtype=F64)
+    w = bins.weight.unsqueeze(-1)
+    a_err = ((w * bins.gather(noise)).sum(-2) / w.sum(-2)).reshape(n_rec, m, 3, d)
+    a_se = (bins.weight.square().sum(-1).sqrt() / bins.weight.sum(-1))[..., None, None]
+    return gamma, tangent, a, d_true, b_true, a_err, a_se.expand(a_err.shape)
+
+
+def _tie_fit(a, b, da, se_a, se_b, se_da):
+    from torchconn.regression.connection import ConnectionFit
+
+    z = torch.zeros(a.shape[:-2], dtype=F64)
+    return ConnectionFit(c=torch.zeros(a.shape[:-1], dtype=F64), b=b, A=a, dA=da,
+                         se_c=torch.ones(a.shape[:-1], dtype=F64), se_b=se_b, se_A=se_a,
+                         se_dA=se_da, n_samples=z, residual_rms=z, condition=z, ridge=z,
+                         coef=z, se_coef=z)
+
+
+def test_tied_derivative_takes_the_along_cycle_parts_from_b_and_the_phase_derivative():
+    # Exact b̂ and Â (a series the order-12 derivative reproduces at the centres) with
+    # standard errors far below the direct estimate's: the tie must take D γ' and γ̇ᵀD from
+    # them, and only the across-cycle pair nᵀDn from the direct estimate, so its error is the
+    # direct error's across-cycle part, |nᵀ E n|, and nothing of the rest (d = 2: one of
+    # four entries). Its standard errors are never above the direct estimate's (GLS adds
+    # information).
+    from torchconn.regression.noise_aware import tie_connection_derivative
+
+    gen = torch.Generator().manual_seed(11)
+    gamma, tangent, a, d_true, b_true, _, _ = _tie_inputs(gen, 1)
+    err = torch.randn(d_true.shape, generator=gen, dtype=F64) * 0.3
+    se = torch.full(d_true.shape, 0.3, dtype=F64)
+    fit = _tie_fit(a, b_true, d_true + err, torch.full(a.shape, 1e-5, dtype=F64),
+                   torch.full(b_true.shape, 1e-5, dtype=F64), se)
+    tied = tie_connection_derivative(fit, gamma, tangent, 12, window=2.0, kernel="tricube",
+                                     consistency=False)
+    normal = gamma  # the unit circle's normal is γ itself
+    across_err = torch.einsum("mi,mkij,mj->mk", normal, err, normal)
+    expected = across_err[..., None, None] * normal[:, None, :, None] * normal[:, None, None, :]
+    torch.testing.assert_close(tied.dA - d_true, expected, atol=1e-6, rtol=0)
+    assert (tied.se_dA <= se * (1 + 1e-12)).all()
+
+
+@pytest.mark.parametrize("window", [1.0, 3.0])
+def test_tied_derivative_bands_cover_its_errors_under_noise(window):
+    # The tie's standard errors propagate Â's (correlated across overlapping bins) through its
+    # series' phase derivative and combine them with b̂'s and the direct estimate's. With
+    # independent Gaussian errors of known standard errors in the three sources (Â's made by
+    # real bins of white noise), the squared errors of the tied ∂Â/∂r over 200 records are
+    # the squared standard errors: the ratio is 1 within its sampling spread (~3 %), and the
+    # tie is more precise than the direct estimate.
+    from torchconn.regression.noise_aware import tie_connection_derivative
+
+    gen = torch.Generator().manual_seed(5)
+    n_rec = 200
+    gamma, tangent, a, d_true, b_true, a_err, a_se = _tie_inputs(gen, n_rec, window=window)
+    scale = 0.05 / float(a_se.mean())  # Â's noise of 0.05 per bin
+    se_b = torch.full((n_rec,) + b_true.shape, 0.05, dtype=F64)
+    se_d = torch.full((n_rec,) + d_true.shape, 0.5, dtype=F64)
+    fit = _tie_fit(a + scale * a_err, b_true + se_b * torch.randn(se_b.shape, generator=gen,
+                                                                   dtype=F64),
+                   d_true + se_d * torch.randn(se_d.shape, generator=gen, dtype=F64),
+                   scale * a_se, se_b, se_d)
+    tied = tie_connection_derivative(fit, gamma, tangent, 12, window=window,
+                                     kernel="tricube")
+    ratio = float((tied.dA - d_true).square().sum() / tied.se_dA.square().sum())
+    assert 0.85 < ratio < 1.15, ratio
+    assert float((tied.dA - d_true).square().mean()) < 0.5 * float(se_d.square().mean())
+
+
+def test_tied_derivative_on_the_curved_reference_gait_without_noise():
+    # The 3-link reference gait without noise: the direct δ̇⊗δ estimate of ∂Â/∂r is ~20 % off
+    # along the fitted cycle (the bins' phase width on a strongly curved gait), far beyond
+    # its standard errors. Tied to b̂ and dÂ/dφ and bias-corrected from the model, it must
+    # (1) beat the direct estimate by half (the change matters, the test can fail), and
+    # (2) keep within the bound its bands assume: the bias left after the correction at most
+    # √λ times the correction applied to the tie (λ = _RESIDUAL_BIAS_FRACTION, as for Â),
+    # against the exact Jacobian at the bin centres.
+    from torchconn.physics.gaits import reference_gait
+    from torchconn.regression.noise_aware import (
+        _RESIDUAL_BIAS_FRACTION,
+        tie_connection_derivative,
+    )
+
+    seeds = np.arange(4) + 700
+    traj = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=30,
+                    samples_per_cycle=DT_SAMPLES, seeds=seeds)
+    on, off = (_fit(traj, tie_derivative=tie).model_ for tie in (True, False))
+    assert on.meta["derivative"] == "tied, bias-corrected"
+    phi = torch.linspace(0, 2 * math.pi, 201, dtype=F64)[:-1]
+
+    def error(model):
+        true = NLinkSwimmer(3).connection_jacobian(model.gamma_at(phi))
+        return float((model.connection_jacobian(phi) - true).norm() / true.norm())
+
+    assert error(on) < 0.5 * error(off), (error(on), error(off))
+    bins = off.bins
+    tie_only = tie_connection_derivative(
+        _tie_fit(bins.A, bins.b, bins.dA, bins.A_se, bins.b_se, bins.dA_se), bins.gamma,
+        bins.gamma_dot, 12, window=off.meta["window"], kernel="tricube").dA
+    true = NLinkSwimmer(3).connection_jacobian(bins.gamma)
+    residual = float((on.bins.dA - true).norm())
+    applied = float((on.bins.dA - tie_only).norm())
+    assert residual <= math.sqrt(_RESIDUAL_BIAS_FRACTION) * applied, (residual, applied)
+
+
+def test_tie_off_is_the_direct_estimate_and_leaves_the_other_terms(clean30, monkeypatch):
+    # tie_derivative=False is the previous version: its ∂Â/∂r is exactly the estimate the tie
+    # takes as its direct input, and ĉ, b̂, Â (and their standard errors) are the same with
+    # the tie on or off, bit for bit.
+    import torchconn.regression.noise_aware as na
+
+    inputs = []
+    original = na.tie_connection_derivative
+
+    def spy(fit, *args, **kwargs):
+        inputs.append(fit)
+        return original(fit, *args, **kwargs)
+
+    monkeypatch.setattr(na, "tie_connection_derivative", spy)
+    traj = _recording(0.005, clean=clean30)
+    on, off = (_fit(traj, tie_derivative=tie).model_ for tie in (True, False))
+    assert len(inputs) == 1 and on.meta["derivative"] == "tied"
+    assert "derivative" not in off.meta
+    assert torch.equal(off.bins.dA, inputs[0].dA) and torch.equal(off.bins.dA_se,
+                                                                  inputs[0].se_dA)
+    for name in ("c", "b", "A", "c_se", "b_se", "A_se"):
+        assert torch.equal(getattr(on.bins, name), getattr(off.bins, name)), name
+    assert not torch.equal(on.bins.dA, off.bins.dA)
+
+
+def test_tube_keeps_its_direct_estimate_unless_asked_to_tie(clean30):
+    # method = "tube" stays the previous method (tie_derivative off by default there); asked
+    # to, it ties its own ∂Â/∂r to its b̂ and dÂ/dφ, which on the noise-free circle brings it
+    # closer to the exact Jacobian (its Â, b̂, ĉ untouched)
+    traj = _recording(0.0, clean=clean30)
+    plain, tied = (_fit(traj, TubeRegression, tie_derivative=t).model_ for t in (False, True))
+    assert "derivative" not in plain.meta and tied.meta["derivative"] == "tied"
+    for name in ("c", "b", "A", "A_se"):
+        assert torch.equal(getattr(plain.bins, name), getattr(tied.bins, name)), name
+    phi = torch.linspace(0, 2 * math.pi, 201, dtype=F64)[:-1]
+
+    def error(model):
+        true = NLinkSwimmer(3).connection_jacobian(model.gamma_at(phi))
+        return float((model.connection_jacobian(phi) - true).norm() / true.norm())
+
+    assert error(tied) < 0.75 * error(plain), (error(tied), error(plain))
+
+
+def test_a_pooled_fits_series_shrinks_the_harmonics_near_the_bins_noise(clean30):
+    # Under noise the bins' errors of Â are mostly variance, and the high harmonics of its
+    # order-12 series carry more of it than of the connection: shrinking each harmonic by how
+    # far its power stands out of its noise expectation must bring Â closer to the exact
+    # connection. The bins are the same either way; off, the series is the plain order-12
+    # least-squares series of the bins (the previous version).
+    from torchconn.phase.fourier import fit_fourier
+
+    traj = _recording(0.005, clean=clean30)
+    on, off = (_fit(traj, resolved_harmonics=r) for r in (True, False))
+    assert torch.equal(on.model_.bins.A, off.model_.bins.A)
+    centres = off.model_.bins.phase
+    torch.testing.assert_close(off.model_.A.coeffs,
+                               fit_fourier(centres, off.model_.bins.A, 12, value_ndim=2).coeffs,
+                               rtol=0, atol=0)
+    factors = on.model_.meta["A_harmonic_factors"]
+    assert len(factors) == 13 and factors[0] == 1 and min(factors) < 0.5, factors
+    assert _errors(on)[0] < _errors(off)[0], (_errors(on), _errors(off))

@@ -13,7 +13,8 @@ The hot path of the estimator, batched over leading dims ``...`` (noise levels �
 1. :func:`assign_bins` -- phase ``(..., N)`` to a padded gather ``(..., M, Nmax)`` of each bin's
    samples with kernel weights.
 2. :func:`connection_regression` -- ``ξ ≈ c + b δ + A δ̇ + ∂A/∂r (δ̇ ⊗ δ)`` per bin
-   (eq. ``advancedregression``) → :class:`ConnectionFit`.
+   (eq. ``advancedregression``) → :class:`ConnectionFit`; :func:`tie_connection_derivative`
+   ties its ``∂Â/∂r`` to ``b̂`` and ``dÂ/dφ`` (:mod:`~torchconn.regression.tied`).
 3. :func:`tied_metric_regression` -- ``P ≈ vᵀ[M(φ) + ∂M/∂r(φ) δ]v`` on the sample intervals
    of the raw shapes, Fourier in phase, noise-corrected → :class:`MetricFit` (the default);
    :func:`metric_regression` -- the paper's per-bin expansion
@@ -51,11 +52,12 @@ from .metric import (
 )
 from .model import BinEstimates, LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
+from .tied import tie_connection_derivative
 from .tube import Regression, TubeRegression
 
 __all__ = [
     "assign_bins", "BinIndex", "KERNELS",
-    "connection_regression", "ConnectionFit", "connection_design",
+    "connection_regression", "ConnectionFit", "connection_design", "tie_connection_derivative",
     "metric_regression", "MetricFit", "metric_design", "metric_n_coef",
     "tied_metric_regression", "tied_metric_n_coef", "tied_metric_predict",
     "power_noise_variance",
