@@ -538,6 +538,14 @@ def _index_cycle(cycle, idx):
                                          for f in dataclasses.fields(cycle)})
 
 
+def _bin_cycle(reg, cycle):
+    """The cycle at the regression's bin centres ``(..., M, d)``, as its fit passes it to
+    ``noise_setup``."""
+    m = reg.n_bins
+    centres = torch.arange(m, dtype=F64) * (2 * math.pi / m)
+    return cycle.gamma_at(centres.expand(tuple(cycle.phase_rate.shape) + (m,)))
+
+
 def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
     """One model per trial (the sweep's setting): fitting a batch, each trial alone and in
     other groupings and orders gives the same noise estimate, interval, window, blend weights
@@ -578,14 +586,14 @@ def test_an_interval_the_bins_cannot_support_falls_back_to_a_shorter_one():
     needs no fall-back its fit is the same, bit for bit."""
     from torchconn.physics.gaits import reference_gait
 
-    seeds = np.array([44, 41])
+    seeds = np.array([44, 42])
     clean = simulate(NLinkSwimmer(9), reference_gait("9link"), eta=0.025, n_cycles=8,
                      samples_per_cycle=64, seeds=seeds)
     est = ConnectionEstimator()
     prep = est.prepare(observe(clean, 0.01, seeds=seeds))
     cycle = est.cycle.fit(prep)
     reg = NoiseAwareRegression(metric=False)
-    rule = reg.noise_setup(prep, pool=False)[2].tolist()
+    rule = reg.noise_setup(prep, pool=False, gamma_m=_bin_cycle(reg, cycle))[2].tolist()
     assert rule[0] == 16  # a quarter of 64 samples per cycle
     with pytest.raises(ValueError, match="cannot be fitted reliably"):
         reg.replace(velocity_interval=rule[0]).fit(prep[:1], _index_cycle(cycle, [0]))
@@ -619,7 +627,7 @@ def test_missing_samples_shorten_the_interval_or_take_the_box_filter():
     prep = est.prepare(traj)
     cycle = est.cycle.fit(prep, pool=True)
     reg = NoiseAwareRegression(metric=False)
-    rule = int(reg.noise_setup(prep, pool=True)[2])
+    rule = int(reg.noise_setup(prep, pool=True, gamma_m=_bin_cycle(reg, cycle))[2])
     assert rule > 2
 
     def rows(kernel):
