@@ -169,6 +169,55 @@ def test_noise_estimate_across_links_gaits_and_sampling(n_links, gait, per_cycle
             assert abs(float(rig.mean().sqrt()) / omega - 1) < 0.2, (omega, rig.sqrt())
 
 
+def _gait_noise(traj):
+    """:func:`estimate_noise` of the shapes with the floor of each trial's estimated cycle
+    (as ``NoiseAwareRegression`` unpooled: ``noise_floor="gait"``)."""
+    from torchconn.phase.limit_cycle import phase_rate
+
+    est = ConnectionEstimator()
+    prep = est.prepare(traj)
+    cycle = est.cycle.fit(prep)
+    per_cycle = 2 * math.pi / (phase_rate(prep.phase, prep.dt) * prep.dt)
+    return estimate_noise(traj.r, cycle=cycle.gamma, samples_per_cycle=per_cycle)
+
+
+def _curved_gait_at_64(n_links, n_recordings, seed0):
+    """``n_recordings`` x 4 trials x 30 cycles of the reference gait at 64 samples per cycle
+    (the paper sweep's sampling), noise-free."""
+    from torchconn.physics.gaits import reference_gait
+
+    seeds = np.arange(4 * n_recordings) + seed0
+    return simulate(NLinkSwimmer(n_links), reference_gait(f"{n_links}link"), eta=0.025,
+                    n_cycles=30, samples_per_cycle=64, seeds=seeds), seeds
+
+
+def _pooled_ratio(est, omega):
+    """``√(mean σ̂²) / ω`` over every trial and joint, and the mean's standard error over ω²."""
+    mean, se = est.pooled_mean(est.variance.ndim - 1, channels=True)
+    return math.sqrt(max(float(mean[0]), 0)) / omega, float(se[0]) / omega**2
+
+
+@pytest.mark.parametrize("n_links", [3, pytest.param(9, marks=pytest.mark.slow)])
+def test_noise_estimate_at_64_samples_per_cycle_on_curved_gaits(n_links):
+    # the issue's check where the flat floor failed: the reference gaits at 64 samples per
+    # cycle, ω = 0.002 (the rise at Nyquist is 10-20 % of the floor, which the gait's lines,
+    # spread by the phase noise, tilt). One 4 x 30-cycle recording resolves σ² only to about
+    # 0.5 ω² (3-link) / 0.2 ω² (9-link) here, so the check pools six (seeds not tuned on)
+    clean, seeds = _curved_gait_at_64(n_links, 6, 7000)
+    ratio, se = _pooled_ratio(_gait_noise(observe(clean, 0.002, seeds=seeds)), 0.002)
+    assert abs(ratio - 1) < 0.2, (ratio, se)
+    flat, _ = _pooled_ratio(estimate_noise(observe(clean, 0.002, seeds=seeds).r), 0.002)
+    clean_est = _gait_noise(observe(clean, 0.0, seeds=seeds))
+    mean, se0 = clean_est.pooled_mean(clean_est.variance.ndim - 1, channels=True)
+    assert float(mean[0]) < 2 * float(se0[0])  # nothing resolved on clean data
+    assert math.sqrt(max(float(mean[0]), 0)) < 0.001
+    # honest standard errors at ω = 0.005 (mean of (σ̂² − ω²)/SE near 0, spread near 1)
+    est = _gait_noise(observe(clean, 0.005, seeds=seeds))
+    z = ((est.variance - 0.005**2) / est.variance_se).flatten()
+    assert abs(float(z.mean())) < 0.5 and 0.6 < float(z.std()) < 1.4, (z.mean(), z.std())
+    print(f"{n_links}-link: gait floor {ratio:.2f}, flat floor {flat:.2f} of ω = 0.002")
+
+
 def test_eiv_correction_is_the_expected_noise_part_of_the_gram_matrix():
     # Monte Carlo: E[X̃ᵀWX̃] − XᵀWX over noise draws equals the correction in expectation
     g = torch.Generator().manual_seed(1)

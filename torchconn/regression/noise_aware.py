@@ -446,12 +446,10 @@ def _choose_band(spec: _Spectrum, f: Tensor) -> tuple[Tensor, Tensor]:
         a, bb, d = running[2, 0, 0], running[1, 1, 0], running[0, 2, 0]
         q2, s2, det = _solve_2x2(a, bb, d, running[1, 0, 1], running[0, 1, 1])
 
-        def model_sq(i: int, j: int) -> Tensor:  # Σ x0^i x1^j (q² x0 + σ² x1)²
-            return (q2 * q2 * running[i + 2, j, 0] + 2 * q2 * s2 * running[i + 1, j + 1, 0]
-                    + s2 * s2 * running[i, j + 2, 0])
-
-        c00, c01, c11 = _sandwich_2x2(a, bb, d, det, model_sq(2, 0), model_sq(1, 1),
-                                      model_sq(0, 2))
+        # Σ x0^i x1^j (q² x0 + σ² x1)² for (i, j) = (2, 0), (1, 1), (0, 2)
+        e00, e01, e11 = (q2 * q2 * running[i + 2, j, 0] + 2 * q2 * s2 * running[i + 1, j + 1, 0]
+                         + s2 * s2 * running[i, j + 2, 0] for i, j in ((2, 0), (1, 1), (0, 2)))
+        c00, c01, c11 = _sandwich_2x2(a, bb, d, det, e00, e01, e11)
         m0, m1 = sums[1, 0, 0][..., g, :] / count, sums[0, 1, 0][..., g, :] / count
         expected = q2 * m0 + s2 * m1
         observed = sums[0, 0, 1][..., g, :] / count
