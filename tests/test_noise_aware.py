@@ -161,12 +161,43 @@ def test_noise_estimate_across_links_gaits_and_sampling(n_links, gait, per_cycle
     clean = simulate(NLinkSwimmer(n_links), g, eta=0.025, n_cycles=30,
                      samples_per_cycle=per_cycle, seeds=seeds)
     for omega in (0.0, 0.002, 0.005, 0.01):
-        est = estimate_noise(observe(clean, omega, seeds=seeds).r)
-        rig = est.pooled_variance(1)  # (d,)
-        if omega == 0:
-            assert float(rig.mean().sqrt()) < 0.001
-        else:
-            assert abs(float(rig.mean().sqrt()) / omega - 1) < 0.2, (omega, rig.sqrt())
+        traj = observe(clean, omega, seeds=seeds)
+        for est in (estimate_noise(traj.r), _gait_noise(traj)):  # flat and gait floors
+            rig = est.pooled_variance(1)  # (d,)
+            if omega == 0:
+                assert float(rig.mean().sqrt()) < 0.001
+            else:
+                assert abs(float(rig.mean().sqrt()) / omega - 1) < 0.2, (omega, rig.sqrt())
+
+
+def test_phase_noise_floor_is_the_spectrum_of_a_phase_random_walk():
+    # independent computation: Monte Carlo of r = γ(φ) + δ, φ and δ random walks of the same
+    # per-sample std q (the paper's SDE), γ = 0.8 cos φ + 0.3 sin 3φ at 16 samples per cycle;
+    # the increments' mean multitaper spectrum against q² (1 + ⟨γ'²⟩) times the shape, in bands
+    # between the lines where the shape is far from flat
+    from torchconn.phase.fourier import FourierSeries
+    from torchconn.regression.noise_aware import _increment_spectrum, phase_noise_floor
+
+    g = torch.Generator().manual_seed(3)
+    per_cycle, n, reps, q = 16.0, 4000, 200, 0.05
+    coeffs = torch.zeros(7, 1, dtype=F64)
+    coeffs[1, 0], coeffs[6, 0] = 0.8, 0.3
+    cycle = FourierSeries(coeffs, value_ndim=1)
+    phi = torch.cumsum(2 * math.pi / per_cycle
+                       + q * torch.randn(reps, n + 1, generator=g, dtype=F64), -1)
+    delta = torch.cumsum(q * torch.randn(reps, n + 1, 1, generator=g, dtype=F64), -2)
+    spec = _increment_spectrum(torch.diff(cycle(phi) + delta, dim=-2))
+    observed = spec.power.mean(0)[:, 0] / spec.x0[0, :, 0]
+    shape = phase_noise_floor(spec.f, cycle, per_cycle, n=n)[:, 0]
+    far = q**2 * (1 + 0.8**2 / 2 + 9 * 0.3**2 / 2)  # q² (1 + ⟨γ'²⟩)
+    f = spec.f
+    off_lines = (f * per_cycle - (f * per_cycle).round()).abs() > 0.2
+    for lo, hi, rise in [(0.05, 0.08, 2.5), (0.1, 0.15, 1.5), (0.2, 0.3, 3.0)]:
+        band = off_lines & (f >= lo) & (f < hi)
+        assert float(shape[band].mean()) > rise  # far from a flat floor here
+        assert abs(float(observed[band].mean() / (far * shape[band].mean())) - 1) < 0.04
+    top = off_lines & (f >= 0.4)
+    assert abs(float(observed[top].mean() / (far * shape[top].mean())) - 1) < 0.04
 
 
 def _gait_noise(traj):
@@ -197,7 +228,7 @@ def _pooled_ratio(est, omega):
     return math.sqrt(max(float(mean[0]), 0)) / omega, float(se[0]) / omega**2
 
 
-@pytest.mark.parametrize("n_links", [3, pytest.param(9, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("n_links", [3, 9])
 def test_noise_estimate_at_64_samples_per_cycle_on_curved_gaits(n_links):
     # the issue's check where the flat floor failed: the reference gaits at 64 samples per
     # cycle, ω = 0.002 (the rise at Nyquist is 10-20 % of the floor, which the gait's lines,
