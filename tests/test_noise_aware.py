@@ -200,6 +200,18 @@ def test_phase_noise_floor_is_the_spectrum_of_a_phase_random_walk():
     assert abs(float(observed[top].mean() / (far * shape[top].mean())) - 1) < 0.04
 
 
+def test_noise_estimate_names_a_bad_cycle():
+    from torchconn.phase.fourier import FourierSeries
+
+    x = torch.cumsum(torch.randn(2, 100, 2, generator=torch.Generator().manual_seed(0),
+                                 dtype=F64), -2)
+    cycle = FourierSeries(torch.zeros(3, 3, dtype=F64), value_ndim=1)  # 3 channels, not 2
+    with pytest.raises(ValueError, match="cycle must be a FourierSeries with values"):
+        estimate_noise(x, cycle=cycle, samples_per_cycle=20.0)
+    with pytest.raises(ValueError, match="needs its samples_per_cycle"):
+        estimate_noise(x, cycle=FourierSeries(torch.zeros(3, 2, dtype=F64), value_ndim=1))
+
+
 def _gait_noise(traj):
     """:func:`estimate_noise` of the shapes with the floor of each trial's estimated cycle
     (as ``NoiseAwareRegression`` unpooled: ``noise_floor="gait"``)."""

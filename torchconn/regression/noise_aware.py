@@ -205,6 +205,10 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
         if samples_per_cycle is None:
             raise ValueError("estimate_noise: a cycle needs its samples_per_cycle (float or "
                              "(...) tensor) to place the gait's harmonics in the spectrum")
+        if cycle.value_ndim != 1 or cycle.coeffs.shape[-1] != x.shape[-1]:
+            raise ValueError(f"estimate_noise: cycle must be a FourierSeries with values "
+                             f"(C,) = ({x.shape[-1]},) like x's channels, got value shape "
+                             f"{tuple(cycle.value_shape)}")
         shape = (cycle, samples_per_cycle)
     spec = _increment_spectrum(u, bridged, shape)
     f = spec.f
