@@ -142,7 +142,7 @@ class NoiseEstimate:
 
 
 def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
-                   angular: Tensor | None = None, cycle=None,
+                   angular: Tensor | None = None, cycle: FourierSeries | None = None,
                    samples_per_cycle: Tensor | float | None = None) -> NoiseEstimate:
     """Measurement noise of every channel of ``x (..., T, C)``, separated from process noise.
 
@@ -273,7 +273,8 @@ def _bridge_gaps(x: Tensor) -> Tensor:
     return torch.where(inside, x0 + frac * (x1 - x0), x)
 
 
-def _increment_spectrum(u: Tensor, bridged: Tensor | None = None, shape=None) -> _Spectrum:
+def _increment_spectrum(u: Tensor, bridged: Tensor | None = None,
+                        shape: tuple[FourierSeries, Tensor | float] | None = None) -> _Spectrum:
     """:class:`_Spectrum` of increments ``u (..., n, C)`` (NaN where missing); ``shape``:
     None (a flat process floor) or ``(cycle, samples_per_cycle)`` for
     :func:`phase_noise_floor`'s floor.
@@ -316,7 +317,8 @@ def _increment_spectrum(u: Tensor, bridged: Tensor | None = None, shape=None) ->
                      f=f, density=n_fft / n)
 
 
-def phase_noise_floor(f: Tensor, cycle, samples_per_cycle: Tensor | float, *, n: int) -> Tensor:
+def phase_noise_floor(f: Tensor, cycle: FourierSeries, samples_per_cycle: Tensor | float, *,
+                      n: int) -> Tensor:
     """The shape ``(..., F, C)`` of the increments' process floor at frequencies ``f (F,)``
     (cycles per sample) for channels that follow the gait ``cycle`` (a
     :class:`~torchconn.phase.fourier.FourierSeries`, values ``(C,)``) with phase noise, 1 far
@@ -767,9 +769,7 @@ def _one_sample_offsets(traj: Trajectory, gamma_m: Tensor) -> _OneSampleOffsets:
     the centres carry). Gaps in ``r`` are bridged by straight lines (:func:`_bridge_gaps`): the
     box filter's rows need only their two ends, so their model target must span missing
     samples too (the triangle's rows need every sample and are unaffected)."""
-    m = gamma_m.shape[-2]
-    centres = torch.arange(m, dtype=gamma_m.dtype, device=gamma_m.device) * (2 * math.pi / m)
-    cycle = fit_fourier(centres, gamma_m, (m - 1) // 2, value_ndim=1)
+    cycle = _cycle_series(gamma_m)
     one = interval_samples(traj.pose, _bridge_gaps(traj.r), traj.phase, traj.dt, 1)
     offset = one.r - cycle(one.phase)
     tangent = cycle.derivative()(one.phase)
