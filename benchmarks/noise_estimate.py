@@ -10,14 +10,14 @@ joint angles of every trial (``mean [min-max]``):
   ``6 / samples per cycle`` within [0.1, 0.3], unweighted), kept here as the reference, per
   joint the root of its (clamped) variance averaged over the trials;
 - ``flat ω̂/ω``: :func:`estimate_noise` with a flat process floor (multitaper, Whittle fit,
-  band from the data; ``NoiseAwareRegression(noise_floor="flat")``, the previous version), per
+  band from the data; ``NoiseAwareRegression``'s default, ``noise_floor="flat"``), per
   joint the root of its unclamped ``variance`` averaged over the trials;
 - ``new ω̂/ω``: the same with the floor shaped by the gait (:func:`phase_noise_floor`, from
   each trial's cycle and phase rate as ``ConnectionEstimator`` estimates them: what
-  ``NoiseAwareRegression`` uses);
+  ``NoiseAwareRegression(noise_floor="gait")`` uses);
 - ``rig ω̂/ω``: the new estimate's ``pooled_variance`` over the trials and joints (what
-  ``NoiseAwareRegression`` corrects for when pooling: zeroed where not 2 standard errors
-  above 0);
+  ``NoiseAwareRegression(noise_floor="gait")`` corrects for when pooling: zeroed where not 2
+  standard errors above 0, the joints' estimates correlated by their shared phase noise);
 - ``z sd``: the spread of the new ``(σ̂² − ω²) / variance_se`` over joints and trials (1 =
   honest standard errors);
 - ``pose``: new ω̂/ω on x, y, θ;
