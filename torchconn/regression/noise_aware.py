@@ -193,7 +193,9 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             ``(..., 2K+1, C)``, with ``samples_per_cycle`` (float or ``(...)``): the process
             floor is then not flat but :func:`phase_noise_floor`'s shape (the gait's harmonics
             spread by phase noise as large as the channels' own; measured at 64 samples per
-            cycle on the 3-link reference gait, a flat floor found 0.46 of ω = 0.002).
+            cycle on the 3-link reference gait, a flat floor found 0.46 of ω = 0.002), and the
+            result's ``correlation`` holds the channels' shared phase noise
+            (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
 
     Returns:
         :class:`NoiseEstimate` with ``(..., C)`` standard deviations (clamped at 0).
