@@ -274,14 +274,9 @@ def _channel_correlation(cycle: FourierSeries, q2: Tensor, sigma2: Tensor,
     on clean 3-link reference-gait recordings: the two joints' estimates correlated by 0.36
     (this formula: 0.32), and their mean, tested with independent standard errors, was called
     noise in 15 % of 4 × 30-cycle recordings (its z had spread 1.25)."""
-    coeffs = cycle.coeffs.to(q2)
-    a, b = coeffs[..., 1::2, :], coeffs[..., 2::2, :]  # (..., K, C)
-    k = torch.arange(1, a.shape[-2] + 1, dtype=q2.dtype, device=q2.device)
     phi = torch.arange(_CORRELATION_GRID, dtype=q2.dtype, device=q2.device) * (
         2 * math.pi / _CORRELATION_GRID)
-    kphi = phi[:, None] * k  # (P, K), batch-free sin, cos
-    slope = ((b.unsqueeze(-3) * torch.cos(kphi)[..., None]
-              - a.unsqueeze(-3) * torch.sin(kphi)[..., None]) * k[:, None]).sum(-2)  # (..., P, C)
+    slope = cycle.derivative()(phi).to(q2)  # γ'(φ), (..., P, C)
     far = 1 + slope.square().mean(-2)  # (..., C): the floor far from the lines over q²_0
     q2_0 = (q2.clamp_min(0) / far).unsqueeze(-2)  # (..., 1, C)
     carried = q2_0.sqrt() * slope  # (..., P, C): the phase noise each joint carries
