@@ -15,6 +15,8 @@ Methods: ``tube`` = ``TubeRegression()`` (the default: Kalman-smoothed velocitie
 ``noise_aware`` = ``NoiseAwareRegression()`` (the noise-corrected estimate shrunk towards the
 smoothed one where the data cannot support the correction);
 ``corrected`` = ``NoiseAwareRegression(shrink_to_smoothed=False)`` (the correction alone);
+``noise_aware_gait`` = ``NoiseAwareRegression(noise_floor="gait")`` (the noise fit's floor
+shaped by the gait);
 ``uncorrected_bias`` = ``NoiseAwareRegression(bias_correction=False)`` (the bins' bias left in);
 ``untied`` = ``NoiseAwareRegression(tie_derivative=False)`` (``∂Â/∂r`` the direct estimate);
 ``noise_aware_cv`` = the default with ``ConnectionEstimator.select_complexity``.
@@ -147,6 +149,7 @@ METHODS = {
     "tube": TubeRegression(),
     "noise_aware": NoiseAwareRegression(),
     "corrected": NoiseAwareRegression(shrink_to_smoothed=False),
+    "noise_aware_gait": NoiseAwareRegression(noise_floor="gait"),
     "uncorrected_bias": NoiseAwareRegression(bias_correction=False),
     "untied": NoiseAwareRegression(tie_derivative=False),
     "noise_aware_cv": NoiseAwareRegression(),  # bins, order, ridge by select_complexity

@@ -368,9 +368,12 @@ class TubeRegression(Regression):
 
             spectrum = estimate_noise(traj.r)
             n_pool = traj.r.ndim - 2 if pool else 0
+            # the joints taken as independent: the metric's combination was set that way
+            # (correlated standard errors, NoiseEstimate.correlation, not measured here)
             if self.metric_noise_level == "spectrum":
-                return spectrum.pooled_variance(n_pool, channels=True).to(v)
-            estimates.append(tuple(x.to(v) for x in spectrum.pooled_mean(n_pool, channels=True)))
+                return spectrum.pooled_variance(n_pool, channels=True, correlated=False).to(v)
+            estimates.append(tuple(x.to(v) for x in spectrum.pooled_mean(
+                n_pool, channels=True, correlated=False)))
         # from the uncorrected fit's power residuals (the power channel is noise-free)
         first = tied_metric_coefficients(offset, v, power, phase, **orders,
                                          min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
