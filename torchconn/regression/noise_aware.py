@@ -1255,12 +1255,16 @@ class NoiseAwareRegression(TubeRegression):
             variance for the others (listed in ``meta["interval_window_bounds"]``). True is
             for checks and comparisons of cost.
         tie_derivative: ``∂Â/∂r`` tied to ``b̂`` and to the phase derivative of ``Â``
-            (:func:`~torchconn.regression.tie_connection_derivative`; on here, off in
-            :class:`TubeRegression`), which hold ``2d − 1`` of its ``d²`` entries
-            per bin far better than the direct ``δ̇⊗δ`` estimate; with ``bias_correction`` a
-            pooled fit's tied ``∂Â/∂r`` is also corrected for the bins' bias
-            (:func:`derivative_bias_correction`). False: the direct estimate (the previous
-            version; ``Â``, ``b̂`` and ``ĉ`` are the same either way).
+            (:func:`~torchconn.regression.tie_connection_derivative`), which hold ``2d − 1``
+            of its ``d²`` entries per bin far better than the direct ``δ̇⊗δ`` estimate; with
+            ``bias_correction`` a pooled fit's tied ``∂Â/∂r`` is also corrected for the bins'
+            bias (:func:`derivative_bias_correction`). ``Â``, ``b̂`` and ``ĉ`` are the same
+            either way. Off by default (the direct estimate): the tied ``∂Â/∂r`` is closer to
+            the swimmer's Jacobian (3-link reference gait at ω = 0: 20 % → 5-7 %), but the
+            model predicts body velocity with ``ĉ, b̂, Â`` fitted beside the direct estimate,
+            and with the tied one in their place the 9-link's predictions were 10-60 %
+            further off (the paper's Fig. 4A claim (b) failed: x RMS 0.000704 → 0.00101).
+            Turn it on where ``∂Â/∂r`` itself is the result wanted.
         resolved_harmonics: a pooled fit's series of ``Â`` shrinks each harmonic (up to
             ``fourier_order``) by how far its power stands out of the bins' noise
             (:data:`_SERIES_SHRINK`, :func:`_harmonic_noise`; the factors are
@@ -1274,7 +1278,6 @@ class NoiseAwareRegression(TubeRegression):
     shrink_to_smoothed: bool = True
     bias_correction: bool = True
     full_search: bool = False
-    tie_derivative: bool = True  # (TubeRegression's field, on here)
     resolved_harmonics: bool = True
 
     def _corrected_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):

@@ -124,9 +124,10 @@ class TubeRegression(Regression):
             spectrum does not resolve ω = 0.002 (standard error 0.5 of it) and the residuals'
             do (0.07).
         tie_derivative: ``∂Â/∂r`` tied to ``b̂`` and the phase derivative of ``Â``
-            (:func:`~torchconn.regression.tie_connection_derivative`). Off here by default, so
-            that ``method = "tube"`` stays the previous method for comparison
-            (:class:`~torchconn.regression.NoiseAwareRegression` ties by default). Measured
+            (:func:`~torchconn.regression.tie_connection_derivative`). Off by default here
+            and in :class:`~torchconn.regression.NoiseAwareRegression` (the tied ``∂Â/∂r`` is
+            closer to the Jacobian, but the model's body-velocity predictions, made with the
+            terms fitted beside the direct estimate, got worse on the 9-link). Measured
             with this regression on seeds 5-6 (3-link circle and reference gait, 5-link circle,
             pooled 4 x 30 cycles, ω = 0-0.01): better in 22 of 22 cells (3-link circle ω = 0
             21.6 -> 10.9 %, ω = 0.005 298 -> 162 %; 3-link reference ω = 0 31.3 -> 25.0 %).
