@@ -257,16 +257,60 @@ def test_noise_estimate_names_a_bad_cycle():
         estimate_noise(x, cycle=FourierSeries(torch.zeros(3, 2, dtype=F64), value_ndim=1))
 
 
-def _gait_noise(traj):
-    """:func:`estimate_noise` of the shapes with the floor of each trial's estimated cycle
-    (as ``NoiseAwareRegression`` unpooled: ``noise_floor="gait"``)."""
+def _gait_noise(traj, floor="gait"):
+    """:func:`estimate_noise` of the shapes with each trial's estimated cycle (as
+    ``NoiseAwareRegression`` unpooled: its floor shaped by the gait, ``noise_floor="gait"``,
+    or ``floor="flat"``, the default, which uses the cycle for the joints' correlation)."""
     from torchconn.phase.limit_cycle import phase_rate
 
     est = ConnectionEstimator()
     prep = est.prepare(traj)
     cycle = est.cycle.fit(prep)
     per_cycle = 2 * math.pi / (phase_rate(prep.phase, prep.dt) * prep.dt)
-    return estimate_noise(traj.r, cycle=cycle.gamma, samples_per_cycle=per_cycle)
+    return estimate_noise(traj.r, cycle=cycle.gamma, samples_per_cycle=per_cycle, floor=floor)
+
+
+def test_clean_recordings_joint_test_counts_the_joints_shared_phase_noise(monkeypatch):
+    # clean one-trial recordings (the reference gait, 10 cycles at 64 samples per cycle, seeds
+    # not used to build the test): every joint carries the swimmer's phase noise, so the
+    # joints' σ̂² are correlated and their mean, tested with independent standard errors,
+    # spreads wider than a standard normal and is called noise too often. The default
+    # regression (flat floor) tests the mean with the correlated standard error
+    from torchconn.physics.gaits import reference_gait
+
+    seeds = np.arange(80) + 9100
+    clean = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=10,
+                     samples_per_cycle=64, seeds=seeds)
+    traj = observe(clean, 0.0, seeds=seeds)
+    est = _gait_noise(traj, floor="flat")
+    # the cycle does not change the flat floor's estimate, only fills its correlation
+    torch.testing.assert_close(est.variance, estimate_noise(traj.r).variance, rtol=0, atol=0)
+    model = float(est.correlation[:, 0, 1].mean())
+    empirical = float(torch.corrcoef(est.variance.T)[0, 1])
+    assert model > 0.2 and abs(empirical - model) < 0.2, (model, empirical)  # 0.29, 0.28
+    mean, se = est.pooled_mean(0, channels=True)
+    _, se_independent = est.pooled_mean(0, channels=True, correlated=False)
+    z, z_independent = mean[:, 0] / se[:, 0], mean[:, 0] / se_independent[:, 0]
+    # measured 0.98 against 1.09
+    assert 0.8 < float(z.std()) < 1.2, float(z.std())
+    assert float(z_independent.std()) > 1.08 * float(z.std())
+    # the regression's own test (NoiseAwareRegression.noise_setup) is the correlated one: at 2
+    # standard errors it calls noise in as many trials as a standard normal would (2.3 % of
+    # 80), and with the threshold set between the two z of the trial whose independent z is
+    # highest, that trial is not called noise
+    import torchconn.regression.noise_aware as noise_aware
+
+    reg = NoiseAwareRegression()
+    ce = ConnectionEstimator(regression=reg)
+    prep = ce.prepare(traj)
+    gamma_m = _bin_cycle(reg, ce.cycle.fit(prep))
+    called = reg.noise_setup(prep, pool=False, gamma_m=gamma_m)[0][:, 0] > 0
+    assert torch.equal(called, z > 2) and int(called.sum()) <= 4, (called.sum(), z.max())
+    top = int(z_independent.argmax())
+    between = float(z[top] + z_independent[top]) / 2
+    monkeypatch.setattr(noise_aware, "_NOISE_MIN_Z", between)
+    called = reg.noise_setup(prep, pool=False, gamma_m=gamma_m)[0][:, 0] > 0
+    assert not bool(called[top]) and torch.equal(called, z > between)
 
 
 def _curved_gait_at_64(n_links, n_recordings, seed0):

@@ -160,7 +160,8 @@ class NoiseEstimate:
 
 def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
                    angular: Tensor | None = None, cycle: FourierSeries | None = None,
-                   samples_per_cycle: Tensor | float | None = None) -> NoiseEstimate:
+                   samples_per_cycle: Tensor | float | None = None,
+                   floor: Literal["gait", "flat"] = "gait") -> NoiseEstimate:
     """Measurement noise of every channel of ``x (..., T, C)``, separated from process noise.
 
     The increments ``u_k = x_{k+1} − x_k`` of a signal driven by white process noise (variance
@@ -197,6 +198,8 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             cycle on the 3-link reference gait, a flat floor found 0.46 of ω = 0.002), and the
             result's ``correlation`` holds the channels' shared phase noise
             (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
+        floor: with a ``cycle``, ``"gait"`` (default) shapes the process floor as above;
+            ``"flat"`` keeps it flat and uses the cycle only for ``correlation``.
 
     Returns:
         :class:`NoiseEstimate` with ``(..., C)`` standard deviations (clamped at 0).
@@ -219,6 +222,8 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
         bridged = torch.diff(_bridge_gaps(x), dim=-2)
         if angular is not None:
             bridged = torch.where(angular.to(x.device), se2.wrap_angle(bridged), bridged)
+    if floor not in ("gait", "flat"):
+        raise ValueError(f"estimate_noise: floor must be 'gait' or 'flat', got {floor!r}")
     shape = None
     if cycle is not None:
         if samples_per_cycle is None:
@@ -228,7 +233,7 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             raise ValueError(f"estimate_noise: cycle must be a FourierSeries with values "
                              f"(C,) = ({x.shape[-1]},) like x's channels, got value shape "
                              f"{tuple(cycle.value_shape)}")
-        shape = (cycle, samples_per_cycle)
+        shape = (cycle, samples_per_cycle) if floor == "gait" else None
     spec = _increment_spectrum(u, bridged, shape)
     f = spec.f
     if band is not None:
@@ -291,6 +296,10 @@ def _channel_correlation(cycle: FourierSeries, q2: Tensor, sigma2: Tensor,
     eye = torch.eye(corr.shape[-1], dtype=torch.bool, device=corr.device)
     return torch.where(eye, 1.0, torch.where(both, corr, 0.0))
 
+
+#: standard errors the joints' mean noise variance must stand above 0 for
+#: :meth:`NoiseAwareRegression.noise_setup` to correct for it (README "Noise estimates")
+_NOISE_MIN_Z = 2.0
 
 #: phases over the cycle at which :func:`_channel_correlation` averages
 _CORRELATION_GRID = 128
@@ -1235,12 +1244,14 @@ class NoiseAwareRegression(TubeRegression):
             per batch element and joint from the data (:func:`estimate_noise`).
         noise_floor: the noise fit's process floor: ``"flat"`` (default) or ``"gait"``, which
             follows the fitted cycle's harmonics spread by phase noise
-            (:func:`phase_noise_floor`; its test for noise takes the joints' shared phase
-            noise into account). At 64 samples per cycle ``"gait"`` finds ω = 0.002 on the
+            (:func:`phase_noise_floor`). Either way the test for noise of the joints' mean
+            takes their shared phase noise into account (:attr:`NoiseEstimate.correlation`,
+            from the fitted cycle). At 64 samples per cycle ``"gait"`` finds ω = 0.002 on the
             3-link reference gait where ``"flat"`` finds 0.36 of it (mean of seeds 10-29), but
             on clean recordings it declares noise more often (seeds 40-59, 24 cells: 23 of
-            480 recordings against 11; its band rule leaves a small upward bias), so it is not
-            the default (README "Noise estimates").
+            480 recordings against 7 with the correlated test, 11 with independent joints;
+            its band rule leaves a small upward bias), so it is not the default (README
+            "Noise estimates").
         shrink_to_smoothed: combine with the smoothed estimate (:func:`blend_fits`); False:
             the corrected estimate alone (unbiased, but with one trial of a 9-link swimmer at
             ω ≥ 0.005 measured 2-4 times further off than the smoothed one).
@@ -1594,7 +1605,9 @@ class NoiseAwareRegression(TubeRegression):
 
         ``gamma_m``: the limit cycle at the bin centres, ``(..., M, d)`` (``(M, d)`` when
         ``pool``); with ``noise_floor="gait"`` the noise fit's process floor follows the
-        gait's harmonics (:func:`phase_noise_floor`); None: a flat floor.
+        gait's harmonics (:func:`phase_noise_floor`); with either floor it correlates the
+        joints' estimates (their shared phase noise, :attr:`NoiseEstimate.correlation`) in
+        the test of their mean for noise. None: a flat floor, joints taken as independent.
 
         Unpooled, each batch element's are its own: its samples per cycle (which set the
         longest interval and place the gait's harmonics) come from its own phase rate and its
@@ -1603,14 +1616,14 @@ class NoiseAwareRegression(TubeRegression):
         per_trial = 2 * math.pi / (phase_rate(traj.phase, traj.dt) * traj.dt)  # (...)
         per_cycle = per_trial.nanmean() if pool else per_trial
         band = None if self.noise_band_low is None else (self.noise_band_low, 0.5)
-        cycle = (_cycle_series(gamma_m) if gamma_m is not None and self.noise_floor == "gait"
-                 else None)
-        # (..., d), each element on its own
-        noise = estimate_noise(traj.r, band=band, cycle=cycle,
+        cycle = _cycle_series(gamma_m) if gamma_m is not None else None
+        # (..., d), each element on its own; the cycle also correlates the joints' estimates
+        # (their shared phase noise) for the joint test below, with either floor
+        noise = estimate_noise(traj.r, band=band, cycle=cycle, floor=self.noise_floor,
                                samples_per_cycle=None if cycle is None else per_trial)
         n_pool = traj.phase.ndim - 1 if pool else 0
         # one level for all joints of a trial (or of the pooled trials): they share the rig
-        var = noise.pooled_variance(n_pool, channels=True)
+        var = noise.pooled_variance(n_pool, channels=True, min_z=_NOISE_MIN_Z)
         q2 = noise.process.square()
         q2 = q2.mean(tuple(range(n_pool))) if n_pool else q2
         ratio = noise_ratio(var, q2)
