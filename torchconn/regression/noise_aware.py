@@ -1140,8 +1140,8 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
     Under noise ``b̂`` keeps part of the bins' bias (the chosen filter spans up to a quarter
     cycle and the windows widen): on the 3-link reference gait at ω = 0.005-0.01 its squared
     errors were 3.2-5.2 times its squared standard errors, two thirds of that a bias across
-    seeds, while its errors' correlation with the direct estimate's was 0.13-0.31 (README,
-    the tied ``∂Â/∂r``). The bias of ``b̂`` and of the direct estimate is computed once from
+    seeds, while its errors' correlation with the direct estimate's was 0.13-0.31 (Monte
+    Carlo over seeds 20-31; README, the tied ``∂Â/∂r``). The bias of ``b̂`` and of the direct estimate is computed once from
     the smooth model (:class:`_DerivativeBias`, about the uncorrected tie), and
     :data:`_RESIDUAL_BIAS_FRACTION` times its square is added to their variances before they
     are tied (the bias taken to remain, as the pooled choice assumes for ``Â``).
@@ -1324,6 +1324,11 @@ class NoiseAwareRegression(TubeRegression):
             pooled fit's tied ``∂Â/∂r`` is also corrected for the bins' bias
             (:func:`derivative_bias_correction`). False: the direct estimate (the previous
             version; ``Â``, ``b̂`` and ``ĉ`` are the same either way).
+        derivative_bias_allowance: with ``bias_correction``, a pooled fit of data with
+            measurement noise (where the tie is not corrected) allows for the bins' bias of
+            ``b̂`` and of the direct estimate in the tie's weights and bands
+            (:func:`derivative_bias_allowance`); False: their standard errors as they are
+            (the previous version, bands too narrow on the curved 3-link reference gait).
         resolved_harmonics: a pooled fit's series of ``Â`` shrinks each harmonic (up to
             ``fourier_order``) by how far its power stands out of the bins' noise
             (:data:`_SERIES_SHRINK`, :func:`_harmonic_noise`; the factors are
