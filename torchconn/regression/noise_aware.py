@@ -1141,10 +1141,11 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
     cycle and the windows widen): on the 3-link reference gait at ω = 0.005-0.01 its squared
     errors were 3.2-5.2 times its squared standard errors, two thirds of that a bias across
     seeds, while its errors' correlation with the direct estimate's was 0.13-0.31 (Monte
-    Carlo over seeds 20-31; README, the tied ``∂Â/∂r``). The bias of ``b̂`` and of the direct estimate is computed once from
-    the smooth model (:class:`_DerivativeBias`, about the uncorrected tie), and
-    :data:`_RESIDUAL_BIAS_FRACTION` times its square is added to their variances before they
-    are tied (the bias taken to remain, as the pooled choice assumes for ``Â``).
+    Carlo over seeds 20-31; README, the tied ``∂Â/∂r``). The bias of ``b̂`` and of the
+    direct estimate is computed once from the smooth model (:class:`_DerivativeBias`, about
+    the uncorrected tie), and :data:`_RESIDUAL_BIAS_FRACTION` times its square is added to
+    their variances before they are tied (the bias taken to remain, as the pooled choice
+    assumes for ``Â``).
 
     Args: as :func:`derivative_bias_correction` (no ``steps``).
 
