@@ -1607,21 +1607,19 @@ class NoiseAwareRegression(TubeRegression):
         attenuated and the correction carries that into the estimate. Measured on seeds 5-6
         (3-/5-link circle and reference gaits, pooled, ω = 0.002-0.01) it was worse than the
         tie alone in 19 of 24 cells (5-link circle ω = 0.01, seed 5: 781 % against 619 %),
-        while at ω = 0 it takes the 3-link reference gait from 15 % (tie alone) to 5 %."""
-        if self.bias_correction and chosen.view is not None and chosen.noise_free:
+        while at ω = 0 it takes the 3-link reference gait from 15 % (tie alone) to 5 %.
+        Under noise the same bias is instead allowed for in the tie's weights and bands
+        (:func:`derivative_bias_allowance`, with ``derivative_bias_allowance``)."""
+        modelled = self.bias_correction and chosen.view is not None
+        if modelled and (chosen.noise_free or self.derivative_bias_allowance):
             bins = assign_bins(chosen.view.phase, self.n_bins, window=chosen.windows,
                                kernel=self.kernel)
-            tied, _ = derivative_bias_correction(
-                fit, traj, chosen.view, bins, gamma_m, gamma_dot_m, order=self.fourier_order,
-                pool=True, offsets=chosen.offsets, **opts)
-            return tied, "tied, bias-corrected"
-        if self.bias_correction and self.derivative_bias_allowance and chosen.view is not None:
-            bins = assign_bins(chosen.view.phase, self.n_bins, window=chosen.windows,
-                               kernel=self.kernel)
-            tied, _ = derivative_bias_allowance(
-                fit, traj, chosen.view, bins, gamma_m, gamma_dot_m, order=self.fourier_order,
-                pool=True, offsets=chosen.offsets, **opts)
-            return tied, "tied, bias allowed for"
+            run, how = ((derivative_bias_correction, "tied, bias-corrected")
+                        if chosen.noise_free else
+                        (derivative_bias_allowance, "tied, bias allowed for"))
+            tied, _ = run(fit, traj, chosen.view, bins, gamma_m, gamma_dot_m,
+                          order=self.fourier_order, pool=True, offsets=chosen.offsets, **opts)
+            return tied, how
         tied = tie_connection_derivative(fit, gamma_m, gamma_dot_m, self.fourier_order,
                                          window=chosen.windows, kernel=self.kernel)
         return tied, "tied"
