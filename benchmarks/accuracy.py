@@ -19,6 +19,8 @@ smoothed one where the data cannot support the correction);
 shaped by the gait);
 ``uncorrected_bias`` = ``NoiseAwareRegression(bias_correction=False)`` (the bins' bias left in);
 ``untied`` = ``NoiseAwareRegression(tie_derivative=False)`` (``∂Â/∂r`` the direct estimate);
+``no_bias_allowance`` = ``NoiseAwareRegression(derivative_bias_allowance=False)`` (under noise
+the tie takes its sources' standard errors as they are);
 ``noise_aware_cv`` = the default with ``ConnectionEstimator.select_complexity``.
 
 Run by hand (minutes on 2 cores)::
@@ -152,6 +154,7 @@ METHODS = {
     "noise_aware_gait": NoiseAwareRegression(noise_floor="gait"),
     "uncorrected_bias": NoiseAwareRegression(bias_correction=False),
     "untied": NoiseAwareRegression(tie_derivative=False),
+    "no_bias_allowance": NoiseAwareRegression(derivative_bias_allowance=False),
     "noise_aware_cv": NoiseAwareRegression(),  # bins, order, ridge by select_complexity
 }
 
