@@ -791,6 +791,17 @@ def test_an_interval_the_bins_cannot_support_falls_back_to_a_shorter_one():
         assert torch.equal(getattr(alone.bins, name), getattr(both.bins, name)[:1]), name
 
 
+def _gappy_recording():
+    """Two 3-link circle trials of 12 cycles at 64 samples per cycle, ω = 0.01, with a quarter
+    of the samples (poses and shapes) lost at random."""
+    seeds = np.array([61, 62])
+    traj = observe(simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12,
+                            samples_per_cycle=64, seeds=seeds), 0.01, seeds=seeds)
+    lost = torch.rand(traj.r.shape[:-1], generator=torch.Generator().manual_seed(0)) < 0.25
+    return traj.with_fields(pose=traj.pose.masked_fill(lost[..., None], float("nan")),
+                            r=traj.r.masked_fill(lost[..., None], float("nan")))
+
+
 def test_missing_samples_shorten_the_interval_or_take_the_box_filter():
     """The triangle filter needs all ``h + 1`` samples of an interval: with a quarter of the
     samples missing at random, the noise rule's interval keeps too few rows for any bin
@@ -799,12 +810,7 @@ def test_missing_samples_shorten_the_interval_or_take_the_box_filter():
     the observed view use the filter it took."""
     from torchconn.regression.skill import regression_view
 
-    seeds = np.array([61, 62])
-    traj = observe(simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12,
-                            samples_per_cycle=64, seeds=seeds), 0.01, seeds=seeds)
-    lost = torch.rand(traj.r.shape[:-1], generator=torch.Generator().manual_seed(0)) < 0.25
-    traj = traj.with_fields(pose=traj.pose.masked_fill(lost[..., None], float("nan")),
-                            r=traj.r.masked_fill(lost[..., None], float("nan")))
+    traj = _gappy_recording()
     est = ConnectionEstimator(pool=True)
     prep = est.prepare(traj)
     cycle = est.cycle.fit(prep, pool=True)
@@ -991,15 +997,8 @@ def test_pruned_search_gives_the_full_searchs_choice_and_fit(case):
     candidate, bit for bit; the table's other entries are their variances, lower bounds of
     their full scores and at least the chosen score. On gappy data the box filter's search
     stops at the triangle's score."""
-    seeds = np.array([61, 62])
-    if case == "complete":
-        traj = _recording(0.005, n_cycles=10, n_trials=2, seed=3)
-    else:
-        traj = observe(simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12,
-                                samples_per_cycle=64, seeds=seeds), 0.01, seeds=seeds)
-        lost = torch.rand(traj.r.shape[:-1], generator=torch.Generator().manual_seed(0)) < 0.25
-        traj = traj.with_fields(pose=traj.pose.masked_fill(lost[..., None], float("nan")),
-                                r=traj.r.masked_fill(lost[..., None], float("nan")))
+    traj = (_recording(0.005, n_cycles=10, n_trials=2, seed=3) if case == "complete"
+            else _gappy_recording())
     est = ConnectionEstimator(pool=True)
     prep = est.prepare(traj)
     cycle = est.cycle.fit(prep, pool=True)
