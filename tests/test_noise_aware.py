@@ -1224,6 +1224,25 @@ def test_tie_off_is_the_direct_estimate_and_leaves_the_other_terms(clean30, monk
     assert not torch.equal(on.bins.dA, off.bins.dA)
 
 
+def test_tied_model_reports_the_tied_jacobian_and_predicts_with_the_direct_coefficient(
+        clean30, tmp_path):
+    # ĉ, b̂, Â are fitted beside the direct δ̇⊗δ estimate, so the tied model predicts body
+    # velocity with that coefficient (dA_fit): its predictions equal the untied model's bit
+    # for bit, while its ∂Â/∂r (connection_jacobian) is the tied estimate; both survive a
+    # save and load
+    traj = _recording(0.005, clean=clean30)
+    on, off = (_fit(traj, tie_derivative=tie) for tie in (True, False))
+    assert off.model_.dA_fit is None and on.model_.dA_fit is not None
+    assert torch.equal(on.model_.dA_fit.coeffs, off.model_.dA.coeffs)
+    assert torch.equal(on.predict(traj), off.predict(traj))
+    phi = torch.linspace(0, 2 * math.pi, 50, dtype=F64)
+    assert not torch.equal(on.model_.connection_jacobian(phi),
+                           off.model_.connection_jacobian(phi))
+    loaded = type(on.model_).load(on.model_.save(tmp_path / "model.npz"))
+    assert torch.equal(loaded.dA_fit.coeffs, on.model_.dA_fit.coeffs)
+    assert torch.equal(loaded.dA.coeffs, on.model_.dA.coeffs)
+
+
 def test_tube_keeps_its_direct_estimate_unless_asked_to_tie(clean30):
     # method = "tube" stays the previous method (tie_derivative off by default there); asked
     # to, it ties its own ∂Â/∂r to its b̂ and dÂ/dφ, which on the noise-free circle brings it

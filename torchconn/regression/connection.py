@@ -43,6 +43,10 @@ class ConnectionFit:
         eiv_scale: ``(..., M)`` fraction of the errors-in-variables noise correction applied
             (1: all of it, or no correction was asked for; below 1: the guard scaled it down
             because the full correction would have left a non-positive-definite normal matrix).
+        dA_direct: ``(..., M, 3, d, d)`` where ``dA`` was tied
+            (:func:`~torchconn.regression.tie_connection_derivative`), the direct ``δ̇⊗δ``
+            estimate it replaced: the coefficient fitted beside ``c, b, A``, which predictions
+            use; None otherwise.
     """
 
     c: Tensor
@@ -60,6 +64,7 @@ class ConnectionFit:
     coef: Tensor
     se_coef: Tensor
     eiv_scale: Tensor | None = None
+    dA_direct: Tensor | None = None
 
 
 def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:

@@ -80,6 +80,12 @@ class LocalConnectionModel:
         M: Fourier series of the metric ``(d, d)``, or None when no power was recorded.
         bins: the per-bin estimates the series were fitted to.
         meta: settings and provenance (JSON-serialisable).
+        dA_fit: where ``dA`` is the tied estimate of ``∂Â/∂r`` (``tie_derivative``), the
+            regression's own ``δ̇⊗δ`` coefficient, fitted beside ``c, b, A``: :meth:`predict`
+            uses it (with the tied one in its place the predictions lose that consistency,
+            10-60 % further off on the 9-link), while ``dA`` is the estimate of the
+            Jacobian that :meth:`connection_jacobian`, the bands and nearby gaits use. None:
+            ``dA`` serves both.
     """
 
     gamma: FourierSeries
@@ -91,6 +97,7 @@ class LocalConnectionModel:
     bins: BinEstimates
     M: FourierSeries | None = None
     meta: dict | None = None
+    dA_fit: FourierSeries | None = None
 
     @property
     def shape_dim(self) -> int:
@@ -116,7 +123,7 @@ class LocalConnectionModel:
         return LocalConnectionModel(
             gamma=move(self.gamma), phase_rate=move(self.phase_rate), c=move(self.c),
             b=move(self.b), A=move(self.A), dA=move(self.dA), bins=BinEstimates(**bins),
-            M=move(self.M), meta=self.meta,
+            M=move(self.M), meta=self.meta, dA_fit=move(self.dA_fit),
         )
 
     # ------------------------------------------------------------------ evaluation
@@ -169,8 +176,15 @@ class LocalConnectionModel:
             self.c(phase)
             + _apply(self.b(phase), delta)
             + _apply(self.A(phase), delta_dot)
-            + torch.einsum("...kij,...i,...j->...k", self.dA(phase), delta_dot, delta)
+            + torch.einsum("...kij,...i,...j->...k", self.prediction_dA(phase), delta_dot,
+                           delta)
         )
+
+    @property
+    def prediction_dA(self) -> FourierSeries:
+        """The series of the ``δ̇⊗δ`` coefficient :meth:`predict` uses: ``dA_fit`` where
+        ``∂Â/∂r`` was tied, else ``dA``."""
+        return self.dA if self.dA_fit is None else self.dA_fit
 
     def predict_power(self, phase: Tensor, r: Tensor, r_dot: Tensor) -> Tensor:
         """Power ``ṙᵀ M̂(φ) ṙ``: ``(..., P)``."""
@@ -211,7 +225,7 @@ class LocalConnectionModel:
         return LocalConnectionModel(
             gamma=pick(self.gamma), phase_rate=self.phase_rate[index], c=pick(self.c),
             b=pick(self.b), A=pick(self.A), dA=pick(self.dA), bins=BinEstimates(**bins),
-            M=pick(self.M), meta=self.meta,
+            M=pick(self.M), meta=self.meta, dA_fit=pick(self.dA_fit),
         )
 
     # ------------------------------------------------------------------ persistence
@@ -219,7 +233,7 @@ class LocalConnectionModel:
         """Write the model to a ``.npz`` file (lossless)."""
         path = Path(path)
         arrays = {}
-        for name in ("gamma", "c", "b", "A", "dA", "M"):
+        for name in _SERIES:
             series = getattr(self, name)
             if series is not None:
                 arrays[f"series_{name}"] = series.coeffs.detach().cpu().numpy()
@@ -240,7 +254,7 @@ class LocalConnectionModel:
         with np.load(Path(path)) as data:
             arrays = {k: data[k] for k in data.files}
         series = {}
-        for name in ("gamma", "c", "b", "A", "dA", "M"):
+        for name in _SERIES:
             if f"series_{name}" in arrays:
                 series[name] = FourierSeries(
                     torch.from_numpy(arrays[f"series_{name}"]), int(arrays[f"ndim_{name}"])
@@ -254,8 +268,12 @@ class LocalConnectionModel:
             gamma=series["gamma"], phase_rate=torch.from_numpy(arrays["phase_rate"]),
             c=series["c"], b=series["b"], A=series["A"],
             dA=series["dA"], M=series.get("M"), bins=BinEstimates(**bins),
-            meta=json.loads(str(arrays["meta"])),
+            meta=json.loads(str(arrays["meta"])), dA_fit=series.get("dA_fit"),
         )
+
+
+#: the series a model file holds (``M`` and ``dA_fit`` where present)
+_SERIES = ("gamma", "c", "b", "A", "dA", "M", "dA_fit")
 
 
 def _apply(matrix: Tensor, vector: Tensor) -> Tensor:

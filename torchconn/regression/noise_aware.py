@@ -1334,12 +1334,11 @@ class NoiseAwareRegression(TubeRegression):
             of its ``d²`` entries per bin far better than the direct ``δ̇⊗δ`` estimate; with
             ``bias_correction`` a pooled fit's tied ``∂Â/∂r`` is also corrected for the bins'
             bias (:func:`derivative_bias_correction`). ``Â``, ``b̂`` and ``ĉ`` are the same
-            either way. Off by default (the direct estimate): the tied ``∂Â/∂r`` is closer to
-            the swimmer's Jacobian (3-link reference gait at ω = 0: 20 % → 5-7 %), but the
-            model predicts body velocity with ``ĉ, b̂, Â`` fitted beside the direct estimate,
-            and with the tied one in their place the 9-link's predictions were 10-60 %
-            further off (the paper's Fig. 4A claim (b) failed: x RMS 0.000704 → 0.00101).
-            Turn it on where ``∂Â/∂r`` itself is the result wanted.
+            either way, and so are the model's predictions: they keep the direct estimate,
+            fitted beside ``ĉ, b̂, Â`` (``model.dA_fit``; with the tied one in its place the
+            9-link's predictions were 10-60 % further off and the paper's Fig. 4A claim (b)
+            failed). On here, off in :class:`TubeRegression`; False: the direct estimate
+            is also the reported ``∂Â/∂r`` (the previous version).
         derivative_bias_allowance: with ``tie_derivative`` and ``bias_correction``, a pooled
             fit of data with measurement noise (where the tie is not corrected) allows for the
             bins' bias of
@@ -1359,6 +1358,7 @@ class NoiseAwareRegression(TubeRegression):
     shrink_to_smoothed: bool = True
     bias_correction: bool = True
     full_search: bool = False
+    tie_derivative: bool = True  # (TubeRegression's field, on here)
     derivative_bias_allowance: bool = True
     resolved_harmonics: bool = True
 
@@ -1605,8 +1605,10 @@ class NoiseAwareRegression(TubeRegression):
             fit, weights = blend_fits(tube, fit)
             meta["corrected_weight"] = weights.tolist()
         if self.tie_derivative:
-            fit, meta["derivative"] = self._tied(fit, traj, chosen, gamma_m, gamma_dot_m,
-                                                 opts)
+            # the direct estimate stays the coefficient the model predicts with (dA_fit)
+            tied, meta["derivative"] = self._tied(fit, traj, chosen, gamma_m, gamma_dot_m,
+                                                  opts)
+            fit = dataclasses.replace(tied, dA_direct=fit.dA)
         return fit, window, meta
 
     def _tied(self, fit: ConnectionFit, traj: Trajectory, chosen: _Chosen, gamma_m: Tensor,

@@ -455,7 +455,8 @@ def with_phase_average(model: LocalConnectionModel, baseline: FourierSeries,
             meta[key] = m.tolist()
     return dataclasses.replace(model, c=c, b=zeroed(model.b, mask | offsets),
                                A=zeroed(model.A, mask), dA=zeroed(model.dA, mask | offsets),
-                               meta=meta)
+                               dA_fit=None if model.dA_fit is None
+                               else zeroed(model.dA_fit, mask | offsets), meta=meta)
 
 
 def padded(series: FourierSeries, order: int) -> FourierSeries:
@@ -614,8 +615,9 @@ def with_coefficients(model: LocalConnectionModel, coef: Tensor, order: int
     c_order = (model.meta or {}).get("intercept_order")
     if c_order is not None:
         c_order = torch.as_tensor(c_order, device=coef.device)
+    # the coefficients are the regression's own: its δ̇⊗δ one is what predictions use
     return dataclasses.replace(model, c=masked(intercept_series(centres, c, order, c_order)),
-                               b=series(b, 2), A=series(a, 2), dA=series(da, 3))
+                               b=series(b, 2), A=series(a, 2), dA=series(da, 3), dA_fit=None)
 
 
 def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):
@@ -871,7 +873,7 @@ def _input_noise_variance(model: LocalConnectionModel, phase: Tensor, r: Tensor,
     exceed their noise-free values by the last sum each, hence its minus sign below.
     """
     delta, delta_dot = model.offsets(phase, r, r_dot)
-    da = model.dA(phase)  # (..., N, 3, d_i (δ̇), d_j (δ))
+    da = model.prediction_dA(phase)  # (..., N, 3, d_i (δ̇), d_j (δ))
     g = model.b(phase) + torch.einsum("...kij,...i->...kj", da, delta_dot)
     a = model.A(phase) + torch.einsum("...kij,...j->...ki", da, delta)
     cross = torch.einsum("...kij,...i,...j->...k", da.square(), var_rate.expand_as(delta_dot),

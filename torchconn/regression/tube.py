@@ -15,7 +15,7 @@ from __future__ import annotations
 import abc
 import math
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Literal
 
 import torch
@@ -124,10 +124,10 @@ class TubeRegression(Regression):
             spectrum does not resolve ω = 0.002 (standard error 0.5 of it) and the residuals'
             do (0.07).
         tie_derivative: ``∂Â/∂r`` tied to ``b̂`` and the phase derivative of ``Â``
-            (:func:`~torchconn.regression.tie_connection_derivative`). Off by default here
-            and in :class:`~torchconn.regression.NoiseAwareRegression` (the tied ``∂Â/∂r`` is
-            closer to the Jacobian, but the model's body-velocity predictions, made with the
-            terms fitted beside the direct estimate, got worse on the 9-link). Measured
+            (:func:`~torchconn.regression.tie_connection_derivative`); predictions keep the
+            direct estimate (``model.dA_fit``). Off here by default, so that ``method =
+            "tube"`` stays the previous method for comparison
+            (:class:`~torchconn.regression.NoiseAwareRegression` ties by default). Measured
             with this regression on seeds 5-6 (3-link circle and reference gait, 5-link circle,
             pooled 4 x 30 cycles, ω = 0-0.01): better in 22 of 22 cells (3-link circle ω = 0
             21.6 -> 10.9 %, ω = 0.005 298 -> 162 %; 3-link reference ω = 0 31.3 -> 25.0 %).
@@ -245,6 +245,7 @@ class TubeRegression(Regression):
             c=intercept_series(centres, fit.c, self.fourier_order, c_order), b=series(fit.b, 2),
             A=a_series, dA=series(fit.dA, 3),
             M=series(metric["M"], 2) if metric else None,
+            dA_fit=None if fit.dA_direct is None else series(fit.dA_direct, 3),
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
                   "batch_shape": list(batch), "window": window, "metric_window": metric_window,
@@ -280,8 +281,10 @@ class TubeRegression(Regression):
         Subclasses regress differently (:class:`~torchconn.regression.NoiseAwareRegression`)."""
         fit, window, meta = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
         if self.tie_derivative:
-            fit = tie_connection_derivative(fit, gamma_m, gamma_dot_m, self.fourier_order,
-                                            window=window, kernel=self.kernel)
+            fit = replace(
+                tie_connection_derivative(fit, gamma_m, gamma_dot_m, self.fourier_order,
+                                          window=window, kernel=self.kernel),
+                dA_direct=fit.dA)
             meta["derivative"] = "tied"
         return fit, window, meta
 
