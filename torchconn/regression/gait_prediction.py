@@ -153,7 +153,8 @@ def sample_models(
     M = None
     if model.M is not None and bins.M is not None and bins.M_se is not None:
         M = redraw(model.M, bins.M, bins.M_se, meta.get("metric_window") or window)
-    return dataclasses.replace(model, A=A, dA=dA, M=M)
+    # draws of the Jacobian only (dA_fit, the prediction coefficient, is not drawn)
+    return dataclasses.replace(model, A=A, dA=dA, M=M, dA_fit=None)
 
 
 def _bin_noise_factor(n_bins: int, window: float, kernel: str, like: Tensor) -> Tensor:
