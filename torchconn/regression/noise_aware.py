@@ -913,6 +913,16 @@ def _resolved_harmonics(series, se: Tensor, bins: BinIndex) -> Tensor:
     return keep.to(series.coeffs.dtype).reshape(keep.shape + (1,) * series.value_ndim)
 
 
+def _resolved_series(centres: Tensor, values: Tensor, se: Tensor, bins: BinIndex, order: int,
+                     value_ndim: int) -> FourierSeries:
+    """The order-``order`` Fourier series through the per-bin ``values`` (standard errors
+    ``se``, bins ``bins`` at ``centres``), keeping only the harmonics that stand out of their
+    noise (:func:`_resolved_harmonics`): a bias model's smooth part."""
+    series = fit_fourier(centres, values, order, value_ndim=value_ndim)
+    return dataclasses.replace(series,
+                               coeffs=series.coeffs * _resolved_harmonics(series, se, bins))
+
+
 def bin_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: IntervalSamples,
                         bins: BinIndex, gamma_m: Tensor, gamma_dot_m: Tensor, *,
                         pool: bool, order: int | None = None, steps: int | None = None,
@@ -959,9 +969,7 @@ def bin_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: IntervalS
     centres = torch.arange(m, dtype=fit.A.dtype, device=fit.A.device) * (2 * math.pi / m)
     order = min(order, (m - 1) // 2)
     one = _one_sample_offsets(traj, gamma_m) if offsets is None else offsets
-    da_series = fit_fourier(centres, fit.dA, order, value_ndim=3)
-    da_series = dataclasses.replace(
-        da_series, coeffs=da_series.coeffs * _resolved_harmonics(da_series, fit.se_dA, bins))
+    da_series = _resolved_series(centres, fit.dA, fit.se_dA, bins, order, 3)
     off_cycle = torch.einsum("...kij,...j->...ki", da_series(one.phase), one.across)
     observed = fit.A
     keep = _resolved_harmonics(fit_fourier(centres, observed, order, value_ndim=2), fit.se_A,
@@ -1060,19 +1068,14 @@ class _DerivativeBias:
         self.along = tangent / tangent.square().sum(-1, keepdim=True)
         self.across = (torch.eye(tangent.shape[-1], dtype=tangent.dtype, device=tangent.device)
                        - self.along.unsqueeze(-1) * tangent.unsqueeze(-2))  # (..., M, d, d): P⊥
-        a_series = fit_fourier(self.centres, fit.A, order, value_ndim=2)
-        self.a_series = dataclasses.replace(
-            a_series, coeffs=a_series.coeffs * _resolved_harmonics(a_series, fit.se_A, bins))
+        self.a_series = _resolved_series(self.centres, fit.A, fit.se_A, bins, order, 2)
         self.a_slope = self.a_series.derivative()(self.centres)
         self.samples, self.bins, self.gamma_m, self.gamma_dot_m = samples, bins, gamma_m, gamma_dot_m
         self.order, self.pool, self.one, self.opts = order, pool, offsets, opts
 
     def __call__(self, tied: ConnectionFit) -> tuple[Tensor, Tensor]:
         centres, one = self.centres, self.one
-        da_series = fit_fourier(centres, tied.dA, self.order, value_ndim=3)
-        da_series = dataclasses.replace(
-            da_series, coeffs=da_series.coeffs * _resolved_harmonics(da_series, tied.se_dA,
-                                                                      self.bins))
+        da_series = _resolved_series(centres, tied.dA, tied.se_dA, self.bins, self.order, 3)
         off_cycle = torch.einsum("...kij,...j->...ki", da_series(one.phase), one.across)
         y = _model_target(one, self.samples.h, self.samples.kernel, self.a_series, off_cycle)
         if self.pool:
