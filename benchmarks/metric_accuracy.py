@@ -131,7 +131,8 @@ def main(argv=None) -> int:
                 r = run(links, omega, method, args.seed, args.trials, args.cycles)
                 print(f"{links:>5} {method:>6} {omega:>6.3f} {100 * r['Mgd']:>7.1f}% "
                       f"{100 * r['power']:>7.1f}% {100 * r['M']:>7.1f}% "
-                      f"{100 * r['coverage']:>7.0f}% {100 * r['width']:>6.1f}% {'-' if r['order'] is None else r['order']!s:>3} "
+                      f"{100 * r['coverage']:>7.0f}% {100 * r['width']:>6.1f}% "
+                      f"{'-' if r['order'] is None else r['order']!s:>3} "
                       f"{r['seconds']:>7.2f}", flush=True)
     return 0
 

@@ -202,6 +202,15 @@ def test_order_bias_is_the_change_at_two_more_harmonics():
                                             centres, gd, order=o, **kw) for o in (k, k + 2))
         torch.testing.assert_close(fit.bias_M[i], high.M - low.M, rtol=1e-7,
                                    atol=1e-10 * float(high.M.abs().max()))
+    # too few samples for two more harmonics: a warning, the bands not widened
+    phase, v, power = (x[:64] for x in _harmonic_metric_data(1, 3, seed=3))  # 45 <= 64 < 81
+    zeros = torch.zeros_like(v)
+    with pytest.warns(UserWarning, match="bands are not widened"):
+        short = tied_metric_regression(zeros, v, power, phase, centres, gd, order=2,
+                                       order_bias=True, **kw)
+    assert short.bias_M is None
+    torch.testing.assert_close(short.se_M, tied_metric_regression(
+        zeros, v, power, phase, centres, gd, order=2, **kw).se_M, rtol=0, atol=0)
 
 
 # ----------------------------------------------------------------------------- on the swimmer

@@ -379,11 +379,13 @@ def tied_metric_coefficients(
     if not order_bias:
         return fit
     # the same data at two more harmonics of M(φ) than each element's order (the layout of
-    # the largest of those orders), coefficients only
+    # the largest of those orders); its floor's warning would repeat the fit's
     top = int(fit.order.max()) + _BIAS_ORDER_STEP if fit.order.numel() else order
     try:
-        richer = _tied_fit(offset, velocity, power, phase, order=top,
-                           orders=fit.order + _BIAS_ORDER_STEP, **opts)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", _wls.IllConditionedBinWarning)
+            richer = _tied_fit(offset, velocity, power, phase, order=top,
+                               orders=fit.order + _BIAS_ORDER_STEP, **opts)
     except ValueError as err:
         warnings.warn(f"tied_metric_regression: the metric's bands are not widened for the "
                       f"model's bias (its fit at {_BIAS_ORDER_STEP} more harmonics of M(φ) "
