@@ -124,7 +124,10 @@ def sample_models(
 
     Every bin estimate of ``Â``, ``∂Â/∂r`` (and ``M̂``) is perturbed by Gaussian noise with its
     standard error; bins whose phase windows overlap share samples, so their noise is correlated
-    with the overlap of their kernel weights. The Fourier series are refitted at the model's
+    with the overlap of their kernel weights. The part of ``M̂``'s standard error that is its
+    bias allowance (``bins.M_bias``) is drawn as one error shared by all entries and bins
+    (``s · M_bias``, ``s`` standard normal per draw): drawn entry by entry, it would spread the
+    on-cycle power that the gait pins down. The Fourier series are refitted at the model's
     order. The result has batch dims ``(n_draws, ...)``.
     """
     if not isinstance(n_draws, int) or n_draws < 1:
@@ -136,15 +139,23 @@ def sample_models(
     gen = torch.Generator(device=model.device).manual_seed(seed)
     centres = bins.phase
 
-    def redraw(series, values, se, window):
+    def redraw(series, values, se, window, bias=None):
         m = values.shape[len(model.batch_shape)]
         chol = _bin_noise_factor(m, window, kernel, values)
+        if bias is not None:  # the scatter apart from the bias, which is drawn whole below
+            se = (se.square() - bias.square()).clamp(min=0).sqrt()
         moved = values.movedim(len(model.batch_shape), -1)  # (..., *v, M)
         se_m = torch.nan_to_num(se).movedim(len(model.batch_shape), -1)
         z = torch.randn((n_draws,) + moved.shape, generator=gen, dtype=values.dtype,
                         device=values.device)
         noisy = moved + se_m * (z @ chol.mT)
         noisy = noisy.movedim(-1, len(model.batch_shape) + 1)  # (S, ..., M, *v)
+        if bias is not None:
+            # one systematic error, shared by every entry and bin (its covariance is the
+            # outer product of the bias, not a diagonal), scaled by one Gaussian per draw
+            s = torch.randn((n_draws,) + (1,) * bias.ndim, generator=gen, dtype=values.dtype,
+                            device=values.device)
+            noisy = noisy + s * torch.nan_to_num(bias)
         return fit_fourier(centres, noisy, series.order, value_ndim=series.value_ndim)
 
     window = meta.get("window") or 0.5
@@ -152,7 +163,8 @@ def sample_models(
     dA = redraw(model.dA, bins.dA, bins.dA_se, window)
     M = None
     if model.M is not None and bins.M is not None and bins.M_se is not None:
-        M = redraw(model.M, bins.M, bins.M_se, meta.get("metric_window") or window)
+        M = redraw(model.M, bins.M, bins.M_se, meta.get("metric_window") or window,
+                   bins.M_bias)
     # draws of the Jacobian only (dA_fit, the prediction coefficient, is not drawn)
     return dataclasses.replace(model, A=A, dA=dA, M=M, dA_fit=None)
 

@@ -45,6 +45,10 @@ class BinEstimates:
         M_gamma_dot, M_gamma_dot_se: ``(..., M, d)`` ``M̂γ̇`` on the cycle and its standard error
             (identified by the gait itself), or None.
         power_on_cycle, power_on_cycle_se: ``(..., M)`` ``γ̇ᵀM̂γ̇`` and its standard error, or None.
+        M_bias: ``(..., M, d, d)`` the model's bias allowed for in ``M_se`` (and in the other
+            metric standard errors; :func:`~torchconn.regression.metric.tied_metric_regression`'s
+            ``order_bias``): one systematic error shared by the entries and bins, not independent
+            scatter; None where not estimated.
     """
 
     phase: Tensor
@@ -65,6 +69,7 @@ class BinEstimates:
     M_gamma_dot_se: Tensor | None = None
     power_on_cycle: Tensor | None = None
     power_on_cycle_se: Tensor | None = None
+    M_bias: Tensor | None = None
 
 
 @dataclass(frozen=True)
