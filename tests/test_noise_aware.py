@@ -231,7 +231,8 @@ def test_channel_correlation_matches_monte_carlo_and_widens_the_joint_test():
     phi = torch.cumsum(2 * math.pi / per_cycle
                        + q * torch.randn(reps, n + 1, generator=g, dtype=F64), -1)
     delta = torch.cumsum(q * torch.randn(reps, n + 1, 2, generator=g, dtype=F64), -2)
-    est = estimate_noise(cycle(phi) + delta, cycle=cycle, samples_per_cycle=per_cycle)
+    est = estimate_noise(cycle(phi) + delta, cycle=cycle, samples_per_cycle=per_cycle,
+                         floor="gait")
     model = float(est.correlation[:, 0, 1].mean())
     empirical = float(torch.corrcoef(est.variance.T)[0, 1])
     assert model > 0.4  # far from independent joints (measured 0.57, empirical 0.59)

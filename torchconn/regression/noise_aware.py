@@ -161,7 +161,7 @@ class NoiseEstimate:
 def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
                    angular: Tensor | None = None, cycle: FourierSeries | None = None,
                    samples_per_cycle: Tensor | float | None = None,
-                   floor: Literal["gait", "flat"] = "gait") -> NoiseEstimate:
+                   floor: Literal["flat", "gait"] = "flat") -> NoiseEstimate:
     """Measurement noise of every channel of ``x (..., T, C)``, separated from process noise.
 
     The increments ``u_k = x_{k+1} − x_k`` of a signal driven by white process noise (variance
@@ -192,14 +192,15 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             (a heading recorded wrapped).
         cycle: optional :class:`~torchconn.phase.fourier.FourierSeries` of the gait each
             channel follows, ``γ(φ)`` with values ``(C,)`` and coefficients broadcastable to
-            ``(..., 2K+1, C)``, with ``samples_per_cycle`` (float or ``(...)``): the process
-            floor is then not flat but :func:`phase_noise_floor`'s shape (the gait's harmonics
+            ``(..., 2K+1, C)``, with ``samples_per_cycle`` (float or ``(...)``): with
+            ``floor="gait"`` the process floor is not flat but :func:`phase_noise_floor`'s shape (the gait's harmonics
             spread by phase noise as large as the channels' own; measured at 64 samples per
             cycle on the 3-link reference gait, a flat floor found 0.46 of ω = 0.002), and the
             result's ``correlation`` holds the channels' shared phase noise
             (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
-        floor: with a ``cycle``, ``"gait"`` (default) shapes the process floor as above;
-            ``"flat"`` keeps it flat and uses the cycle only for ``correlation``.
+        floor: with a ``cycle``, ``"flat"`` (default, as ``NoiseAwareRegression``'s
+            ``noise_floor``) keeps the process floor flat and uses the cycle only for
+            ``correlation``; ``"gait"`` shapes the floor as above.
 
     Returns:
         :class:`NoiseEstimate` with ``(..., C)`` standard deviations (clamped at 0).
