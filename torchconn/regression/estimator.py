@@ -254,13 +254,18 @@ class ConnectionEstimator:
                 except ValueError:
                     if model is None:
                         raise
-                    # no candidate fits 2 of 3 blocks: keep the given one (the check warns)
+                    # no candidate fits 2 of 3 blocks: keep the given one (the check warns);
+                    # on few cycles, where the check cannot score it, the simpler model is
+                    # presumed (as skill._choose_terms does) and it predicts the phase average
+                    choice = skill.unchecked_choice(held, regression,
+                                                    skill.few_cycles(traj.phase, self.pool))
                 else:
                     model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
                     regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
-        view = skill.regression_view(traj, regression, model, pool=self.pool)
-        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
+        self.phase_average_ = skill.held_out_phase_average(traj, regression, model,
+                                                           pool=self.pool,
+                                                           n_folds=self._folds())
         if choice is not None and (choice.phase_averaged_names()
                                    or choice.connection_only_names()):
             # components whose shape terms lost to the phase average held out predict it;

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..phase.fourier import FourierSeries, fit_fourier
+from ..phase.fourier import FourierSeries, fit_fourier, fourier_design
 from ..phase.limit_cycle import LimitCycle
 from ..trajectory import Trajectory, pool_batch
 from . import _wls
@@ -45,6 +45,7 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_G
            "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
            "COMPONENTS",
            "regression_view", "cross_validate", "checked_terms", "few_cycles",
+           "held_out_phase_average", "phase_average_orders", "unchecked_choice",
            "select_complexity", "skill", "with_phase_average"]
 
 #: the body-velocity components, in the order of the last axis of ξ
@@ -130,6 +131,16 @@ class Skill:
                "choose the complexity by held-out error (ConnectionEstimator(complexity='cv'), "
                "torchconn-fit --complexity cv), or use fewer bins / a lower Fourier order / a "
                "ridge, or record more cycles")
+        if bool(self.unscored.any()) and choice is not None and not choice.checked:
+            warnings.warn(
+                "held-out check: some phase bins cannot be fitted when one block of whole "
+                "cycles is left out, at this or any simpler complexity, so the model cannot "
+                f"be checked on this short recording; {', '.join(choice.phase_averaged_names())}"
+                " are predicted by the phase-averaged velocity of the training data (the rows "
+                "of b̂, Â and ∂Â/∂r of the unchecked trials are 0: not estimated from this "
+                "recording); record more cycles", PoorHeldOutSkillWarning,
+                stacklevel=stacklevel)
+            return
         if bool(self.unscored.any()):
             warnings.warn(
                 "held-out check: some phase bins cannot be fitted when one block of whole "
@@ -183,6 +194,9 @@ class ComplexityChoice:
             ``Â`` but its rows of ``b̂`` and ``∂Â/∂r`` are set to 0, because the connection
             alone beat the phase average on held-out cycles and those terms did not clearly
             add to it (:data:`OFFSET_TERMS_Z`).
+        checked: False where no candidate could be scored held out and the complexity is
+            the one given (:func:`unchecked_choice`): ``scores`` is empty and
+            ``phase_averaged`` marks the short recordings the check could not score.
     """
 
     n_bins: int
@@ -191,6 +205,7 @@ class ComplexityChoice:
     scores: tuple[tuple[int, int, float, float], ...]
     phase_averaged: tuple = (False, False, False)
     connection_only: tuple = (False, False, False)
+    checked: bool = True
 
     def phase_average_mask(self, device: torch.device | str) -> Tensor:
         """:attr:`phase_averaged` as a bool tensor ``(..., 3)`` on ``device``."""
@@ -207,6 +222,25 @@ class ComplexityChoice:
     def connection_only_names(self) -> list[str]:
         """The components whose ``b̂`` and ``∂Â/∂r`` rows are 0 in some batch element."""
         return _names(self.connection_only)
+
+
+def unchecked_choice(held: "Skill | None", regression: Regression, short: Tensor
+                     ) -> ComplexityChoice | None:
+    """The choice when :func:`select_complexity` has no candidate (too few cycles) and the
+    given complexity's fit stands: every component of a batch element that the held-out check
+    ``held`` could not score (:attr:`Skill.unscored`) and that spans few cycles (``short``,
+    :func:`few_cycles`) is predicted by the phase average, the simpler model presumed there
+    (9-link reference gait, 3 cycles, ω = 0.005: the unchecked 48-bin fit scored R² −0.58 /
+    0.34 / 0.75 on the next 4 cycles, the phase average 0.52 / 0.86 / 0.97). None where no
+    such element (longer recordings keep the fit; the check warns)."""
+    if held is None:
+        return None
+    mask = (held.unscored & short)[..., None].expand(held.r2.shape)
+    if not bool(mask.any()):
+        return None
+    return ComplexityChoice(n_bins=regression.n_bins, fourier_order=regression.fourier_order,
+                            ridge=regression.ridge, scores=(), checked=False,
+                            phase_averaged=_nested_tuple(mask))
 
 
 def _names(mask: tuple) -> list[str]:
@@ -243,9 +277,90 @@ def regression_view(traj: Trajectory, regression: Regression, model: LocalConnec
     return view
 
 
-def phase_average(view: _View, order: int):
-    """The phase-averaged velocity: a Fourier series of order ``order`` of ``view.xi``."""
-    return fit_fourier(view.phase, view.xi, order, value_ndim=1)
+def phase_average(view: _View, order: int, orders: Tensor | None = None) -> FourierSeries:
+    """The phase-averaged velocity: a Fourier series of order ``order`` of ``view.xi``.
+
+    ``orders``: ``(..., 3)`` per component (and batch element, broadcasting against the
+    view's batch dims) the order of its own least-squares series, at most ``order``
+    (:func:`phase_average_orders`); its harmonics above that are 0. None: ``order`` for all."""
+    full = fit_fourier(view.phase, view.xi, order, value_ndim=1)
+    if orders is None:
+        return full
+    coeffs = full.coeffs  # (..., 2 order + 1, 3)
+    for k in orders.unique().tolist():
+        if k == order:
+            continue
+        own = padded(fit_fourier(view.phase, view.xi, k, value_ndim=1), order).coeffs
+        coeffs = torch.where((orders == k).unsqueeze(-2), own, coeffs)
+    return FourierSeries(coeffs, 1)
+
+
+def phase_average_orders(view: _View, max_order: int, pool: bool, n_folds: int = 3
+                         ) -> Tensor:
+    """``(..., 3)`` (pooled: ``(3,)``) per component the order, at most ``max_order``, of the
+    phase-averaged velocity with the least held-out squared error over the ``n_folds`` blocks
+    of whole cycles the models are scored on (:func:`_cycle_blocks`; ``view`` unflattened,
+    ``(..., N, ·)``; the lowest order on ties). One set of normal equations per block gives
+    every order (their designs are nested). The baseline a model must beat: a series of the
+    model's own order overfits the few cycles of a short recording (5- and 3-link, 3-6 cycles,
+    ω = 0.005: the order-12 phase average of 2 of 3 cycles scored R² 0.38-0.54 on v_x held
+    out, order 3 0.66-0.78), and a model compared with it looked better held out than it was
+    on later cycles."""
+    fold = _cycle_blocks(view.phase, n_folds)
+    ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
+    x = fourier_design(torch.where(ok, view.phase, 0.0), max_order)  # (..., N, P)
+    y = torch.where(ok[..., None], view.xi, 0.0)  # (..., N, 3)
+    dims = tuple(range(view.phase.ndim - 1)) if pool else ()
+    grams, rhs, yy = [], [], []
+    for f in range(n_folds):
+        w = ((fold == f) & ok).to(x.dtype)[..., None]
+        xw = x * w
+        parts = (xw.mT @ x, xw.mT @ y, (y.square() * w).sum(-2))
+        if dims:
+            parts = tuple(p.sum(dims) for p in parts)
+        grams.append(parts[0])
+        rhs.append(parts[1])
+        yy.append(parts[2])
+    gram, xy = sum(grams), sum(rhs)
+    scores = []
+    for order in range(max_order + 1):
+        p = 2 * order + 1
+        sse = 0.0
+        for f in range(n_folds):  # fit without block f, scored on it
+            coef = torch.linalg.lstsq((gram - grams[f])[..., :p, :p],
+                                      (xy - rhs[f])[..., :p, :]).solution  # (..., p, 3)
+            g = grams[f][..., :p, :p]
+            sse = sse + yy[f] - 2 * (coef * rhs[f][..., :p, :]).sum(-2) + (
+                coef * (g @ coef)).sum(-2)
+        scores.append(sse)
+    return torch.stack(scores).argmin(0)
+
+
+def held_out_phase_average(traj: Trajectory, regression: Regression,
+                           model: LocalConnectionModel, *, pool: bool, n_folds: int = 3
+                           ) -> FourierSeries:
+    """The phase-averaged velocity of ``traj`` as ``regression``'s fit ``model`` sees it, each
+    component of the order :func:`phase_average_orders` chooses (at most
+    :func:`phase_average_top`): the baseline of :meth:`ConnectionEstimator.score` and of the
+    held-out checks."""
+    unflat = regression_view(traj, regression, model, pool=pool, flatten=False)
+    order, orders = _baseline_orders(unflat, regression, pool, n_folds)
+    return phase_average(regression_view(traj, regression, model, pool=pool), order, orders)
+
+
+def phase_average_top(regression: Regression) -> int:
+    """The highest order of the phase average: the regression's own, and at least the top of
+    :data:`COMPLEXITY_GRID`, so that every candidate of :func:`select_complexity` faces the
+    same baseline."""
+    return max(regression.fourier_order, max(order for _, order in COMPLEXITY_GRID))
+
+
+def _baseline_orders(unflat: _View, regression: Regression, pool: bool, n_folds: int
+                     ) -> tuple[int, Tensor]:
+    """``(order, orders)`` of the phase average on the unflattened view (:func:`phase_average`'s
+    arguments)."""
+    top = phase_average_top(regression)
+    return top, phase_average_orders(unflat, top, pool, n_folds)
 
 
 def skill(model: LocalConnectionModel, baseline, view: _View) -> Skill:
@@ -303,11 +418,11 @@ def _held_out_skills(traj, cycle, regression, *, pool, n_folds, noise_corrected,
                      phase_averaged=None, connection_only=None, variants=False):
     """:func:`cross_validate`'s skill; with ``variants`` instead :func:`_variant_scores` of the
     fold models (noise-corrected)."""
-    reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
-                                                   n_folds=n_folds, refit=refit)
+    reg, models, view, fold, cycles, base = _fold_models(
+        traj, cycle, regression, model, pool=pool, n_folds=n_folds, refit=refit)
     if variants:
-        return _variant_scores(models, view, fold, reg, traj.dt, pool, cycles)
-    return _score_folds(models, view, fold, reg, traj.dt, pool, noise_corrected,
+        return _variant_scores(models, view, fold, reg, traj.dt, pool, cycles, base)
+    return _score_folds(models, view, fold, reg, traj.dt, pool, noise_corrected, base,
                         phase_averaged, connection_only)[0]
 
 
@@ -318,10 +433,10 @@ def checked_terms(traj: Trajectory, cycle: LimitCycle, regression: Regression,
     :func:`cross_validate`'s skill, and ``(..., 3)`` True where :func:`_choose_terms` keeps
     the full model (False: the phase average or the connection alone predicts that
     component better held out, and :func:`select_complexity` should choose)."""
-    reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
-                                                   n_folds=n_folds, refit=False)
+    reg, models, view, fold, cycles, base = _fold_models(
+        traj, cycle, regression, model, pool=pool, n_folds=n_folds, refit=False)
     (held, gaps), (_, gaps_conn) = _variant_scores(models, view, fold, reg, traj.dt, pool,
-                                                   cycles, noise_corrected=False)
+                                                   cycles, base, noise_corrected=False)
     fallback, conn = _choose_terms(gaps, gaps_conn, few_cycles(traj.phase, pool))
     return held, ~(fallback | conn)
 
@@ -343,7 +458,8 @@ def few_cycles(phase: Tensor, pool: bool) -> Tensor:
 
 def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
     """The regression (metric off), its fits without each of ``n_folds`` blocks of cycles,
-    the view they are scored on, its block index and its cycle index (:func:`_cycle_index`)."""
+    the view they are scored on, its block index, its cycle index (:func:`_cycle_index`) and
+    the phase average's orders (:func:`_baseline_orders`)."""
     reg = regression.replace(metric=False)
     if model is None:
         model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
@@ -361,23 +477,25 @@ def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
         coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool)[0]
         models = [with_coefficients(model, coef[f], reg.fourier_order) for f in range(n_folds)]
     return (reg, models, view, pool_batch(fold, 0) if pool else fold,
-            _cycle_index(unflat.phase, pool))
+            _cycle_index(unflat.phase, pool), _baseline_orders(unflat, reg, pool, n_folds))
 
 
 def _variant_scores(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
-                    cycle: Tensor, noise_corrected: bool = True
+                    cycle: Tensor, baseline: tuple[int, Tensor], noise_corrected: bool = True
                     ) -> tuple[tuple[Skill, Tensor], tuple[Skill, Tensor]]:
     """:func:`_score_folds` (with the per-cycle gaps) of the fold models as fitted and of the
     connection alone (their rows of ``b̂`` and ``∂Â/∂r`` set to 0): the candidates of
     :func:`_choose_terms`."""
     every = torch.ones(3, dtype=torch.bool, device=view.phase.device)
-    return (_score_folds(models, view, fold, reg, dt, pool, noise_corrected, cycle=cycle),
-            _score_folds(models, view, fold, reg, dt, pool, noise_corrected,
+    return (_score_folds(models, view, fold, reg, dt, pool, noise_corrected, baseline,
+                         cycle=cycle),
+            _score_folds(models, view, fold, reg, dt, pool, noise_corrected, baseline,
                          connection_only=every, cycle=cycle))
 
 
 def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, pool: bool,
-                 noise_corrected: bool, phase_averaged: Tensor | None = None,
+                 noise_corrected: bool, baseline: tuple[int, Tensor],
+                 phase_averaged: Tensor | None = None,
                  connection_only: Tensor | None = None,
                  cycle: Tensor | None = None) -> tuple[Skill, Tensor | None]:
     """:class:`Skill` of ``models[f]`` on block ``f`` of ``view``, summed over the blocks,
@@ -386,13 +504,14 @@ def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, 
     minus that of the phase average and the phase average's own ``(..., C, 3, 2)``, as
     observed: the model's error on the noisy inputs, what a user's held-out data show.
 
+    ``baseline``: the phase average's ``(order, orders)`` (:func:`_baseline_orders`).
     ``phase_averaged``: ``(..., 3)`` components each fold's model predicts by that baseline;
     ``connection_only``: ``(..., 3)`` components whose ``b̂`` and ``∂Â/∂r`` rows it zeroes."""
     sums, gaps = [], []
     n_cycles = None if cycle is None else int(cycle.amax()) + 1
     for f, fold_model in enumerate(models):
         base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
-                                   view.r_dot, view.xi), reg.fourier_order)
+                                   view.r_dot, view.xi), *baseline)
         if phase_averaged is not None or connection_only is not None:
             fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
             base = padded(base, fold_model.c.order)  # the same sums: an exact tie
@@ -801,10 +920,12 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
     coef = blended_held_out(traj, base, model, coef, n_folds, pool=pool, ridges=RIDGE_GRID)
     flat_fold = pool_batch(fold, 0) if pool else fold
     cycles = _cycle_index(unflat.phase, pool)
+    baseline = _baseline_orders(unflat, regression, pool, n_folds)
     out = []
     for k, ridge in enumerate(RIDGE_GRID):
         models = [with_coefficients(model, coef[k, f], order) for f in range(n_folds)]
-        full, conn = _variant_scores(models, view, flat_fold, base, traj.dt, pool, cycles)
+        full, conn = _variant_scores(models, view, flat_fold, base, traj.dt, pool, cycles,
+                                     baseline)
         if bool(full[0].unscored.any()):
             failed.append(f"{n_bins} bins, ridge {ridge:g}: some bins cannot be fitted "
                           f"without one of the {n_folds} blocks of cycles")
