@@ -263,9 +263,8 @@ class ConnectionEstimator:
                     model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
                     regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
-        self.phase_average_ = skill.held_out_phase_average(traj, regression, model,
-                                                           pool=self.pool,
-                                                           n_folds=self._folds())
+        view = skill.regression_view(traj, regression, model, pool=self.pool)
+        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
         if choice is not None and (choice.phase_averaged_names()
                                    or choice.connection_only_names()):
             # components whose shape terms lost to the phase average held out predict it;
