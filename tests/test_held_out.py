@@ -366,11 +366,19 @@ def test_the_refit_after_the_complexity_choice_fits_nothing_twice(eight, monkeyp
             assert calls  # the fresh fit (no cache) fits its metric
 
 
+def _fourier_columns(phase, order):
+    h = torch.arange(1, order + 1, dtype=F64)
+    return torch.cat([torch.ones(phase.shape[0], 1, dtype=F64), torch.stack(
+        [torch.cos(h * phase[:, None]), torch.sin(h * phase[:, None])], -1).flatten(-2)], -1)
+
+
 def test_the_phase_average_takes_each_component_s_order_from_held_out_cycles():
-    """``phase_average_orders`` on made-up velocities over 4 cycles: a second harmonic, noise
-    alone and a fundamental plus a fifth harmonic get orders 2, 0 and 5 (the highest order
-    allowed is 12); ``phase_average`` gives each component its own least-squares series
-    (numpy's lstsq), its higher harmonics 0."""
+    """``phase_average_orders`` on made-up velocities over 4 cycles (blocks of cycles 0-1, 2,
+    3): per component the order of least held-out squared error, refitted by numpy's lstsq
+    without each block; a second harmonic, noise alone and a fundamental plus a fifth
+    harmonic need at least orders 2, 0 and 5 and get far fewer than the 12 allowed.
+    ``phase_average`` gives each component its own least-squares series, its higher
+    harmonics 0."""
     gen = torch.Generator().manual_seed(3)
     n = 4 * SPC
     phase = 2 * math.pi * torch.arange(n, dtype=F64) / SPC + 0.4
@@ -379,13 +387,20 @@ def test_the_phase_average_takes_each_component_s_order_from_held_out_cycles():
                       torch.sin(phase) + 0.3 * torch.cos(5 * phase)], -1) + noise
     view = skill._View(phase, torch.zeros(n, 4, dtype=F64), torch.zeros(n, 4, dtype=F64), xi)
     orders = skill.phase_average_orders(view, 12, pool=False)
-    assert orders.tolist() == [2, 0, 5]
+    fold = (torch.arange(n) // SPC) * 3 // 4
+    sse = torch.zeros(13, 3, dtype=F64)
+    for order in range(13):
+        x = _fourier_columns(phase, order)
+        for f in range(3):
+            out = fold == f
+            coef = np.linalg.lstsq(x[~out].numpy(), xi[~out].numpy(), rcond=None)[0]
+            sse[order] += (xi[out] - x[out] @ torch.from_numpy(coef)).square().sum(0)
+    assert orders.tolist() == sse.argmin(0).tolist()
+    assert orders[0] >= 2 and orders[1] >= 0 and orders[2] >= 5 and bool((orders < 9).all())
     series = skill.phase_average(view, 12, orders)
     assert series.order == 12
     for k, order in enumerate(orders.tolist()):
-        h = torch.arange(1, order + 1, dtype=F64)
-        design = torch.cat([torch.ones(n, 1, dtype=F64), torch.stack(
-            [torch.cos(h * phase[:, None]), torch.sin(h * phase[:, None])], -1).flatten(-2)], -1)
+        design = _fourier_columns(phase, order)
         coef = np.linalg.lstsq(design.numpy(), xi[:, k].numpy(), rcond=None)[0]
         torch.testing.assert_close(series.coeffs[:2 * order + 1, k], torch.from_numpy(coef),
                                    rtol=0, atol=1e-12)
