@@ -231,7 +231,7 @@ def unchecked_choice(held: "Skill | None", regression: Regression, short: Tensor
     ``held`` could not score (:attr:`Skill.unscored`) and that spans few cycles (``short``,
     :func:`few_cycles`) is predicted by the phase average, the simpler model presumed there
     (9-link reference gait, 3 cycles, ω = 0.005: the unchecked 48-bin fit scored R² −0.58 /
-    0.34 / 0.75 on the next 4 cycles, the phase average 0.52 / 0.86 / 0.97). None where no
+    0.34 / 0.75 on the next 4 cycles, the phase average 0.54 / 0.84 / 0.96). None where no
     such element (longer recordings keep the fit; the check warns)."""
     if held is None:
         return None
