@@ -13,7 +13,11 @@ differences of the noisy poses for ``NoiseAwareRegression``):
   each component predicted by the full model, by the connection alone (``ĉ + Âδ̇``,
   ``choice`` ends in ``/A:x,y`` for v_x and v_y) or by the phase average (``/pa:x,y``; such a
   component ties it exactly), whichever clearly wins held out (``skill._choose_terms``);
-- ``phase avg``: the training cycles' phase-averaged velocity (order of the default's series);
+- ``phase avg``: the training cycles' phase-averaged velocity (``score()``'s baseline: per
+  component of the order chosen on held-out blocks, ``skill.phase_average_orders``);
+- ``pa h-o``: a stronger phase average, each component of the order (up to 12) with the least
+  error on held-out blocks of the training cycles (``skill.phase_average_orders``): a series
+  of the model's order overfits 3-6 cycles;
 - ``template``: the default model on the cycle, ``Â(γ)γ̇``;
 - ``exact A``: the swimmer's exact connection applied to the same noisy shapes and shape
   velocities the regression sees -- what a perfect estimate of ``A`` would score against this
@@ -95,6 +99,20 @@ def _exact_r2(est: ConnectionEstimator, test, n_links: int) -> torch.Tensor:
     return (1 - (y - pred).square().nansum(-2) / sst).reshape(-1)
 
 
+def _held_out_order_r2(est: ConnectionEstimator, test) -> torch.Tensor:
+    """R² on the test recording of the training cycles' phase average with each component's
+    order chosen on held-out blocks (:func:`~torchconn.regression.skill.phase_average_orders`,
+    up to order 12), on the samples and target :meth:`ConnectionEstimator.score` uses."""
+    reg, model = est.regression_, est.model_
+    unflat = skill.regression_view(est.trajectory_, reg, model, pool=False, flatten=False)
+    top = max(reg.fourier_order, skill.COMPLEXITY_GRID[-1][1])
+    orders = skill.phase_average_orders(unflat, top, pool=False)
+    base = skill.phase_average(skill.regression_view(est.trajectory_, reg, model, pool=False),
+                               top, orders)
+    view = skill.regression_view(est.prepare(test), reg, model, pool=False)
+    return skill.skill(model, base, view).r2_phase_average.reshape(-1)
+
+
 def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
             with_fixed: bool = True) -> dict:
     traj = recording(n_links, kind, n_cycles, seed, omega)
@@ -116,7 +134,8 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
         out["seconds"] = time.perf_counter() - start
         s = est.score(test)
     out.update(default=s.r2.reshape(-1), phase_avg=s.r2_phase_average.reshape(-1),
-               template=s.r2_template.reshape(-1), exact=_exact_r2(est, test, n_links))
+               template=s.r2_template.reshape(-1), exact=_exact_r2(est, test, n_links),
+               pa_ho=_held_out_order_r2(est, test))
     c = est.complexity_
     out["choice"] = "fixed" if c is None else f"{c.n_bins}/{c.fourier_order}/{c.ridge:g}" + "".join(
         f"/{tag}:" + ",".join(n.removeprefix("v_")[0] for n in names)
@@ -147,8 +166,10 @@ def table(args) -> int:
     print(f"train n cycles, test the next {TEST_CYCLES}; R² per component "
           f"({', '.join(COMPONENTS)}); default < phase avg (where phase avg > 0) marked *")
     print(f"{'links':>5} {'gait':>9} {'n':>2} {'seed':>4} | {'fixed':^20} | {'default':^20} | "
-          f"{'phase avg':^20} | {'template':^20} | {'exact A':^20} | choice     warn  s/fit")
+          f"{'phase avg':^20} | {'pa h-o':^20} | {'template':^20} | {'exact A':^20} | "
+          "choice     warn  s/fit")
     wins, ties, losses = ([[] for _ in COMPONENTS] for _ in range(3))
+    ho_losses = [[] for _ in COMPONENTS]  # against the held-out-order phase average
     refused = 0
     for n_links in args.links:
         for kind in args.gaits:
@@ -169,9 +190,13 @@ def table(args) -> int:
                         if pa[k] > 0:
                             gap = float(r["default"][k] - pa[k])
                             (wins if gap > 0 else ties if gap == 0 else losses)[k].append(gap)
+                        ho = float(r["default"][k] - r["pa_ho"][k])
+                        if r["pa_ho"][k] > 0 and ho < 0:
+                            ho_losses[k].append(-ho)
 
                     print(f"{n_links:>5} {kind:>9} {n:>2} {seed:>4} | {_fmt(r['fixed'])}| "
-                          f"{_fmt(r['default'], bad)}| {_fmt(pa)}| {_fmt(r['template'])}| "
+                          f"{_fmt(r['default'], bad)}| {_fmt(pa)}| {_fmt(r['pa_ho'])}| "
+                          f"{_fmt(r['template'])}| "
                           f"{_fmt(r['exact'])}| {r['choice']:10s} {'yes' if r['warned'] else 'no':4s}"
                           f" {r['seconds']:5.2f}", flush=True)
     print("default against the phase average, where its R² > 0 (tie: the component is "
@@ -187,6 +212,11 @@ def table(args) -> int:
     n_all = n_loss + sum(map(len, wins)) + sum(map(len, ties))
     print(f"default worse than the phase average in {n_loss} of {n_all} components with a "
           f"phase-average R² > 0; {refused} recording(s) refused by the default fit")
+    short = [g for k in ho_losses for g in k]
+    print(f"default worse than the held-out-order phase average ('pa h-o', where its R² > 0) "
+          f"in {len(short)} components (v_x / v_y / ω: "
+          f"{' / '.join(str(len(k)) for k in ho_losses)}; largest {max(short, default=0):.4f}, "
+          f"median {np.median(short) if short else 0:.4f})")
     return 0
 
 

@@ -113,6 +113,7 @@ def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tm
     # the per-component choice: fit.json, the model's meta and the printout agree
     chosen = json.loads((out / "fit.json").read_text())["complexity"]
     assert chosen["components"] == ["v_x", "v_y", "omega"]
+    assert chosen["checked"] is True  # chosen by held-out error
     fallback = chosen["phase_averaged"]
     assert len(fallback) == 3 and all(isinstance(x, bool) for x in fallback)
     assert model.meta.get("phase_averaged", [False] * 3) == fallback

@@ -270,6 +270,7 @@ def main(argv: list[str] | None = None) -> int:
                            {"n_bins": est.complexity_.n_bins,
                             "fourier_order": est.complexity_.fourier_order,
                             "ridge": est.complexity_.ridge,
+                            "checked": est.complexity_.checked,
                             "components": list(COMPONENTS),
                             "phase_averaged": _nested_list(est.complexity_.phase_averaged),
                             "connection_only": _nested_list(
@@ -290,9 +291,16 @@ def main(argv: list[str] | None = None) -> int:
                   "metric.png)")
         if est.complexity_ is not None:
             c = est.complexity_
-            print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
-                  f"{c.fourier_order}, ridge {c.ridge:g}")
-            if c.phase_averaged_names():
+            if not c.checked:
+                print(f"complexity as given ({c.n_bins} bins, Fourier order "
+                      f"{c.fourier_order}, ridge {c.ridge:g}): no held-out check can score it "
+                      "or a simpler one on this short recording, so "
+                      f"{', '.join(c.phase_averaged_names())} are predicted by the "
+                      "phase-averaged velocity (rows of A, b and dA/dr 0, not estimated)")
+            else:
+                print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
+                      f"{c.fourier_order}, ridge {c.ridge:g}")
+            if c.checked and c.phase_averaged_names():
                 print("predicted by the phase-averaged velocity (the shape terms did not beat "
                       "it on held-out cycles; their rows of A, b and dA/dr are 0, not "
                       f"estimated): {', '.join(c.phase_averaged_names())}")

@@ -254,7 +254,11 @@ class ConnectionEstimator:
                 except ValueError:
                     if model is None:
                         raise
-                    # no candidate fits 2 of 3 blocks: keep the given one (the check warns)
+                    # no candidate fits 2 of 3 blocks: keep the given one (the check warns);
+                    # on few cycles, where the check cannot score it, the simpler model is
+                    # presumed (as skill._choose_terms does) and it predicts the phase average
+                    choice = skill.unchecked_choice(held, regression,
+                                                    skill.few_cycles(traj.phase, self.pool))
                 else:
                     model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
                     regression = chosen
