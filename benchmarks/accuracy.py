@@ -155,6 +155,7 @@ METHODS = {
     "uncorrected_bias": NoiseAwareRegression(bias_correction=False),
     "untied": NoiseAwareRegression(tie_derivative=False),
     "no_bias_allowance": NoiseAwareRegression(derivative_bias_allowance=False),
+    "no_joint": NoiseAwareRegression(joint_covariance=False),
     "noise_aware_cv": NoiseAwareRegression(),  # bins, order, ridge by select_complexity
 }
 

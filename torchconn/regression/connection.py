@@ -47,6 +47,12 @@ class ConnectionFit:
             (:func:`~torchconn.regression.tie_connection_derivative`), the direct ``δ̇⊗δ``
             estimate it replaced: the coefficient fitted beside ``c, b, A``, which predictions
             use; None otherwise.
+        cov_b_dA: ``(..., M, 3, d + d², d + d²)`` where known, the joint covariance of each
+            output row's ``(b̂[k, :], ∂Â/∂r[k] flattened (i, j))`` from the bin's one regression
+            (the noise-aware one's robust sandwich,
+            :func:`~torchconn.regression.noise_aware.noise_aware_regression`), which
+            :func:`~torchconn.regression.tie_connection_derivative` weighs them by; None
+            otherwise (the two taken as independent, with variances ``se_b², se_dA²``).
     """
 
     c: Tensor
@@ -65,6 +71,7 @@ class ConnectionFit:
     se_coef: Tensor
     eiv_scale: Tensor | None = None
     dA_direct: Tensor | None = None
+    cov_b_dA: Tensor | None = None
 
 
 def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:

@@ -760,6 +760,45 @@ def eiv_correction(gram: Tensor, var_delta: Tensor, var_rate: Tensor) -> Tensor:
     return out
 
 
+def eiv_row_correction(xw: Tensor, beta: Tensor, var_delta: Tensor, var_rate: Tensor
+                       ) -> Tensor:
+    """Each row's share of :func:`eiv_correction` times the coefficients: ``C(w x̃x̃ᵀ) β``
+    ``(b, n, K, P)`` for the rows ``xw = √w [1, δ̃, δ̇̃, δ̇̃⊗δ̃] (b, n, P)`` and coefficients
+    ``beta = [c, b, A, D] (b, P, K)`` (``D[i, j]`` on column ``δ̇_i δ_j``); summed over the
+    rows, :func:`eiv_correction` of the bin's ``XᵀWX`` times ``β``. With ``u = √w``,
+    ``ũ = u δ̃``, ``ṽ = u δ̇̃``::
+
+        δ_k        σ²_b,k (u² b_k + u Σ_i ṽ_i D_ik)
+        δ̇_k        σ²_a,k (u² A_k + u Σ_j ũ_j D_kj)
+        δ̇_i δ_j   u ṽ_i σ²_b,j b_j + u ũ_j σ²_a,i A_i + σ²_b,j ṽ_i Σ_k ṽ_k D_kj
+                   + σ²_a,i ũ_j Σ_l ũ_l D_il − u² σ²_a,i σ²_b,j D_ij
+
+    Args:
+        xw: ``(b, n, P)``; beta: ``(b, P, K)``; var_delta, var_rate: ``(b, d)`` as in
+            :func:`eiv_correction`.
+    """
+    d = var_delta.shape[-1]
+    u = xw[..., :1]  # (b, n, 1)
+    ud, ur = xw[..., 1:1 + d], xw[..., 1 + d:1 + 2 * d]
+    b_, a_ = beta[:, 1:1 + d], beta[:, 1 + d:1 + 2 * d]  # (b, d, K)
+    dd = beta[:, 1 + 2 * d:].unflatten(1, (d, d))  # (b, i, j, K)
+    sb, sa = var_delta[:, None, :, None], var_rate[:, None, :, None]  # (b, 1, d, 1)
+    u2 = u.square().unsqueeze(-1)  # (b, n, 1, 1)
+    uk = u.unsqueeze(-1)
+    rate_d = torch.einsum("bni,bijk->bnjk", ur, dd)  # Σ_i ṽ_i D_ij: (b, n, j, K)
+    delta_d = torch.einsum("bnj,bijk->bnik", ud, dd)  # Σ_j ũ_j D_ij: (b, n, i, K)
+    row_delta = sb * (u2 * b_.unsqueeze(1) + uk * rate_d)  # (b, n, d, K)
+    row_rate = sa * (u2 * a_.unsqueeze(1) + uk * delta_d)
+    sb_j, sa_i = var_delta[:, None, None, :, None], var_rate[:, None, :, None, None]
+    ur_i, ud_j = ur[..., :, None, None], ud[..., None, :, None]  # (b, n, i, 1, 1), (b, n, 1, j, 1)
+    row_z = (uk.unsqueeze(-1) * (ur_i * sb_j * b_[:, None, None] + ud_j * sa_i * a_[:, None, :, None])
+             + sb_j * ur_i * rate_d.unsqueeze(2) + sa_i * ud_j * delta_d.unsqueeze(3)
+             - u2.unsqueeze(-1) * sa_i * sb_j * dd.unsqueeze(1))  # (b, n, i, j, K)
+    out = torch.cat([torch.zeros_like(row_delta[..., :1, :]), row_delta, row_rate,
+                     row_z.flatten(2, 3)], -2)  # (b, n, P, K)
+    return out.mT
+
+
 def noise_aware_regression(
     samples: IntervalSamples,
     bins: BinIndex,
@@ -770,6 +809,7 @@ def noise_aware_regression(
     delta_max: float | None = None,
     ridge: float = 0.0,
     on_ill_conditioned: str = "raise",
+    joint_covariance: bool = False,
 ) -> ConnectionFit:
     """Per-bin ``ξ ≈ c + bδ + Aδ̇ + ∂A/∂r (δ̇⊗δ)`` on interval samples, noise-corrected.
 
@@ -781,6 +821,11 @@ def noise_aware_regression(
             to the batch), e.g. :func:`estimate_noise`'s ``measurement²``.
         delta_max, ridge, on_ill_conditioned: as in
             :func:`~torchconn.regression.connection_regression`.
+        joint_covariance: also the joint covariance of ``b̂`` and the direct ``∂Â/∂r``
+            (``cov_b_dA``, for the tie) from the rows' own scores
+            (:func:`~torchconn.regression._wls.score_covariance`, with the correction's rows,
+            :func:`eiv_row_correction`, and rows up to ``h`` samples apart correlated); the
+            fit's other fields are the same bit for bit.
 
     Returns:
         :class:`~torchconn.regression.ConnectionFit`. The standard errors are the solver's
@@ -810,9 +855,19 @@ def noise_aware_regression(
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge, min_samples=None,
                      max_condition=None, on_ill_conditioned=on_ill_conditioned,
                      correction=correction)
+    cov = None
+    if joint_covariance:
+        def row_correction(xw: Tensor, beta: Tensor, sel) -> Tensor:
+            return eiv_row_correction(xw, beta, var_delta[sel], var_rate[sel])
+
+        columns = torch.cat([torch.arange(1, 1 + d), torch.arange(1 + 2 * d, p)])
+        cov = _wls.score_covariance(s, _blocks, sol, columns.to(s.r.device), lags=samples.h,
+                                    delta_max=delta_max, correction=correction,
+                                    row_correction=row_correction)
+        cov = cov.reshape(s.batch_shape + (m,) + cov.shape[1:])
     kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
     sol = dataclasses.replace(sol, se=sol.se * kappa.sqrt()).unflatten(s.batch_shape, m)
-    return _connection_fit(sol, d)
+    return dataclasses.replace(_connection_fit(sol, d), cov_b_dA=cov)
 
 
 @dataclass(frozen=True)
@@ -1172,9 +1227,14 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
     bias = _DerivativeBias(fit, samples, bins, gamma_m, gamma_dot_m, order=order, pool=pool,
                            offsets=one, opts=opts)(first)
     bias = tuple(torch.where(torch.isfinite(x), x, 0.0) for x in bias)
+    cov = fit.cov_b_dA
+    if cov is not None:  # the bias's share on the joint covariance's diagonal
+        cov = cov + torch.diag_embed(_RESIDUAL_BIAS_FRACTION * torch.cat(
+            [bias[1], bias[0].flatten(-2)], -1).square())
     widened = dataclasses.replace(
         fit, se_dA=(fit.se_dA.square() + _RESIDUAL_BIAS_FRACTION * bias[0].square()).sqrt(),
-        se_b=(fit.se_b.square() + _RESIDUAL_BIAS_FRACTION * bias[1].square()).sqrt())
+        se_b=(fit.se_b.square() + _RESIDUAL_BIAS_FRACTION * bias[1].square()).sqrt(),
+        cov_b_dA=cov)
     tied = tie_connection_derivative(widened, gamma_m, gamma_dot_m, **tie)
     return dataclasses.replace(fit, dA=tied.dA, se_dA=tied.se_dA), bias
 
@@ -1273,6 +1333,7 @@ class _Chosen:
     view: IntervalSamples | None = None
     offsets: _OneSampleOffsets | None = None
     noise_free: bool = False
+    noise_var: Tensor | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -1364,6 +1425,7 @@ class NoiseAwareRegression(TubeRegression):
     tie_derivative: bool = True  # (TubeRegression's field, on here)
     derivative_bias_allowance: bool = True
     resolved_harmonics: bool = True
+    joint_covariance: bool = True
 
     def _corrected_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """Unpooled batch elements may carry different noise (a sweep's noise levels), so each
@@ -1378,7 +1440,8 @@ class NoiseAwareRegression(TubeRegression):
                     "noise_ratio": float(ratio), "noise_r": var.sqrt().tolist(),
                     "interval_window_scores": scores, "interval_window_bounds": skipped}
             return fit, window, meta, _Chosen(window, view, offsets,
-                                              noise_free=not bool((var > 0).any()))
+                                              noise_free=not bool((var > 0).any()),
+                                              noise_var=var)
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
         flat = _flatten_batch(traj)
@@ -1603,6 +1666,8 @@ class NoiseAwareRegression(TubeRegression):
         ``∂Â/∂r`` tied (:meth:`_tied`)."""
         fit, window, meta, chosen = self._corrected_fit(traj, pool, samples, gamma_m,
                                                         gamma_dot_m, opts, bins_for)
+        if self.tie_derivative and self.joint_covariance and chosen.view is not None:
+            fit = self._with_joint_covariance(fit, chosen, gamma_m, gamma_dot_m, opts)
         if self.shrink_to_smoothed:
             tube, _, _ = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
             fit, weights = blend_fits(tube, fit)
@@ -1611,8 +1676,22 @@ class NoiseAwareRegression(TubeRegression):
             # the direct estimate stays the coefficient the model predicts with (dA_fit)
             tied, meta["derivative"] = self._tied(fit, traj, chosen, gamma_m, gamma_dot_m,
                                                   opts)
-            fit = dataclasses.replace(tied, dA_direct=fit.dA)
+            fit = dataclasses.replace(tied, dA_direct=fit.dA, cov_b_dA=None)
         return fit, window, meta
+
+    def _with_joint_covariance(self, fit: ConnectionFit, chosen: _Chosen, gamma_m: Tensor,
+                               gamma_dot_m: Tensor, opts: dict) -> ConnectionFit:
+        """``fit`` (a pooled corrected fit) with ``cov_b_dA``: the chosen candidate's
+        regression run again with its joint covariance (:func:`noise_aware_regression`),
+        scaled to ``fit``'s standard errors of ``b̂`` and ``∂Â/∂r`` where the regression's
+        own differ (``fit``'s own otherwise), keeping the robust sandwich's correlations and
+        its ratio to the solver's variances."""
+        bins = assign_bins(chosen.view.phase, self.n_bins, window=chosen.windows,
+                           kernel=self.kernel)
+        raw = noise_aware_regression(chosen.view, bins, gamma_m, gamma_dot_m, chosen.noise_var,
+                                     joint_covariance=True, **opts)
+        return dataclasses.replace(fit, cov_b_dA=_rescaled_covariance(
+            raw.cov_b_dA, (raw.se_b, raw.se_dA), (fit.se_b, fit.se_dA)))
 
     def _tied(self, fit: ConnectionFit, traj: Trajectory, chosen: _Chosen, gamma_m: Tensor,
               gamma_dot_m: Tensor, opts: dict) -> tuple[ConnectionFit, str]:
@@ -1757,7 +1836,23 @@ def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
         out[name] = est_s + wx * (est_c - est_s)
         out["se_" + name] = (1 - wx) * se_s + wx * se_c
         weights.append(w)
-    return dataclasses.replace(corrected, **out), torch.stack(weights, -1)
+    cov = corrected.cov_b_dA
+    if cov is not None:
+        cov = _rescaled_covariance(cov, (corrected.se_b, corrected.se_dA),
+                                   (out["se_b"], out["se_dA"]))
+    return dataclasses.replace(corrected, **out, cov_b_dA=cov), torch.stack(weights, -1)
+
+
+def _rescaled_covariance(cov: Tensor, se_from: tuple[Tensor, Tensor],
+                         se_to: tuple[Tensor, Tensor]) -> Tensor:
+    """The joint covariance ``cov (..., M, 3, c, c)`` of ``(b̂, ∂Â/∂r)`` (``ConnectionFit.
+    cov_b_dA``) rescaled from the standard errors ``se_from`` to ``se_to`` (pairs ``(se_b
+    (..., M, 3, d), se_dA (..., M, 3, d, d))``): entry ``(p, q)`` times ``(to_p/from_p)
+    (to_q/from_q)`` (1 where ``from`` is 0 or not finite)."""
+    old = torch.cat([se_from[0], se_from[1].flatten(-2)], -1)
+    new = torch.cat([se_to[0], se_to[1].flatten(-2)], -1)
+    ratio = torch.where(torch.isfinite(old) & (old > 0), new / old.clamp_min(1e-300), 1.0)
+    return cov * ratio.unsqueeze(-1) * ratio.unsqueeze(-2)
 
 
 def noise_ratio(var: Tensor, process_var: Tensor) -> Tensor:

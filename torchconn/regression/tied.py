@@ -96,6 +96,28 @@ def _coarse(x: Tensor) -> Tensor:
                        exponent.to(x.dtype))
 
 
+def _joint_weights(cov: Tensor | None, w_b: Tensor, w_d: Tensor, b: Tensor, direct: Tensor
+                   ) -> tuple[Tensor, Tensor] | None:
+    """The weight matrix ``W (..., M, 3, c, c)`` (``c = d + d²``) of each bin and row's
+    ``(b̂, direct ∂Â/∂r)`` and those observations ``(..., M, 3, c)``: the inverse of their
+    joint covariance ``cov`` (rounded to :data:`_WEIGHT_BITS` first, as the weights are, so
+    an unpooled element's is its own bit for bit), or where it is not finite or not
+    positive definite the independent weights ``w_b, w_d`` on the diagonal. None without
+    ``cov``."""
+    if cov is None:
+        return None
+    diagonal = torch.diag_embed(torch.cat([w_b, w_d.flatten(-2)], -1))
+    observed = torch.cat([b, direct.flatten(-2)], -1)
+    finite = torch.isfinite(cov).all(-1).all(-1) & (diagonal.diagonal(0, -2, -1) > 0).all(-1)
+    cov = torch.where(finite[..., None, None], _coarse(cov), diagonal.new_ones(()).expand(
+        cov.shape[-1:]).diag_embed())
+    chol, info = torch.linalg.cholesky_ex(cov)
+    good = (finite & (info == 0))[..., None, None]
+    inverse = torch.cholesky_inverse(torch.where(good, chol, torch.eye(
+        cov.shape[-1], dtype=cov.dtype, device=cov.device)))
+    return torch.where(good, inverse, diagonal), observed
+
+
 def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: Tensor,
                               order: int, *, window: float | Tensor, kernel: str,
                               consistency: bool = True) -> ConnectionFit:
@@ -169,12 +191,28 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     along = tangent.unsqueeze(-2)
     v_i, v_l = gamma_dot_m[..., None, :, None, None, None], gamma_dot_m[..., None, None, None, :, None]
     t_j, t_q = tangent[..., None, None, :, None, None], tangent[..., None, None, None, None, :]
-    normal = (torch.diag_embed(w_d.flatten(-2)).unflatten(-1, (d, d)).unflatten(-3, (d, d))
-              + w_b[..., None, :, None, None] * (v_i * v_l) * eye[:, None, :]
-              + w_s[..., None, None, None] * (t_j * t_q) * eye[:, None, :, None]
-              ).flatten(-4, -3).flatten(-2)  # (..., M, 3, d², d²)
-    rhs = ((w_d * direct) + (w_b * b).unsqueeze(-2) * velocity.unsqueeze(-1)
-           + (w_s * slope).unsqueeze(-1) * along.unsqueeze(-2)).flatten(-2)
+    slope_normal = (w_s[..., None, None, None] * (t_j * t_q) * eye[:, None, :, None]
+                    ).flatten(-4, -3).flatten(-2)  # (..., M, 3, d², d²)
+    slope_rhs = ((w_s * slope).unsqueeze(-1) * along.unsqueeze(-2)).flatten(-2)
+    joint = _joint_weights(fit.cov_b_dA, w_b, w_d, b, direct)
+    if joint is None:
+        normal = (torch.diag_embed(w_d.flatten(-2)).unflatten(-1, (d, d)).unflatten(-3, (d, d))
+                  + w_b[..., None, :, None, None] * (v_i * v_l) * eye[:, None, :]
+                  ).flatten(-4, -3).flatten(-2) + slope_normal
+        rhs = ((w_d * direct) + (w_b * b).unsqueeze(-2) * velocity.unsqueeze(-1)
+               ).flatten(-2) + slope_rhs
+    else:
+        # (b, vec D) = H vec D with H = [γ̇ᵀ ⊗ I (on the velocity index); I], weighed by
+        # the inverse of their joint covariance W: HᵀWH and HᵀW (b, vec D)
+        weight, observed = joint
+        design = torch.cat([(gamma_dot_m[..., :, None, None] * eye).flatten(-3, -2)
+                            .transpose(-1, -2),
+                            torch.eye(d * d, **opts).expand(gamma_dot_m.shape[:-1]
+                                                             + (d * d, d * d))], -2)
+        design = design.unsqueeze(-3)  # (..., M, 1, d + d², d²)
+        w_h = (weight.unsqueeze(-1) * design.unsqueeze(-3)).sum(-2)  # (..., M, 3, c, d²)
+        normal = (design.unsqueeze(-1) * w_h.unsqueeze(-2)).sum(-3) + slope_normal
+        rhs = (w_h * observed.unsqueeze(-1)).sum(-2) + slope_rhs
     chol, info = torch.linalg.cholesky_ex(normal)
     good = (info == 0).unsqueeze(-1)
     safe = torch.where(good.unsqueeze(-1), chol, torch.eye(d * d, **opts))
@@ -183,9 +221,14 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     if consistency:
         # χ² of the three sources about the tied solution, against its degrees of freedom
         fitted = torch.where(good, solution, 0.0).unflatten(-1, (d, d))
-        chi2 = ((w_d * (direct - fitted).square()).flatten(-2).sum(-1)
-                + (w_b * (b - (fitted * velocity.unsqueeze(-1)).sum(-2)).square()).sum(-1)
-                + (w_s * (slope - (fitted * along.unsqueeze(-2)).sum(-1)).square()).sum(-1))
+        res_b = b - (fitted * velocity.unsqueeze(-1)).sum(-2)
+        if joint is None:
+            chi2 = ((w_d * (direct - fitted).square()).flatten(-2).sum(-1)
+                    + (w_b * res_b.square()).sum(-1))
+        else:
+            res = torch.cat([res_b, (direct - fitted).flatten(-2)], -1)
+            chi2 = (res.unsqueeze(-1) * weight * res.unsqueeze(-2)).sum((-2, -1))
+        chi2 = chi2 + (w_s * (slope - (fitted * along.unsqueeze(-2)).sum(-1)).square()).sum(-1)
         n_obs = (w_d > 0).flatten(-2).sum(-1) + (w_b > 0).sum(-1) + (w_s > 0).sum(-1)
         dof = (n_obs - d * d).clamp_min(0).sum((-2, -1))
         ratio = torch.where(dof > 0, chi2.sum((-2, -1)) / dof.clamp_min(1), 1.0)
