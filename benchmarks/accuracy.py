@@ -155,7 +155,8 @@ METHODS = {
     "uncorrected_bias": NoiseAwareRegression(bias_correction=False),
     "untied": NoiseAwareRegression(tie_derivative=False),
     "no_bias_allowance": NoiseAwareRegression(derivative_bias_allowance=False),
-    "no_joint": NoiseAwareRegression(joint_covariance=False),
+    "independent": NoiseAwareRegression(joint_covariance=None),
+    "robust_joint": NoiseAwareRegression(joint_covariance="robust"),
     "noise_aware_cv": NoiseAwareRegression(),  # bins, order, ridge by select_complexity
 }
 

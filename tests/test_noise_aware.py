@@ -1279,3 +1279,25 @@ def test_a_pooled_fits_series_shrinks_the_harmonics_near_the_bins_noise(clean30)
     factors = on.model_.meta["A_harmonic_factors"]
     assert len(factors) == 13 and factors[0] == 1 and min(factors) < 0.5, factors
     assert _errors(on)[0] < _errors(off)[0], (_errors(on), _errors(off))
+
+
+def test_eiv_row_correction_sums_to_the_bins_correction_times_the_coefficients():
+    # The robust covariance's scores carry each row's share of the errors-in-variables
+    # correction: linear in the row's Gram matrix, so over a bin's rows they must sum to
+    # eiv_correction(XᵀWX) β exactly (any d, any weights).
+    from torchconn.regression.connection import connection_design
+    from torchconn.regression.noise_aware import eiv_correction, eiv_row_correction
+
+    gen = torch.Generator().manual_seed(3)
+    for d in (2, 4):
+        delta = torch.randn(5, 40, d, generator=gen, dtype=F64)
+        delta_dot = torch.randn(5, 40, d, generator=gen, dtype=F64)
+        w = torch.rand(5, 40, generator=gen, dtype=F64)
+        xw = connection_design(delta, delta_dot) * w.sqrt().unsqueeze(-1)
+        p = xw.shape[-1]
+        beta = torch.randn(5, p, 3, generator=gen, dtype=F64)
+        var_delta = torch.rand(5, d, generator=gen, dtype=F64)
+        var_rate = torch.rand(5, d, generator=gen, dtype=F64)
+        rows = eiv_row_correction(xw, beta, var_delta, var_rate)  # (b, n, K, P)
+        whole = eiv_correction(xw.mT @ xw, var_delta, var_rate) @ beta  # (b, P, K)
+        torch.testing.assert_close(rows.sum(1).mT, whole, rtol=1e-12, atol=1e-10)

@@ -398,6 +398,34 @@ def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: T
     return torch.cat(out)
 
 
+def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, columns: Tensor, *,
+                         delta_max=None, correction: Correction | None = None) -> Tensor:
+    """Correlation ``(B·M, c, c)`` of the coefficients ``columns (c,)`` of every bin of a
+    :func:`solve` result ``sol``, from the sandwich whose diagonal gives its standard errors:
+    ``A⁻¹ (XᵀW²X) A⁻¹`` (``A`` the normal matrix, corrected and with the ridge as :func:`solve`
+    makes it; its residual variance, common to the coefficients, cancels). NaN where the bin's
+    coefficients are NaN."""
+    p = sol.coef.shape[-2]
+    total, n_max = s.rows.shape
+    out = []
+    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 2):
+        xy, w = _chunk_design(s, sel, design, delta_max)
+        xw = xy[..., :p]
+        gram = xw.mT @ xw
+        if correction is not None:
+            gram, _ = _guarded_correction(gram.clone(), correction(gram, sel))
+        chol, _, _, _ = ridge_cholesky(gram, sol.ridge[sel])
+        a_inv = torch.cholesky_inverse(chol)[..., columns]  # (b, P, c)
+        xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w: XᵀW²X
+        half = xww @ a_inv  # (b, n, c)
+        cov = half.mT @ half
+        sd = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+        corr = cov / (sd.unsqueeze(-1) * sd.unsqueeze(-2))
+        bad = ~torch.isfinite(sol.coef[sel]).all(-2).all(-1)
+        out.append(torch.where(bad[:, None, None], torch.nan, corr))
+    return torch.cat(out)
+
+
 def _row_sum(x: Tensor, dim: int) -> Tensor:
     """Sum over the bins' padded rows in sample order (a running sum): trailing zero rows leave
     it unchanged, so a bin's sum does not depend on how far the batch pads its rows (torch's

@@ -809,7 +809,7 @@ def noise_aware_regression(
     delta_max: float | None = None,
     ridge: float = 0.0,
     on_ill_conditioned: str = "raise",
-    joint_covariance: bool = False,
+    joint_covariance: Literal["solver", "robust"] | None = None,
 ) -> ConnectionFit:
     """Per-bin ``ξ ≈ c + bδ + Aδ̇ + ∂A/∂r (δ̇⊗δ)`` on interval samples, noise-corrected.
 
@@ -821,11 +821,14 @@ def noise_aware_regression(
             to the batch), e.g. :func:`estimate_noise`'s ``measurement²``.
         delta_max, ridge, on_ill_conditioned: as in
             :func:`~torchconn.regression.connection_regression`.
-        joint_covariance: also the joint covariance of ``b̂`` and the direct ``∂Â/∂r``
-            (``cov_b_dA``, for the tie) from the rows' own scores
-            (:func:`~torchconn.regression._wls.score_covariance`, with the correction's rows,
-            :func:`eiv_row_correction`, and rows up to ``h`` samples apart correlated); the
-            fit's other fields are the same bit for bit.
+        joint_covariance: also the joint covariance of each bin's ``b̂`` and direct
+            ``∂Â/∂r`` (``cov_b_dA``, for the tie): ``"solver"`` the sandwich whose diagonal
+            gives the standard errors (:func:`~torchconn.regression._wls.sandwich_correlation`
+            times them, overlap inflation included); ``"robust"`` from the rows' own scores
+            (:func:`~torchconn.regression._wls.score_covariance`: heteroscedastic, with the
+            correction's share of each row, :func:`eiv_row_correction`, and rows up to ``h``
+            samples apart correlated; no overlap inflation, which it replaces). The fit's
+            other fields are the same bit for bit.
 
     Returns:
         :class:`~torchconn.regression.ConnectionFit`. The standard errors are the solver's
@@ -855,15 +858,25 @@ def noise_aware_regression(
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge, min_samples=None,
                      max_condition=None, on_ill_conditioned=on_ill_conditioned,
                      correction=correction)
+    kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
     cov = None
-    if joint_covariance:
-        def row_correction(xw: Tensor, beta: Tensor, sel) -> Tensor:
-            return eiv_row_correction(xw, beta, var_delta[sel], var_rate[sel])
+    if joint_covariance is not None:
+        columns = torch.cat([torch.arange(1, 1 + d), torch.arange(1 + 2 * d, p)]).to(s.r.device)
+        if joint_covariance == "solver":
+            corr = _wls.sandwich_correlation(s, _blocks, sol, columns, delta_max=delta_max,
+                                             correction=correction)
+            se = (sol.se * kappa.sqrt())[:, columns].mT  # (B·M, K, c)
+            cov = corr.unsqueeze(1) * (se.unsqueeze(-1) * se.unsqueeze(-2))
+        elif joint_covariance == "robust":
+            def row_correction(xw: Tensor, beta: Tensor, sel) -> Tensor:
+                return eiv_row_correction(xw, beta, var_delta[sel], var_rate[sel])
 
-        columns = torch.cat([torch.arange(1, 1 + d), torch.arange(1 + 2 * d, p)])
-        cov = _wls.score_covariance(s, _blocks, sol, columns.to(s.r.device), lags=samples.h,
-                                    delta_max=delta_max, correction=correction,
-                                    row_correction=row_correction)
+            cov = _wls.score_covariance(s, _blocks, sol, columns, lags=samples.h,
+                                        delta_max=delta_max, correction=correction,
+                                        row_correction=row_correction)
+        else:
+            raise ValueError(f"{fn}: joint_covariance must be None, 'solver' or 'robust', got "
+                             f"{joint_covariance!r}")
         cov = cov.reshape(s.batch_shape + (m,) + cov.shape[1:])
     kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
     sol = dataclasses.replace(sol, se=sol.se * kappa.sqrt()).unflatten(s.batch_shape, m)
@@ -1425,7 +1438,7 @@ class NoiseAwareRegression(TubeRegression):
     tie_derivative: bool = True  # (TubeRegression's field, on here)
     derivative_bias_allowance: bool = True
     resolved_harmonics: bool = True
-    joint_covariance: bool = True
+    joint_covariance: Literal["solver", "robust"] | None = "solver"
 
     def _corrected_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """Unpooled batch elements may carry different noise (a sweep's noise levels), so each
@@ -1442,6 +1455,8 @@ class NoiseAwareRegression(TubeRegression):
             return fit, window, meta, _Chosen(window, view, offsets,
                                               noise_free=not bool((var > 0).any()),
                                               noise_var=var)
+        if self.tie_derivative and self.joint_covariance:  # b̂ and ∂Â/∂r's, for the tie
+            opts = {**opts, "joint_covariance": self.joint_covariance}
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
         flat = _flatten_batch(traj)
@@ -1667,6 +1682,7 @@ class NoiseAwareRegression(TubeRegression):
         fit, window, meta, chosen = self._corrected_fit(traj, pool, samples, gamma_m,
                                                         gamma_dot_m, opts, bins_for)
         if self.tie_derivative and self.joint_covariance and chosen.view is not None:
+            # (unpooled elements got theirs with their regressions)
             fit = self._with_joint_covariance(fit, chosen, gamma_m, gamma_dot_m, opts)
         if self.shrink_to_smoothed:
             tube, _, _ = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
@@ -1682,14 +1698,13 @@ class NoiseAwareRegression(TubeRegression):
     def _with_joint_covariance(self, fit: ConnectionFit, chosen: _Chosen, gamma_m: Tensor,
                                gamma_dot_m: Tensor, opts: dict) -> ConnectionFit:
         """``fit`` (a pooled corrected fit) with ``cov_b_dA``: the chosen candidate's
-        regression run again with its joint covariance (:func:`noise_aware_regression`),
-        scaled to ``fit``'s standard errors of ``b̂`` and ``∂Â/∂r`` where the regression's
-        own differ (``fit``'s own otherwise), keeping the robust sandwich's correlations and
-        its ratio to the solver's variances."""
+        regression run again for its joint covariance (:func:`noise_aware_regression`),
+        scaled from that regression's standard errors to ``fit``'s (which the bias correction
+        of ``Â`` leaves as they are)."""
         bins = assign_bins(chosen.view.phase, self.n_bins, window=chosen.windows,
                            kernel=self.kernel)
         raw = noise_aware_regression(chosen.view, bins, gamma_m, gamma_dot_m, chosen.noise_var,
-                                     joint_covariance=True, **opts)
+                                     joint_covariance=self.joint_covariance, **opts)
         return dataclasses.replace(fit, cov_b_dA=_rescaled_covariance(
             raw.cov_b_dA, (raw.se_b, raw.se_dA), (fit.se_b, fit.se_dA)))
 
