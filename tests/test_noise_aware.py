@@ -1,6 +1,7 @@
 """Noise-aware connection regression: noise estimates, the errors-in-variables correction, the
 attenuation bias it removes, and its convergence with data."""
 
+import dataclasses
 import math
 import warnings
 
@@ -1301,3 +1302,45 @@ def test_eiv_row_correction_sums_to_the_bins_correction_times_the_coefficients()
         rows = eiv_row_correction(xw, beta, var_delta, var_rate)  # (b, n, K, P)
         whole = eiv_correction(xw.mT @ xw, var_delta, var_rate) @ beta  # (b, P, K)
         torch.testing.assert_close(rows.sum(1).mT, whole, rtol=1e-12, atol=1e-10)
+
+
+def test_tied_derivative_weighs_b_and_the_direct_estimate_by_their_joint_covariance():
+    # b̂ and the direct ∂Â/∂r come from one regression, so their errors are correlated (the
+    # solver's sandwich gives |ρ| of 0.3-0.5 on real bins). With errors drawn from a known
+    # joint covariance (the inverse normal matrix of a design of correlated columns) the tie
+    # given that covariance (cov_b_dA) must have honest bands over 200 records, squared error
+    # over squared standard error within 0.85-1.15 (its sampling spread is ~3 %), and an error
+    # no larger than the tie that takes the two as independent, whose ratio falls outside.
+    from torchconn.regression.noise_aware import tie_connection_derivative
+
+    gen = torch.Generator().manual_seed(8)
+    n_rec, d = 200, 2
+    gamma, tangent, a, d_true, b_true, a_err, a_se = _tie_inputs(gen, n_rec)
+    c = d + d * d
+    mix = torch.eye(c, dtype=F64) + 0.8 * torch.randn(c, c, generator=gen, dtype=F64)
+    design = torch.randn(40, c, generator=gen, dtype=F64) @ mix
+    cov = torch.linalg.inv(design.T @ design)
+    sd = cov.diagonal().sqrt()
+    scale = torch.cat([torch.full((d,), 0.05, dtype=F64), torch.full((d * d,), 0.5, dtype=F64)])
+    cov = cov / (sd[:, None] * sd[None, :]) * (scale[:, None] * scale[None, :])
+    corr = cov / (scale[:, None] * scale[None, :])
+    assert float((corr - torch.eye(c, dtype=F64)).abs().max()) > 0.3  # strongly correlated
+    m = gamma.shape[0]
+    err = torch.randn(n_rec, m, 3, c, generator=gen, dtype=F64) @ torch.linalg.cholesky(cov).T
+    se_b = scale[:d].expand(n_rec, m, 3, d)
+    se_d = scale[d:].reshape(d, d).expand(n_rec, m, 3, d, d)
+    fit = _tie_fit(a + 1e-3 * a_err / a_se.mean(), b_true + err[..., :d],
+                   d_true + err[..., d:].unflatten(-1, (d, d)), 1e-3 * a_se / a_se.mean(),
+                   se_b, se_d)
+    tie = dict(window=2.0, kernel="tricube", consistency=False)
+    joint = tie_connection_derivative(
+        dataclasses.replace(fit, cov_b_dA=cov.expand(n_rec, m, 3, c, c)), gamma, tangent, 12,
+        **tie)
+    alone = tie_connection_derivative(fit, gamma, tangent, 12, **tie)
+
+    def ratio(tied):
+        return float((tied.dA - d_true).square().sum() / tied.se_dA.square().sum())
+
+    assert 0.85 < ratio(joint) < 1.15, (ratio(joint), ratio(alone))
+    assert not 0.85 < ratio(alone) < 1.15, (ratio(joint), ratio(alone))
+    assert float((joint.dA - d_true).square().sum()) <= float((alone.dA - d_true).square().sum())

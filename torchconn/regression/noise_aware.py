@@ -1211,7 +1211,8 @@ def derivative_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: In
 def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: IntervalSamples,
                               bins: BinIndex, gamma_m: Tensor, gamma_dot_m: Tensor, *,
                               order: int, pool: bool,
-                              offsets: _OneSampleOffsets | None = None, **opts
+                              offsets: _OneSampleOffsets | None = None,
+                              joint_weights: bool = False, **opts
                               ) -> tuple[ConnectionFit, tuple[Tensor, Tensor]]:
     """The tied ``∂Â/∂r`` (:func:`tie_connection_derivative`) with the bins' bias of its
     sources allowed for in their variances instead of removed (for data with measurement
@@ -1227,7 +1228,9 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
     their variances before they are tied (the bias taken to remain, as the pooled choice
     assumes for ``Â``).
 
-    Args: as :func:`derivative_bias_correction` (no ``steps``).
+    Args: as :func:`derivative_bias_correction` (no ``steps``); ``joint_weights`` as in
+        :func:`tie_connection_derivative` (with ``fit.cov_b_dA``, to which the bias's share
+        is added too).
 
     Returns:
         the fit with ``dA`` and ``se_dA`` tied (other fields unchanged, ``b̂``'s standard
@@ -1235,7 +1238,7 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
         for.
     """
     one = _one_sample_offsets(traj, gamma_m) if offsets is None else offsets
-    tie = dict(order=order, window=bins.window, kernel=bins.kernel)
+    tie = dict(order=order, window=bins.window, kernel=bins.kernel, joint_weights=joint_weights)
     first = tie_connection_derivative(fit, gamma_m, gamma_dot_m, **tie, consistency=False)
     bias = _DerivativeBias(fit, samples, bins, gamma_m, gamma_dot_m, order=order, pool=pool,
                            offsets=one, opts=opts)(first)
@@ -1422,6 +1425,16 @@ class NoiseAwareRegression(TubeRegression):
             ``b̂`` and of the direct estimate in the tie's weights and bands
             (:func:`derivative_bias_allowance`); False: their standard errors as they are
             (the previous version, bands too narrow on the curved 3-link reference gait).
+        joint_covariance: with ``tie_derivative``, under detected noise, the tie's
+            standard errors take ``b̂`` and the direct ``∂Â/∂r`` of a bin, which come from
+            one regression, with their joint covariance (``ConnectionFit.cov_b_dA``;
+            :func:`noise_aware_regression`): ``"solver"`` the sandwich whose diagonal gives
+            their standard errors; ``"robust"`` the rows' own scores (README: no better);
+            None: taken as independent (the previous version, bands too narrow on the 5-link
+            under noise). The tied estimate itself is unchanged.
+        joint_weights: with ``joint_covariance``, also weigh the two by its inverse in the
+            tie (:func:`tie_connection_derivative`; README: off, bands too narrow on the
+            3-link circle and the 5-link up to 3 % further off).
         resolved_harmonics: a pooled fit's series of ``Â`` shrinks each harmonic (up to
             ``fourier_order``) by how far its power stands out of the bins' noise
             (:data:`_SERIES_SHRINK`, :func:`_harmonic_noise`; the factors are
@@ -1439,6 +1452,7 @@ class NoiseAwareRegression(TubeRegression):
     derivative_bias_allowance: bool = True
     resolved_harmonics: bool = True
     joint_covariance: Literal["solver", "robust"] | None = "solver"
+    joint_weights: bool = False
 
     def _corrected_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """Unpooled batch elements may carry different noise (a sweep's noise levels), so each
@@ -1499,8 +1513,12 @@ class NoiseAwareRegression(TubeRegression):
         meta = {"velocity_interval": h.tolist(), "velocity_kernel": VELOCITY_KERNEL,
                 "noise_ratio": ratio.tolist(), "noise_r": var.sqrt().tolist(),
                 "windows": windows.reshape(batch).tolist()}
-        return (_scatter_fits(parts, n, batch), float(windows.max()), meta,
-                _Chosen(windows.reshape(batch)))
+        fit = _scatter_fits(parts, n, batch)
+        if fit.cov_b_dA is not None:  # only under detected noise (the tie's independent
+            # weights where none was: NaN)
+            clean = ~(var > 0).any(-1).reshape(batch + (1, 1, 1, 1))
+            fit = dataclasses.replace(fit, cov_b_dA=fit.cov_b_dA.masked_fill(clean, torch.nan))
+        return fit, float(windows.max()), meta, _Chosen(windows.reshape(batch))
 
     def _chosen_fit(self, traj: Trajectory, var: Tensor, ratio: Tensor, h0: int,
                     gamma_m: Tensor, gamma_dot_m: Tensor, opts: dict):
@@ -1681,8 +1699,8 @@ class NoiseAwareRegression(TubeRegression):
         ``∂Â/∂r`` tied (:meth:`_tied`)."""
         fit, window, meta, chosen = self._corrected_fit(traj, pool, samples, gamma_m,
                                                         gamma_dot_m, opts, bins_for)
-        if self.tie_derivative and self.joint_covariance and chosen.view is not None:
-            # (unpooled elements got theirs with their regressions)
+        if (self.tie_derivative and self.joint_covariance and chosen.view is not None
+                and not chosen.noise_free):  # (unpooled elements got theirs with their fits)
             fit = self._with_joint_covariance(fit, chosen, gamma_m, gamma_dot_m, opts)
         if self.shrink_to_smoothed:
             tube, _, _ = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
@@ -1728,14 +1746,18 @@ class NoiseAwareRegression(TubeRegression):
         if modelled and (chosen.noise_free or self.derivative_bias_allowance):
             bins = assign_bins(chosen.view.phase, self.n_bins, window=chosen.windows,
                                kernel=self.kernel)
-            run, how = ((derivative_bias_correction, "tied, bias-corrected")
-                        if chosen.noise_free else
-                        (derivative_bias_allowance, "tied, bias allowed for"))
+            if chosen.noise_free:
+                run, how, extra = derivative_bias_correction, "tied, bias-corrected", {}
+            else:
+                run, how = derivative_bias_allowance, "tied, bias allowed for"
+                extra = {"joint_weights": self.joint_weights}
             tied, _ = run(fit, traj, chosen.view, bins, gamma_m, gamma_dot_m,
-                          order=self.fourier_order, pool=True, offsets=chosen.offsets, **opts)
+                          order=self.fourier_order, pool=True, offsets=chosen.offsets,
+                          **extra, **opts)
             return tied, how
         tied = tie_connection_derivative(fit, gamma_m, gamma_dot_m, self.fourier_order,
-                                         window=chosen.windows, kernel=self.kernel)
+                                         window=chosen.windows, kernel=self.kernel,
+                                         joint_weights=self.joint_weights)
         return tied, "tied"
 
     def _a_series(self, centres: Tensor, fit: ConnectionFit, window: float, pool: bool):
