@@ -49,9 +49,8 @@ class ConnectionFit:
             use; None otherwise.
         cov_b_dA: ``(..., M, 3, d + d², d + d²)`` where known, the joint covariance of each
             output row's ``(b̂[k, :], ∂Â/∂r[k] flattened (i, j))`` from the bin's one regression
-            (the noise-aware one's robust sandwich,
-            :func:`~torchconn.regression.noise_aware.noise_aware_regression`), which
-            :func:`~torchconn.regression.tie_connection_derivative` weighs them by; None
+            (:func:`~torchconn.regression.noise_aware.noise_aware_regression`), under which
+            :func:`~torchconn.regression.tie_connection_derivative` takes its variance; None
             otherwise (the two taken as independent, with variances ``se_b², se_dA²``).
     """
 
