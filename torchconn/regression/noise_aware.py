@@ -861,7 +861,8 @@ def noise_aware_regression(
     kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
     cov = None
     if joint_covariance is not None:
-        columns = torch.cat([torch.arange(1, 1 + d), torch.arange(1 + 2 * d, p)]).to(s.r.device)
+        dev = s.r.device
+        columns = torch.cat([torch.arange(1, 1 + d, device=dev), torch.arange(1 + 2 * d, p, device=dev)])
         if joint_covariance == "solver":
             corr = _wls.sandwich_correlation(s, _blocks, sol, columns, delta_max=delta_max,
                                              correction=correction)

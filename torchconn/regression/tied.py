@@ -168,9 +168,10 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
             shows as such a disagreement (the phase derivative of ``Â`` is nearly free of it).
         joint_weights: with ``fit.cov_b_dA``, weigh ``b̂`` and the direct estimate by its
             inverse (generalised least squares with their correlation) instead of only
-            taking the variance under it. Measured (README, the tied ``∂Â/∂r``): 1-10 points
-            closer on the 3-link circle, up to 3 % further on the 5-link, bands too narrow
-            on the 3-link circle (squared error over squared standard error 1.2-3.0), so off.
+            taking the variance under it. Measured (README, the tied ``∂Â/∂r``): on the
+            3-link circle 1.4 points further to 10.5 closer, up to 3 % further on the 5-link,
+            bands too narrow on the 3-link circle (squared error over squared standard error
+            1.2-3.0), so off.
 
     Returns:
         the fit with ``dA`` and ``se_dA`` tied (other fields unchanged). Non-finite estimates
