@@ -861,8 +861,9 @@ def noise_aware_regression(
     kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
     cov = None
     if joint_covariance is not None:
-        dev = s.r.device
-        columns = torch.cat([torch.arange(1, 1 + d, device=dev), torch.arange(1 + 2 * d, p, device=dev)])
+        # b̂'s columns δ and the direct estimate's δ̇⊗δ (connection_design's order)
+        columns = torch.cat([torch.arange(1, 1 + d, device=s.r.device),
+                             torch.arange(1 + 2 * d, p, device=s.r.device)])
         if joint_covariance == "solver":
             corr = _wls.sandwich_correlation(s, _blocks, sol, columns, delta_max=delta_max,
                                              correction=correction)
@@ -879,7 +880,6 @@ def noise_aware_regression(
             raise ValueError(f"{fn}: joint_covariance must be None, 'solver' or 'robust', got "
                              f"{joint_covariance!r}")
         cov = cov.reshape(s.batch_shape + (m,) + cov.shape[1:])
-    kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
     sol = dataclasses.replace(sol, se=sol.se * kappa.sqrt()).unflatten(s.batch_shape, m)
     return dataclasses.replace(_connection_fit(sol, d), cov_b_dA=cov)
 
@@ -1520,8 +1520,8 @@ class NoiseAwareRegression(TubeRegression):
                 "noise_ratio": ratio.tolist(), "noise_r": var.sqrt().tolist(),
                 "windows": windows.reshape(batch).tolist()}
         fit = _scatter_fits(parts, n, batch)
-        if fit.cov_b_dA is not None:  # only under detected noise (the tie's independent
-            # weights where none was: NaN)
+        if fit.cov_b_dA is not None:  # only under detected noise (NaN: the tie takes the
+            # two as independent where none was)
             clean = ~(var > 0).any(-1).reshape(batch + (1, 1, 1, 1))
             fit = dataclasses.replace(fit, cov_b_dA=fit.cov_b_dA.masked_fill(clean, torch.nan))
         return fit, float(windows.max()), meta, _Chosen(windows.reshape(batch))
