@@ -21,6 +21,10 @@ shaped by the gait);
 ``untied`` = ``NoiseAwareRegression(tie_derivative=False)`` (``∂Â/∂r`` the direct estimate);
 ``no_bias_allowance`` = ``NoiseAwareRegression(derivative_bias_allowance=False)`` (under noise
 the tie takes its sources' standard errors as they are);
+``independent`` = ``NoiseAwareRegression(joint_covariance=None)`` (the tie's bands take ``b̂``
+and the direct ``∂Â/∂r`` as independent); ``robust_joint`` = their joint covariance from the
+rows' scores (``joint_covariance="robust"``); ``joint_weights`` = the tie also weighs them by
+it (``joint_weights=True``);
 ``noise_aware_cv`` = the default with ``ConnectionEstimator.select_complexity``.
 
 Run by hand (minutes on 2 cores)::
@@ -155,6 +159,9 @@ METHODS = {
     "uncorrected_bias": NoiseAwareRegression(bias_correction=False),
     "untied": NoiseAwareRegression(tie_derivative=False),
     "no_bias_allowance": NoiseAwareRegression(derivative_bias_allowance=False),
+    "independent": NoiseAwareRegression(joint_covariance=None),
+    "robust_joint": NoiseAwareRegression(joint_covariance="robust"),
+    "joint_weights": NoiseAwareRegression(joint_weights=True),
     "noise_aware_cv": NoiseAwareRegression(),  # bins, order, ridge by select_complexity
 }
 

@@ -341,6 +341,91 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     return beta, se, rms, condition, (w > 0).sum(-1), kappa
 
 
+#: a per-row errors-in-variables correction: (the rows √w·x̃ (b, n, P), the coefficients
+#: (b, P, K), the bins (a slice or index tensor into B·M)) -> each row's expected noise part of
+#: its score, C(w x̃x̃ᵀ) β (b, n, K, P) (linear in the row's Gram matrix, summing to the
+#: :data:`Correction` of the bin times β)
+RowCorrection = Callable[[Tensor, Tensor, object], Tensor]
+
+
+def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: Tensor, *,
+                     lags: int, delta_max=None, correction: Correction | None = None,
+                     row_correction: RowCorrection | None = None) -> Tensor:
+    """Robust covariance ``(B·M, K, c, c)`` of the coefficients ``columns (c,)`` of every bin
+    of a :func:`solve` result ``sol``, from the rows' own scores instead of a common residual
+    variance.
+
+    The estimate solves ``Σ_t ψ_t = 0`` with the score ``ψ_t = w_t x̃_t (y_t − x̃_tᵀβ) +
+    κ C_t β`` (``C_t`` the row's share of the errors-in-variables correction, ``κ`` the
+    guard's scale), so ``Cov β = A⁻¹ (Σ_t Σ_|l|≤lags ψ_t ψ_{t+l}ᵀ) A⁻¹`` (``A`` the corrected
+    normal matrix): the sandwich with the scores' own heteroscedasticity (the regressors'
+    noise times the coefficients, which a common residual variance spreads evenly over the
+    rows), the correction's own variance, and the correlation of rows ``l ≤ lags`` samples
+    apart that share recorded samples (pairs within one bin, by sample index), times
+    ``n/(n − P)`` (``n`` the bin's rows). NaN where the bin's coefficients are NaN.
+    """
+    p = sol.coef.shape[-2]
+    total, n_max = s.rows.shape
+    out = []
+    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 8):
+        xy, w = _chunk_design(s, sel, design, delta_max)
+        xw, yw = xy[..., :p], xy[..., p:]
+        gram = xw.mT @ xw
+        kappa = gram.new_ones(gram.shape[0])
+        if correction is not None:
+            gram, kappa = _guarded_correction(gram, correction(gram, sel))
+        chol, _, _, _ = ridge_cholesky(gram, sol.ridge[sel])
+        beta = torch.nan_to_num(sol.coef[sel])
+        a_inv = torch.cholesky_inverse(chol)[..., columns]  # (b, P, c)
+        score = xw.unsqueeze(-2) * (yw - xw @ beta).unsqueeze(-1)  # (b, n, K, P)
+        if row_correction is not None:
+            score = score + kappa[:, None, None, None] * row_correction(xw, beta, sel)
+        proj = score @ a_inv.unsqueeze(1)  # (b, n, K, c)
+        # rows in sample order, padding last: a pair of rows at most `lags` samples apart is
+        # at most that many slots apart
+        index = torch.where(w > 0, s.rows[sel], torch.iinfo(s.rows.dtype).max)
+        index, order = index.sort(-1)
+        proj = proj.gather(1, order[..., None, None].expand_as(proj))
+        cov = torch.einsum("bnkc,bnke->bkce", proj, proj)
+        for step in range(1, min(lags, index.shape[-1] - 1) + 1):
+            pair = ((index[:, step:] - index[:, :-step]) <= lags).to(proj)
+            cross = torch.einsum("bnkc,bn,bnke->bkce", proj[:, :-step], pair, proj[:, step:])
+            cov = cov + cross + cross.mT
+        n = (w > 0).sum(-1).to(cov)
+        cov = cov * torch.where(n > p, n / (n - p), torch.nan)[:, None, None, None]
+        bad = ~torch.isfinite(sol.coef[sel]).all(-2).all(-1)
+        out.append(torch.where(bad[:, None, None, None], torch.nan, cov))
+    return torch.cat(out)
+
+
+def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, columns: Tensor, *,
+                         delta_max=None, correction: Correction | None = None) -> Tensor:
+    """Correlation ``(B·M, c, c)`` of the coefficients ``columns (c,)`` of every bin of a
+    :func:`solve` result ``sol``, from the sandwich whose diagonal gives its standard errors:
+    ``A⁻¹ (XᵀW²X) A⁻¹`` (``A`` the normal matrix, corrected and with the ridge as :func:`solve`
+    makes it; its residual variance, common to the coefficients, cancels). NaN where the bin's
+    coefficients are NaN."""
+    p = sol.coef.shape[-2]
+    total, n_max = s.rows.shape
+    out = []
+    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 2):
+        xy, w = _chunk_design(s, sel, design, delta_max)
+        xw = xy[..., :p]
+        gram = xw.mT @ xw
+        if correction is not None:
+            gram, _ = _guarded_correction(gram.clone(), correction(gram, sel))
+        chol, _, _, _ = ridge_cholesky(gram, sol.ridge[sel])
+        a_inv = torch.cholesky_inverse(chol)[..., columns]  # (b, P, c)
+        xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w: XᵀW²X
+        half = xww @ a_inv  # (b, n, c)
+        cov = half.mT @ half
+        sd = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+        corr = cov / (sd.unsqueeze(-1) * sd.unsqueeze(-2))
+        bad = ~torch.isfinite(sol.coef[sel]).all(-2).all(-1)
+        out.append(torch.where(bad[:, None, None], torch.nan, corr))
+    return torch.cat(out)
+
+
 def _row_sum(x: Tensor, dim: int) -> Tensor:
     """Sum over the bins' padded rows in sample order (a running sum): trailing zero rows leave
     it unchanged, so a bin's sum does not depend on how far the batch pads its rows (torch's

@@ -761,6 +761,45 @@ def eiv_correction(gram: Tensor, var_delta: Tensor, var_rate: Tensor) -> Tensor:
     return out
 
 
+def eiv_row_correction(xw: Tensor, beta: Tensor, var_delta: Tensor, var_rate: Tensor
+                       ) -> Tensor:
+    """Each row's share of :func:`eiv_correction` times the coefficients: ``C(w x̃x̃ᵀ) β``
+    ``(b, n, K, P)`` for the rows ``xw = √w [1, δ̃, δ̇̃, δ̇̃⊗δ̃] (b, n, P)`` and coefficients
+    ``beta = [c, b, A, D] (b, P, K)`` (``D[i, j]`` on column ``δ̇_i δ_j``); summed over the
+    rows, :func:`eiv_correction` of the bin's ``XᵀWX`` times ``β``. With ``u = √w``,
+    ``ũ = u δ̃``, ``ṽ = u δ̇̃``::
+
+        δ_k        σ²_b,k (u² b_k + u Σ_i ṽ_i D_ik)
+        δ̇_k        σ²_a,k (u² A_k + u Σ_j ũ_j D_kj)
+        δ̇_i δ_j   u ṽ_i σ²_b,j b_j + u ũ_j σ²_a,i A_i + σ²_b,j ṽ_i Σ_k ṽ_k D_kj
+                   + σ²_a,i ũ_j Σ_l ũ_l D_il − u² σ²_a,i σ²_b,j D_ij
+
+    Args:
+        xw: ``(b, n, P)``; beta: ``(b, P, K)``; var_delta, var_rate: ``(b, d)`` as in
+            :func:`eiv_correction`.
+    """
+    d = var_delta.shape[-1]
+    u = xw[..., :1]  # (b, n, 1)
+    ud, ur = xw[..., 1:1 + d], xw[..., 1 + d:1 + 2 * d]
+    b_, a_ = beta[:, 1:1 + d], beta[:, 1 + d:1 + 2 * d]  # (b, d, K)
+    dd = beta[:, 1 + 2 * d:].unflatten(1, (d, d))  # (b, i, j, K)
+    sb, sa = var_delta[:, None, :, None], var_rate[:, None, :, None]  # (b, 1, d, 1)
+    u2 = u.square().unsqueeze(-1)  # (b, n, 1, 1)
+    uk = u.unsqueeze(-1)
+    rate_d = torch.einsum("bni,bijk->bnjk", ur, dd)  # Σ_i ṽ_i D_ij: (b, n, j, K)
+    delta_d = torch.einsum("bnj,bijk->bnik", ud, dd)  # Σ_j ũ_j D_ij: (b, n, i, K)
+    row_delta = sb * (u2 * b_.unsqueeze(1) + uk * rate_d)  # (b, n, d, K)
+    row_rate = sa * (u2 * a_.unsqueeze(1) + uk * delta_d)
+    sb_j, sa_i = var_delta[:, None, None, :, None], var_rate[:, None, :, None, None]
+    ur_i, ud_j = ur[..., :, None, None], ud[..., None, :, None]  # (b, n, i, 1, 1), (b, n, 1, j, 1)
+    row_z = (uk.unsqueeze(-1) * (ur_i * sb_j * b_[:, None, None] + ud_j * sa_i * a_[:, None, :, None])
+             + sb_j * ur_i * rate_d.unsqueeze(2) + sa_i * ud_j * delta_d.unsqueeze(3)
+             - u2.unsqueeze(-1) * sa_i * sb_j * dd.unsqueeze(1))  # (b, n, i, j, K)
+    out = torch.cat([torch.zeros_like(row_delta[..., :1, :]), row_delta, row_rate,
+                     row_z.flatten(2, 3)], -2)  # (b, n, P, K)
+    return out.mT
+
+
 def noise_aware_regression(
     samples: IntervalSamples,
     bins: BinIndex,
@@ -771,6 +810,7 @@ def noise_aware_regression(
     delta_max: float | None = None,
     ridge: float = 0.0,
     on_ill_conditioned: str = "raise",
+    joint_covariance: Literal["solver", "robust"] | None = None,
 ) -> ConnectionFit:
     """Per-bin ``ξ ≈ c + bδ + Aδ̇ + ∂A/∂r (δ̇⊗δ)`` on interval samples, noise-corrected.
 
@@ -782,6 +822,14 @@ def noise_aware_regression(
             to the batch), e.g. :func:`estimate_noise`'s ``measurement²``.
         delta_max, ridge, on_ill_conditioned: as in
             :func:`~torchconn.regression.connection_regression`.
+        joint_covariance: also the joint covariance of each bin's ``b̂`` and direct
+            ``∂Â/∂r`` (``cov_b_dA``, for the tie): ``"solver"`` the sandwich whose diagonal
+            gives the standard errors (:func:`~torchconn.regression._wls.sandwich_correlation`
+            times them, overlap inflation included); ``"robust"`` from the rows' own scores
+            (:func:`~torchconn.regression._wls.score_covariance`: heteroscedastic, with the
+            correction's share of each row, :func:`eiv_row_correction`, and rows up to ``h``
+            samples apart correlated; no overlap inflation, which it replaces). The fit's
+            other fields are the same bit for bit.
 
     Returns:
         :class:`~torchconn.regression.ConnectionFit`. The standard errors are the solver's
@@ -812,8 +860,29 @@ def noise_aware_regression(
                      max_condition=None, on_ill_conditioned=on_ill_conditioned,
                      correction=correction)
     kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
+    cov = None
+    if joint_covariance is not None:
+        # b̂'s columns δ and the direct estimate's δ̇⊗δ (connection_design's order)
+        columns = torch.cat([torch.arange(1, 1 + d, device=s.r.device),
+                             torch.arange(1 + 2 * d, p, device=s.r.device)])
+        if joint_covariance == "solver":
+            corr = _wls.sandwich_correlation(s, _blocks, sol, columns, delta_max=delta_max,
+                                             correction=correction)
+            se = (sol.se * kappa.sqrt())[:, columns].mT  # (B·M, K, c)
+            cov = corr.unsqueeze(1) * (se.unsqueeze(-1) * se.unsqueeze(-2))
+        elif joint_covariance == "robust":
+            def row_correction(xw: Tensor, beta: Tensor, sel) -> Tensor:
+                return eiv_row_correction(xw, beta, var_delta[sel], var_rate[sel])
+
+            cov = _wls.score_covariance(s, _blocks, sol, columns, lags=samples.h,
+                                        delta_max=delta_max, correction=correction,
+                                        row_correction=row_correction)
+        else:
+            raise ValueError(f"{fn}: joint_covariance must be None, 'solver' or 'robust', got "
+                             f"{joint_covariance!r}")
+        cov = cov.reshape(s.batch_shape + (m,) + cov.shape[1:])
     sol = dataclasses.replace(sol, se=sol.se * kappa.sqrt()).unflatten(s.batch_shape, m)
-    return _connection_fit(sol, d)
+    return dataclasses.replace(_connection_fit(sol, d), cov_b_dA=cov)
 
 
 @dataclass(frozen=True)
@@ -1144,7 +1213,8 @@ def derivative_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: In
 def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: IntervalSamples,
                               bins: BinIndex, gamma_m: Tensor, gamma_dot_m: Tensor, *,
                               order: int, pool: bool,
-                              offsets: _OneSampleOffsets | None = None, **opts
+                              offsets: _OneSampleOffsets | None = None,
+                              joint_weights: bool = False, **opts
                               ) -> tuple[ConnectionFit, tuple[Tensor, Tensor]]:
     """The tied ``∂Â/∂r`` (:func:`tie_connection_derivative`) with the bins' bias of its
     sources allowed for in their variances instead of removed (for data with measurement
@@ -1160,7 +1230,9 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
     their variances before they are tied (the bias taken to remain, as the pooled choice
     assumes for ``Â``).
 
-    Args: as :func:`derivative_bias_correction` (no ``steps``).
+    Args: as :func:`derivative_bias_correction` (no ``steps``); ``joint_weights`` as in
+        :func:`tie_connection_derivative` (with ``fit.cov_b_dA``, to which the bias's share
+        is added too).
 
     Returns:
         the fit with ``dA`` and ``se_dA`` tied (other fields unchanged, ``b̂``'s standard
@@ -1168,14 +1240,22 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
         for.
     """
     one = _one_sample_offsets(traj, gamma_m) if offsets is None else offsets
-    tie = dict(order=order, window=bins.window, kernel=bins.kernel)
-    first = tie_connection_derivative(fit, gamma_m, gamma_dot_m, **tie, consistency=False)
+    tie = dict(order=order, window=bins.window, kernel=bins.kernel, joint_weights=joint_weights)
+    # the bias model's series keep the harmonics that stand out of the independent tie's
+    # standard errors (as before the joint covariance: the same bias, bit for bit)
+    first = tie_connection_derivative(dataclasses.replace(fit, cov_b_dA=None), gamma_m,
+                                      gamma_dot_m, **tie, consistency=False)
     bias = _DerivativeBias(fit, samples, bins, gamma_m, gamma_dot_m, order=order, pool=pool,
                            offsets=one, opts=opts)(first)
     bias = tuple(torch.where(torch.isfinite(x), x, 0.0) for x in bias)
+    cov = fit.cov_b_dA
+    if cov is not None:  # the bias's share on the joint covariance's diagonal
+        cov = cov + torch.diag_embed(_RESIDUAL_BIAS_FRACTION * torch.cat(
+            [bias[1], bias[0].flatten(-2)], -1).square())
     widened = dataclasses.replace(
         fit, se_dA=(fit.se_dA.square() + _RESIDUAL_BIAS_FRACTION * bias[0].square()).sqrt(),
-        se_b=(fit.se_b.square() + _RESIDUAL_BIAS_FRACTION * bias[1].square()).sqrt())
+        se_b=(fit.se_b.square() + _RESIDUAL_BIAS_FRACTION * bias[1].square()).sqrt(),
+        cov_b_dA=cov)
     tied = tie_connection_derivative(widened, gamma_m, gamma_dot_m, **tie)
     return dataclasses.replace(fit, dA=tied.dA, se_dA=tied.se_dA), bias
 
@@ -1274,6 +1354,7 @@ class _Chosen:
     view: IntervalSamples | None = None
     offsets: _OneSampleOffsets | None = None
     noise_free: bool = False
+    noise_var: Tensor | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -1349,6 +1430,18 @@ class NoiseAwareRegression(TubeRegression):
             ``b̂`` and of the direct estimate in the tie's weights and bands
             (:func:`derivative_bias_allowance`); False: their standard errors as they are
             (the previous version, bands too narrow on the curved 3-link reference gait).
+        joint_covariance: with ``tie_derivative``, under detected noise, the tie's
+            standard errors take ``b̂`` and the direct ``∂Â/∂r`` of a bin, which come from
+            one regression, with their joint covariance (``ConnectionFit.cov_b_dA``;
+            :func:`noise_aware_regression`): ``"solver"`` the sandwich whose diagonal gives
+            their standard errors (mean ``|ρ|`` of a ``b̂`` and a direct entry 0.10-0.54, of
+            two direct entries 0.17-0.41, on the 3-/5-link under noise); ``"robust"`` the
+            rows' own scores (variances 0.8-0.97 of the solver's; README); None: taken as
+            independent (the previous version, bands too narrow on the 5-link under noise).
+            The tied estimate itself is unchanged bit for bit.
+        joint_weights: with ``joint_covariance``, also weigh the two by its inverse in the
+            tie (:func:`tie_connection_derivative`; README: off, bands too narrow on the
+            3-link circle and the 5-link up to 3 % further off).
         resolved_harmonics: a pooled fit's series of ``Â`` shrinks each harmonic (up to
             ``fourier_order``) by how far its power stands out of the bins' noise
             (:data:`_SERIES_SHRINK`, :func:`_harmonic_noise`; the factors are
@@ -1365,6 +1458,8 @@ class NoiseAwareRegression(TubeRegression):
     tie_derivative: bool = True  # (TubeRegression's field, on here)
     derivative_bias_allowance: bool = True
     resolved_harmonics: bool = True
+    joint_covariance: Literal["solver", "robust"] | None = "solver"
+    joint_weights: bool = False
 
     def _corrected_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """Unpooled batch elements may carry different noise (a sweep's noise levels), so each
@@ -1379,7 +1474,10 @@ class NoiseAwareRegression(TubeRegression):
                     "noise_ratio": float(ratio), "noise_r": var.sqrt().tolist(),
                     "interval_window_scores": scores, "interval_window_bounds": skipped}
             return fit, window, meta, _Chosen(window, view, offsets,
-                                              noise_free=not bool((var > 0).any()))
+                                              noise_free=not bool((var > 0).any()),
+                                              noise_var=var)
+        if self.tie_derivative and self.joint_covariance:  # b̂ and ∂Â/∂r's, for the tie
+            opts = {**opts, "joint_covariance": self.joint_covariance}
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
         flat = _flatten_batch(traj)
@@ -1422,8 +1520,12 @@ class NoiseAwareRegression(TubeRegression):
         meta = {"velocity_interval": h.tolist(), "velocity_kernel": VELOCITY_KERNEL,
                 "noise_ratio": ratio.tolist(), "noise_r": var.sqrt().tolist(),
                 "windows": windows.reshape(batch).tolist()}
-        return (_scatter_fits(parts, n, batch), float(windows.max()), meta,
-                _Chosen(windows.reshape(batch)))
+        fit = _scatter_fits(parts, n, batch)
+        if fit.cov_b_dA is not None:  # only under detected noise (NaN: the tie takes the
+            # two as independent where none was)
+            clean = ~(var > 0).any(-1).reshape(batch + (1, 1, 1, 1))
+            fit = dataclasses.replace(fit, cov_b_dA=fit.cov_b_dA.masked_fill(clean, torch.nan))
+        return fit, float(windows.max()), meta, _Chosen(windows.reshape(batch))
 
     def _chosen_fit(self, traj: Trajectory, var: Tensor, ratio: Tensor, h0: int,
                     gamma_m: Tensor, gamma_dot_m: Tensor, opts: dict):
@@ -1604,6 +1706,9 @@ class NoiseAwareRegression(TubeRegression):
         ``∂Â/∂r`` tied (:meth:`_tied`)."""
         fit, window, meta, chosen = self._corrected_fit(traj, pool, samples, gamma_m,
                                                         gamma_dot_m, opts, bins_for)
+        if (self.tie_derivative and self.joint_covariance and chosen.view is not None
+                and not chosen.noise_free):  # (unpooled elements got theirs with their fits)
+            fit = self._with_joint_covariance(fit, chosen, gamma_m, gamma_dot_m, opts)
         if self.shrink_to_smoothed:
             tube, _, _ = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
             fit, weights = blend_fits(tube, fit)
@@ -1612,8 +1717,21 @@ class NoiseAwareRegression(TubeRegression):
             # the direct estimate stays the coefficient the model predicts with (dA_fit)
             tied, meta["derivative"] = self._tied(fit, traj, chosen, gamma_m, gamma_dot_m,
                                                   opts)
-            fit = dataclasses.replace(tied, dA_direct=fit.dA)
+            fit = dataclasses.replace(tied, dA_direct=fit.dA, cov_b_dA=None)
         return fit, window, meta
+
+    def _with_joint_covariance(self, fit: ConnectionFit, chosen: _Chosen, gamma_m: Tensor,
+                               gamma_dot_m: Tensor, opts: dict) -> ConnectionFit:
+        """``fit`` (a pooled corrected fit) with ``cov_b_dA``: the chosen candidate's
+        regression run again for its joint covariance (:func:`noise_aware_regression`),
+        scaled from that regression's standard errors to ``fit``'s (which the bias correction
+        of ``Â`` leaves as they are)."""
+        bins = assign_bins(chosen.view.phase, self.n_bins, window=chosen.windows,
+                           kernel=self.kernel)
+        raw = noise_aware_regression(chosen.view, bins, gamma_m, gamma_dot_m, chosen.noise_var,
+                                     joint_covariance=self.joint_covariance, **opts)
+        return dataclasses.replace(fit, cov_b_dA=_rescaled_covariance(
+            raw.cov_b_dA, (raw.se_b, raw.se_dA), (fit.se_b, fit.se_dA)))
 
     def _tied(self, fit: ConnectionFit, traj: Trajectory, chosen: _Chosen, gamma_m: Tensor,
               gamma_dot_m: Tensor, opts: dict) -> tuple[ConnectionFit, str]:
@@ -1635,14 +1753,18 @@ class NoiseAwareRegression(TubeRegression):
         if modelled and (chosen.noise_free or self.derivative_bias_allowance):
             bins = assign_bins(chosen.view.phase, self.n_bins, window=chosen.windows,
                                kernel=self.kernel)
-            run, how = ((derivative_bias_correction, "tied, bias-corrected")
-                        if chosen.noise_free else
-                        (derivative_bias_allowance, "tied, bias allowed for"))
+            if chosen.noise_free:
+                run, how, extra = derivative_bias_correction, "tied, bias-corrected", {}
+            else:
+                run, how = derivative_bias_allowance, "tied, bias allowed for"
+                extra = {"joint_weights": self.joint_weights}
             tied, _ = run(fit, traj, chosen.view, bins, gamma_m, gamma_dot_m,
-                          order=self.fourier_order, pool=True, offsets=chosen.offsets, **opts)
+                          order=self.fourier_order, pool=True, offsets=chosen.offsets,
+                          **extra, **opts)
             return tied, how
         tied = tie_connection_derivative(fit, gamma_m, gamma_dot_m, self.fourier_order,
-                                         window=chosen.windows, kernel=self.kernel)
+                                         window=chosen.windows, kernel=self.kernel,
+                                         joint_weights=self.joint_weights)
         return tied, "tied"
 
     def _a_series(self, centres: Tensor, fit: ConnectionFit, window: float, pool: bool):
@@ -1758,7 +1880,23 @@ def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
         out[name] = est_s + wx * (est_c - est_s)
         out["se_" + name] = (1 - wx) * se_s + wx * se_c
         weights.append(w)
-    return dataclasses.replace(corrected, **out), torch.stack(weights, -1)
+    cov = corrected.cov_b_dA
+    if cov is not None:
+        cov = _rescaled_covariance(cov, (corrected.se_b, corrected.se_dA),
+                                   (out["se_b"], out["se_dA"]))
+    return dataclasses.replace(corrected, **out, cov_b_dA=cov), torch.stack(weights, -1)
+
+
+def _rescaled_covariance(cov: Tensor, se_from: tuple[Tensor, Tensor],
+                         se_to: tuple[Tensor, Tensor]) -> Tensor:
+    """The joint covariance ``cov (..., M, 3, c, c)`` of ``(b̂, ∂Â/∂r)`` (``ConnectionFit.
+    cov_b_dA``) rescaled from the standard errors ``se_from`` to ``se_to`` (pairs ``(se_b
+    (..., M, 3, d), se_dA (..., M, 3, d, d))``): entry ``(p, q)`` times ``(to_p/from_p)
+    (to_q/from_q)`` (1 where ``from`` is 0 or not finite)."""
+    old = torch.cat([se_from[0], se_from[1].flatten(-2)], -1)
+    new = torch.cat([se_to[0], se_to[1].flatten(-2)], -1)
+    ratio = torch.where(torch.isfinite(old) & (old > 0), new / old.clamp_min(1e-300), 1.0)
+    return cov * ratio.unsqueeze(-1) * ratio.unsqueeze(-2)
 
 
 def noise_ratio(var: Tensor, process_var: Tensor) -> Tensor:
