@@ -4,13 +4,13 @@ Sets the sampling-rate warning of the checks before fitting
 (``torchconn.io.preflight.MIN_SAMPLES_PER_CYCLE``). The default estimator
 (``ConnectionEstimator(pool=True)``, ``NoiseAwareRegression``) on recordings of the paper's SDE
 (η = 0.025, 3 trials × 20 cycles, two seed sets of three trials each), observed with
-motion-capture noise ω, at 8 to 64 samples per cycle (the recording's power column dropped). Per cell: the relative RMS error of the
-pooled model's Â along its cycle against the swimmer's exact A there (mean over the seed sets,
-then each set), and the noise estimate σ̂/ω (the shape channels' mean estimated standard
-deviation over ω; at ω = 0 σ̂ itself, with how many seed sets declared noise). Gaits as in
-``benchmarks/accuracy.py`` (``reference``: the 3-/9-link reference gaits, the 5-link a circle of
-radius 0.7). An accuracy study, not a timing: run by hand, one thread (about 8 minutes on a
-loaded 2-core machine for the default table)::
+motion-capture noise ω, at 8 to 64 samples per cycle (the recording's power column dropped).
+Per cell: the relative RMS error of the pooled model's Â along its cycle against the swimmer's
+exact A there (mean over the seed sets, then each set), and the noise estimate σ̂/ω (the shape
+channels' mean estimated standard deviation over ω; at ω = 0 σ̂ itself, with how many seed sets
+declared noise). Gaits as in ``benchmarks/accuracy.py`` (``reference``: the 3-/9-link
+reference gaits, the 5-link a circle of radius 0.7). An accuracy study, not a timing: run by
+hand, one thread (about 2 minutes for the default table on a loaded 2-core machine)::
 
     python benchmarks/bench_sampling_rate.py
     python benchmarks/bench_sampling_rate.py --links 3 --gaits circle --seeds 303 404
@@ -25,8 +25,8 @@ import warnings
 
 import numpy as np
 import torch
-
 from accuracy import gait_for  # beside this file
+
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
 
 

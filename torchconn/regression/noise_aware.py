@@ -192,12 +192,14 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             (a heading recorded wrapped).
         cycle: optional :class:`~torchconn.phase.fourier.FourierSeries` of the gait each
             channel follows, ``γ(φ)`` with values ``(C,)`` and coefficients broadcastable to
-            ``(..., 2K+1, C)``, with ``samples_per_cycle`` (float or ``(...)``): with
-            ``floor="gait"`` the process floor is not flat but :func:`phase_noise_floor`'s shape (the gait's harmonics
-            spread by phase noise as large as the channels' own; measured at 64 samples per
-            cycle on the 3-link reference gait, a flat floor found 0.46 of ω = 0.002), and the
-            result's ``correlation`` holds the channels' shared phase noise
-            (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
+            ``(..., 2K+1, C)``, with ``samples_per_cycle`` (float or ``(...)``): the
+            ordinates of the top band near the gait's harmonics are left out of the fit
+            (:func:`_off_harmonics`; at 32 or fewer samples per cycle they fall there); with
+            ``floor="gait"`` the process floor is not flat but :func:`phase_noise_floor`'s
+            shape (the gait's harmonics spread by phase noise as large as the channels' own;
+            measured at 64 samples per cycle on the 3-link reference gait, a flat floor found
+            0.46 of ω = 0.002), and the result's ``correlation`` holds the channels' shared
+            phase noise (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
         floor: with a ``cycle``, ``"flat"`` (default, as ``NoiseAwareRegression``'s
             ``noise_floor``) keeps the process floor flat and uses the cycle only for
             ``correlation``; ``"gait"`` shapes the floor as above.
