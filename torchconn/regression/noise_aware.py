@@ -446,12 +446,13 @@ def _off_harmonics(f: Tensor, cycle: FourierSeries, samples_per_cycle: Tensor | 
     limit cycle's order, 8 by default: the cycle through the bins carries the higher ones at
     rounding level only).
 
-    Below about 30 samples per cycle the gait's harmonics fall into the top band, where the
-    noise fit takes the power for noise: a line near Nyquist rises there as ``σ²``'s column
-    does (3-link reference gait at 10 samples per cycle, clean: σ̂ 0.12 rad, Â 38 % off; at 8
-    the tails left beside the cores still read as noise), a line near 0.25 drives ``σ̂²`` below 0 (ω = 0.005 at 12-20 samples per cycle: none
-    detected). At 32 or more samples per cycle an order-8 cycle's harmonics stay at or below
-    0.25 (at 64 or more below it: nothing is left out)."""
+    Below about 32 samples per cycle the gait's harmonics fall into the top band, where the
+    noise fit takes their power for noise: a line near Nyquist rises there as ``σ²``'s column
+    does (3-link reference gait at 10 samples per cycle, clean: σ̂ 0.12 rad, Â 38 % off; fixed
+    here). Not fixed: the lines' phase-noise tails beside the cores, which at 8 samples per
+    cycle still read as noise and at 12-20 drive ``σ̂²`` below 0 (ω = 0.005: none detected).
+    At 32 or more samples per cycle an order-8 cycle's harmonics stay at or below 0.25 (at 64
+    or more below it: nothing is left out)."""
     coeffs = cycle.coeffs.to(f)
     power = (coeffs[..., 1::2, :].square() + coeffs[..., 2::2, :].square()).sum(-1)  # (..., K)
     carried = power > _CARRIED_POWER * power.sum(-1, keepdim=True)
