@@ -308,6 +308,12 @@ def test_preflight_states_one_cycle_rule_per_command_and_warns_on_coarse_samplin
     pf = preflight(traj)
     assert pf.ready == {"fit": True, "discrepancy": True}
     assert any("8 samples per gait cycle" in w for w in pf.warnings)
+    for per_cycle, warned in ((12, True), (16, False)):  # the threshold, 16, and the rate named
+        at = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=5,
+                      samples_per_cycle=per_cycle, seeds=np.array([1]))
+        found = [w for w in preflight(at).warnings if "samples per gait cycle" in w]
+        assert bool(found) == warned, (per_cycle, found)
+        assert not found or f"only {per_cycle} samples per gait cycle (fewer than 16)" in found[0]
     text = "\n".join(pf.lines())
     assert "fit needs 3 cycles" in text and "discrepancy needs 3 cycles per trial and 10" in text
     short = preflight(traj[:1])  # 5 cycles: enough to fit, not for the discrepancy workflow

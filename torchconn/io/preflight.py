@@ -36,11 +36,13 @@ CYCLE_RULES = {
     # cross-validation over blocks of whole cycles (5 folds) needs 10 in all
     "discrepancy": CycleRule(per_trial=3.0, total=10.0),
 }
-#: fewer samples per cycle than this: the smoother's derivatives and the phase bins degrade.
-#: Measured (benchmarks/bench_sampling_rate.py, 3 trials x 20 cycles, ω = 0.002, relative RMS
-#: error of Â on the cycle at 8/12/16/20/24/32/64 samples per cycle): 3-link 0.41, 0.29, 0.20,
-#: 0.13, 0.12, 0.09, 0.11; 9-link 1.01, 0.17, 0.15, 0.14, 0.15, 0.16, 0.16
-MIN_SAMPLES_PER_CYCLE = 20
+#: fewer samples per cycle than this: velocities and phase bins are coarse. Measured with the
+#: default estimator (benchmarks/bench_sampling_rate.py: pooled 3 trials x 20 cycles, seeds
+#: 101/202, relative RMS error of Â on the cycle at 8/10/12/16/20/32/64 samples per cycle,
+#: ω = 0): 3-link reference gait 88/6.1/4.6/2.5/1.9/0.8/0.4 %, 9-link 90/20/17/8.5/6.0/3.3/4.0 %
+#: (ω = 0.002: 3-link 89/15/13/9.2/6.6/6.1/4.9 %); held out (seeds 303/404, circle gaits too)
+#: alike. Below 16 the error about doubles; at 8 the reference gaits are not recovered
+MIN_SAMPLES_PER_CYCLE = 16
 #: periodicity score below which no periodic gait is found (see :func:`periodicity`)
 MIN_PERIODICITY = 0.25
 #: (p90 − p10) / median body length above which the tracking is suspect

@@ -192,12 +192,14 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             (a heading recorded wrapped).
         cycle: optional :class:`~torchconn.phase.fourier.FourierSeries` of the gait each
             channel follows, ``γ(φ)`` with values ``(C,)`` and coefficients broadcastable to
-            ``(..., 2K+1, C)``, with ``samples_per_cycle`` (float or ``(...)``): with
-            ``floor="gait"`` the process floor is not flat but :func:`phase_noise_floor`'s shape (the gait's harmonics
-            spread by phase noise as large as the channels' own; measured at 64 samples per
-            cycle on the 3-link reference gait, a flat floor found 0.46 of ω = 0.002), and the
-            result's ``correlation`` holds the channels' shared phase noise
-            (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
+            ``(..., 2K+1, C)``, with ``samples_per_cycle`` (float or ``(...)``): the
+            ordinates of the top band near the gait's harmonics are left out of the fit
+            (:func:`_off_harmonics`; at 32 or fewer samples per cycle they fall there); with
+            ``floor="gait"`` the process floor is not flat but :func:`phase_noise_floor`'s
+            shape (the gait's harmonics spread by phase noise as large as the channels' own;
+            measured at 64 samples per cycle on the 3-link reference gait, a flat floor found
+            0.46 of ω = 0.002), and the result's ``correlation`` holds the channels' shared
+            phase noise (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
         floor: with a ``cycle``, ``"flat"`` (default, as ``NoiseAwareRegression``'s
             ``noise_floor``) keeps the process floor flat and uses the cycle only for
             ``correlation``; ``"gait"`` shapes the floor as above.
@@ -237,6 +239,11 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
         shape = (cycle, samples_per_cycle) if floor == "gait" else None
     spec = _increment_spectrum(u, bridged, shape)
     f = spec.f
+    keep = None
+    if cycle is not None:
+        keep = _off_harmonics(f, cycle, samples_per_cycle, n)
+        spec = dataclasses.replace(spec, power=spec.power * keep, x0=spec.x0 * keep,
+                                   x1=spec.x1 * keep)
     if band is not None:
         inside = (f >= band[0]) & (f <= band[1]) & (f > 0)
         if int(inside.sum()) < 4:
@@ -247,6 +254,8 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
                          dtype=x.dtype, device=x.device)
     else:
         sel, low = _choose_band(spec, f)
+    if keep is not None:
+        sel = sel * keep
     weight = torch.ones_like(spec.power)
     for _ in range(_WHITTLE_ITERATIONS):
         line = _fit_line(spec, sel, weight)
@@ -305,6 +314,10 @@ _NOISE_MIN_Z = 2.0
 #: phases over the cycle at which :func:`_channel_correlation` averages
 _CORRELATION_GRID = 128
 
+
+#: a harmonic of the cycle whose power (summed over the channels) is at most this fraction of
+#: the cycle's is not carried (:func:`_off_harmonics`): rounding level, far below any line
+_CARRIED_POWER = 1e-20
 
 #: fewest present increments for a channel's estimate (fewer: no estimate, ``variance_se``
 #: infinite, as for a record shorter than 17 samples)
@@ -421,6 +434,36 @@ def phase_noise_floor(f: Tensor, cycle: FourierSeries, samples_per_cycle: Tensor
         total = total + tails.unsqueeze(-1) * weight[..., j, None, :]
         far = far + 2 * weight[..., j, None, :]
     return total / far
+
+
+def _off_harmonics(f: Tensor, cycle: FourierSeries, samples_per_cycle: Tensor | float,
+                   n: int) -> Tensor:
+    """``(..., F, 1)``: 0 at the ordinates of the top band (``f ≥`` :data:`_TOP_BAND`) within
+    the tapers' half bandwidth ``(K + 1) / (2 (n + 1))`` of a harmonic ``k/N`` the gait
+    carries (``N = samples_per_cycle``; folded into ``[0, 0.5]`` where it lies past Nyquist),
+    1 elsewhere. The harmonics carried are those of the ``cycle`` (values ``(C,)``) whose
+    power summed over the channels is above :data:`_CARRIED_POWER` of the cycle's (the
+    limit cycle's order, 8 by default: the cycle through the bins carries the higher ones at
+    rounding level only).
+
+    Below about 32 samples per cycle the gait's harmonics fall into the top band, where the
+    noise fit takes their power for noise: a line near Nyquist rises there as ``σ²``'s column
+    does (3-link reference gait at 10 samples per cycle, clean: σ̂ 0.12 rad, Â 38 % off; fixed
+    here). Not fixed: the lines' phase-noise tails beside the cores, which at 8 samples per
+    cycle still read as noise and at 12-20 drive ``σ̂²`` below 0 (ω = 0.005: none detected).
+    At 32 or more samples per cycle an order-8 cycle's harmonics stay at or below 0.25 (at 64
+    or more below it: nothing is left out)."""
+    coeffs = cycle.coeffs.to(f)
+    power = (coeffs[..., 1::2, :].square() + coeffs[..., 2::2, :].square()).sum(-1)  # (..., K)
+    carried = power > _CARRIED_POWER * power.sum(-1, keepdim=True)
+    per_cycle = torch.as_tensor(samples_per_cycle, dtype=f.dtype, device=f.device)
+    k = torch.arange(1, power.shape[-1] + 1, dtype=f.dtype, device=f.device)
+    line = torch.remainder(k / per_cycle[..., None], 1.0)  # (..., K)
+    line = torch.minimum(line, 1 - line)
+    half_width = (_TAPERS + 1) / (2 * (n + 1))
+    near = (f[:, None] - line.unsqueeze(-2)).abs() <= half_width  # (..., F, K)
+    near = (near & carried.unsqueeze(-2)).any(-1)  # (..., F)
+    return (~(near & (f >= _TOP_BAND))).to(f.dtype).unsqueeze(-1)
 
 
 def _fft_length(n: int) -> int:
