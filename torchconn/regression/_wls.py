@@ -413,7 +413,7 @@ def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, column
         xw = xy[..., :p]
         gram = xw.mT @ xw
         if correction is not None:
-            gram, _ = _guarded_correction(gram.clone(), correction(gram, sel))
+            gram, _ = _guarded_correction(gram, correction(gram, sel))
         chol, _, _, _ = ridge_cholesky(gram, sol.ridge[sel])
         a_inv = torch.cholesky_inverse(chol)[..., columns]  # (b, P, c)
         xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w: XᵀW²X

@@ -193,11 +193,11 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
         cycle: optional :class:`~torchconn.phase.fourier.FourierSeries` of the gait each
             channel follows, ``γ(φ)`` with values ``(C,)`` and coefficients broadcastable to
             ``(..., 2K+1, C)``, with ``samples_per_cycle`` (float or ``(...)``): with
-            ``floor="gait"`` the process floor is not flat but :func:`phase_noise_floor`'s shape (the gait's harmonics
-            spread by phase noise as large as the channels' own; measured at 64 samples per
-            cycle on the 3-link reference gait, a flat floor found 0.46 of ω = 0.002), and the
-            result's ``correlation`` holds the channels' shared phase noise
-            (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
+            ``floor="gait"`` the process floor is not flat but :func:`phase_noise_floor`'s
+            shape (the gait's harmonics spread by phase noise as large as the channels' own;
+            measured at 64 samples per cycle on the 3-link reference gait, a flat floor found
+            0.46 of ω = 0.002), and the result's ``correlation`` holds the channels' shared
+            phase noise (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
         floor: with a ``cycle``, ``"flat"`` (default, as ``NoiseAwareRegression``'s
             ``noise_floor``) keeps the process floor flat and uses the cycle only for
             ``correlation``; ``"gait"`` shapes the floor as above.
@@ -860,6 +860,7 @@ def noise_aware_regression(
                      max_condition=None, on_ill_conditioned=on_ill_conditioned,
                      correction=correction)
     kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
+    se = sol.se * kappa.sqrt()  # (B·M, P, K)
     cov = None
     if joint_covariance is not None:
         # b̂'s columns δ and the direct estimate's δ̇⊗δ (connection_design's order)
@@ -868,8 +869,8 @@ def noise_aware_regression(
         if joint_covariance == "solver":
             corr = _wls.sandwich_correlation(s, _blocks, sol, columns, delta_max=delta_max,
                                              correction=correction)
-            se = (sol.se * kappa.sqrt())[:, columns].mT  # (B·M, K, c)
-            cov = corr.unsqueeze(1) * (se.unsqueeze(-1) * se.unsqueeze(-2))
+            se_c = se[:, columns].mT  # (B·M, K, c)
+            cov = corr.unsqueeze(1) * (se_c.unsqueeze(-1) * se_c.unsqueeze(-2))
         elif joint_covariance == "robust":
             def row_correction(xw: Tensor, beta: Tensor, sel) -> Tensor:
                 return eiv_row_correction(xw, beta, var_delta[sel], var_rate[sel])
@@ -881,7 +882,7 @@ def noise_aware_regression(
             raise ValueError(f"{fn}: joint_covariance must be None, 'solver' or 'robust', got "
                              f"{joint_covariance!r}")
         cov = cov.reshape(s.batch_shape + (m,) + cov.shape[1:])
-    sol = dataclasses.replace(sol, se=sol.se * kappa.sqrt()).unflatten(s.batch_shape, m)
+    sol = dataclasses.replace(sol, se=se).unflatten(s.batch_shape, m)
     return dataclasses.replace(_connection_fit(sol, d), cov_b_dA=cov)
 
 
@@ -1347,8 +1348,10 @@ _SERIES_SHRINK = 0.5
 class _Chosen:
     """What the tie of ``∂Â/∂r`` needs of the corrected fit: the bins' half-width (a number,
     or ``(...)`` per unpooled element) and, for a pooled fit, the chosen candidate's interval
-    samples, the one-sample offsets its bias correction modelled (None without it) and
-    whether no measurement noise was detected."""
+    samples, the one-sample offsets its bias correction modelled (None without it), whether
+    no measurement noise was detected and the joints' measurement-noise variance ``(d,)`` (pooled) it
+    was corrected for (to run its regression again for the joint covariance of ``b̂`` and
+    ``∂Â/∂r``, :meth:`NoiseAwareRegression._with_joint_covariance`)."""
 
     windows: float | Tensor
     view: IntervalSamples | None = None
