@@ -413,7 +413,9 @@ def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, column
     :func:`solve` result ``sol``, from the sandwich whose diagonal gives its standard errors:
     ``A⁻¹ (XᵀW²X) A⁻¹`` (``A`` the normal matrix, corrected and with the ridge as :func:`solve`
     makes it; its residual variance, common to the coefficients, cancels). NaN where the bin's
-    coefficients are NaN."""
+    coefficients are NaN. (With 0/1 weights and no ridge the solver's standard errors take
+    ``diag(A⁻¹)`` instead, which equals this sandwich's diagonal only without a correction;
+    the correlation is this sandwich's either way.)"""
     p = sol.coef.shape[-2]
     total, n_max = s.rows.shape
     out = []
