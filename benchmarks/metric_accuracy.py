@@ -11,11 +11,11 @@ and every r_i. Scored as the relative RMS error along the fitted cycle γ̂(φ) 
 - band coverage: the fraction of the per-bin 95 % intervals of the full ``M̂`` entries that
   contain the truth, and the bands' median half-width relative to ``‖M‖`` (Frobenius) there.
 
-Three estimators on the same recordings: ``paper`` (the per-bin expansion of eq.
+Five estimators on the same recordings: ``paper`` (the per-bin expansion of eq.
 ``advancedmetricregression`` on the smoothed velocities, torchconn ≤ 0.x), ``tied`` (the
 default: one M(φ) explaining P = vᵀM(r̄)v on the sample intervals, noise-corrected, the Fourier
-order of M(φ) chosen by held-out blocks of cycles; column ``K``) and ``tied6`` (the same at the
-fixed order 6, ``metric_held_out_order=False``) and ``tiedres`` (the default with the noise
+order of M(φ) chosen by held-out blocks of cycles; column ``K``), ``tied6`` (the same at the
+fixed order 6, ``metric_held_out_order=False``), ``tiedres`` (the default with the noise
 level from the power residuals alone, ``metric_noise_level="residuals"``, the previous default)
 and ``tiednb`` (the default without the bias allowance in the bands, ``metric_order_bias=False``,
 the previous default: the estimates are the same, only "cover" differs).

@@ -13,8 +13,8 @@ differences of the noisy poses for ``NoiseAwareRegression``):
   each component predicted by the full model, by the connection alone (``ĉ + Âδ̇``,
   ``choice`` ends in ``/A:x,y`` for v_x and v_y) or by the phase average (``/pa:x,y``; such a
   component ties it exactly), whichever clearly wins held out (``skill._choose_terms``);
-- ``phase avg``: the training cycles' phase-averaged velocity (``score()``'s baseline: per
-  component of the order chosen on held-out blocks, ``skill.phase_average_orders``);
+- ``phase avg``: the training cycles' phase-averaged velocity (``score()``'s baseline, at the
+  order of the default's series);
 - ``pa h-o``: a stronger phase average, each component of the order (up to 12) with the least
   error on held-out blocks of the training cycles (``skill.phase_average_orders``): a series
   of the model's order overfits 3-6 cycles;

@@ -348,6 +348,20 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
 RowCorrection = Callable[[Tensor, Tensor, object], Tensor]
 
 
+def _inverse_normal_columns(xw: Tensor, ridge: Tensor, columns: Tensor,
+                            correction: Correction | None, sel) -> tuple[Tensor, Tensor]:
+    """The columns ``columns (c,)`` of ``A⁻¹ (b, P, c)``, ``A`` the normal matrix of the rows
+    ``xw = √w x̃ (b, n, P)`` as :func:`solve` makes it (corrected by ``correction`` of the bins
+    ``sel`` under the guard, with the ridge ``ridge (b,)``), and the guard's scale ``κ (b,)``
+    (1 without a correction)."""
+    gram = xw.mT @ xw
+    kappa = gram.new_ones(gram.shape[0])
+    if correction is not None:
+        gram, kappa = _guarded_correction(gram, correction(gram, sel))
+    chol, _, _, _ = ridge_cholesky(gram, ridge)
+    return torch.cholesky_inverse(chol)[..., columns], kappa
+
+
 def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: Tensor, *,
                      lags: int, delta_max=None, correction: Correction | None = None,
                      row_correction: RowCorrection | None = None) -> Tensor:
@@ -370,13 +384,8 @@ def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: T
     for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 8):
         xy, w = _chunk_design(s, sel, design, delta_max)
         xw, yw = xy[..., :p], xy[..., p:]
-        gram = xw.mT @ xw
-        kappa = gram.new_ones(gram.shape[0])
-        if correction is not None:
-            gram, kappa = _guarded_correction(gram, correction(gram, sel))
-        chol, _, _, _ = ridge_cholesky(gram, sol.ridge[sel])
+        a_inv, kappa = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel)
         beta = torch.nan_to_num(sol.coef[sel])
-        a_inv = torch.cholesky_inverse(chol)[..., columns]  # (b, P, c)
         score = xw.unsqueeze(-2) * (yw - xw @ beta).unsqueeze(-1)  # (b, n, K, P)
         if row_correction is not None:
             score = score + kappa[:, None, None, None] * row_correction(xw, beta, sel)
@@ -404,18 +413,16 @@ def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, column
     :func:`solve` result ``sol``, from the sandwich whose diagonal gives its standard errors:
     ``A⁻¹ (XᵀW²X) A⁻¹`` (``A`` the normal matrix, corrected and with the ridge as :func:`solve`
     makes it; its residual variance, common to the coefficients, cancels). NaN where the bin's
-    coefficients are NaN."""
+    coefficients are NaN. (With 0/1 weights and no ridge the solver's standard errors take
+    ``diag(A⁻¹)`` instead, which equals this sandwich's diagonal only without a correction;
+    the correlation is this sandwich's either way.)"""
     p = sol.coef.shape[-2]
     total, n_max = s.rows.shape
     out = []
     for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 2):
         xy, w = _chunk_design(s, sel, design, delta_max)
         xw = xy[..., :p]
-        gram = xw.mT @ xw
-        if correction is not None:
-            gram, _ = _guarded_correction(gram.clone(), correction(gram, sel))
-        chol, _, _, _ = ridge_cholesky(gram, sol.ridge[sel])
-        a_inv = torch.cholesky_inverse(chol)[..., columns]  # (b, P, c)
+        a_inv, _ = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel)
         xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w: XᵀW²X
         half = xww @ a_inv  # (b, n, c)
         cov = half.mT @ half

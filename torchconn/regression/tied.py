@@ -101,20 +101,19 @@ def _joint_weights(cov: Tensor | None, w_b: Tensor, w_d: Tensor, b: Tensor, dire
     """The weight matrix ``W (..., M, 3, c, c)`` (``c = d + d²``) of each bin and row's
     ``(b̂, direct ∂Â/∂r)`` and those observations ``(..., M, 3, c)``: the inverse of their
     joint covariance ``cov`` (rounded to :data:`_WEIGHT_BITS` first, as the weights are, so
-    an unpooled element's is its own bit for bit), or where it is not finite or not
-    positive definite the independent weights ``w_b, w_d`` on the diagonal. None without
-    ``cov``."""
+    an unpooled element's is its own bit for bit), or where it is not finite, not positive
+    definite or an independent weight is not positive, the independent weights ``w_b, w_d``
+    on the diagonal. None without ``cov``."""
     if cov is None:
         return None
     diagonal = torch.diag_embed(torch.cat([w_b, w_d.flatten(-2)], -1))
     observed = torch.cat([b, direct.flatten(-2)], -1)
     finite = torch.isfinite(cov).all(-1).all(-1) & (diagonal.diagonal(0, -2, -1) > 0).all(-1)
-    cov = torch.where(finite[..., None, None], _coarse(cov), diagonal.new_ones(()).expand(
-        cov.shape[-1:]).diag_embed())
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    cov = torch.where(finite[..., None, None], _coarse(cov), eye)
     chol, info = torch.linalg.cholesky_ex(cov)
     good = (finite & (info == 0))[..., None, None]
-    inverse = torch.cholesky_inverse(torch.where(good, chol, torch.eye(
-        cov.shape[-1], dtype=cov.dtype, device=cov.device)))
+    inverse = torch.cholesky_inverse(torch.where(good, chol, eye))
     return torch.where(good, inverse, diagonal), observed
 
 
