@@ -139,3 +139,26 @@ def test_a_long_recordings_intercept_is_not_truncated():
     assert "intercept_component_order" not in est.model_.meta
     for name in ("c", "A", "b", "dA"):
         assert torch.equal(getattr(est.model_, name).coeffs, getattr(full.model_, name).coeffs)
+
+
+def test_the_phase_average_the_check_falls_back_to_gets_the_intercepts_orders():
+    """With the option and the auto complexity, the phase average of the check and of
+    ``score()`` has the orders chosen for it (harmonics above them 0), and a component that
+    falls back to it ties it exactly on later cycles."""
+    from torchconn import NoiseAwareRegression, Phaser
+
+    est, later = _short_fit("phase_average")
+    auto = ConnectionEstimator(regression=NoiseAwareRegression(
+        short_intercept_order="phase_average"), phaser=Phaser(min_cycles=2.5))
+    with pytest.warns(UserWarning):
+        auto.fit(est.trajectory_)
+    meta = auto.model_.meta
+    orders = torch.tensor(meta["phase_average_order"])  # (1, 3)
+    assert bool((orders <= auto.regression_.fourier_order).all())
+    coeffs = auto.phase_average_.coeffs[0]  # (2K+1, 3)
+    harmonic = (torch.arange(coeffs.shape[0]) + 1) // 2
+    assert bool((coeffs[harmonic[:, None] > orders[0]] == 0).all())
+    fallen = torch.tensor(auto.complexity_.phase_averaged)
+    assert bool(fallen.any())
+    s = auto.score(later)
+    assert torch.equal(s.r2[fallen], s.r2_phase_average[fallen])
