@@ -13,8 +13,10 @@ differences of the noisy poses for ``NoiseAwareRegression``):
   each component predicted by the full model, by the connection alone (``ĉ + Âδ̇``,
   ``choice`` ends in ``/A:x,y`` for v_x and v_y) or by the phase average (``/pa:x,y``; such a
   component ties it exactly), whichever clearly wins held out (``skill._choose_terms``);
-- ``phase avg``: the training cycles' phase-averaged velocity (``score()``'s baseline: per
-  component of the order chosen on held-out blocks, ``skill.phase_average_orders``);
+- ``phase avg``: the training cycles' phase-averaged velocity, ``score()``'s baseline: of the
+  model's Fourier order (12 unless the complexity was re-chosen), or with
+  ``--short-intercept`` per component of the order chosen on held-out blocks
+  (``skill.phase_average_orders``, at most the model's order);
 - ``pa h-o``: a stronger phase average, each component of the order (up to 12) with the least
   error on held-out blocks of the training cycles (``skill.phase_average_orders``): a series
   of the model's order overfits 3-6 cycles;
@@ -22,6 +24,13 @@ differences of the noisy poses for ``NoiseAwareRegression``):
 - ``exact A``: the swimmer's exact connection applied to the same noisy shapes and shape
   velocities the regression sees -- what a perfect estimate of ``A`` would score against this
   target.
+
+``--short-intercept phase_average|model`` fits with
+``NoiseAwareRegression(short_intercept_order=...)`` (the intercept truncated per component on
+short recordings; ``c`` at the end of a row gives its orders), and ``--baseline-model-order``
+then keeps the check's phase average at the model's order (the intercept alone truncated).
+The summary also counts losses against the model-order phase average, the components whose
+shape terms are kept, and the mean R² per component.
 
 Only ``Phaser(min_cycles=2.5)`` differs from the defaults: a recording of exactly 3 cycles
 often phases to 2.9-3.0 and the default Phaser (3 cycles) refuses it.
