@@ -324,7 +324,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     args.short_intercept = None if args.short_intercept == "none" else args.short_intercept
     if args.baseline_model_order:
-        skill.intercept_orders = lambda model, order: None
+        skill.baseline_orders = lambda model, order: None
     torch.set_num_threads(1)
     if args.margin is not None:
         skill.FALLBACK_MARGIN = args.margin

@@ -267,7 +267,7 @@ class ConnectionEstimator:
         # the phase average of the intercept's orders (short recordings) or the model's
         self.phase_average_ = skill.phase_average(
             view, regression.fourier_order,
-            skill.intercept_orders(model, regression.fourier_order))
+            skill.baseline_orders(model, regression.fourier_order))
         if choice is not None and (choice.phase_averaged_names()
                                    or choice.connection_only_names()):
             # components whose shape terms lost to the phase average held out predict it;

@@ -47,7 +47,7 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_G
            "regression_view", "cross_validate", "checked_terms", "few_cycles",
            "phase_average_orders", "unchecked_choice",
            "select_complexity", "skill", "with_phase_average", "with_intercept_orders",
-           "intercept_orders"]
+           "baseline_orders", "model_intercept_orders"]
 
 #: the body-velocity components, in the order of the last axis of ξ
 COMPONENTS = ("v_x", "v_y", "omega")
@@ -483,7 +483,7 @@ def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, 
     for f, fold_model in enumerate(models):
         base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
                                    view.r_dot, view.xi), reg.fourier_order,
-                             intercept_orders(fold_model, reg.fourier_order))
+                             baseline_orders(fold_model, reg.fourier_order))
         if phase_averaged is not None or connection_only is not None:
             fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
             base = padded(base, fold_model.c.order)  # the same sums: an exact tie
@@ -563,16 +563,12 @@ def model_intercept_orders(traj: Trajectory, cycle: LimitCycle, regression: Regr
                                               n_folds=n_folds, refit=False)
     ok, phase, r, r_dot, y = _scored(view, None)
     top = reg.fourier_order
-    x = fourier_design(phase, models[0].c.order)  # (..., N, 2K+1)
-    harmonic = torch.div(torch.arange(x.shape[-1], device=x.device) + 1, 2,
-                         rounding_mode="floor")
     sse = 0.0
     for f, fold_model in enumerate(models):
         w = (ok & (fold == f))[..., None]
         resid = y - (fold_model.predict(phase, r, r_dot) - fold_model.c(phase))
-        terms = x.unsqueeze(-1) * fold_model.c.coeffs.unsqueeze(-3)  # (..., N, 2K+1, 3)
-        cum = torch.stack([terms[..., harmonic <= k, :].sum(-2) for k in range(top + 1)])
-        sse = sse + torch.where(w, (resid - cum).square(), 0.0).sum(-2)  # (K+1, ..., 3)
+        cut = torch.stack([fold_model.c.truncated(k)(phase) for k in range(top + 1)])
+        sse = sse + torch.where(w, (resid - cut).square(), 0.0).sum(-2)  # (K+1, ..., 3)
     # an element some fold cannot fit keeps every harmonic
     return torch.where(torch.isfinite(sse).all(0), torch.nan_to_num(sse, nan=math.inf).argmin(0),
                        top)
@@ -584,14 +580,14 @@ def with_intercept_orders(model: LocalConnectionModel, orders: Tensor,
     batch element and component) set to 0, recorded in ``meta["intercept_component_order"]``
     (:attr:`TubeRegression.short_intercept_order`; :func:`with_coefficients` truncates the
     held-out folds' intercepts alike), and the phase average's orders ``phase_average_orders``
-    (same shape) in ``meta["phase_average_order"]`` (:func:`intercept_orders`)."""
+    (same shape) in ``meta["phase_average_order"]`` (:func:`baseline_orders`)."""
     return dataclasses.replace(model, c=model.c.truncated_values(orders),
                                meta={**(model.meta or {}),
                                      "intercept_component_order": orders.tolist(),
                                      "phase_average_order": phase_average_orders.tolist()})
 
 
-def intercept_orders(model: LocalConnectionModel, order: int) -> Tensor | None:
+def baseline_orders(model: LocalConnectionModel, order: int) -> Tensor | None:
     """``(..., 3)`` the per-component orders, at most ``order``, of the phase average that
     competes with ``model`` (held out, and as its fall-back; :func:`with_intercept_orders`),
     for :func:`phase_average`; None where the model's intercept is not truncated."""
