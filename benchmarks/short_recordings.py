@@ -13,8 +13,10 @@ differences of the noisy poses for ``NoiseAwareRegression``):
   each component predicted by the full model, by the connection alone (``ĉ + Âδ̇``,
   ``choice`` ends in ``/A:x,y`` for v_x and v_y) or by the phase average (``/pa:x,y``; such a
   component ties it exactly), whichever clearly wins held out (``skill._choose_terms``);
-- ``phase avg``: the training cycles' phase-averaged velocity (``score()``'s baseline, at the
-  order of the default's series);
+- ``phase avg``: the training cycles' phase-averaged velocity, ``score()``'s baseline: of the
+  model's Fourier order (12 unless the complexity was re-chosen), or with
+  ``--short-intercept`` per component of the order chosen on held-out blocks
+  (``skill.phase_average_orders``, at most the model's order);
 - ``pa h-o``: a stronger phase average, each component of the order (up to 12) with the least
   error on held-out blocks of the training cycles (``skill.phase_average_orders``): a series
   of the model's order overfits 3-6 cycles;
@@ -22,6 +24,13 @@ differences of the noisy poses for ``NoiseAwareRegression``):
 - ``exact A``: the swimmer's exact connection applied to the same noisy shapes and shape
   velocities the regression sees -- what a perfect estimate of ``A`` would score against this
   target.
+
+``--short-intercept phase_average|model`` fits with
+``NoiseAwareRegression(short_intercept_order=...)`` (the intercept truncated per component on
+short recordings; ``c`` at the end of a row gives its orders), and ``--baseline-model-order``
+then keeps the check's phase average at the model's order (the intercept alone truncated).
+The summary also counts losses against the model-order phase average, the components whose
+shape terms are kept, and the mean R² per component.
 
 Only ``Phaser(min_cycles=2.5)`` differs from the defaults: a recording of exactly 3 cycles
 often phases to 2.9-3.0 and the default Phaser (3 cycles) refuses it.
@@ -47,6 +56,7 @@ import torch
 from torchconn import (
     ConnectionEstimator,
     NLinkSwimmer,
+    NoiseAwareRegression,
     Phaser,
     TubeRegression,
     observe,
@@ -99,6 +109,18 @@ def _exact_r2(est: ConnectionEstimator, test, n_links: int) -> torch.Tensor:
     return (1 - (y - pred).square().nansum(-2) / sst).reshape(-1)
 
 
+def _order12_r2(est: ConnectionEstimator, test) -> torch.Tensor:
+    """R² on the test recording of the training cycles' phase average of the model's Fourier
+    order (12 unless the complexity was re-chosen) for every component: ``score()``'s
+    baseline with ``short_intercept_order=False``."""
+    reg, model = est.regression_, est.model_
+    base = skill.phase_average(skill.regression_view(est.trajectory_, reg, model, pool=False),
+                               reg.fourier_order)
+    # phased by the fitted phaser, as score() does
+    view = skill.regression_view(est._prepare_new(test, None), reg, model, pool=False)
+    return skill.skill(model, base, view).r2_phase_average.reshape(-1)
+
+
 def _held_out_order_r2(est: ConnectionEstimator, test) -> torch.Tensor:
     """R² on the test recording of the training cycles' phase average with each component's
     order chosen on held-out blocks (:func:`~torchconn.regression.skill.phase_average_orders`,
@@ -109,12 +131,13 @@ def _held_out_order_r2(est: ConnectionEstimator, test) -> torch.Tensor:
     orders = skill.phase_average_orders(unflat, top, pool=False)
     base = skill.phase_average(skill.regression_view(est.trajectory_, reg, model, pool=False),
                                top, orders)
-    view = skill.regression_view(est.prepare(test), reg, model, pool=False)
+    # phased by the fitted phaser, as score() does
+    view = skill.regression_view(est._prepare_new(test, None), reg, model, pool=False)
     return skill.skill(model, base, view).r2_phase_average.reshape(-1)
 
 
 def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
-            with_fixed: bool = True) -> dict:
+            with_fixed: bool = True, short_intercept: str | None = None) -> dict:
     traj = recording(n_links, kind, n_cycles, seed, omega)
     cut = n_cycles * SAMPLES_PER_CYCLE + 1
     train, test = traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
@@ -130,13 +153,18 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
             except ValueError:
                 pass  # cannot be fitted: NaN
         start = time.perf_counter()
-        est = ConnectionEstimator(phaser=phaser).fit(train)
+        est = ConnectionEstimator(phaser=phaser, regression=NoiseAwareRegression(
+            short_intercept_order=short_intercept)).fit(train)
         out["seconds"] = time.perf_counter() - start
         s = est.score(test)
+    c = est.complexity_
     out.update(default=s.r2.reshape(-1), phase_avg=s.r2_phase_average.reshape(-1),
                template=s.r2_template.reshape(-1), exact=_exact_r2(est, test, n_links),
-               pa_ho=_held_out_order_r2(est, test))
-    c = est.complexity_
+               pa_ho=_held_out_order_r2(est, test), pa12=_order12_r2(est, test))
+    out["kept"] = 3 if c is None else int(3 - torch.as_tensor(c.phase_averaged).sum())
+    orders = (est.model_.meta or {}).get("intercept_component_order")
+    out["c_order"] = "-" if orders is None else ",".join(
+        str(int(k)) for k in torch.as_tensor(orders).reshape(-1))
     out["choice"] = "fixed" if c is None else f"{c.n_bins}/{c.fourier_order}/{c.ridge:g}" + "".join(
         f"/{tag}:" + ",".join(n.removeprefix("v_")[0] for n in names)
         for tag, names in (("pa", c.phase_averaged_names()), ("A", c.connection_only_names()))
@@ -170,6 +198,8 @@ def table(args) -> int:
           "choice     warn  s/fit")
     wins, ties, losses = ([[] for _ in COMPONENTS] for _ in range(3))
     ho_losses = [[] for _ in COMPONENTS]  # against the held-out-order phase average
+    o12_losses = [[] for _ in COMPONENTS]  # against the model-order phase average
+    kept, n_rec, r2_sum = 0, 0, torch.zeros(3, dtype=torch.float64)
     refused = 0
     for n_links in args.links:
         for kind in args.gaits:
@@ -178,7 +208,8 @@ def table(args) -> int:
             for n in args.cycles:
                 for seed in args.seeds:
                     try:
-                        r = run_one(n_links, kind, n, seed, args.omega, not args.skip_fixed)
+                        r = run_one(n_links, kind, n, seed, args.omega, not args.skip_fixed,
+                                    args.short_intercept)
                     except ValueError as err:  # the default refuses the recording
                         print(f"{n_links:>5} {kind:>9} {n:>2} {seed:>4} | not fitted: "
                               f"{str(err)[:100]}", flush=True)
@@ -193,12 +224,18 @@ def table(args) -> int:
                         ho = float(r["default"][k] - r["pa_ho"][k])
                         if r["pa_ho"][k] > 0 and ho < 0:
                             ho_losses[k].append(-ho)
+                        o12 = float(r["default"][k] - r["pa12"][k])
+                        if r["pa12"][k] > 0 and o12 < 0:
+                            o12_losses[k].append(-o12)
+                    kept += r["kept"]
+                    n_rec += 1
+                    r2_sum += r["default"]
 
                     print(f"{n_links:>5} {kind:>9} {n:>2} {seed:>4} | {_fmt(r['fixed'])}| "
                           f"{_fmt(r['default'], bad)}| {_fmt(pa)}| {_fmt(r['pa_ho'])}| "
                           f"{_fmt(r['template'])}| "
                           f"{_fmt(r['exact'])}| {r['choice']:10s} {'yes' if r['warned'] else 'no':4s}"
-                          f" {r['seconds']:5.2f}", flush=True)
+                          f" {r['seconds']:5.2f} c {r['c_order']}", flush=True)
     print("default against the phase average, where its R² > 0 (tie: the component is "
           "predicted by the phase average, R² equal)")
     print(f"{'component':>9} {'wins':>5} {'ties':>5} {'losses':>6} {'median shortfall':>17} "
@@ -217,6 +254,12 @@ def table(args) -> int:
           f"in {len(short)} components (v_x / v_y / ω: "
           f"{' / '.join(str(len(k)) for k in ho_losses)}; largest {max(short, default=0):.4f}, "
           f"median {np.median(short) if short else 0:.4f})")
+    short = [g for k in o12_losses for g in k]
+    print(f"default worse than the model-order phase average (where its R² > 0) in {len(short)} "
+          f"components (v_x / v_y / ω: {' / '.join(str(len(k)) for k in o12_losses)}; "
+          f"largest {max(short, default=0):.4f}); shape terms kept (not phase-averaged) in "
+          f"{kept} of {3 * n_rec}; mean R² v_x / v_y / ω "
+          + " / ".join(f"{float(v) / max(n_rec, 1):.4f}" for v in r2_sum))
     return 0
 
 
@@ -265,13 +308,23 @@ def main(argv=None) -> int:
     p.add_argument("--omega", type=float, default=0.005)
     p.add_argument("--cost", action="store_true", help="time the held-out check instead")
     p.add_argument("--skip-fixed", action="store_true", help="leave out the fixed column")
+    p.add_argument("--short-intercept", choices=("phase_average", "model", "none"),
+                   default="none",
+                   help="NoiseAwareRegression(short_intercept_order=...); none: the intercept "
+                   "of the model's order on short recordings too (the previous default)")
     p.add_argument("--margin", type=float, default=None,
                    help="skill.FALLBACK_MARGIN to measure (default: the library's)")
     p.add_argument("--z", type=float, default=None,
                    help="skill.FALLBACK_Z to measure (default: the library's)")
     p.add_argument("--offset-z", type=float, default=None,
                    help="skill.OFFSET_TERMS_Z to measure (default: the library's)")
+    p.add_argument("--baseline-model-order", action="store_true",
+                   help="measure: the phase-average candidate and score()'s baseline keep the "
+                   "model's order while the intercept is truncated")
     args = p.parse_args(argv)
+    args.short_intercept = None if args.short_intercept == "none" else args.short_intercept
+    if args.baseline_model_order:
+        skill.baseline_orders = lambda model, order: None
     torch.set_num_threads(1)
     if args.margin is not None:
         skill.FALLBACK_MARGIN = args.margin

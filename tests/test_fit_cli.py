@@ -59,7 +59,9 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
     assert np.sqrt(((table[:, -1] - p_true) ** 2).mean() / (p_true**2).mean()) < 0.01
     for name in ("connection.png", "limit_cycle.png", "metric.png"):
         assert (out / name).stat().st_size > 1000
-    assert json.loads((out / "fit.json").read_text())["device"] == "cpu"  # the default
+    sidecar = json.loads((out / "fit.json").read_text())
+    assert sidecar["device"] == "cpu"  # the default
+    assert sidecar["model"]["intercept_component_order"] is None  # 40 cycles: not short
 
 
 def test_fit_rejects_the_wrong_number_of_links(recording, tmp_path, capsys):

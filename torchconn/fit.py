@@ -265,7 +265,10 @@ def main(argv: list[str] | None = None) -> int:
                      "dt": traj.dt, "trials": traj.meta.get("trials"),
                      "conversion": [r.to_dict() for r in rec.reports]},
             "preflight": check.to_dict(),
-            "model": {"window": model.meta.get("window"), "metric": model.M is not None},
+            "model": {"window": model.meta.get("window"), "metric": model.M is not None,
+                      # short recordings with short_intercept_order: per trial and component
+                      "intercept_component_order": model.meta.get(
+                          "intercept_component_order")},
             "complexity": (None if est.complexity_ is None else
                            {"n_bins": est.complexity_.n_bins,
                             "fourier_order": est.complexity_.fourier_order,
