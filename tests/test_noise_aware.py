@@ -583,6 +583,28 @@ def test_bad_velocity_interval_and_too_few_cycles_are_clear():
             metric=False, n_bins=200, fourier_order=12, window=0.5)).fit(traj)
 
 
+def test_joint_weights_without_a_joint_covariance_is_an_error_that_names_the_options():
+    # joint_weights (off by default) weighs b̂ and the direct ∂Â/∂r by the inverse of their
+    # joint covariance in the tie: without joint_covariance or without the tie there is
+    # nothing to weigh by, and the fit would silently be the one without it. Built directly,
+    # by replace() and from a settings table, it is a ValueError naming both options; with
+    # them (the defaults) it is accepted.
+    for bad in ({"joint_covariance": None}, {"tie_derivative": False}):
+        with pytest.raises(ValueError, match=r"NoiseAwareRegression.joint_weights=True needs "
+                                             r"joint_covariance='solver' or 'robust' and "
+                                             r"tie_derivative=True.*got joint_covariance="):
+            NoiseAwareRegression(joint_weights=True, **bad)
+    ok = NoiseAwareRegression(joint_weights=True)
+    assert ok.joint_covariance == "solver" and ok.tie_derivative
+    assert NoiseAwareRegression(joint_covariance="robust", joint_weights=True).joint_weights
+    with pytest.raises(ValueError, match="joint_weights=True needs.*joint_covariance=None"):
+        ok.replace(joint_covariance=None)
+    with pytest.raises(ValueError, match="joint_weights=True needs.*tie_derivative=False"):
+        estimator_from_settings({"regression": {"method": "noise_aware", "joint_weights": True,
+                                                "tie_derivative": False}})
+    NoiseAwareRegression(joint_covariance=None)  # the covariance alone may still be off
+
+
 @pytest.mark.slow
 def test_error_falls_with_data_at_omega_0p002():
     cycles = [10, 30, 90]

@@ -1489,7 +1489,9 @@ class NoiseAwareRegression(TubeRegression):
             The tied estimate itself is unchanged bit for bit.
         joint_weights: with ``joint_covariance``, also weigh the two by its inverse in the
             tie (:func:`tie_connection_derivative`; README: off, bands too narrow on the
-            3-link circle and the 5-link up to 3 % further off).
+            3-link circle and the 5-link up to 3 % further off). True needs
+            ``joint_covariance`` and ``tie_derivative`` (a ``ValueError`` otherwise: there
+            would be nothing to weigh by).
         resolved_harmonics: a pooled fit's series of ``Â`` shrinks each harmonic (up to
             ``fourier_order``) by how far its power stands out of the bins' noise
             (:data:`_SERIES_SHRINK`, :func:`_harmonic_noise`; the factors are
@@ -1508,6 +1510,19 @@ class NoiseAwareRegression(TubeRegression):
     resolved_harmonics: bool = True
     joint_covariance: Literal["solver", "robust"] | None = "solver"
     joint_weights: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        # joint_weights is the one opt-in that needs two other options: without them there is
+        # no joint covariance to weigh by and the fit would be the one without it, bit for bit
+        if self.joint_weights and (self.joint_covariance is None or not self.tie_derivative):
+            raise ValueError(
+                f"NoiseAwareRegression.joint_weights=True needs joint_covariance='solver' or "
+                f"'robust' and tie_derivative=True (the tie weighs b̂ and the direct ∂Â/∂r by "
+                f"the inverse of their joint covariance), got joint_covariance="
+                f"{self.joint_covariance!r}, tie_derivative={self.tie_derivative!r}; set "
+                f"joint_weights=False or enable both"
+            )
 
     def _corrected_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """Unpooled batch elements may carry different noise (a sweep's noise levels), so each
