@@ -205,3 +205,52 @@ def test_score_covariance_is_its_closed_form_with_heteroscedastic_and_overlappin
             _, alone = _score_expectation(mats, sigma, 0, x, beta, ridge)
             assert _mean_z(got, alone) > 2 * _Z, _mean_z(got, alone)
             assert _whitened_z(emp, alone, n_rep) > 2 * _Z
+
+
+def test_score_covariance_with_the_correction_is_the_covariance_of_corrected_estimates():
+    # Errors in the regressors, removed by the errors-in-variables correction: the latent
+    # regressors are fixed (δ, δ̇ ∈ {±1}², the full factorial by sample index, so every row
+    # has the same leverage and HC1's n/(n − P) is exact), and each replicate observes them
+    # with noise of standard deviation 0.4 (a known variance, corrected for; the guard leaves
+    # the correction whole) and the response with 0.1. Over 1200 replicates the corrected
+    # estimates' empirical covariance must be the mean of score_covariance with each row's
+    # share of the correction (eiv_row_correction), within its sampling error. Without that
+    # share the scores are not centred and the same bound rejects it; the solver's sandwich
+    # (sandwich_correlation times the standard errors: one residual variance for all rows)
+    # leaves out the correction's own variance and is rejected by far (variances 1.2-1.9
+    # times too small here).
+    gen = torch.Generator().manual_seed(5)
+    n, n_rep, n_bins, sd_r = 1200, 1200, 2, 0.4
+    bits = torch.stack([(torch.arange(n) >> k) & 1 for k in range(4)], -1).to(F64) * 2 - 1
+    r, r_dot = bits[:, :D], bits[:, D:]
+    phase = 2 * math.pi * 3 * torch.arange(n, dtype=F64) / n
+    x = torch.cat(_blocks(r, r_dot, torch.ones(n, 1, dtype=F64)), -1)
+    beta = torch.randn(P, 1, generator=gen, dtype=F64)
+    r_obs = r + sd_r * torch.randn(n_rep, n, D, generator=gen, dtype=F64)
+    r_dot_obs = r_dot + sd_r * torch.randn(n_rep, n, D, generator=gen, dtype=F64)
+    y = x @ beta + 0.1 * torch.randn(n_rep, n, 1, generator=gen, dtype=F64)
+    var = torch.full((n_rep * n_bins, D), sd_r**2, dtype=F64)
+
+    def correction(gram, sel):
+        return eiv_correction(gram, var[sel], var[sel])
+
+    def row_correction(xw, b, sel):
+        return eiv_row_correction(xw, b, var[sel], var[sel])
+
+    s, sol = _fit(phase, r_obs, r_dot_obs, y, n_bins, 0.5, "box", correction=correction)
+    assert bool((sol.eiv_scale == 1).all())
+    emp = _empirical(sol.coef.reshape(n_rep, n_bins, P, 1))
+
+    def mean(cov):
+        return cov.reshape(n_rep, n_bins, C, C).mean(0)
+
+    robust = mean(_wls.score_covariance(s, _blocks, sol, COLUMNS, lags=0, correction=correction,
+                                        row_correction=row_correction))
+    assert _whitened_z(emp, robust, n_rep) < _Z, _whitened_z(emp, robust, n_rep)
+    uncentred = mean(_wls.score_covariance(s, _blocks, sol, COLUMNS, lags=0,
+                                           correction=correction))
+    assert _whitened_z(emp, uncentred, n_rep) > _Z, _whitened_z(emp, uncentred, n_rep)
+    corr = _wls.sandwich_correlation(s, _blocks, sol, COLUMNS, correction=correction)
+    se = sol.se[:, COLUMNS, 0]
+    solver = mean(corr * se[:, :, None] * se[:, None, :])
+    assert _whitened_z(emp, solver, n_rep) > 2 * _Z, _whitened_z(emp, solver, n_rep)
