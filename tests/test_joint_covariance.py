@@ -142,10 +142,11 @@ def test_sandwich_correlation_is_the_covariance_of_the_estimates_under_homosceda
     assert float(z.abs().max()) > 2 * _Z, float(z.abs().max())
 
 
-def _score_expectation(bins, sigma, lags, x, beta, ridge):
-    """Per bin, closed forms for fixed regressors and errors ``e`` of covariance ``sigma
-    (n, n)``: the covariance of the estimates ``A⁻¹XᵀWΣWXA⁻¹``, and the expectation of
-    score_covariance's ``A⁻¹ (Σ_{|i−j| ≤ lags} w_t w_s x_t x_sᵀ ê_t ê_s) A⁻¹ · n/(n − P)``
+def _score_expectation(bins, sigma, lags, beta):
+    """Per bin of ``bins`` (:func:`_bin_matrices`), closed forms for fixed regressors and
+    errors ``e`` of covariance ``sigma (n, n)``: the covariance of the estimates
+    ``A⁻¹XᵀWΣWXA⁻¹``, and the expectation of score_covariance's
+    ``A⁻¹ (Σ_{|t−s| ≤ lags} w_t w_s x_t x_sᵀ ê_t ê_s) A⁻¹ · n/(n − P)``
     with the residuals ``ê = (I − H)(Xβ + e)``, ``H = X A⁻¹XᵀW`` (with a ridge ``(I − H)Xβ``
     is its bias, not 0): ``E[êêᵀ] = (I − H)(Σ + Xββᵀ Xᵀ)(I − H)ᵀ``. Both ``(M, c, c)``."""
     truth, expected = [], []
@@ -197,12 +198,12 @@ def test_score_covariance_is_its_closed_form_with_heteroscedastic_and_overlappin
             n_rep, n_bins, C, C)
         sigma = sd[:, None] * sd[None, :] * (moving if lag else torch.eye(n, dtype=F64))
         mats = _bin_matrices(phase, x, n_bins, window, kernel, ridge, ok)
-        truth, expected = _score_expectation(mats, sigma, lag, x, beta, ridge)
+        truth, expected = _score_expectation(mats, sigma, lag, beta)
         emp = _empirical(sol.coef.reshape(n_rep, n_bins, P, 1))
         assert _whitened_z(emp, truth, n_rep) < _Z, (kernel, _whitened_z(emp, truth, n_rep))
         assert _mean_z(got, expected) < _Z, (kernel, _mean_z(got, expected))
         if lag:  # the overlap ignored
-            _, alone = _score_expectation(mats, sigma, 0, x, beta, ridge)
+            _, alone = _score_expectation(mats, sigma, 0, beta)
             assert _mean_z(got, alone) > 2 * _Z, _mean_z(got, alone)
             assert _whitened_z(emp, alone, n_rep) > 2 * _Z
 
