@@ -464,7 +464,9 @@ def _off_harmonics(f: Tensor, cycle: FourierSeries, samples_per_cycle: Tensor | 
     noise fit takes their power for noise: a line near Nyquist rises there as ``σ²``'s column
     does (3-link reference gait at 10 samples per cycle, clean: σ̂ 0.12 rad, Â 38 % off; fixed
     here). Not fixed: the lines' phase-noise tails beside the cores, which at 8 samples per
-    cycle still read as noise and at 12-20 drive ``σ̂²`` below 0 (ω = 0.005: none detected).
+    cycle still read as noise and at 12-20 drive ``σ̂²`` below 0 (ω = 0.005: none detected;
+    ``floor="low_rate"`` models them, but on the 3-link reference gait ω = 0.005 is then only
+    0.2-0.5 standard errors of ``σ̂²`` in 3 × 20 cycles: README "Few samples per cycle").
     At 32 or more samples per cycle an order-8 cycle's harmonics stay at or below 0.25 (at 64
     or more below it: nothing is left out)."""
     coeffs = cycle.coeffs.to(f)
