@@ -228,6 +228,23 @@ def test_low_rate_floor_is_the_gait_floor_only_where_the_harmonics_reach_the_top
         estimate_noise(x, cycle=cycle, samples_per_cycle=per_cycle, floor="shaped")
 
 
+def test_low_rate_floor_leaves_a_64_per_cycle_fit_bit_for_bit():
+    # the estimator with noise_floor="low_rate" at 64 samples per cycle (the gait's harmonics
+    # far below the top band) is the default's fit exactly; only the recorded settings differ
+    lag = 2 * math.pi * torch.arange(2, dtype=F64) / 4
+    coeffs = torch.zeros(3, 2, dtype=F64)
+    coeffs[1], coeffs[2] = 0.9 * torch.cos(lag), 0.9 * torch.sin(lag)
+    seeds = np.arange(2) + 70
+    traj = observe(simulate(NLinkSwimmer(3), FourierGait(coeffs), eta=0.025, n_cycles=12,
+                            samples_per_cycle=64, seeds=seeds), 0.005, seeds=seeds)
+    flat, low = (_fit(traj, noise_floor=floor).model_ for floor in ("flat", "low_rate"))
+    assert flat.meta["noise_r"][0] > 0  # noise found, so the floor was used
+    phi = torch.linspace(0, 2 * math.pi, 97, dtype=F64)
+    assert torch.equal(flat.connection(phi), low.connection(phi))
+    assert torch.equal(flat.connection_jacobian(phi), low.connection_jacobian(phi))
+    assert {k for k in flat.meta if flat.meta[k] != low.meta.get(k)} == {"settings"}
+
+
 def test_channel_correlation_closed_form_on_a_circle():
     # γ = a (cos φ, sin φ): the increments' covariance q²_0 (I + γ'γ'ᵀ) gives the two joints'
     # σ̂² the correlation ⟨C_12²⟩ / ⟨C_11²⟩ = (a⁴/8) / (1 + a² + 3a⁴/8)
