@@ -14,6 +14,8 @@ hand, one thread (about 2 minutes for the default table on a loaded 2-core machi
 
     python benchmarks/bench_sampling_rate.py
     python benchmarks/bench_sampling_rate.py --links 3 --gaits circle --seeds 303 404
+    python benchmarks/bench_sampling_rate.py --links 3 5 --gaits reference circle \
+        --spc 12 16 20 32 --noise-floor low_rate   # README "Few samples per cycle"
 """
 
 from __future__ import annotations
@@ -28,19 +30,22 @@ import torch
 from accuracy import gait_for  # beside this file
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
+from torchconn.regression import NoiseAwareRegression
 
 
 def cell(n_links: int, gait_kind: str, spc: int, omega: float, seed: int,
-         n_cycles: int = 20, trials: int = 3) -> tuple[float, float]:
+         n_cycles: int = 20, trials: int = 3, noise_floor: str = "flat") -> tuple[float, float]:
     """(relative RMS error of Â on the cycle, mean σ̂ of the shape channels) of one pooled fit
-    to ``trials`` recordings of seeds ``seed, seed + 1, ...``."""
+    to ``trials`` recordings of seeds ``seed, seed + 1, ...`` (``NoiseAwareRegression``'s
+    ``noise_floor``)."""
     swimmer, gait = NLinkSwimmer(n_links), gait_for(n_links, gait_kind)
     seeds = np.arange(seed, seed + trials)
     traj = simulate(swimmer, gait, eta=0.025, n_cycles=n_cycles, samples_per_cycle=spc,
                     seeds=seeds)
     # no power channel: the metric (which needs many more samples) is not fitted
     traj = dataclasses.replace(observe(traj, omega, seeds=seeds), power=None)
-    model = ConnectionEstimator(pool=True).fit(traj).model_
+    regression = NoiseAwareRegression(noise_floor=noise_floor)
+    model = ConnectionEstimator(pool=True, regression=regression).fit(traj).model_
     phi = torch.linspace(0, 2 * math.pi, 200, dtype=torch.float64)[:-1]
     a_hat, a_true = model.connection(phi), swimmer.connection(model.gamma_at(phi))
     err = float((a_hat - a_true).pow(2).mean().sqrt() / a_true.pow(2).mean().sqrt())
@@ -56,6 +61,8 @@ def main() -> None:
     p.add_argument("--spc", type=int, nargs="+", default=[8, 10, 12, 16, 20, 24, 32, 64],
                    help="samples per cycle")
     p.add_argument("--seeds", type=int, nargs="+", default=[101, 202])
+    p.add_argument("--noise-floor", default="flat", choices=["flat", "gait", "low_rate"],
+                   help="NoiseAwareRegression's noise_floor")
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args()
     torch.set_num_threads(a.threads)
@@ -69,7 +76,8 @@ def main() -> None:
                 cols = []
                 for w in a.omega:
                     try:
-                        res = [cell(n, kind, spc, w, s) for s in a.seeds]
+                        res = [cell(n, kind, spc, w, s, noise_floor=a.noise_floor)
+                               for s in a.seeds]
                     except ValueError as e:  # e.g. a phase bin with too few samples
                         print(f"  {n}-link {kind}, {spc}, ω = {w:g}: {str(e)[:160]}",
                               flush=True)

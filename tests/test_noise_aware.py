@@ -201,6 +201,50 @@ def test_phase_noise_floor_is_the_spectrum_of_a_phase_random_walk():
     assert abs(float(observed[top].mean() / (far * shape[top].mean())) - 1) < 0.04
 
 
+def test_low_rate_floor_is_the_gait_floor_only_where_the_harmonics_reach_the_top_band():
+    # one batch of two records of the same order-8 gait, at 16 and 64 samples per cycle: the
+    # "low_rate" floor gives the 16-per-cycle element the gait floor's estimate and the
+    # 64-per-cycle element the flat floor's, bit for bit, and the two floors differ there
+    from torchconn.phase.fourier import FourierSeries
+
+    g = torch.Generator().manual_seed(5)
+    n, q = 1200, 0.03
+    coeffs = torch.zeros(17, 2, dtype=F64)
+    coeffs[1:] = 0.3 * torch.randn(16, 2, generator=g, dtype=F64) / torch.arange(
+        1, 9, dtype=F64).repeat_interleave(2)[:, None]  # order 8, falling as 1/k
+    cycle = FourierSeries(coeffs, value_ndim=1)
+    per_cycle = torch.tensor([16.0, 64.0], dtype=F64)
+    phi = torch.cumsum(2 * math.pi / per_cycle[:, None]
+                       + q * torch.randn(2, n + 1, generator=g, dtype=F64), -1)
+    x = cycle(phi) + torch.cumsum(q * torch.randn(2, n + 1, 2, generator=g, dtype=F64), -2)
+    x = x + 0.01 * torch.randn(x.shape, generator=g, dtype=F64)
+    est = {floor: estimate_noise(x, cycle=cycle, samples_per_cycle=per_cycle, floor=floor)
+           for floor in ("flat", "gait", "low_rate")}
+    for name in ("variance", "variance_se", "process", "band_low", "correlation"):
+        low, gait, flat = (getattr(est[k], name) for k in ("low_rate", "gait", "flat"))
+        assert torch.equal(low[0], gait[0]) and torch.equal(low[1], flat[1]), name
+    assert not torch.equal(est["gait"].variance[0], est["flat"].variance[0])
+    with pytest.raises(ValueError, match="floor must be 'gait', 'flat' or 'low_rate'"):
+        estimate_noise(x, cycle=cycle, samples_per_cycle=per_cycle, floor="shaped")
+
+
+def test_low_rate_floor_leaves_a_64_per_cycle_fit_bit_for_bit():
+    # the estimator with noise_floor="low_rate" at 64 samples per cycle (the gait's harmonics
+    # far below the top band) is the default's fit exactly; only the recorded settings differ
+    lag = 2 * math.pi * torch.arange(2, dtype=F64) / 4
+    coeffs = torch.zeros(3, 2, dtype=F64)
+    coeffs[1], coeffs[2] = 0.9 * torch.cos(lag), 0.9 * torch.sin(lag)
+    seeds = np.arange(2) + 70
+    traj = observe(simulate(NLinkSwimmer(3), FourierGait(coeffs), eta=0.025, n_cycles=12,
+                            samples_per_cycle=64, seeds=seeds), 0.005, seeds=seeds)
+    flat, low = (_fit(traj, noise_floor=floor).model_ for floor in ("flat", "low_rate"))
+    assert flat.meta["noise_r"][0] > 0  # noise found, so the floor was used
+    phi = torch.linspace(0, 2 * math.pi, 97, dtype=F64)
+    assert torch.equal(flat.connection(phi), low.connection(phi))
+    assert torch.equal(flat.connection_jacobian(phi), low.connection_jacobian(phi))
+    assert {k for k in flat.meta if flat.meta[k] != low.meta.get(k)} == {"settings"}
+
+
 def test_channel_correlation_closed_form_on_a_circle():
     # γ = a (cos φ, sin φ): the increments' covariance q²_0 (I + γ'γ'ᵀ) gives the two joints'
     # σ̂² the correlation ⟨C_12²⟩ / ⟨C_11²⟩ = (a⁴/8) / (1 + a² + 3a⁴/8)

@@ -161,7 +161,7 @@ class NoiseEstimate:
 def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
                    angular: Tensor | None = None, cycle: FourierSeries | None = None,
                    samples_per_cycle: Tensor | float | None = None,
-                   floor: Literal["flat", "gait"] = "flat") -> NoiseEstimate:
+                   floor: Literal["flat", "gait", "low_rate"] = "flat") -> NoiseEstimate:
     """Measurement noise of every channel of ``x (..., T, C)``, separated from process noise.
 
     The increments ``u_k = x_{k+1} − x_k`` of a signal driven by white process noise (variance
@@ -202,7 +202,11 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             phase noise (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
         floor: with a ``cycle``, ``"flat"`` (default, as ``NoiseAwareRegression``'s
             ``noise_floor``) keeps the process floor flat and uses the cycle only for
-            ``correlation``; ``"gait"`` shapes the floor as above.
+            ``correlation``; ``"gait"`` shapes the floor as above; ``"low_rate"`` shapes it
+            only for the batch elements whose gait's harmonics reach the top band (where
+            :func:`_off_harmonics` leaves ordinates out: at 32 or fewer samples per cycle for
+            an order-8 cycle, where the lines' tails fill the band) and keeps the others'
+            flat, bit for bit.
 
     Returns:
         :class:`NoiseEstimate` with ``(..., C)`` standard deviations (clamped at 0).
@@ -225,8 +229,9 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
         bridged = torch.diff(_bridge_gaps(x), dim=-2)
         if angular is not None:
             bridged = torch.where(angular.to(x.device), se2.wrap_angle(bridged), bridged)
-    if floor not in ("gait", "flat"):
-        raise ValueError(f"estimate_noise: floor must be 'gait' or 'flat', got {floor!r}")
+    if floor not in ("gait", "flat", "low_rate"):
+        raise ValueError(f"estimate_noise: floor must be 'gait', 'flat' or 'low_rate', got "
+                         f"{floor!r}")
     shape = None
     if cycle is not None:
         if samples_per_cycle is None:
@@ -236,7 +241,7 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             raise ValueError(f"estimate_noise: cycle must be a FourierSeries with values "
                              f"(C,) = ({x.shape[-1]},) like x's channels, got value shape "
                              f"{tuple(cycle.value_shape)}")
-        shape = (cycle, samples_per_cycle) if floor == "gait" else None
+        shape = None if floor == "flat" else (cycle, samples_per_cycle, floor == "low_rate")
     spec = _increment_spectrum(u, bridged, shape)
     f = spec.f
     keep = None
@@ -353,10 +358,12 @@ def _bridge_gaps(x: Tensor) -> Tensor:
 
 
 def _increment_spectrum(u: Tensor, bridged: Tensor | None = None,
-                        shape: tuple[FourierSeries, Tensor | float] | None = None) -> _Spectrum:
+                        shape: tuple[FourierSeries, Tensor | float, bool] | None = None
+                        ) -> _Spectrum:
     """:class:`_Spectrum` of increments ``u (..., n, C)`` (NaN where missing); ``shape``:
-    None (a flat process floor) or ``(cycle, samples_per_cycle)`` for
-    :func:`phase_noise_floor`'s floor.
+    None (a flat process floor) or ``(cycle, samples_per_cycle, low_rate)`` for
+    :func:`phase_noise_floor`'s floor (with ``low_rate`` only for the batch elements whose
+    gait's harmonics reach the top band, :func:`_off_harmonics`; flat for the others).
 
     Zeros in place of missing increments would spread the gait's strong lines over the whole
     spectrum (a random mask leaks a line's power everywhere), so the spectrum is taken of
@@ -390,7 +397,14 @@ def _increment_spectrum(u: Tensor, bridged: Tensor | None = None,
     s1 = (a[..., :-1, :] * a[..., 1:, :]).sum(-2).mean(-2).unsqueeze(-2)
     f = torch.fft.rfftfreq(n_fft, dtype=u.dtype, device=u.device)
     cos = torch.cos(2 * math.pi * f)[:, None]
-    floor = s0 if shape is None else s0 * phase_noise_floor(f, *shape, n=n)
+    floor = s0
+    if shape is not None:
+        cycle, per_cycle, low_rate = shape
+        gait = phase_noise_floor(f, cycle, per_cycle, n=n)  # (..., F, C)
+        if low_rate:  # (..., 1, 1): a harmonic in the top band (ordinates left out there)
+            reach = (_off_harmonics(f, cycle, per_cycle, n) == 0).any(-2, keepdim=True)
+            gait = torch.where(reach, gait, 1.0)
+        floor = s0 * gait
     x0, x1 = torch.broadcast_tensors(floor, 2 * s0 - 2 * cos * s1)
     return _Spectrum(power=power, x0=x0.expand(power.shape), x1=x1.expand(power.shape),
                      f=f, density=n_fft / n)
@@ -450,7 +464,9 @@ def _off_harmonics(f: Tensor, cycle: FourierSeries, samples_per_cycle: Tensor | 
     noise fit takes their power for noise: a line near Nyquist rises there as ``σ²``'s column
     does (3-link reference gait at 10 samples per cycle, clean: σ̂ 0.12 rad, Â 38 % off; fixed
     here). Not fixed: the lines' phase-noise tails beside the cores, which at 8 samples per
-    cycle still read as noise and at 12-20 drive ``σ̂²`` below 0 (ω = 0.005: none detected).
+    cycle still read as noise and at 12-20 drive ``σ̂²`` below 0 (ω = 0.005: none detected;
+    ``floor="low_rate"`` models them, but on the 3-link reference gait ω = 0.005 is then only
+    0.2-0.5 standard errors of ``σ̂²`` in 3 × 20 cycles: README "Few samples per cycle").
     At 32 or more samples per cycle an order-8 cycle's harmonics stay at or below 0.25 (at 64
     or more below it: nothing is left out)."""
     coeffs = cycle.coeffs.to(f)
@@ -1446,7 +1462,10 @@ class NoiseAwareRegression(TubeRegression):
             on clean recordings it declares noise more often (seeds 40-59, 24 cells: 23 of
             480 recordings against 7 with the correlated test, 11 with independent joints;
             its band rule leaves a small upward bias), so it is not the default (README
-            "Noise estimates").
+            "Noise estimates"). ``"low_rate"``: ``"gait"`` where the gait's harmonics reach
+            the noise fit's top band (32 or fewer samples per cycle; their phase-noise tails
+            fill it and drive the flat floor's ``σ̂²`` below 0), ``"flat"`` elsewhere, bit for
+            bit (README "Few samples per cycle").
         shrink_to_smoothed: combine with the smoothed estimate (:func:`blend_fits`); False:
             the corrected estimate alone (unbiased, but with one trial of a 9-link swimmer at
             ω ≥ 0.005 measured 2-4 times further off than the smoothed one).
@@ -1501,7 +1520,7 @@ class NoiseAwareRegression(TubeRegression):
 
     velocity_interval: int | None = option(None, ge=1)
     noise_band_low: float | None = option(None, gt=0, le=0.45)
-    noise_floor: Literal["flat", "gait"] = "flat"
+    noise_floor: Literal["flat", "gait", "low_rate"] = "flat"
     shrink_to_smoothed: bool = True
     bias_correction: bool = True
     full_search: bool = False
