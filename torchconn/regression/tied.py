@@ -245,12 +245,12 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
         cov = _coarse(fit.cov_b_dA)
         finite = torch.isfinite(cov).all(-1).all(-1)
         cov = torch.where(finite[..., None, None], cov, 0.0)
+        # as matrix products: the elementwise sums materialised (..., c, c, d²) and
+        # (..., d², d², d²) tensors, 0.5 GB per trial on the 9-link (d = 8); only the bands
+        # depend on it, and they round with the batch anyway (the solver's row sums)
         g = w_ind.unsqueeze(-1) * _tie_design(gamma_dot_m).unsqueeze(-3)  # WH (..., c, d²)
-        sg = (cov.unsqueeze(-1) * g.unsqueeze(-3)).sum(-2)
-        meat = (g.unsqueeze(-1) * sg.unsqueeze(-2)).sum(-3) + slope_normal
-        var = torch.where(finite.unsqueeze(-1),
-                          ((n_inv.unsqueeze(-1) * meat.unsqueeze(-3)).sum(-2) * n_inv).sum(-1),
-                          var)
+        meat = g.mT @ (cov @ g) + slope_normal  # (..., M, 3, d², d²)
+        var = torch.where(finite.unsqueeze(-1), ((n_inv @ meat) * n_inv).sum(-1), var)
     if consistency:
         # χ² of the three sources about the tied solution, against its degrees of freedom
         fitted = torch.where(good, solution, 0.0).unflatten(-1, (d, d))
