@@ -126,11 +126,8 @@ class FourierSeries:
         """This series with the harmonics above ``order`` set to zero: an integer, or ``(...)``
         integers broadcasting against :attr:`batch_shape` (one order per batch element); the
         coefficient array keeps its shape."""
-        c = self.coeffs
-        order = torch.as_tensor(order, device=c.device)
-        keep = self._harmonic_index() <= order[..., None]  # (..., 2K+1)
-        keep = keep.reshape(keep.shape + (1,) * self.value_ndim)
-        return FourierSeries(torch.where(keep, c, torch.zeros_like(c)), self.value_ndim)
+        order = torch.as_tensor(order, device=self.coeffs.device)
+        return self.truncated_values(order.reshape(order.shape + (1,) * self.value_ndim))
 
     def truncated_values(self, order: Tensor) -> FourierSeries:
         """This series with the harmonics above ``order`` set to zero per value: ``order``
@@ -139,14 +136,12 @@ class FourierSeries:
         shape."""
         c = self.coeffs
         order = torch.as_tensor(order, device=c.device)
-        keep = self._harmonic_index().reshape((-1,) + (1,) * self.value_ndim) <= order.unsqueeze(
+        # the harmonic of each coefficient [a0, a1, b1, ...]: 0, 1, 1, 2, ...
+        harmonic = torch.div(torch.arange(c.shape[self._axis], device=c.device) + 1, 2,
+                             rounding_mode="floor")
+        keep = harmonic.reshape((-1,) + (1,) * self.value_ndim) <= order.unsqueeze(
             -1 - self.value_ndim)  # (..., 2K+1, *v)
         return FourierSeries(torch.where(keep, c, torch.zeros_like(c)), self.value_ndim)
-
-    def _harmonic_index(self) -> Tensor:
-        """``(2K+1,)`` the harmonic of each coefficient ``[a0, a1, b1, ...]``: 0, 1, 1, 2, ..."""
-        return torch.div(torch.arange(self.coeffs.shape[self._axis], device=self.coeffs.device)
-                         + 1, 2, rounding_mode="floor")
 
     # ------------------------------------------------------------------ calculus
     def _harmonics(self) -> tuple[Tensor, Tensor, Tensor]:
