@@ -284,10 +284,12 @@ class TubeRegression(Regression):
                          model: LocalConnectionModel, pool: bool) -> LocalConnectionModel:
         """``model`` with its intercept truncated per component on short recordings
         (:attr:`short_intercept_order`); unchanged where none is short."""
+        if self.short_intercept_order is None:
+            return model
         from . import skill  # skill builds on this module
 
         short = skill.few_cycles(traj.phase, pool)
-        if self.short_intercept_order is None or not bool(short.any()):
+        if not bool(short.any()):
             return model
         unflat = skill.regression_view(traj, self, model, pool=pool, flatten=False)
         base = skill.phase_average_orders(unflat, self.fourier_order, pool)  # (..., 3)
