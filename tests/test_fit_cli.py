@@ -124,3 +124,32 @@ def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tm
     assert len(conn) == 3 and all(isinstance(x, bool) for x in conn)
     assert model.meta.get("connection_only", [False] * 3) == conn
     assert ("predicted by the connection alone" in text) == any(conn)
+
+
+def test_fit_says_when_no_held_out_check_can_score_a_short_recording(tmp_path, capsys):
+    """9-link reference gait, 3 cycles, ω = 0.005 (as in test_held_out): no candidate can be
+    fitted without a third of the cycles, so the printout, fit.json and the model say the
+    fit stood unchecked and which components the phase average predicts."""
+    seeds = np.array([11])
+    spc = 126
+    clean = simulate(NLinkSwimmer(9), reference_gait("9link"), eta=0.025, n_cycles=4,
+                     samples_per_cycle=spc, seeds=seeds)
+    traj = observe(clean, 0.005, seeds=seeds).with_fields(power=None)
+    path = tmp_path / "short.csv"
+    write_csv(traj.slice_time(0, 3 * spc + 1), path)
+    out = tmp_path / "fit"
+    # 3 cycles tracked come out as 2.95 by the preflight's count: the user's own minimum for
+    # the phase estimate is the fit's rule
+    assert main([str(path), "--links", "9", "--out", str(out), "--set",
+                 "phaser.min_cycles=2.5"]) == 0
+    text = capsys.readouterr().out
+    assert "fit needs 2.5 cycles per trial and 2.5 in all: ok" in text
+    assert "no held-out check can score it" in text
+    assert "complexity chosen by held-out error" not in text
+    assert "are predicted by the phase-averaged velocity" in text
+    chosen = json.loads((out / "fit.json").read_text())["complexity"]
+    assert chosen["checked"] is False
+    assert chosen["phase_averaged"] == [True, True, True]
+    model = LocalConnectionModel.load(out / "model.npz")
+    assert model.meta["phase_averaged"] == [True, True, True]
+    assert bool((model.A.coeffs == 0).all())

@@ -16,7 +16,7 @@ from torchconn import NLinkSwimmer, simulate
 from torchconn.convert import main as convert_main
 from torchconn.discrepancy.known import parse_known, relative_to_known
 from torchconn.fit import main as fit_main
-from torchconn.io.preflight import CYCLE_RULES, preflight
+from torchconn.io.preflight import CYCLE_RULES, CycleRule, preflight
 from torchconn.io.tracking import ConversionSettings, TrackingFormatError, convert, read_tracking
 from torchconn.physics.gaits import reference_gait
 from torchconn.simulation.observe import observe
@@ -318,6 +318,15 @@ def test_preflight_states_one_cycle_rule_per_command_and_warns_on_coarse_samplin
     assert "fit needs 3 cycles" in text and "discrepancy needs 3 cycles per trial and 10" in text
     short = preflight(traj[:1])  # 5 cycles: enough to fit, not for the discrepancy workflow
     assert short.ready == {"fit": True, "discrepancy": False}
+    # a command's rule replaced (the fit's from the phase estimator's min_cycles): measured
+    # and printed against it; an unknown command is refused by name
+    strict = preflight(traj[:1], rules={"fit": CycleRule(per_trial=6.0, total=6.0)})
+    assert strict.ready == {"fit": False, "discrepancy": False}
+    assert "hold fewer than 6 cycles" in strict.problems["fit"][0]
+    assert "fit needs 6 cycles per trial and 6 in all: NOT ENOUGH" in strict.lines("fit")
+    assert strict.to_dict()["rules"]["fit"] == {"per_trial": 6.0, "total": 6.0}
+    with pytest.raises(ValueError, match="unknown command.*'fitt'"):
+        preflight(traj[:1], rules={"fitt": CycleRule(per_trial=2.0, total=2.0)})
     # a third of the samples lost is still a periodic gait
     lossy = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=6,
                      seeds=np.array([3]))

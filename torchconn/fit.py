@@ -42,7 +42,7 @@ from ._cli import (
 from ._provenance import write_sidecar
 from .convert import add_conversion_arguments, config_tables, conversion_settings, load_recordings
 from .discrepancy.known import changes_data, parse_known, relative_to_known
-from .io.preflight import preflight
+from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
 from .physics.systems.swimmer import NLinkSwimmer
 from .regression.estimator import (
@@ -232,7 +232,10 @@ def main(argv: list[str] | None = None) -> int:
         rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
                               settings=conv, read_csv=read_csv)
         traj = relative_to_known(rec.trajectory, known, swimmer)
-        check = preflight(traj, body_length=rec.body_length)
+        # the phase estimator's own minimum (``--set phaser.min_cycles=...``) is the fit's rule
+        need = getattr(estimator.phaser, "min_cycles", CYCLE_RULES["fit"].per_trial)
+        check = preflight(traj, body_length=rec.body_length,
+                          rules={"fit": CycleRule(per_trial=need, total=need)})
         print("\n".join(check.lines("fit")))
         if not check.ready["fit"]:
             raise InputError("the recording is not ready to fit: "

@@ -91,6 +91,7 @@ class Preflight:
         ready: command -> True when it can run.
         problems: messages that stop a command (command -> list).
         warnings: messages that do not.
+        rules: command -> the :class:`CycleRule` it was measured against.
     """
 
     cycles: tuple[float, ...]
@@ -104,6 +105,7 @@ class Preflight:
     ready: dict
     problems: dict
     warnings: tuple[str, ...]
+    rules: dict
 
     def lines(self, command: str | None = None) -> list[str]:
         """Readable lines: the measurements, then each command's verdict (or one command's)."""
@@ -111,7 +113,7 @@ class Preflight:
         out = [f"{n} trial(s), {self.total_cycles:.1f} gait cycles in all (per trial "
                f"{_span(self.cycles, '.1f')}), {_span(self.samples_per_cycle, '.0f')} samples "
                f"per cycle, {100 * max(self.missing_fraction):.0f}% samples missing at most"]
-        for cmd, rule in CYCLE_RULES.items():
+        for cmd, rule in self.rules.items():
             if command is not None and cmd != command:
                 continue
             verdict = "ok" if self.ready[cmd] else "NOT ENOUGH"
@@ -126,9 +128,7 @@ class Preflight:
     def to_dict(self) -> dict:
         from dataclasses import asdict
 
-        d = asdict(self)
-        d["rules"] = {k: asdict(v) for k, v in CYCLE_RULES.items()}
-        return d
+        return asdict(self)
 
 
 def _span(values, fmt: str) -> str:
@@ -136,14 +136,22 @@ def _span(values, fmt: str) -> str:
     return f"{lo:{fmt}}" if f"{lo:{fmt}}" == f"{hi:{fmt}}" else f"{lo:{fmt}}-{hi:{fmt}}"
 
 
-def preflight(traj: Trajectory, *, body_length: Tensor | None = None) -> Preflight:
+def preflight(traj: Trajectory, *, body_length: Tensor | None = None,
+              rules: dict[str, CycleRule] | None = None) -> Preflight:
     """Measure a recording against every command's needs.
 
     Args:
         traj: recorded trials, any batch shape (flattened into trials).
         body_length: ``(F,)`` or ``(..., F)`` body length per frame (from the tracking
             conversion), or None.
+        rules: command -> :class:`CycleRule` in place of :data:`CYCLE_RULES`' entry (e.g.
+            ``fit``'s from the phase estimator's own ``min_cycles`` when the user set it).
     """
+    rules = {**CYCLE_RULES, **(rules or {})}
+    unknown = sorted(set(rules) - set(CYCLE_RULES))
+    if unknown:
+        raise ValueError(f"preflight: unknown command(s) {unknown} in rules; known: "
+                         f"{', '.join(CYCLE_RULES)}")
     r = traj.r.reshape(-1, traj.n_samples, traj.shape_dim)
     finite = torch.isfinite(r).all(-1) & torch.isfinite(traj.pose.reshape(-1, traj.n_samples,
                                                                            3)).all(-1)
@@ -159,7 +167,7 @@ def preflight(traj: Trajectory, *, body_length: Tensor | None = None) -> Preflig
     longest = _longest_runs((~finite) & within).to(r.dtype)
     longest_cycles = longest / spc.clamp_min(1e-9)
 
-    warn, problems = [], {cmd: [] for cmd in CYCLE_RULES}
+    warn, problems = [], {cmd: [] for cmd in rules}
     if float(spc.min()) < MIN_SAMPLES_PER_CYCLE:
         warn.append(f"only {float(spc.min()):.0f} samples per gait cycle (fewer than "
                     f"{MIN_SAMPLES_PER_CYCLE}): velocities and phase bins will be coarse; record "
@@ -186,7 +194,7 @@ def preflight(traj: Trajectory, *, body_length: Tensor | None = None) -> Preflig
                                      f"{float(per[k]):.2f} < {MIN_PERIODICITY:g}); the shapes do "
                                      "not repeat a cycle")
     total = float(cycles.sum())
-    for cmd, rule in CYCLE_RULES.items():
+    for cmd, rule in rules.items():
         few = [k for k in range(r.shape[0]) if float(cycles[k]) < rule.per_trial]
         if few:
             found = ", ".join(f"{float(cycles[k]):.1f}" for k in few)
@@ -201,7 +209,7 @@ def preflight(traj: Trajectory, *, body_length: Tensor | None = None) -> Preflig
         longest_gap=tuple(float(x) for x in longest_cycles), length_spread=spread,
         periodic=bool((per >= MIN_PERIODICITY).all()),
         ready={cmd: not p for cmd, p in problems.items()}, problems=problems,
-        warnings=tuple(warn),
+        warnings=tuple(warn), rules=rules,
     )
 
 
