@@ -1530,6 +1530,20 @@ def test_the_tie_design_product_is_the_full_sum_over_its_rows():
         assert torch.equal(product, (x.unsqueeze(-1) * design.unsqueeze(-3)).sum(-2)), d
 
 
+def _joint_weighted_tie(fit, gamma, rate, window, idx, covariance=True):
+    """The joint-weighted tie (order 12, tricube bins) of batch elements ``idx`` of ``fit``
+    (without its joint covariance unless ``covariance``)."""
+    from torchconn.regression.noise_aware import tie_connection_derivative
+
+    part = dataclasses.replace(fit, **{f.name: getattr(fit, f.name)[idx]
+                                       for f in dataclasses.fields(fit)
+                                       if getattr(fit, f.name) is not None})
+    if not covariance:
+        part = dataclasses.replace(part, cov_b_dA=None)
+    return tie_connection_derivative(part, gamma[idx], rate[idx], 12, window=window[idx],
+                                     kernel="tricube", joint_weights=True)
+
+
 def test_the_joint_weighted_tie_of_a_batch_element_is_its_own_bit_for_bit():
     # joint_weights: b̂ and the direct ∂Â/∂r weighed by the inverse of their joint covariance.
     # Each batch element's tied ∂Â/∂r and its standard errors must be the same bit for bit
@@ -1560,22 +1574,13 @@ def test_the_joint_weighted_tie_of_a_batch_element_is_its_own_bit_for_bit():
         cov[1, 3, 2] = 0.0  # not positive definite
         fit = dataclasses.replace(fit, cov_b_dA=cov)
         window = torch.tensor([2.0, 2.5, 3.0, 2.0], dtype=F64)
-
-        def tie(idx, cov_b_dA=cov):
-            part = dataclasses.replace(fit, **{
-                f.name: getattr(fit, f.name)[idx] for f in dataclasses.fields(fit)
-                if getattr(fit, f.name) is not None})
-            return tie_connection_derivative(
-                dataclasses.replace(part, cov_b_dA=None if cov_b_dA is None else cov[idx]),
-                gamma[idx], rate[idx], 12, window=window[idx], kernel="tricube",
-                joint_weights=True)
-
-        full = tie(torch.arange(n))
+        inputs = (fit, gamma, rate, window)
+        full = _joint_weighted_tie(*inputs, torch.arange(n))
         for idx in ([0], [1], [2], [3], [3, 1, 0], [2, 0]):
-            part = tie(torch.tensor(idx))
+            part = _joint_weighted_tie(*inputs, torch.tensor(idx))
             assert torch.equal(part.dA, full.dA[idx]), (d, idx)
             assert torch.equal(part.se_dA, full.se_dA[idx]), (d, idx)
-        without = tie(torch.tensor([0]), cov_b_dA=None)
+        without = _joint_weighted_tie(*inputs, torch.tensor([0]), covariance=False)
         assert torch.equal(without.dA, full.dA[:1]) and torch.equal(without.se_dA,
                                                                      full.se_dA[:1])
         independent = tie_connection_derivative(dataclasses.replace(fit, cov_b_dA=None), gamma,
