@@ -892,6 +892,46 @@ def test_an_unpooled_trials_joint_weighted_tie_does_not_depend_on_the_trials_bes
     assert not bool((plain.bins.dA[1:] == full.bins.dA[1:]).flatten(1).all(-1).any())
 
 
+def test_an_unpooled_fit_computes_the_joint_covariance_only_for_groups_with_noise(monkeypatch):
+    """One model per trial: the joint covariance of b̂ and the direct ∂Â/∂r (the tie's bands,
+    only under detected noise) is computed only for the (interval, window) groups that hold a
+    noisy trial, never for an all-clean batch, and skipping it changes nothing: the clean
+    trials' fits are those without any joint covariance bit for bit, in a mixed batch and
+    alone."""
+    from torchconn.regression import _wls
+
+    rows = []  # trials per call
+    solver_correlation = _wls.sandwich_correlation
+
+    def counted(s, *args, **kwargs):
+        rows.append(math.prod(s.batch_shape))
+        return solver_correlation(s, *args, **kwargs)
+
+    monkeypatch.setattr(_wls, "sandwich_correlation", counted)
+    seeds = np.arange(4) + 500
+    omega = torch.tensor([0.0, 0.01, 0.0, 0.02], dtype=F64)
+    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
+                     seeds=seeds)
+    est = ConnectionEstimator()
+    prep = est.prepare(observe(clean, omega, seeds=seeds))
+    cycle = est.cycle.fit(prep)
+    reg = NoiseAwareRegression(metric=False)
+    mixed = reg.fit(prep, cycle)
+    assert [min(r) > 0 for r in mixed.meta["noise_r"]] == [False, True, False, True]
+    assert sum(rows) == 2  # the two noisy trials only (their groups)
+    rows.clear()
+    idx = torch.tensor([0, 2])
+    alone = reg.fit(prep[idx], _index_cycle(cycle, idx))
+    assert rows == []
+    without = reg.replace(joint_covariance=None)
+    for fit, ref in ((alone, without.fit(prep[idx], _index_cycle(cycle, idx))),
+                     (mixed, without.fit(prep, cycle))):
+        k = idx if fit is mixed else slice(None)
+        for name in ("c", "b", "A", "dA", "c_se", "b_se", "A_se", "dA_se"):
+            assert torch.equal(getattr(fit.bins, name)[k], getattr(ref.bins, name)[k]), name
+    assert not torch.equal(mixed.bins.dA_se[1], without.fit(prep, cycle).bins.dA_se[1])
+
+
 def test_an_interval_the_bins_cannot_support_falls_back_to_a_shorter_one():
     """One 9-link trial of 8 cycles at ω = 0.01 (the small sweep's cell): the noise rule asks
     for the longest interval, a quarter cycle, where the filtered rows overlap so much that
