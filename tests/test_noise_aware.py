@@ -832,20 +832,25 @@ def _bin_cycle(reg, cycle):
     return cycle.gamma_at(centres.expand(tuple(cycle.phase_rate.shape) + (m,)))
 
 
+def _unpooled_trials(omega):
+    """3-link circle trials of 12 cycles at 64 samples per cycle (seeds 500, 501, ...) observed
+    with noise ``omega`` (one per trial), prepared, and their fitted cycle."""
+    seeds = np.arange(len(omega)) + 500
+    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
+                     seeds=seeds)
+    est = ConnectionEstimator()
+    prep = est.prepare(observe(clean, torch.tensor(omega, dtype=F64), seeds=seeds))
+    return prep, est.cycle.fit(prep)
+
+
 @pytest.mark.parametrize("noise_floor", ["flat", "gait"])
 def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it(noise_floor):
     """One model per trial (the sweep's setting): fitting a batch, each trial alone and in
     other groupings and orders gives the same noise estimate, interval, window, blend weights
     and coefficients, bit for bit (a sweep's results must not depend on its block size).
     Trials at different noise levels fall in different (interval, window) groups."""
-    seeds = np.arange(8) + 500
     # (ω = 0.002 is not resolved by 12 cycles at 64 samples per cycle, README "Noise estimates")
-    omega = torch.tensor([0.0, 0.005, 0.01, 0.02] * 2, dtype=F64)
-    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
-                     seeds=seeds)
-    est = ConnectionEstimator()
-    prep = est.prepare(observe(clean, omega, seeds=seeds))
-    cycle = est.cycle.fit(prep)
+    prep, cycle = _unpooled_trials([0.0, 0.005, 0.01, 0.02] * 2)
     reg = NoiseAwareRegression(metric=False, noise_floor=noise_floor)
     full = reg.fit(prep, cycle)
     # several groups: clean trials at h = 1, noisy ones at longer intervals
@@ -870,13 +875,7 @@ def test_an_unpooled_trials_joint_weighted_tie_does_not_depend_on_the_trials_bes
     covariance), one model per trial: a trial's tied ∂Â/∂r and its bands are the same bit for
     bit alone as in a batch of clean and noisy trials, in any grouping (as the default's,
     above), and the option acts on the noisy trials only."""
-    seeds = np.arange(4) + 500
-    omega = torch.tensor([0.0, 0.005, 0.01, 0.02], dtype=F64)
-    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
-                     seeds=seeds)
-    est = ConnectionEstimator()
-    prep = est.prepare(observe(clean, omega, seeds=seeds))
-    cycle = est.cycle.fit(prep)
+    prep, cycle = _unpooled_trials([0.0, 0.005, 0.01, 0.02])
     reg = NoiseAwareRegression(metric=False, joint_weights=True)
     full = reg.fit(prep, cycle)
     assert full.meta["noise_r"][0] == [0.0, 0.0] and all(
@@ -908,13 +907,7 @@ def test_an_unpooled_fit_computes_the_joint_covariance_only_for_groups_with_nois
         return solver_correlation(s, *args, **kwargs)
 
     monkeypatch.setattr(_wls, "sandwich_correlation", counted)
-    seeds = np.arange(4) + 500
-    omega = torch.tensor([0.0, 0.01, 0.0, 0.02], dtype=F64)
-    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
-                     seeds=seeds)
-    est = ConnectionEstimator()
-    prep = est.prepare(observe(clean, omega, seeds=seeds))
-    cycle = est.cycle.fit(prep)
+    prep, cycle = _unpooled_trials([0.0, 0.01, 0.0, 0.02])
     reg = NoiseAwareRegression(metric=False)
     mixed = reg.fit(prep, cycle)
     assert [min(r) > 0 for r in mixed.meta["noise_r"]] == [False, True, False, True]
@@ -924,12 +917,13 @@ def test_an_unpooled_fit_computes_the_joint_covariance_only_for_groups_with_nois
     alone = reg.fit(prep[idx], _index_cycle(cycle, idx))
     assert rows == []
     without = reg.replace(joint_covariance=None)
+    mixed_without = without.fit(prep, cycle)
     for fit, ref in ((alone, without.fit(prep[idx], _index_cycle(cycle, idx))),
-                     (mixed, without.fit(prep, cycle))):
+                     (mixed, mixed_without)):
         k = idx if fit is mixed else slice(None)
         for name in ("c", "b", "A", "dA", "c_se", "b_se", "A_se", "dA_se"):
             assert torch.equal(getattr(fit.bins, name)[k], getattr(ref.bins, name)[k]), name
-    assert not torch.equal(mixed.bins.dA_se[1], without.fit(prep, cycle).bins.dA_se[1])
+    assert not torch.equal(mixed.bins.dA_se[1], mixed_without.bins.dA_se[1])
 
 
 def test_an_interval_the_bins_cannot_support_falls_back_to_a_shorter_one():
