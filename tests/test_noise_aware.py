@@ -832,20 +832,25 @@ def _bin_cycle(reg, cycle):
     return cycle.gamma_at(centres.expand(tuple(cycle.phase_rate.shape) + (m,)))
 
 
+def _unpooled_trials(omega):
+    """3-link circle trials of 12 cycles at 64 samples per cycle (seeds 500, 501, ...) observed
+    with noise ``omega`` (one per trial), prepared, and their fitted cycle."""
+    seeds = np.arange(len(omega)) + 500
+    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
+                     seeds=seeds)
+    est = ConnectionEstimator()
+    prep = est.prepare(observe(clean, torch.tensor(omega, dtype=F64), seeds=seeds))
+    return prep, est.cycle.fit(prep)
+
+
 @pytest.mark.parametrize("noise_floor", ["flat", "gait"])
 def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it(noise_floor):
     """One model per trial (the sweep's setting): fitting a batch, each trial alone and in
     other groupings and orders gives the same noise estimate, interval, window, blend weights
     and coefficients, bit for bit (a sweep's results must not depend on its block size).
     Trials at different noise levels fall in different (interval, window) groups."""
-    seeds = np.arange(8) + 500
     # (ω = 0.002 is not resolved by 12 cycles at 64 samples per cycle, README "Noise estimates")
-    omega = torch.tensor([0.0, 0.005, 0.01, 0.02] * 2, dtype=F64)
-    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=12, samples_per_cycle=64,
-                     seeds=seeds)
-    est = ConnectionEstimator()
-    prep = est.prepare(observe(clean, omega, seeds=seeds))
-    cycle = est.cycle.fit(prep)
+    prep, cycle = _unpooled_trials([0.0, 0.005, 0.01, 0.02] * 2)
     reg = NoiseAwareRegression(metric=False, noise_floor=noise_floor)
     full = reg.fit(prep, cycle)
     # several groups: clean trials at h = 1, noisy ones at longer intervals
@@ -863,6 +868,62 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it(noise_fl
         # the standard errors' row sums round with the batch's padded bin length (the
         # solver's, shared with TubeRegression): equal to the last few bits
         torch.testing.assert_close(part.bins.A_se, full.bins.A_se[idx], rtol=1e-12, atol=0)
+
+
+def test_an_unpooled_trials_joint_weighted_tie_does_not_depend_on_the_trials_beside_it():
+    """joint_weights (the tie weighs b̂ and the direct ∂Â/∂r by the inverse of their joint
+    covariance), one model per trial: a trial's tied ∂Â/∂r and its bands are the same bit for
+    bit alone as in a batch of clean and noisy trials, in any grouping (as the default's,
+    above), and the option acts on the noisy trials only."""
+    prep, cycle = _unpooled_trials([0.0, 0.005, 0.01, 0.02])
+    reg = NoiseAwareRegression(metric=False, joint_weights=True)
+    full = reg.fit(prep, cycle)
+    assert full.meta["noise_r"][0] == [0.0, 0.0] and all(
+        min(r) > 0 for r in full.meta["noise_r"][1:])
+    for group in ([0], [1], [2], [3], [3, 1], [2, 0, 1]):
+        idx = torch.tensor(group)
+        part = reg.fit(prep[idx], _index_cycle(cycle, idx))
+        for name in ("A", "dA", "dA_se"):
+            assert torch.equal(getattr(part.bins, name), getattr(full.bins, name)[idx]), (
+                group, name)
+    plain = reg.replace(joint_weights=False).fit(prep, cycle)
+    assert torch.equal(plain.bins.dA[0], full.bins.dA[0])
+    assert not bool((plain.bins.dA[1:] == full.bins.dA[1:]).flatten(1).all(-1).any())
+
+
+def test_an_unpooled_fit_computes_the_joint_covariance_only_for_groups_with_noise(monkeypatch):
+    """One model per trial: the joint covariance of b̂ and the direct ∂Â/∂r (the tie's bands,
+    only under detected noise) is computed only for the (interval, window) groups that hold a
+    noisy trial, never for an all-clean batch, and skipping it changes nothing: the clean
+    trials' fits are those without any joint covariance bit for bit, in a mixed batch and
+    alone."""
+    from torchconn.regression import _wls
+
+    rows = []  # trials per call
+    solver_correlation = _wls.sandwich_correlation
+
+    def counted(s, *args, **kwargs):
+        rows.append(math.prod(s.batch_shape))
+        return solver_correlation(s, *args, **kwargs)
+
+    monkeypatch.setattr(_wls, "sandwich_correlation", counted)
+    prep, cycle = _unpooled_trials([0.0, 0.01, 0.0, 0.02])
+    reg = NoiseAwareRegression(metric=False)
+    mixed = reg.fit(prep, cycle)
+    assert [min(r) > 0 for r in mixed.meta["noise_r"]] == [False, True, False, True]
+    assert sum(rows) == 2  # the two noisy trials only (their groups)
+    rows.clear()
+    idx = torch.tensor([0, 2])
+    alone = reg.fit(prep[idx], _index_cycle(cycle, idx))
+    assert rows == []
+    without = reg.replace(joint_covariance=None)
+    mixed_without = without.fit(prep, cycle)
+    for fit, ref in ((alone, without.fit(prep[idx], _index_cycle(cycle, idx))),
+                     (mixed, mixed_without)):
+        k = idx if fit is mixed else slice(None)
+        for name in ("c", "b", "A", "dA", "c_se", "b_se", "A_se", "dA_se"):
+            assert torch.equal(getattr(fit.bins, name)[k], getattr(ref.bins, name)[k]), name
+    assert not torch.equal(mixed.bins.dA_se[1], mixed_without.bins.dA_se[1])
 
 
 def test_an_interval_the_bins_cannot_support_falls_back_to_a_shorter_one():
@@ -1484,6 +1545,84 @@ def test_tied_derivative_takes_b_and_the_direct_estimate_with_their_joint_covari
     assert not 0.85 < ratio(alone) < 1.15, (ratio(joint), ratio(alone))
     assert 0.85 < ratio(weighed) < 1.15, ratio(weighed)
     assert float((weighed.dA - d_true).square().sum()) <= float((alone.dA - d_true).square().sum())
+
+
+def test_the_tie_design_product_is_the_full_sum_over_its_rows():
+    # x H by H's two nonzeros per column (the joint-weighted tie's products) against the dense
+    # H (_tie_design): equal to a matrix product to rounding, and bit for bit the elementwise
+    # sum over all d + d² rows of H (what the tie summed before, materialising (c, c, d²)).
+    from torchconn.regression.tied import _tie_design, _times_tie_design
+
+    gen = torch.Generator().manual_seed(4)
+    for d in (2, 3, 8):
+        c = d + d * d
+        rate = torch.randn(5, 6, d, generator=gen, dtype=F64)
+        x = torch.randn(5, 6, 3, 7, c, generator=gen, dtype=F64)
+        design = _tie_design(rate).unsqueeze(-3)  # (5, 6, 1, c, d²)
+        product = _times_tie_design(x, rate)
+        torch.testing.assert_close(product, x @ design, rtol=1e-13, atol=1e-13)
+        assert torch.equal(product, (x.unsqueeze(-1) * design.unsqueeze(-3)).sum(-2)), d
+
+
+def _joint_weighted_tie(fit, gamma, rate, window, idx, covariance=True):
+    """The joint-weighted tie (order 12, tricube bins) of batch elements ``idx`` of ``fit``
+    (without its joint covariance unless ``covariance``)."""
+    from torchconn.regression.noise_aware import tie_connection_derivative
+
+    part = dataclasses.replace(fit, **{f.name: getattr(fit, f.name)[idx]
+                                       for f in dataclasses.fields(fit)
+                                       if getattr(fit, f.name) is not None})
+    if not covariance:
+        part = dataclasses.replace(part, cov_b_dA=None)
+    return tie_connection_derivative(part, gamma[idx], rate[idx], 12, window=window[idx],
+                                     kernel="tricube", joint_weights=True)
+
+
+def test_the_joint_weighted_tie_of_a_batch_element_is_its_own_bit_for_bit():
+    # joint_weights: b̂ and the direct ∂Â/∂r weighed by the inverse of their joint covariance.
+    # Each batch element's tied ∂Â/∂r and its standard errors must be the same bit for bit
+    # alone as beside other elements, in any order (an unpooled fit's elements are tied
+    # together), at the 3- and 9-link's sizes (d = 2, 8; 48 bins). One element carries no
+    # joint covariance (NaN: no noise detected) and must be tied as with none at all (None),
+    # and where the covariance is not positive definite the independent weights apply; the
+    # others must differ from the independent tie (the weights do act).
+    from torchconn.regression.noise_aware import tie_connection_derivative
+
+    gen = torch.Generator().manual_seed(5)
+    n, m = 4, 48
+    for d in (2, 8):
+        c = d + d * d
+        phi = torch.arange(m, dtype=F64) * 2 * math.pi / m
+        axes = torch.randn(n, 1, 2, d, generator=gen, dtype=F64)
+        gamma = axes[..., 0, :] * phi.cos()[:, None] + axes[..., 1, :] * phi.sin()[:, None]
+        rate = axes[..., 1, :] * phi.cos()[:, None] - axes[..., 0, :] * phi.sin()[:, None]
+        root = torch.randn(n, m, 3, c, c, generator=gen, dtype=F64) / math.sqrt(c)
+        cov = root @ root.mT + 0.05 * torch.eye(c, dtype=F64)
+        sd = cov.diagonal(0, -2, -1).sqrt()
+        fit = _tie_fit(torch.randn(n, m, 3, d, generator=gen, dtype=F64),
+                       torch.randn(n, m, 3, d, generator=gen, dtype=F64),
+                       torch.randn(n, m, 3, d, d, generator=gen, dtype=F64),
+                       0.1 + torch.rand(n, m, 3, d, generator=gen, dtype=F64),
+                       sd[..., :d], sd[..., d:].unflatten(-1, (d, d)))
+        cov[0] = float("nan")
+        cov[1, 3, 2] = 0.0  # not positive definite
+        fit = dataclasses.replace(fit, cov_b_dA=cov)
+        window = torch.tensor([2.0, 2.5, 3.0, 2.0], dtype=F64)
+        inputs = (fit, gamma, rate, window)
+        full = _joint_weighted_tie(*inputs, torch.arange(n))
+        for idx in ([0], [1], [2], [3], [3, 1, 0], [2, 0]):
+            part = _joint_weighted_tie(*inputs, torch.tensor(idx))
+            assert torch.equal(part.dA, full.dA[idx]), (d, idx)
+            assert torch.equal(part.se_dA, full.se_dA[idx]), (d, idx)
+        without = _joint_weighted_tie(*inputs, torch.tensor([0]), covariance=False)
+        assert torch.equal(without.dA, full.dA[:1]) and torch.equal(without.se_dA,
+                                                                     full.se_dA[:1])
+        independent = tie_connection_derivative(dataclasses.replace(fit, cov_b_dA=None), gamma,
+                                                rate, 12, window=window, kernel="tricube")
+        same = (independent.dA == full.dA).flatten(-2).all(-1)  # (n, M, 3)
+        expected = torch.zeros_like(same)
+        expected[0] = expected[1, 3, 2] = True
+        assert torch.equal(same, expected), d
 
 
 def test_tied_derivative_bands_under_noise_take_the_joint_covariance_on_the_5_link():

@@ -1573,8 +1573,10 @@ class NoiseAwareRegression(TubeRegression):
             return fit, window, meta, _Chosen(window, view, offsets,
                                               noise_free=not bool((var > 0).any()),
                                               noise_var=var)
-        if self.tie_derivative and self.joint_covariance:  # b̂ and ∂Â/∂r's, for the tie
-            opts = {**opts, "joint_covariance": self.joint_covariance}
+        # b̂ and ∂Â/∂r's joint covariance, for the tie: only for groups with detected noise
+        # (elsewhere the tie takes the two as independent, and _scatter_fits leaves it NaN)
+        joint = ({"joint_covariance": self.joint_covariance}
+                 if self.tie_derivative and self.joint_covariance else {})
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
         flat = _flatten_batch(traj)
@@ -1605,11 +1607,12 @@ class NoiseAwareRegression(TubeRegression):
                 iv = _take_intervals(by_h[hg], idx)
                 bins = assign_bins(iv.phase, n_bins, window=wg, kernel=self.kernel)
                 args = (iv, bins, g_m[idx], g_dot[idx], var_flat[idx])
+                group_opts = {**opts, **joint} if bool((var_flat[idx] > 0).any()) else opts
                 if hg == 1 or self.velocity_interval:  # nothing shorter to try
-                    parts.append((idx, noise_aware_regression(*args, **opts)))
+                    parts.append((idx, noise_aware_regression(*args, **group_opts)))
                     pending[idx] = False
                     continue
-                fit, bad = _flagged_fit(args, opts)
+                fit, bad = _flagged_fit(args, group_opts)
                 parts.append((idx[~bad], _take_fit(fit, ~bad)))
                 pending[idx[~bad]] = False
                 h_flat[idx[bad]] = _shorter_interval(hg)
@@ -1619,7 +1622,7 @@ class NoiseAwareRegression(TubeRegression):
                 "windows": windows.reshape(batch).tolist()}
         fit = _scatter_fits(parts, n, batch)
         if fit.cov_b_dA is not None:  # only under detected noise (NaN: the tie takes the
-            # two as independent where none was)
+            # two as independent where none was, as in a clean element of a noisy group)
             clean = ~(var > 0).any(-1).reshape(batch + (1, 1, 1, 1))
             fit = dataclasses.replace(fit, cov_b_dA=fit.cov_b_dA.masked_fill(clean, torch.nan))
         return fit, float(windows.max()), meta, _Chosen(windows.reshape(batch))
@@ -2121,17 +2124,20 @@ def _take_intervals(iv: IntervalSamples, idx, n: int | None = None) -> IntervalS
 
 
 def _scatter_fits(parts, n: int, batch: tuple) -> ConnectionFit:
-    """One fit ``(*batch, M, ·)`` from fits of subsets ``(len(idx), M, ·)`` of ``n`` elements."""
-    first = parts[0][1]
+    """One fit ``(*batch, M, ·)`` from fits of subsets ``(len(idx), M, ·)`` of ``n`` elements.
+    A field that only some parts carry (``cov_b_dA``: only groups with detected noise) is NaN
+    for the elements of the others; None where no part carries it."""
     out = {}
-    for f in dataclasses.fields(first):
-        ref = getattr(first, f.name)
-        if ref is None:
+    for f in dataclasses.fields(ConnectionFit):
+        given = [(idx, getattr(fit, f.name)) for idx, fit in parts
+                 if getattr(fit, f.name) is not None]
+        if not given:
             out[f.name] = None
             continue
-        full = ref.new_zeros((n,) + ref.shape[1:])
-        for idx, fit in parts:
-            full[idx] = getattr(fit, f.name)
+        ref = given[0][1]
+        full = ref.new_full((n,) + ref.shape[1:], 0 if len(given) == len(parts) else math.nan)
+        for idx, value in given:
+            full[idx] = value
         out[f.name] = full.reshape(batch + ref.shape[1:])
     return ConnectionFit(**out)
 
