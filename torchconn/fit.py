@@ -179,9 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--complexity", choices=("auto", "fixed", "cv"),
                    help="auto (default): --n-bins and --fourier-order as given unless the model "
                    "then predicts held-out cycles worse than their phase-averaged velocity, "
-                   "then as cv; fixed: as given; cv: bins and Fourier order chosen by "
-                   "held-out error over blocks of whole cycles, no ridge (a ridge shrinks the "
-                   "connection; estimator.complexity)")
+                   "then as cv; fixed: as given; cv: bins, Fourier order and ridge chosen by "
+                   "held-out error over blocks of whole cycles (estimator.complexity)")
     p.add_argument("--folds", type=int,
                    help="blocks of whole cycles for the held-out check and the complexity "
                    "choice (estimator.held_out_folds, default 3; 0 skips the check)")

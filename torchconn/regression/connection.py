@@ -81,6 +81,17 @@ def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:
     return torch.cat(_blocks(delta, delta_dot, torch.ones_like(delta[..., :1])), -1)
 
 
+def unpenalised_columns(d: int, device=None) -> Tensor:
+    """``(1 + 2d + d²,)`` bool: the columns of :func:`connection_design` that a ridge leaves
+    unpenalised besides the intercept, ``δ̇`` (``Â``'s). A ridge pulls coefficients towards 0;
+    on ``Â`` that is the attenuation the noise correction removes (Â, not its offsets, is
+    what the fit is for), and chosen by held-out prediction it shrank ``Â`` to 0.23 of the
+    connection (README "Few samples per cycle"); it still regularises ``b̂`` and ``∂Â/∂r``."""
+    mask = torch.zeros(1 + 2 * d + d * d, dtype=torch.bool, device=device)
+    mask[1 + d:1 + 2 * d] = True
+    return mask
+
+
 def _blocks(delta: Tensor, delta_dot: Tensor, row_scale: Tensor) -> list[Tensor]:
     """The column blocks of ``row_scale · [1, δ, δ̇, δ̇⊗δ]``, scaled through the small factors."""
     scaled_dot = row_scale * delta_dot
@@ -140,7 +151,8 @@ def connection_regression(
     p = 1 + 2 * d + d * d
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge,
                      min_samples=min_samples, max_condition=max_condition,
-                     on_ill_conditioned=on_ill_conditioned, standard_errors=standard_errors)
+                     on_ill_conditioned=on_ill_conditioned, standard_errors=standard_errors,
+                     unpenalised=unpenalised_columns(d, s.r.device))
     return _connection_fit(sol.unflatten(s.batch_shape, s.n_bins), d)
 
 

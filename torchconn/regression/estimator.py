@@ -94,9 +94,8 @@ class ConnectionEstimator:
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
         complexity: the regression's bins, Fourier order and ridge: ``"fixed"`` as given;
-            ``"cv"`` bins and order chosen by held-out error over blocks of whole cycles, the
-            ridge among :data:`~torchconn.regression.skill.RIDGE_GRID` (0 only: a ridge
-            shrinks ``Â``; :func:`~torchconn.regression.skill.select_complexity`), where each component
+            ``"cv"`` chosen by held-out error over blocks of whole cycles
+            (:func:`~torchconn.regression.skill.select_complexity`), where each component
             is predicted by the full model, the connection alone or the phase-averaged
             velocity, whichever clearly wins held out;
             ``"auto"`` (default): as given, unless on held-out blocks the fit loses to the
@@ -343,8 +342,7 @@ class ConnectionEstimator:
 
     def select_complexity(self, traj: Trajectory, phase: Tensor | None = None,
                           n_folds: int = 3) -> "ConnectionEstimator":
-        """Choose the regression's bins, Fourier order and ridge (among
-        :data:`~torchconn.regression.skill.RIDGE_GRID`: none) by held-out error over
+        """Choose the regression's bins, Fourier order and ridge by held-out error over
         ``n_folds`` blocks of whole cycles, then fit with them; returns self.
 
         The choice is in ``complexity_``

@@ -42,8 +42,7 @@ from .noise_aware import (
 from .tube import Regression, TubeRegression, _auto_window, intercept_series
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
-           "RIDGE_GRID", "PREDICTIVE_RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN",
-           "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
+           "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
            "COMPONENTS",
            "regression_view", "cross_validate", "checked_terms", "few_cycles",
            "phase_average_orders", "unchecked_choice",
@@ -55,23 +54,18 @@ COMPONENTS = ("v_x", "v_y", "omega")
 
 #: (n_bins, fourier_order) candidates of :func:`select_complexity`, simplest first
 COMPLEXITY_GRID = ((12, 3), (24, 6), (48, 12))
-#: ridge candidates of :func:`select_complexity` (relative to the standardised normal matrix):
-#: none. A ridge is chosen by held-out prediction of the body velocity, which the intercept
-#: dominates, but it shrinks every shape coefficient towards 0 -- Â's attenuation, the bias
-#: the noise correction removes, back again. With :data:`PREDICTIVE_RIDGE_GRID` (the previous
-#: grid) the short low-rate recordings where noise is detected lost most (README "Few samples
-#: per cycle"): one trial, 3-link circle, 32 samples per cycle, ω = 0.005, seed 610,
-#: ``noise_floor="low_rate"``: ridge 1.0 chosen (24 bins), Â 79.2 % off at scale 0.23, 20.8 %
-#: without a ridge; a ridge was chosen in 15 of 128 one-trial cells of seeds 101/202 at 12-32
-#: samples per cycle, each time Â 4.6-45 points further off (none better)
-RIDGE_GRID = (0.0,)
-#: the previous grid, for comparison (``select_complexity(ridges=...)``): it fits held-out
-#: velocities up to a few % better and Â far worse where a ridge is chosen
-PREDICTIVE_RIDGE_GRID = (0.0, 0.1, 1.0, 10.0)
+#: ridge candidates of :func:`select_complexity` (relative to the standardised normal matrix).
+#: The ridge leaves ``Â``'s columns alone
+#: (:func:`~torchconn.regression.connection.unpenalised_columns`): chosen by held-out
+#: prediction, which the intercept dominates, a ridge on every shape column shrank ``Â`` --
+#: the attenuation the noise correction removes (one trial, 3-link circle, 32 samples per
+#: cycle, ω = 0.005, seed 610, ``noise_floor="low_rate"``: ridge 1 chosen, Â 79.2 % off at
+#: scale 0.23; README "Few samples per cycle")
+RIDGE_GRID = (0.0, 0.1, 1.0, 10.0)
 #: a ridge is chosen only when it lowers the best unpenalised held-out loss by more than this
-#: fraction: a ridge shrinks Â (the attenuation the noise-aware regression removes), and on
-#: long recordings the candidates' losses differ by less than their noise (measured: 5-link,
-#: ω = 0.01, 0.38879 with a ridge vs 0.38884 without, and Â 48 % vs 10 % off)
+#: fraction: on long recordings the candidates' losses differ by less than their noise
+#: (measured while the ridge still shrank Â: 5-link, ω = 0.01, 0.38879 with a ridge vs
+#: 0.38884 without, and Â 48 % vs 10 % off)
 RIDGE_MIN_GAIN = 0.01
 #: per component, three models compete on held-out cycles (:func:`select_complexity`): the
 #: full model, the connection alone (``ĉ + Âδ̇``: the rows of ``b̂`` and ``∂Â/∂r`` set to 0),
@@ -806,8 +800,8 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
                       ) -> tuple[Regression, ComplexityChoice]:
     """The bins, Fourier order and ridge of least mean held-out ``SSE/SST`` among
     :data:`COMPLEXITY_GRID` x ``ridges`` (:func:`cross_validate`, noise-corrected; by default
-    :data:`RIDGE_GRID`, no ridge: a ridge shrinks ``Â``); a ridge only when it gains more than
-    :data:`RIDGE_MIN_GAIN` over no ridge.
+    :data:`RIDGE_GRID`; the ridge leaves ``Â`` unpenalised); a ridge only when it gains more
+    than :data:`RIDGE_MIN_GAIN` over no ridge.
 
     Per component and batch element two simpler models are candidates too
     (:func:`_choose_terms`): the connection alone (``ĉ + Âδ̇``, the rows of ``b`` and
