@@ -128,7 +128,8 @@ def connection_regression(
         delta_max: keep only samples with ``‖r − γ_m‖ < delta_max`` (the paper's tube); None
             keeps every sample of the bin.
         ridge: ridge ``λ ≥ 0`` added to the unit diagonal of the standardised normal matrix
-            (all columns but the intercept); 0 is ordinary weighted least squares.
+            (all columns but the intercept and ``Â``'s, :func:`unpenalised_columns`); 0 is
+            ordinary weighted least squares.
         min_samples: fewest samples a bin may have; default ``P + 5`` with ``P = 1 + 2d + d²``.
         max_condition: largest acceptable condition number of the standardised normal matrix;
             default ``1e12`` in float64.

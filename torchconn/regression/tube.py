@@ -104,7 +104,9 @@ class TubeRegression(Regression):
         kernel: sample weights within a window (``"tricube"`` falls smoothly to zero at the
             window's edge, which lowers the bias from the gait's curvature within a window).
         delta_max: only samples with ``|δ| < delta_max`` enter a bin's regression (None: all).
-        ridge: Tikhonov penalty on the scaled regressors (0: ordinary least squares).
+        ridge: Tikhonov penalty on the scaled regressors (0: ordinary least squares); in the
+            connection regressions on those of ``b`` and ``∂A/∂r`` only, not ``A``'s
+            (:func:`~torchconn.regression.connection.unpenalised_columns`).
         on_ill_conditioned: what to do with bins with too few samples or a rank-deficient
             design: raise, warn, or regularise (``"ridge"``).
         metric: estimate the dissipation metric: None (default) when the data carry a power
