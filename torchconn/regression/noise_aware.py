@@ -876,6 +876,7 @@ def noise_aware_regression(
     ridge: float = 0.0,
     on_ill_conditioned: str = "raise",
     joint_covariance: Literal["solver", "robust"] | None = None,
+    ridge_connection: bool = True,
 ) -> ConnectionFit:
     """Per-bin ``ξ ≈ c + bδ + Aδ̇ + ∂A/∂r (δ̇⊗δ)`` on interval samples, noise-corrected.
 
@@ -885,7 +886,7 @@ def noise_aware_regression(
         gamma_m, gamma_dot_m: ``(..., M, d)`` limit cycle and ``γ̇`` at the bin centres.
         noise_var: ``(..., d)`` measurement-noise variance of each joint angle (broadcastable
             to the batch), e.g. :func:`estimate_noise`'s ``measurement²``.
-        delta_max, ridge, on_ill_conditioned: as in
+        delta_max, ridge, on_ill_conditioned, ridge_connection: as in
             :func:`~torchconn.regression.connection_regression`.
         joint_covariance: also the joint covariance of each bin's ``b̂`` and direct
             ``∂Â/∂r`` (``cov_b_dA``, for the tie): ``"solver"`` the sandwich whose diagonal
@@ -921,7 +922,7 @@ def noise_aware_regression(
     def correction(gram: Tensor, sel) -> Tensor:
         return eiv_correction(gram, var_delta[sel], var_rate[sel])
 
-    free = unpenalised_columns(d, s.r.device)  # a ridge leaves Â alone
+    free = None if ridge_connection else unpenalised_columns(d, s.r.device)
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge, min_samples=None,
                      max_condition=None, on_ill_conditioned=on_ill_conditioned,
                      correction=correction, unpenalised=free)

@@ -679,7 +679,7 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
 
         coef = leave_blocks_out(s, fo.reshape(-1), n_folds, ridges=ridges,
                                 delta_max=regression.delta_max, correction=correction,
-                                columns=columns)
+                                columns=columns, ridge_connection=regression.ridge_connection)
         coef = coef.unflatten(1, (idx.numel(), m))  # (R, b, M, F, P, K)
         if out is None:
             out = coef.new_full((len(ridges), n) + coef.shape[2:], torch.nan)
