@@ -55,17 +55,16 @@ COMPONENTS = ("v_x", "v_y", "omega")
 #: (n_bins, fourier_order) candidates of :func:`select_complexity`, simplest first
 COMPLEXITY_GRID = ((12, 3), (24, 6), (48, 12))
 #: ridge candidates of :func:`select_complexity` (relative to the standardised normal matrix).
-#: The ridge leaves ``Â``'s columns alone
-#: (:func:`~torchconn.regression.connection.unpenalised_columns`): chosen by held-out
-#: prediction, which the intercept dominates, a ridge on every shape column shrank ``Â`` --
-#: the attenuation the noise correction removes (one trial, 3-link circle, 32 samples per
-#: cycle, ω = 0.005, seed 610, ``noise_floor="low_rate"``: ridge 1 chosen, Â 79.2 % off at
-#: scale 0.23; README "Few samples per cycle")
+#: Chosen by held-out prediction, which the intercept dominates, a ridge on every shape column
+#: shrinks ``Â`` -- the attenuation the noise correction removes (one trial, 3-link circle, 32
+#: samples per cycle, ω = 0.005, seed 610, ``noise_floor="low_rate"``: ridge 1 chosen, Â
+#: 79.2 % off at scale 0.23); ``TubeRegression(ridge_connection=False)`` leaves ``Â``'s
+#: columns alone (12.8 % there; README "The ridge and Â")
 RIDGE_GRID = (0.0, 0.1, 1.0, 10.0)
 #: a ridge is chosen only when it lowers the best unpenalised held-out loss by more than this
-#: fraction: on long recordings the candidates' losses differ by less than their noise
-#: (measured while the ridge still shrank Â: 5-link, ω = 0.01, 0.38879 with a ridge vs
-#: 0.38884 without, and Â 48 % vs 10 % off)
+#: fraction: a ridge shrinks Â (the attenuation the noise-aware regression removes), and on
+#: long recordings the candidates' losses differ by less than their noise (measured: 5-link,
+#: ω = 0.01, 0.38879 with a ridge vs 0.38884 without, and Â 48 % vs 10 % off)
 RIDGE_MIN_GAIN = 0.01
 #: per component, three models compete on held-out cycles (:func:`select_complexity`): the
 #: full model, the connection alone (``ĉ + Âδ̇``: the rows of ``b̂`` and ``∂Â/∂r`` set to 0),
@@ -800,8 +799,9 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
                       ) -> tuple[Regression, ComplexityChoice]:
     """The bins, Fourier order and ridge of least mean held-out ``SSE/SST`` among
     :data:`COMPLEXITY_GRID` x ``ridges`` (:func:`cross_validate`, noise-corrected; by default
-    :data:`RIDGE_GRID`; the ridge leaves ``Â`` unpenalised); a ridge only when it gains more
-    than :data:`RIDGE_MIN_GAIN` over no ridge.
+    :data:`RIDGE_GRID`, applied as the regression applies its own, see its
+    ``ridge_connection``); a ridge only when it gains more than :data:`RIDGE_MIN_GAIN` over
+    no ridge.
 
     Per component and batch element two simpler models are candidates too
     (:func:`_choose_terms`): the connection alone (``ĉ + Âδ̇``, the rows of ``b`` and
