@@ -219,13 +219,15 @@ def _guarded_correction(gram: Tensor, corr: Tensor) -> tuple[Tensor, Tensor]:
     return gram - kappa[:, None, None] * corr, kappa
 
 
-def ridge_cholesky(gram: Tensor, lam: Tensor | float
+def ridge_cholesky(gram: Tensor, lam: Tensor | float, unpenalised: Tensor | None = None
                    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Cholesky factor of normal matrices ``gram (b, P, P)`` with the solver's ridge convention;
     ``gram`` is changed in place into the factorised matrix.
 
     The ridge ``lam`` (``(b,)`` or one number) sits on the unit diagonal of the equilibrated
-    matrix, i.e. ``λ (XᵀWX)ⱼⱼ`` is added to every column but the intercept; a dead (all-zero)
+    matrix, i.e. ``λ (XᵀWX)ⱼⱼ`` is added to every column but the intercept and the columns
+    ``unpenalised`` (``(P,)`` bool, None: none; the connection's ``Â``,
+    :func:`~torchconn.regression.connection.unpenalised_columns`); a dead (all-zero)
     column is decoupled with a unit pivot (its coefficient comes out 0; callers report NaN).
 
     Returns:
@@ -237,6 +239,8 @@ def ridge_cholesky(gram: Tensor, lam: Tensor | float
     dead = d2 <= 0  # an all-zero column: its coefficient is not identified
     penalty = torch.as_tensor(lam, dtype=gram.dtype, device=gram.device).reshape(-1, 1) * d2
     penalty[..., 0] = 0  # the intercept is not penalised
+    if unpenalised is not None:
+        penalty = penalty.masked_fill(unpenalised.to(penalty.device), 0.0)
     gram.diagonal(dim1=-2, dim2=-1).add_(torch.where(dead, 1.0, penalty))
     chol, info = torch.linalg.cholesky_ex(gram)
     failed = info != 0
@@ -248,7 +252,7 @@ def ridge_cholesky(gram: Tensor, lam: Tensor | float
 
 def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
                tolerate_dead: bool, correction: Correction | None = None, sel=None,
-               standard_errors: bool = True):
+               standard_errors: bool = True, unpenalised: Tensor | None = None):
     """Solve one chunk of bins from ``xy = √w [X | y]`` ``(b, n, P + K)``; ``lam (b,)`` ridge.
 
     ``correction``, when given, maps this chunk's ``XᵀWX (b, P, P)`` (the bins ``sel``) to its
@@ -281,7 +285,7 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
         gram, kappa = _guarded_correction(gram, correction(gram, sel))
     # unless tolerated (a ridge was asked for) a dead column makes the bin rank-deficient:
     # infinite condition number
-    chol, failed, dead, d2 = ridge_cholesky(gram, lam)
+    chol, failed, dead, d2 = ridge_cholesky(gram, lam, unpenalised)
     scale = torch.where(dead, 1.0, d2.sqrt())
     beta = torch.cholesky_solve(rhs, chol)
     # L⁻¹ gives diag(A⁻¹) for the standard errors and the condition bound
@@ -349,7 +353,8 @@ RowCorrection = Callable[[Tensor, Tensor, object], Tensor]
 
 
 def _inverse_normal_columns(xw: Tensor, ridge: Tensor, columns: Tensor,
-                            correction: Correction | None, sel) -> tuple[Tensor, Tensor]:
+                            correction: Correction | None, sel,
+                            unpenalised: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The columns ``columns (c,)`` of ``A⁻¹ (b, P, c)``, ``A`` the normal matrix of the rows
     ``xw = √w x̃ (b, n, P)`` as :func:`solve` makes it (corrected by ``correction`` of the bins
     ``sel`` under the guard, with the ridge ``ridge (b,)``), and the guard's scale ``κ (b,)``
@@ -358,13 +363,14 @@ def _inverse_normal_columns(xw: Tensor, ridge: Tensor, columns: Tensor,
     kappa = gram.new_ones(gram.shape[0])
     if correction is not None:
         gram, kappa = _guarded_correction(gram, correction(gram, sel))
-    chol, _, _, _ = ridge_cholesky(gram, ridge)
+    chol, _, _, _ = ridge_cholesky(gram, ridge, unpenalised)
     return torch.cholesky_inverse(chol)[..., columns], kappa
 
 
 def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: Tensor, *,
                      lags: int, delta_max=None, correction: Correction | None = None,
-                     row_correction: RowCorrection | None = None) -> Tensor:
+                     row_correction: RowCorrection | None = None,
+                     unpenalised: Tensor | None = None) -> Tensor:
     """Robust covariance ``(B·M, K, c, c)`` of the coefficients ``columns (c,)`` of every bin
     of a :func:`solve` result ``sol``, from the rows' own scores instead of a common residual
     variance.
@@ -396,7 +402,8 @@ def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: T
     for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 8):
         xy, w = _chunk_design(s, sel, design, delta_max)
         xw, yw = xy[..., :p], xy[..., p:]
-        a_inv, kappa = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel)
+        a_inv, kappa = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel,
+                                               unpenalised)
         beta = torch.nan_to_num(sol.coef[sel])
         score = xw.unsqueeze(-2) * (yw - xw @ beta).unsqueeze(-1)  # (b, n, K, P)
         if row_correction is not None:
@@ -420,7 +427,8 @@ def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: T
 
 
 def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, columns: Tensor, *,
-                         delta_max=None, correction: Correction | None = None) -> Tensor:
+                         delta_max=None, correction: Correction | None = None,
+                         unpenalised: Tensor | None = None) -> Tensor:
     """Correlation ``(B·M, c, c)`` of the coefficients ``columns (c,)`` of every bin of a
     :func:`solve` result ``sol``, from the sandwich whose diagonal gives its standard errors:
     ``A⁻¹ (XᵀW²X) A⁻¹`` (``A`` the normal matrix, corrected and with the ridge as :func:`solve`
@@ -443,7 +451,8 @@ def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, column
     for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 2):
         xy, w = _chunk_design(s, sel, design, delta_max)
         xw = xy[..., :p]
-        a_inv, _ = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel)
+        a_inv, _ = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel,
+                                           unpenalised)
         xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w: XᵀW²X
         half = xww @ a_inv  # (b, n, c)
         cov = half.mT @ half
@@ -492,12 +501,12 @@ def _triangular_inverse(chol: Tensor) -> Tensor:
 
 def _solve_bins(s: BinnedSamples, sel_list, design: Design, lam: Tensor, delta_max, binary,
                 tolerate_dead: bool, correction: Correction | None = None,
-                standard_errors: bool = True):
+                standard_errors: bool = True, unpenalised: Tensor | None = None):
     outs = []
     for sel in sel_list:
         xy, w = _chunk_design(s, sel, design, delta_max)
         outs.append(_fit_chunk(xy, w, lam[sel], binary, s.y.shape[-1], tolerate_dead,
-                               correction, sel, standard_errors))
+                               correction, sel, standard_errors, unpenalised))
     return [torch.cat(parts) for parts in zip(*outs, strict=True)]
 
 
@@ -529,7 +538,7 @@ def unfittable(count: Tensor, condition: Tensor, p: int, dtype: torch.dtype,
 def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, ridge: float,
           min_samples: int | None, max_condition: float | None,
           on_ill_conditioned: str, correction: Correction | None = None,
-          standard_errors: bool = True) -> Solution:
+          standard_errors: bool = True, unpenalised: Tensor | None = None) -> Solution:
     """Fit every bin of ``s`` with ``design`` (``n_coef`` columns, column 0 the intercept).
 
     Returns a flat :class:`Solution` over ``B·M`` bins. Standard errors are
@@ -540,6 +549,8 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
     noise part from every bin's ``XᵀWX`` (see :func:`_guarded_correction`).
     ``standard_errors=False``: the coefficients alone (bit for bit the same; ``se`` and
     ``residual_rms`` NaN), for callers that use nothing else (:func:`_fit_chunk`).
+    ``unpenalised``: ``(n_coef,)`` bool, columns the ridge (given or added for ill-conditioned
+    bins) leaves alone besides the intercept (:func:`ridge_cholesky`).
     """
     if on_ill_conditioned not in _MODES:
         raise ValueError(f"{fn}: on_ill_conditioned must be one of {_MODES}, "
@@ -564,7 +575,8 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
                nan.clone().fill_(1.0)]
     else:
         sol = _solve_bins(s, chunks, design, lam, delta_max, binary, tolerate_dead=ridge > 0,
-                          correction=correction, standard_errors=standard_errors)
+                          correction=correction, standard_errors=standard_errors,
+                          unpenalised=unpenalised)
     beta, se, rms, cond, count, kappa = sol
     few = count < min_samples
     ill = unfittable(count, cond, p, dtype, min_samples, max_condition)
@@ -579,7 +591,7 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
             if fix.numel():
                 lam, beta, se, rms, cond = _add_ridge(s, design, fix, lam, beta, se, rms, cond,
                                                       delta_max, binary, max_condition,
-                                                      correction, standard_errors)
+                                                      correction, standard_errors, unpenalised)
             ill = unfittable(count, cond, p, dtype, min_samples, max_condition)
             report += (f"Added a ridge to {fix.numel()} ill-conditioned bin(s) (largest "
                        f"{float(lam.max()):.3g}, relative to the unit diagonal of the "
@@ -599,7 +611,7 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
 
 
 def _add_ridge(s, design, fix, lam, beta, se, rms, cond, delta_max, binary, max_condition,
-               correction=None, standard_errors=True):
+               correction=None, standard_errors=True, unpenalised=None):
     """Smallest ridge bringing each bin in ``fix`` to the target condition (a few tries)."""
     target = min(_RIDGE_TARGET_CONDITION, max_condition)
     xy, _ = _chunk_design(s, fix, design, delta_max)
@@ -617,7 +629,7 @@ def _add_ridge(s, design, fix, lam, beta, se, rms, cond, delta_max, binary, max_
     for _ in range(6):  # the intercept is unpenalised, so the prediction can fall short
         chunks = [fix[i:i + 256] for i in range(0, fix.numel(), 256)]
         b, e, r, c, _, _ = _solve_bins(s, chunks, design, lam, delta_max, binary, True,
-                                       correction, standard_errors)
+                                       correction, standard_errors, unpenalised)
         beta, se, rms, cond = beta.clone(), se.clone(), rms.clone(), cond.clone()
         beta[fix], se[fix], rms[fix], cond[fix] = b, e, r, c
         still = ~(cond[fix] <= max_condition)

@@ -81,6 +81,18 @@ def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:
     return torch.cat(_blocks(delta, delta_dot, torch.ones_like(delta[..., :1])), -1)
 
 
+def unpenalised_columns(d: int, device=None) -> Tensor:
+    """``(1 + 2d + d²,)`` bool: the columns of :func:`connection_design` that a ridge leaves
+    unpenalised besides the intercept, ``δ̇`` (``Â``'s). A ridge pulls coefficients towards 0;
+    on ``Â`` that is the attenuation the noise correction removes (Â, not its offsets, is
+    what the fit is for), and chosen by held-out prediction it shrank ``Â`` to 0.23 of the
+    connection (README "Few samples per cycle"); it still regularises ``b̂`` and ``∂Â/∂r``
+    (``TubeRegression(ridge_connection=False)``)."""
+    mask = torch.zeros(1 + 2 * d + d * d, dtype=torch.bool, device=device)
+    mask[1 + d:1 + 2 * d] = True
+    return mask
+
+
 def _blocks(delta: Tensor, delta_dot: Tensor, row_scale: Tensor) -> list[Tensor]:
     """The column blocks of ``row_scale · [1, δ, δ̇, δ̇⊗δ]``, scaled through the small factors."""
     scaled_dot = row_scale * delta_dot
@@ -101,6 +113,7 @@ def connection_regression(
     min_samples: int | None = None,
     max_condition: float | None = None,
     on_ill_conditioned: str = "raise",
+    ridge_connection: bool = True,
     standard_errors: bool = True,
 ) -> ConnectionFit:
     """Estimate ``A(γ_m)`` and ``∂A/∂r(γ_m)`` in every phase bin, all batches at once.
@@ -118,6 +131,8 @@ def connection_regression(
             keeps every sample of the bin.
         ridge: ridge ``λ ≥ 0`` added to the unit diagonal of the standardised normal matrix
             (all columns but the intercept); 0 is ordinary weighted least squares.
+        ridge_connection: the ridge also penalises ``A``'s columns (default); False: not
+            (:func:`unpenalised_columns`).
         min_samples: fewest samples a bin may have; default ``P + 5`` with ``P = 1 + 2d + d²``.
         max_condition: largest acceptable condition number of the standardised normal matrix;
             default ``1e12`` in float64.
@@ -140,7 +155,8 @@ def connection_regression(
     p = 1 + 2 * d + d * d
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge,
                      min_samples=min_samples, max_condition=max_condition,
-                     on_ill_conditioned=on_ill_conditioned, standard_errors=standard_errors)
+                     on_ill_conditioned=on_ill_conditioned, standard_errors=standard_errors,
+                     unpenalised=None if ridge_connection else unpenalised_columns(d, s.r.device))
     return _connection_fit(sol.unflatten(s.batch_shape, s.n_bins), d)
 
 

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from . import _wls
-from .connection import _blocks
+from .connection import _blocks, unpenalised_columns
 
 __all__ = ["leave_blocks_out"]
 
@@ -32,7 +32,8 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
                      ridges: Sequence[float] = (0.0,), delta_max: float | None = None,
                      correction: _wls.Correction | None = None,
                      min_samples: int | None = None,
-                     columns: Tensor | None = None) -> Tensor:
+                     columns: Tensor | None = None,
+                     ridge_connection: bool = True) -> Tensor:
     """Per-bin coefficients of the connection design fitted without each block in turn.
 
     Args:
@@ -41,7 +42,8 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
             for a sample in no block (it stays in every fit).
         n_blocks: ``F``.
         ridges: ridges ``λ`` to solve for (on the unit diagonal of the standardised normal
-            matrix, the intercept unpenalised, as :func:`~torchconn.regression._wls.solve`).
+            matrix, the intercept unpenalised, and with ``ridge_connection=False`` ``Â``'s
+            columns too, as :func:`~torchconn.regression.connection_regression` solves them).
         delta_max: the regression's tube radius (None: every sample of the bin).
         correction: the regression's errors-in-variables correction, ``(gram (b, P, P), bins
             (b,) index into B·M) -> (b, P, P)``, linear in ``gram``.
@@ -63,6 +65,7 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
     total, n_max = s.rows.shape
     width = p + s.y.shape[-1]
     out = s.r.new_full((len(ridges), total, n_blocks, p, s.y.shape[-1]), math.nan)
+    free = None if ridge_connection else unpenalised_columns(d, s.r.device)[keep]
     # chunks of bins bound the memory of the per-block sums (F of them per bin)
     for sel in _wls._chunks(total, n_max * width * s.r.dtype.itemsize * 4):
         sums, counts = _block_sums(s, sel, block, n_blocks, delta_max)  # (b, F, C, C), (b, F)
@@ -77,7 +80,7 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
         flat = flat[:, keep][:, :, keep]
         rhs = rhs.reshape(b * n_blocks, p, -1)[:, keep]
         for k, lam in enumerate(ridges):
-            beta = _solve(flat, rhs, float(lam)).reshape(b, n_blocks, keep.numel(), -1)
+            beta = _solve(flat, rhs, float(lam), free).reshape(b, n_blocks, keep.numel(), -1)
             beta = beta.masked_fill(few[..., None, None], math.nan)
             full_beta = beta.new_zeros((b, n_blocks, p, beta.shape[-1]))
             full_beta[:, :, keep] = beta
@@ -109,11 +112,12 @@ def _block_sums(s: _wls.BinnedSamples, sel: slice, block: Tensor, n_blocks: int,
     return part.mT @ part, count
 
 
-def _solve(gram: Tensor, rhs: Tensor, lam: float) -> Tensor:
+def _solve(gram: Tensor, rhs: Tensor, lam: float, unpenalised: Tensor | None) -> Tensor:
     """``β`` of the normal equations ``(b, P, P) β = (b, P, K)`` with the solver's ridge
-    ``lam`` (:func:`~torchconn.regression._wls.ridge_cholesky`); NaN where a column has no data
+    ``lam``, not on the columns ``unpenalised (P,)`` (None: on every column but the intercept)
+    (:func:`~torchconn.regression._wls.ridge_cholesky`); NaN where a column has no data
     or the matrix is not positive definite."""
-    chol, failed, dead, _ = _wls.ridge_cholesky(gram.clone(), lam)
+    chol, failed, dead, _ = _wls.ridge_cholesky(gram.clone(), lam, unpenalised)
     bad = failed | dead.any(-1) if lam == 0 else failed
     beta = torch.cholesky_solve(rhs, chol)
     beta = beta.masked_fill(bad[:, None, None], math.nan)

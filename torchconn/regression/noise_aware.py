@@ -48,7 +48,13 @@ from ..trajectory import Trajectory, pool_batch
 from . import _wls
 from ._wls import IllConditionedBinWarning
 from .binning import BinIndex, assign_bins
-from .connection import ConnectionFit, _blocks, _connection_fit, connection_regression
+from .connection import (
+    ConnectionFit,
+    _blocks,
+    _connection_fit,
+    connection_regression,
+    unpenalised_columns,
+)
 from .tied import _window_correlation, cycle_tangent, tie_connection_derivative
 from .tube import TubeRegression, _auto_window, _auto_windows
 
@@ -870,6 +876,7 @@ def noise_aware_regression(
     ridge: float = 0.0,
     on_ill_conditioned: str = "raise",
     joint_covariance: Literal["solver", "robust"] | None = None,
+    ridge_connection: bool = True,
 ) -> ConnectionFit:
     """Per-bin ``ξ ≈ c + bδ + Aδ̇ + ∂A/∂r (δ̇⊗δ)`` on interval samples, noise-corrected.
 
@@ -879,7 +886,7 @@ def noise_aware_regression(
         gamma_m, gamma_dot_m: ``(..., M, d)`` limit cycle and ``γ̇`` at the bin centres.
         noise_var: ``(..., d)`` measurement-noise variance of each joint angle (broadcastable
             to the batch), e.g. :func:`estimate_noise`'s ``measurement²``.
-        delta_max, ridge, on_ill_conditioned: as in
+        delta_max, ridge, on_ill_conditioned, ridge_connection: as in
             :func:`~torchconn.regression.connection_regression`.
         joint_covariance: also the joint covariance of each bin's ``b̂`` and direct
             ``∂Â/∂r`` (``cov_b_dA``, for the tie): ``"solver"`` the sandwich whose diagonal
@@ -915,9 +922,10 @@ def noise_aware_regression(
     def correction(gram: Tensor, sel) -> Tensor:
         return eiv_correction(gram, var_delta[sel], var_rate[sel])
 
+    free = None if ridge_connection else unpenalised_columns(d, s.r.device)
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge, min_samples=None,
                      max_condition=None, on_ill_conditioned=on_ill_conditioned,
-                     correction=correction)
+                     correction=correction, unpenalised=free)
     kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
     se = sol.se * kappa.sqrt()  # (B·M, P, K)
     cov = None
@@ -927,7 +935,7 @@ def noise_aware_regression(
                              torch.arange(1 + 2 * d, p, device=s.r.device)])
         if joint_covariance == "solver":
             corr = _wls.sandwich_correlation(s, _blocks, sol, columns, delta_max=delta_max,
-                                             correction=correction)
+                                             correction=correction, unpenalised=free)
             se_c = se[:, columns].mT  # (B·M, K, c)
             cov = corr.unsqueeze(1) * (se_c.unsqueeze(-1) * se_c.unsqueeze(-2))
         elif joint_covariance == "robust":
@@ -936,7 +944,7 @@ def noise_aware_regression(
 
             cov = _wls.score_covariance(s, _blocks, sol, columns, lags=samples.h,
                                         delta_max=delta_max, correction=correction,
-                                        row_correction=row_correction)
+                                        row_correction=row_correction, unpenalised=free)
         else:
             raise ValueError(f"{fn}: joint_covariance must be None, 'solver' or 'robust', got "
                              f"{joint_covariance!r}")

@@ -54,7 +54,12 @@ COMPONENTS = ("v_x", "v_y", "omega")
 
 #: (n_bins, fourier_order) candidates of :func:`select_complexity`, simplest first
 COMPLEXITY_GRID = ((12, 3), (24, 6), (48, 12))
-#: ridge candidates of :func:`select_complexity` (relative to the standardised normal matrix)
+#: ridge candidates of :func:`select_complexity` (relative to the standardised normal matrix).
+#: Chosen by held-out prediction, which the intercept dominates, a ridge on every shape column
+#: shrinks ``Â`` -- the attenuation the noise correction removes (one trial, 3-link circle, 32
+#: samples per cycle, ω = 0.005, seed 610, ``noise_floor="low_rate"``: ridge 1 chosen, Â
+#: 79.2 % off at scale 0.23); ``TubeRegression(ridge_connection=False)`` leaves ``Â``'s
+#: columns alone (12.8 % there; README "The ridge and Â")
 RIDGE_GRID = (0.0, 0.1, 1.0, 10.0)
 #: a ridge is chosen only when it lowers the best unpenalised held-out loss by more than this
 #: fraction: a ridge shrinks Â (the attenuation the noise-aware regression removes), and on
@@ -673,7 +678,7 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
 
         coef = leave_blocks_out(s, fo.reshape(-1), n_folds, ridges=ridges,
                                 delta_max=regression.delta_max, correction=correction,
-                                columns=columns)
+                                columns=columns, ridge_connection=regression.ridge_connection)
         coef = coef.unflatten(1, (idx.numel(), m))  # (R, b, M, F, P, K)
         if out is None:
             out = coef.new_full((len(ridges), n) + coef.shape[2:], torch.nan)
@@ -789,11 +794,14 @@ def _interval_noise(meta: dict, batch: tuple, dt: float, **kw) -> tuple[Tensor, 
 
 
 def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
-                      pool: bool, n_folds: int = 3, fallback_ok: bool = True
+                      pool: bool, n_folds: int = 3, fallback_ok: bool = True,
+                      ridges: tuple[float, ...] = RIDGE_GRID
                       ) -> tuple[Regression, ComplexityChoice]:
     """The bins, Fourier order and ridge of least mean held-out ``SSE/SST`` among
-    :data:`COMPLEXITY_GRID` x :data:`RIDGE_GRID` (:func:`cross_validate`, noise-corrected);
-    a ridge only when it gains more than :data:`RIDGE_MIN_GAIN` over no ridge.
+    :data:`COMPLEXITY_GRID` x ``ridges`` (:func:`cross_validate`, noise-corrected; by default
+    :data:`RIDGE_GRID`, applied as the regression applies its own, see its
+    ``ridge_connection``); a ridge only when it gains more than :data:`RIDGE_MIN_GAIN` over
+    no ridge.
 
     Per component and batch element two simpler models are candidates too
     (:func:`_choose_terms`): the connection alone (``ĉ + Âδ̇``, the rows of ``b`` and
@@ -825,7 +833,7 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
     short = few_cycles(traj.phase, pool)
     for n_bins, order in COMPLEXITY_GRID:
         for ridge, (s, gaps), (s_conn, gaps_conn) in _candidate_skills(
-                traj, cycle, regression, n_bins, order, pool, n_folds, failed):
+                traj, cycle, regression, n_bins, order, pool, n_folds, failed, ridges):
             # the models must beat the baseline on the held-out data as observed (the noisy
             # inputs); the candidates are ranked by the noise-corrected loss
             if fallback_ok:
@@ -910,8 +918,8 @@ def _nested_tuple(mask: Tensor) -> tuple:
     return tup(mask.tolist())
 
 
-def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, failed):
-    """``(ridge, (Skill, gaps), (Skill, gaps))`` of every ridge in :data:`RIDGE_GRID` at
+def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, failed, ridges):
+    """``(ridge, (Skill, gaps), (Skill, gaps))`` of every ridge in ``ridges`` at
     ``(n_bins, order)``: of the model as fitted and of the connection alone
     (:func:`_variant_scores`), the noise-corrected skill and per held-out cycle the observed
     SSE minus the phase average's; a candidate that cannot be fitted is left out and named in
@@ -921,7 +929,7 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         if not downdates(base):
             out = []
-            for ridge in RIDGE_GRID:
+            for ridge in ridges:
                 try:
                     out.append((ridge, *_held_out_skills(
                         traj, cycle, base.replace(ridge=ridge), pool=pool, n_folds=n_folds,
@@ -940,12 +948,12 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, fai
     view = regression_view(traj, base, model, pool=pool)
     fold = _cycle_blocks(unflat.phase, n_folds)
     coef = held_out_coefficients(traj, base, model, unflat, fold, n_folds, pool=pool,
-                                 ridges=RIDGE_GRID)
-    coef = blended_held_out(traj, base, model, coef, n_folds, pool=pool, ridges=RIDGE_GRID)
+                                 ridges=ridges)
+    coef = blended_held_out(traj, base, model, coef, n_folds, pool=pool, ridges=ridges)
     flat_fold = pool_batch(fold, 0) if pool else fold
     cycles = _cycle_index(unflat.phase, pool)
     out = []
-    for k, ridge in enumerate(RIDGE_GRID):
+    for k, ridge in enumerate(ridges):
         models = [with_coefficients(model, coef[k, f], order) for f in range(n_folds)]
         full, conn = _variant_scores(models, view, flat_fold, base, traj.dt, pool, cycles)
         if bool(full[0].unscored.any()):

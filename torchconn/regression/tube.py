@@ -105,6 +105,15 @@ class TubeRegression(Regression):
             window's edge, which lowers the bias from the gait's curvature within a window).
         delta_max: only samples with ``|δ| < delta_max`` enter a bin's regression (None: all).
         ridge: Tikhonov penalty on the scaled regressors (0: ordinary least squares).
+        ridge_connection: the ridge (given, added for ill-conditioned bins, or chosen by
+            :func:`~torchconn.regression.skill.select_complexity`) also penalises ``A``'s
+            columns (default, the previous behaviour); False: only those of ``b`` and
+            ``∂A/∂r`` (:func:`~torchconn.regression.connection.unpenalised_columns`). Chosen
+            by held-out prediction, a ridge on ``A`` shrank it at video rates (one trial,
+            32 samples per cycle, ω = 0.005: Â 79 % off at scale 0.23; False: 12.8 %); False
+            is better for ``Â`` wherever the complexity is chosen (README "The ridge and Â")
+            but predicts v_x on the later cycles of short recordings worse (losses to the
+            phase average 6 -> 18 of 360 components), so it is not the default.
         on_ill_conditioned: what to do with bins with too few samples or a rank-deficient
             design: raise, warn, or regularise (``"ridge"``).
         metric: estimate the dissipation metric: None (default) when the data carry a power
@@ -165,6 +174,7 @@ class TubeRegression(Regression):
     kernel: Literal["box", "tricube", "epanechnikov"] = "tricube"
     delta_max: float | None = option(None, gt=0)
     ridge: float = option(0.0, ge=0)
+    ridge_connection: bool = True
     on_ill_conditioned: Literal["raise", "warn", "ridge"] = "raise"
     metric: bool | None = None
     metric_method: Literal["tied", "paper"] = "tied"
@@ -224,7 +234,8 @@ class TubeRegression(Regression):
         gamma_dot_m = (cycle.phase_rate[..., None, None]
                        * cycle.gamma_dot_at(centres.expand(batch + (M,))))
         opts = dict(delta_max=self.delta_max, ridge=self.ridge,
-                    on_ill_conditioned=self.on_ill_conditioned)
+                    on_ill_conditioned=self.on_ill_conditioned,
+                    ridge_connection=self.ridge_connection)
         d = r.shape[-1]
 
         def bins_for(n_regressors: int):
@@ -243,7 +254,8 @@ class TubeRegression(Regression):
             else:
                 mbins, metric_window = bins_for(metric_n_coef(d, False))
                 metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
-                                               with_metric_derivative=False, **opts)
+                                               with_metric_derivative=False,
+                                               **_metric_opts(opts))
             metric = dict(zip(_METRIC_BIN_FIELDS, (
                 metric_fit.M, metric_fit.se_M, metric_fit.M_gamma_dot,
                 metric_fit.se_M_gamma_dot, metric_fit.power_on_cycle,
@@ -504,3 +516,9 @@ def _auto_windows(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: 
     # a tricube window of half-width w spacings carries the weight of ~1.2 w spacings
     window = per_regressor * n_regressors / (1.2 * per_spacing)
     return window.clamp(1.0, n_bins / 4)
+
+
+def _metric_opts(opts: dict) -> dict:
+    """The connection regressions' solver options without the one the metric's lacks (its
+    design has no connection columns)."""
+    return {k: v for k, v in opts.items() if k != "ridge_connection"}
