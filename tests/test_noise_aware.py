@@ -23,6 +23,7 @@ from torchconn.physics.gaits import FourierGait
 from torchconn.regression import IllConditionedBinWarning
 from torchconn.regression.binning import assign_bins
 from torchconn.regression.connection import connection_design
+from torchconn.regression.estimator import RidgeShrinksConnectionWarning
 from torchconn.regression.noise_aware import (
     eiv_correction,
     estimate_noise,
@@ -1666,11 +1667,15 @@ def test_a_ridge_chosen_from_the_data_can_leave_the_connection_alone():
     phi = torch.linspace(0, 2 * math.pi, 200, dtype=F64)[:-1]
 
     def fit(**options):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
             est = ConnectionEstimator(pool=False, regression=NoiseAwareRegression(
                 noise_floor="low_rate", **options)).fit(traj)
         assert est.complexity_ is not None and est.complexity_.ridge > 0  # chosen
+        # the user is told when the chosen ridge shrinks Â, and only then
+        shrunk = [w for w in caught if issubclass(w.category, RidgeShrinksConnectionWarning)]
+        assert len(shrunk) == options.get("ridge_connection", True)
+        assert not shrunk or "ridge_connection=False" in str(shrunk[0].message)
         a_hat = est.model_.connection(phi)[0]
         a_true = NLinkSwimmer(3).connection(est.model_.gamma_at(phi)[0])
         err = float((a_hat - a_true).norm() / a_true.norm())

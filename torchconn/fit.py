@@ -48,6 +48,7 @@ from .physics.systems.swimmer import NLinkSwimmer
 from .regression.estimator import (
     FLAT_KEYS,
     ConnectionEstimator,
+    RidgeShrinksConnectionWarning,
     estimator_from_settings,
     estimator_settings,
 )
@@ -242,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
                              + "; ".join(check.problems["fit"]))
         traj = traj.to(device)  # read and checked on the CPU, moved once
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", PoorHeldOutSkillWarning)  # reported below
+            for reported_below in (PoorHeldOutSkillWarning, RidgeShrinksConnectionWarning):
+                warnings.simplefilter("ignore", reported_below)
             est = estimator.fit(traj)
         held_out, folds = est.held_out_skill_, est.held_out_folds
         model = est.model_.to("cpu")  # outputs are written from CPU copies
@@ -306,6 +308,10 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
                       f"{c.fourier_order}, ridge {c.ridge:g}")
+                if c.ridge > 0 and getattr(est.regression_, "ridge_connection", False):
+                    print("the ridge also penalises A, so A is shrunk towards 0; for the "
+                          "connection itself refit with --set regression.ridge_connection=false "
+                          "or --complexity fixed")
             if c.checked and c.phase_averaged_names():
                 print("predicted by the phase-averaged velocity (the shape terms did not beat "
                       "it on held-out cycles; their rows of A, b and dA/dr are 0, not "

@@ -51,8 +51,13 @@ from .tube import Regression, TubeRegression
 
 __all__ = [
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
-    "prepare", "fit_local_model", "EstimatorSettings",
+    "prepare", "fit_local_model", "EstimatorSettings", "RidgeShrinksConnectionWarning",
 ]
+
+
+class RidgeShrinksConnectionWarning(UserWarning):
+    """The complexity chosen by held-out prediction has a ridge, and the ridge penalises Â:
+    the connection comes out shrunk towards 0 (README, "The ridge and Â")."""
 
 #: the estimator's stages: keyword -> (base class, {method name: class}); the first method is
 #: the default. A settings table picks one with ``method = "name"``.
@@ -263,6 +268,15 @@ class ConnectionEstimator:
                     model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
                     regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
+                    if chosen.ridge > 0 and getattr(chosen, "ridge_connection", False):
+                        warnings.warn(
+                            f"the complexity chosen by held-out prediction has a ridge "
+                            f"({chosen.ridge:g}) that also penalises A: the connection A is "
+                            "shrunk towards 0 (measured at low frame rates: to 0.2-0.7 of the "
+                            "swimmer's). For the connection itself fit with "
+                            "regression ridge_connection=False (A unpenalised; predicts later "
+                            "cycles slightly worse on short recordings) or complexity='fixed'",
+                            RidgeShrinksConnectionWarning, stacklevel=2)
         view = skill.regression_view(traj, regression, model, pool=self.pool)
         # the phase average of the intercept's orders (short recordings) or the model's
         self.phase_average_ = skill.phase_average(
