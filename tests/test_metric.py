@@ -268,6 +268,45 @@ def test_order_change_covariance_is_the_change_s_sampling_covariance():
         tied_metric_regression(*one, order=2, order_bias="yes")
 
 
+def test_dropped_rule_adds_the_change_s_variance_only_where_the_held_out_order_dropped():
+    """``order_bias="dropped"``: the batch elements whose held-out order fell below the order
+    given get the posterior bands (the change's square and its own variance), the others the
+    change's square alone, bit for bit. 24 replicates of one design (model of order 2,
+    fitted up to order 4 with the order chosen by held-out cycles) differing in their power
+    noise; the choice must both drop and keep harmonics among them for the test to bite."""
+    n_rep = 24
+    phase, v, _ = _harmonic_metric_data(40, 2, seed=4)
+    m = (torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=F64) + torch.cos(2 * phase)[:, None, None]
+         * torch.tensor([[0.3, -0.2], [-0.2, 0.25]], dtype=F64))
+    exact = torch.einsum("ni,nij,nj->n", v, m, v)
+    g = torch.Generator().manual_seed(6)
+    power = exact + 0.2 * torch.randn(n_rep, exact.shape[0], generator=g, dtype=F64)
+    rep = (n_rep, -1)
+    centres = torch.arange(8, dtype=F64) * (2 * math.pi / 8)
+    gd = torch.stack([-torch.sin(centres), torch.cos(centres)], -1)
+    data = (torch.zeros_like(v).expand(rep + (2,)), v.expand(rep + (2,)), power,
+            phase.expand(rep), centres, gd)
+    kw = dict(order=4, derivative_order=None, held_out_order=True)
+    fits = {rule: tied_metric_regression(*data, **kw, order_bias=rule)
+            for rule in (True, "posterior", "dropped")}
+    dropped = fits["dropped"].order < 4  # (R,)
+    print(f"held-out orders {fits['dropped'].order.tolist()}")
+    assert 0 < int(dropped.sum()) < n_rep  # both cases present
+    for name in ("M", "bias_M", "se_bias_M"):
+        assert torch.equal(getattr(fits["dropped"], name), getattr(fits[True], name))
+    for name in ("se_M", "cov_M", "se_M_gamma_dot", "se_power_on_cycle"):
+        got, kept, post = (getattr(fits[r], name) for r in ("dropped", True, "posterior"))
+        assert torch.equal(got[~dropped], kept[~dropped])
+        assert torch.equal(got[dropped], post[dropped])
+        assert bool((post[dropped] > kept[dropped]).any())  # the variance did widen them
+    # without the held-out choice nothing is dropped: the change's square alone
+    fixed = dict(order=2, derivative_order=None)
+    one = tuple(x[0] for x in data[:4]) + (centres, gd)
+    torch.testing.assert_close(tied_metric_regression(*one, **fixed, order_bias="dropped").se_M,
+                               tied_metric_regression(*one, **fixed, order_bias=True).se_M,
+                               rtol=0, atol=0)
+
+
 # ----------------------------------------------------------------------------- on the swimmer
 @pytest.fixture(scope="module")
 def three_link():
