@@ -1112,7 +1112,7 @@ def test_harmonic_noise_of_overlapping_bins_matches_monte_carlo(window):
     se = (bins.weight.square().sum(-1).sqrt() / bins.weight.sum(-1))[..., None, None]
     centres = torch.arange(m, dtype=F64) * 2 * math.pi / m
     power, noise = _harmonic_noise(fit_fourier(centres, est, 6, value_ndim=2),
-                                   se.expand(est.shape), bins)
+                                   se.expand(est.shape), bins.window, bins.kernel)
     ratio = power.mean(0) / noise.mean(0)
     assert ((ratio > 0.85) & (ratio < 1.15)).all(), ratio
 
