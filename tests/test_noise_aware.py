@@ -1113,7 +1113,7 @@ def test_harmonic_noise_of_overlapping_bins_matches_monte_carlo(window):
     se = (bins.weight.square().sum(-1).sqrt() / bins.weight.sum(-1))[..., None, None]
     centres = torch.arange(m, dtype=F64) * 2 * math.pi / m
     power, noise = _harmonic_noise(fit_fourier(centres, est, 6, value_ndim=2),
-                                   se.expand(est.shape), bins)
+                                   se.expand(est.shape), bins.window, bins.kernel)
     ratio = power.mean(0) / noise.mean(0)
     assert ((ratio > 0.85) & (ratio < 1.15)).all(), ratio
 
@@ -1478,6 +1478,114 @@ def test_a_pooled_fits_series_shrinks_the_harmonics_near_the_bins_noise(clean30)
     factors = on.model_.meta["A_harmonic_factors"]
     assert len(factors) == 13 and factors[0] == 1 and min(factors) < 0.5, factors
     assert _errors(on)[0] < _errors(off)[0], (_errors(on), _errors(off))
+
+
+def _dft_series(values):
+    """Cosine and sine coefficients ``(K + 1, ...)`` of per-bin values ``(M, ...)`` at the
+    centres ``2πm/M`` (order ``K < M/2``: the least-squares series is the DFT), in numpy."""
+    m = values.shape[0]
+    phi = 2 * np.pi * np.arange(m) / m
+    ks = np.arange(13)
+    cos = np.einsum("km,m...->k...", np.cos(ks[:, None] * phi), values) * 2 / m
+    sin = np.einsum("km,m...->k...", np.sin(ks[:, None] * phi), values) * 2 / m
+    cos[0] /= 2
+    return cos, sin
+
+
+def _independent_shrink(a, se, window):
+    """The pooled fits' shrink ``max(0, 1 − 0.5 noise_k / power_k)`` of one element's bins
+    ``a, se (M, 3, d)`` at half-width ``window`` (bin spacings, tricube kernel), computed
+    here independently: the harmonics by the DFT, the bins' error correlation ``ρ(s)`` by
+    quadrature of the kernels' overlap."""
+    from scipy.integrate import quad
+
+    m = a.shape[0]
+
+    def kern(x):
+        return (1 - min(abs(x) / window, 1.0) ** 3) ** 3
+
+    norm = quad(lambda x: kern(x) ** 2, -window, window)[0]
+    lags = np.arange(-math.ceil(2 * window), math.ceil(2 * window) + 1)
+    rho = np.array([quad(lambda x, s=s: kern(x) * kern(x - s), -window, window,
+                         points=[s - window, s + window])[0] for s in lags]) / norm
+    ks = np.arange(13)
+    nu = np.clip((rho * np.cos(2 * np.pi * ks[:, None] * lags / m)).sum(-1), 0, None)
+    noise = (se ** 2).mean(0).sum() * nu * np.where(ks > 0, 4.0, 1.0) / m
+    cos, sin = _dft_series(a)
+    power = (cos ** 2).sum((1, 2)) + (sin ** 2).sum((1, 2))
+    factor = np.clip(1 - 0.5 * noise / power, 0, 1)
+    factor[0] = 1
+    return factor
+
+
+def test_a_trials_series_shrink_is_the_pooled_formula_on_that_trial_alone():
+    """resolved_harmonics="per_trial", one model per trial: each trial's series of Â is the
+    plain series of its own bins with harmonic k times max(0, 1 − 0.5 noise_k / power_k),
+    the pooled fits' formula applied to that trial alone at its own window (computed here
+    independently: DFT, quadrature of the kernels' overlap); a trial's series is the same
+    alone as in a batch of trials at other noise levels and windows; the default (True)
+    leaves unpooled series plain."""
+    from torchconn.phase.fourier import fit_fourier
+
+    prep, cycle = _unpooled_trials([0.0, 0.005, 0.01, 0.02])
+    reg = NoiseAwareRegression(metric=False, resolved_harmonics="per_trial")
+    full = reg.fit(prep, cycle)
+    windows = full.meta["windows"]
+    assert len(set(windows)) >= 2, windows
+    plain = fit_fourier(full.bins.phase, full.bins.A, 12, value_ndim=2).coeffs  # (4, 25, 3, 2)
+    for i in range(4):
+        a, se = full.bins.A[i].numpy(), full.bins.A_se[i].numpy()
+        want = _independent_shrink(a, se, windows[i])
+        # to 0.01 (the regression's ρ(s) sums an 801-point grid whose shifts round: up to
+        # 0.005 off the quadrature at half-width 3); at another trial's window the factors
+        # would be off by far more
+        got = (full.A.coeffs[i] / plain[i]).flatten(1)  # (25, 6): each harmonic's factor
+        got = torch.cat([got[:1], got[1::2], got[2::2]]).numpy()  # cos 0..12, sin 1..12
+        both = np.concatenate([want, want[1:]])[:, None].repeat(6, 1)
+        np.testing.assert_allclose(got, both, rtol=0, atol=0.01)
+        np.testing.assert_allclose(full.meta["A_harmonic_factors"][i], want, rtol=0, atol=0.01)
+        for other in set(windows) - {windows[i]}:
+            assert np.abs(_independent_shrink(a, se, other) - want).max() > 0.05
+        if i > 0:  # under noise some harmonics are shrunk
+            assert min(want) < 0.9, (i, want)
+    for group in ([1], [3], [2, 0]):
+        idx = torch.tensor(group)
+        part = reg.fit(prep[idx], _index_cycle(cycle, idx))
+        # the Fourier fit of the bins rounds with the batch (the plain series of the default
+        # too; the test above compares bins) and the bins' standard errors may (their row sums,
+        # padded bin length): equal to the last few bits
+        torch.testing.assert_close(part.A.coeffs, full.A.coeffs[idx], rtol=1e-12, atol=0)
+    default = reg.replace(resolved_harmonics=True).fit(prep, cycle)
+    assert "A_harmonic_factors" not in default.meta
+    assert torch.equal(default.A.coeffs, plain)
+
+
+def test_a_trials_series_shrink_brings_a_closer_to_the_connection():
+    """One noisy trial of 30 cycles at 64 samples per cycle (3-link circle, ω = 0.005; the
+    README's one-trial cells: 0.81-0.88 of the plain series' error over 16 trials): the
+    per-trial shrink of Â's harmonics brings it closer to the exact connection along the
+    fitted cycle than the plain series of the same bins."""
+    seeds = np.array([600])
+    clean = simulate(NLinkSwimmer(3), _circle(), eta=0.025, n_cycles=30, samples_per_cycle=64,
+                     seeds=seeds)
+    traj = observe(clean, 0.005, seeds=seeds)
+    fits = {}
+    for option in (True, "per_trial"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fits[option] = ConnectionEstimator(
+                pool=False, regression=NoiseAwareRegression(metric=False,
+                                                            resolved_harmonics=option)
+            ).fit(traj).model_
+    assert torch.equal(fits[True].bins.A, fits["per_trial"].bins.A)
+    phi = torch.linspace(0, 2 * math.pi, 201, dtype=F64)[:-1].expand(1, 200)
+
+    def error(model):
+        a_true = NLinkSwimmer(3).connection(model.gamma_at(phi))
+        return float((model.connection(phi) - a_true).norm() / a_true.norm())
+
+    plain, shrunk = error(fits[True]), error(fits["per_trial"])
+    assert shrunk < 0.93 * plain, (shrunk, plain)
 
 
 def test_eiv_row_correction_sums_to_the_bins_correction_times_the_coefficients():

@@ -283,7 +283,9 @@ class TubeRegression(Regression):
         c_order = self.intercept_orders(traj, pool)
         if c_order is not None:
             connection_meta["intercept_order"] = c_order.tolist()
-        a_series, a_meta = self._a_series(centres, fit, window, pool)
+        # (unpooled fits may bin each element at its own window: meta["windows"], (...))
+        a_series, a_meta = self._a_series(centres, fit, connection_meta.get("windows", window),
+                                          pool)
         connection_meta.update(a_meta)
         model = LocalConnectionModel(
             gamma=cycle.gamma, phase_rate=cycle.phase_rate,
@@ -321,10 +323,12 @@ class TubeRegression(Regression):
         return skill.with_intercept_orders(model, orders.masked_fill(long, model.c.order),
                                            base.masked_fill(long, self.fourier_order))
 
-    def _a_series(self, centres: Tensor, fit, window: float, pool: bool
+    def _a_series(self, centres: Tensor, fit, window, pool: bool
                   ) -> tuple[FourierSeries, dict]:
         """The Fourier series of ``Â`` (order ``fourier_order``) and extra meta (none here;
-        :class:`~torchconn.regression.NoiseAwareRegression` may drop unresolved harmonics)."""
+        :class:`~torchconn.regression.NoiseAwareRegression` may shrink unresolved harmonics).
+        ``window``: the bins' half-width, a number or, unpooled, per element (nested lists of
+        the batch's shape)."""
         return fit_fourier(centres, fit.A, self.fourier_order, value_ndim=2), {}
 
     def intercept_orders(self, traj: Trajectory, pool: bool) -> Tensor | None:
