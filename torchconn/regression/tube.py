@@ -49,7 +49,7 @@ METRIC_SETTINGS = ("metric_order", "metric_derivative_order", "metric_held_out_o
                    "metric_noise_correction", "metric_noise_level", "metric_order_bias")
 #: the metric's per-bin fields of :class:`~torchconn.regression.model.BinEstimates`
 _METRIC_BIN_FIELDS = ("M", "M_se", "M_gamma_dot", "M_gamma_dot_se", "power_on_cycle",
-                      "power_on_cycle_se", "M_bias")
+                      "power_on_cycle_se", "M_bias", "M_change_factor")
 
 
 class Regression(Options, abc.ABC):
@@ -267,7 +267,8 @@ class TubeRegression(Regression):
             metric = dict(zip(_METRIC_BIN_FIELDS, (
                 metric_fit.M, metric_fit.se_M, metric_fit.M_gamma_dot,
                 metric_fit.se_M_gamma_dot, metric_fit.power_on_cycle,
-                metric_fit.se_power_on_cycle, metric_fit.bias_M), strict=True))
+                metric_fit.se_power_on_cycle, metric_fit.bias_M, metric_fit.change_factor_M),
+                strict=True))
             metric_order = None if metric_fit.order is None else metric_fit.order.tolist()
 
         estimates = BinEstimates(
