@@ -4,6 +4,7 @@ and clear errors for data that cannot give a metric."""
 
 import math
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import torch
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
 from torchconn.phase.fourier import fourier_design
 from torchconn.physics.gaits import FourierGait, reference_gait
+from torchconn.regression.gait_prediction import predict_gait
 from torchconn.regression.metric import (
     _CorrectedNormal,
     tied_metric_coefficients,
@@ -507,9 +509,12 @@ def test_posterior_bands_hold_the_truth_where_the_held_out_order_drops_harmonics
     42000-42003, found by a scan of held-out seeds for recordings where the held-out choice
     drops M(φ) to order 4; not used to build the rule, which has no constant). There the
     change to order K + 2 is about as large as its own sampling noise (the harmonics it adds
-    are the ones the choice found unresolved), so the default bands, which take the change
-    as the bias, held the truth in 65 % of entries; with the change's own variance
-    (``metric_order_bias="posterior"``) in 100 % (README, "The metric")."""
+    are the ones the choice found unresolved), so the bands that take the change as the bias
+    (``metric_order_bias=True``, the default before) held the truth in 65 % of entries; with
+    the change's own variance (``"posterior"``, the default) in 100 % (README, "The metric").
+    Nearby-gait draws take that variance as one error correlated across entries and bins, so
+    the recorded gait's cost standard error stays ``True``'s (drawn entry by entry it was 3x
+    as wide)."""
     system = NLinkSwimmer(3)
     seeds = np.arange(4) + 42000
     traj = simulate(system, reference_gait("3link"), eta=0.025, alpha=0.05, n_cycles=30,
@@ -535,3 +540,18 @@ def test_posterior_bands_hold_the_truth_where_the_held_out_order_drops_harmonics
     assert inside[True] < 0.8  # the failure this test guards against
     assert inside["posterior"] >= 0.9
     assert width < 2 * err  # honest, not uselessly wide
+    assert TubeRegression().metric_order_bias == "posterior"  # the default
+    # the cost of the recorded gait: its standard error as True's, not widened by the draws
+    gait = reference_gait("3link")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pred = {rule: predict_gait(models[rule], gait) for rule in (True, "posterior")}
+        spread = predict_gait(replace(models["posterior"], bins=replace(
+            b, M_change_factor=None)), gait)
+    ratio = float(pred["posterior"].cost_se / pred[True].cost_se)
+    print(f"cost SE posterior / True {ratio:.3f}; drawn entry by entry "
+          f"{float(spread.cost_se / pred[True].cost_se):.2f}")
+    assert torch.equal(pred["posterior"].cost, pred[True].cost)
+    assert torch.equal(pred["posterior"].displacement_se, pred[True].displacement_se)
+    assert ratio < 1.1
+    assert float(spread.cost_se / pred[True].cost_se) > 2  # what the correlated draw avoids
