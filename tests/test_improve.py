@@ -1,5 +1,6 @@
 """Gait prediction from a local model, proposals, and the improvement loop."""
 
+import dataclasses
 import math
 import warnings
 
@@ -20,6 +21,7 @@ from torchconn.improve import (
     true_objective,
 )
 from torchconn.improve.export import gait_table, write_gait
+from torchconn.phase.fourier import fourier_design
 from torchconn.physics.gaits import FourierGait, evaluate
 from torchconn.regression.gait_prediction import ExcursionWarning, sample_models
 
@@ -116,6 +118,45 @@ def test_redrawn_models_spread_like_the_standard_errors(fitted_3link):
     se = model.bins.A_se[0]
     ratio = (spread / se).flatten()
     assert float(ratio.median()) == pytest.approx(1.0, abs=0.25)
+
+
+def test_metric_draws_share_the_bias_and_its_noise_across_entries_and_bins(tmp_path):
+    """``sample_models`` draws ``M̂``'s bias allowance (``M_bias``) and that bias estimate's
+    own noise (``M_change_factor``, ``F``) as errors shared by every entry and bin: the draws'
+    covariance of ``M`` at the bins is ``b bᵀ + F Fᵀ`` (Monte Carlo, 4000 draws, within 5
+    standard errors of each covariance entry). Drawing the same ``M_se`` entry by entry (no
+    factor) is rejected by the same bound. Both survive a save and load."""
+    system, d = NLinkSwimmer(3), 2
+    model = exact_local_model(system, circle_gait(2, 0.5), n_grid=16)
+    phase, n = model.bins.phase, 4000
+    g = torch.Generator().manual_seed(3)
+
+    def smooth(*shape):  # symmetric values of Fourier order 2 at the bins (the series' span)
+        c = torch.randn((5, d, d) + shape, generator=g, dtype=torch.float64)
+        c = 0.5 * (c + c.transpose(1, 2))
+        return torch.einsum("mh,hij...->mij...", fourier_design(phase, 2), c) * 0.01
+
+    bias, factor = smooth(), smooth(3)  # (M, d, d), (M, d, d, R = 3)
+    se = (bias.square() + factor.square().sum(-1)).sqrt()
+    bins = dataclasses.replace(model.bins, M_se=se, M_bias=bias, M_change_factor=factor)
+    model = dataclasses.replace(model, bins=bins)
+    back = type(model).load(model.save(tmp_path / "model.npz"))
+    assert torch.equal(back.bins.M_change_factor, factor) and torch.equal(back.bins.M_bias, bias)
+    closed = (bias.flatten()[:, None] * bias.flatten()[None, :]
+              + factor.flatten(0, 2) @ factor.flatten(0, 2).T)
+    mc_se = ((closed.diagonal()[:, None] * closed.diagonal()[None, :] + closed.square())
+             / n).sqrt()
+
+    def z_max(m) -> float:
+        draws = sample_models(m, n, seed=5).metric(phase).flatten(1)  # (S, M d d)
+        dev = draws - m.bins.M.flatten()
+        z = float(((dev.T @ dev / n - closed) / mc_se).abs().max())
+        print(f"max |z| of the draws' covariance: {z:.1f}")
+        return z
+
+    assert z_max(back) < 5
+    assert z_max(dataclasses.replace(model, bins=dataclasses.replace(
+        bins, M_change_factor=None))) > 10
 
 
 def test_propose_improves_and_stays_in_trust_region(fitted_3link):

@@ -4,13 +4,16 @@ and clear errors for data that cannot give a metric."""
 
 import math
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
+from torchconn.phase.fourier import fourier_design
 from torchconn.physics.gaits import FourierGait, reference_gait
+from torchconn.regression.gait_prediction import predict_gait
 from torchconn.regression.metric import (
     _CorrectedNormal,
     tied_metric_coefficients,
@@ -268,6 +271,37 @@ def test_order_change_covariance_is_the_change_s_sampling_covariance():
         tied_metric_regression(*one, order=2, order_bias="yes")
 
 
+def test_change_factor_spans_the_change_s_covariance_across_entries_and_phases():
+    """``MetricFit.change_factor_M`` (what nearby-gait draws use) against the closed form: the
+    change's series covariance ``order_change_cov`` carried to the phases through the
+    series' design, ``(B ⊗ I) Σ (B ⊗ I)ᵀ`` over every pair of (phase, entry), not only its
+    diagonal; and that diagonal is ``se_bias_M²``, the variance the posterior bands add. The
+    default rule stores no factor (its bands hold no such variance)."""
+    phase, v, power = _harmonic_metric_data(40, 2, seed=4)
+    centres = torch.arange(8, dtype=F64) * (2 * math.pi / 8)
+    gd = torch.stack([-torch.sin(centres), torch.cos(centres)], -1)
+    data = (torch.zeros_like(v), v, power, phase)
+    kw = dict(order=2, derivative_order=None)
+    coef = tied_metric_coefficients(*data, **kw, order_bias="posterior")
+    post = coef.at(centres, gd)
+    wide = fourier_design(centres, coef.order_change.shape[-2] // 2)  # (M, W)
+    q = 3
+    cov = coef.order_change_cov.unflatten(-1, (wide.shape[-1], q)).unflatten(0, (
+        wide.shape[-1], q))
+    closed = torch.einsum("mh,hapb,np->manb", wide, cov, wide)  # (M, q, M, q)
+    iu, ju = torch.triu_indices(2, 2)
+    scale = torch.where(iu == ju, 1.0, 2.0).to(F64)  # upper coefficients: M_kk, 2 M_kl
+    f = post.change_factor_M[:, iu, ju, :] * scale[:, None]  # (M, q, R)
+    got = torch.einsum("mar,nbr->manb", f, f)
+    torch.testing.assert_close(got, closed, rtol=1e-9, atol=1e-12 * float(closed.abs().max()))
+    torch.testing.assert_close(post.change_factor_M.square().sum(-1), post.se_bias_M.square())
+    # the cross-phase terms are not negligible: a diagonal-only model would miss them
+    off = closed.flatten(0, 1).flatten(1) - torch.diag(closed.flatten(0, 1).flatten(1).diagonal())
+    assert float(off.abs().max()) > 0.5 * float(closed.flatten(0, 1).flatten(1).diagonal().max())
+    assert tied_metric_regression(*data, centres, gd, **kw, order_bias=True).change_factor_M \
+        is None
+
+
 def test_dropped_rule_adds_the_change_s_variance_only_where_the_held_out_order_dropped():
     """``order_bias="dropped"``: the batch elements whose held-out order fell below the order
     given get the posterior bands (the change's square and its own variance), the others the
@@ -299,6 +333,9 @@ def test_dropped_rule_adds_the_change_s_variance_only_where_the_held_out_order_d
         assert torch.equal(got[~dropped], kept[~dropped])
         assert torch.equal(got[dropped], post[dropped])
         assert bool((post[dropped] > kept[dropped]).any())  # the variance did widen them
+    factor = fits["dropped"].change_factor_M  # the posterior's where dropped, else zero
+    assert not factor[~dropped].any()
+    assert torch.equal(factor[dropped], fits["posterior"].change_factor_M[dropped])
     # without the held-out choice nothing is dropped: the change's square alone
     fixed = dict(order=2, derivative_order=None)
     one = tuple(x[0] for x in data[:4]) + (centres, gd)
@@ -472,9 +509,12 @@ def test_posterior_bands_hold_the_truth_where_the_held_out_order_drops_harmonics
     42000-42003, found by a scan of held-out seeds for recordings where the held-out choice
     drops M(φ) to order 4; not used to build the rule, which has no constant). There the
     change to order K + 2 is about as large as its own sampling noise (the harmonics it adds
-    are the ones the choice found unresolved), so the default bands, which take the change
-    as the bias, held the truth in 65 % of entries; with the change's own variance
-    (``metric_order_bias="posterior"``) in 100 % (README, "The metric")."""
+    are the ones the choice found unresolved), so the bands that take the change as the bias
+    (``metric_order_bias=True``, the default before) held the truth in 65 % of entries; with
+    the change's own variance (``"posterior"``, the default) in 100 % (README, "The metric").
+    Nearby-gait draws take that variance as one error correlated across entries and bins, so
+    the recorded gait's cost standard error stays ``True``'s (drawn entry by entry it was 3x
+    as wide)."""
     system = NLinkSwimmer(3)
     seeds = np.arange(4) + 42000
     traj = simulate(system, reference_gait("3link"), eta=0.025, alpha=0.05, n_cycles=30,
@@ -500,3 +540,18 @@ def test_posterior_bands_hold_the_truth_where_the_held_out_order_drops_harmonics
     assert inside[True] < 0.8  # the failure this test guards against
     assert inside["posterior"] >= 0.9
     assert width < 2 * err  # honest, not uselessly wide
+    assert TubeRegression().metric_order_bias == "posterior"  # the default
+    # the cost of the recorded gait: its standard error as True's, not widened by the draws
+    gait = reference_gait("3link")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pred = {rule: predict_gait(models[rule], gait) for rule in (True, "posterior")}
+        spread = predict_gait(replace(models["posterior"], bins=replace(
+            b, M_change_factor=None)), gait)
+    ratio = float(pred["posterior"].cost_se / pred[True].cost_se)
+    print(f"cost SE posterior / True {ratio:.3f}; drawn entry by entry "
+          f"{float(spread.cost_se / pred[True].cost_se):.2f}")
+    assert torch.equal(pred["posterior"].cost, pred[True].cost)
+    assert torch.equal(pred["posterior"].displacement_se, pred[True].displacement_se)
+    assert ratio < 1.1
+    assert float(spread.cost_se / pred[True].cost_se) > 2  # what the correlated draw avoids

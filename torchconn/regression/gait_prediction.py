@@ -127,8 +127,11 @@ def sample_models(
     with the overlap of their kernel weights. The part of ``M̂``'s standard error that is its
     bias allowance (``bins.M_bias``) is drawn as one error shared by all entries and bins
     (``s · M_bias``, ``s`` standard normal per draw): drawn entry by entry, it would spread the
-    on-cycle power that the gait pins down. The Fourier series are refitted at the model's
-    order. The result has batch dims ``(n_draws, ...)``.
+    on-cycle power that the gait pins down. Likewise the sampling noise of that bias estimate,
+    where ``M_se`` holds it (``bins.M_change_factor``, ``metric_order_bias="posterior"``), is
+    drawn from its covariance across entries and bins (``F z``, ``z`` standard normal of
+    length ``R`` per draw). The Fourier series are refitted at the model's order. The result
+    has batch dims ``(n_draws, ...)``.
     """
     if not isinstance(n_draws, int) or n_draws < 1:
         raise ValueError(f"n_draws must be a positive integer, got {n_draws!r}")
@@ -139,11 +142,17 @@ def sample_models(
     gen = torch.Generator(device=model.device).manual_seed(seed)
     centres = bins.phase
 
-    def redraw(series, values, se, window, bias=None):
+    def redraw(series, values, se, window, bias=None, factor=None):
         m = values.shape[len(model.batch_shape)]
         chol = _bin_noise_factor(m, window, kernel, values)
-        if bias is not None:  # the scatter apart from the bias, which is drawn whole below
-            se = (se.square() - bias.square()).clamp(min=0).sqrt()
+        if bias is not None or factor is not None:
+            # the scatter apart from the bias and its noise, which are drawn whole below
+            var = se.square()
+            if bias is not None:
+                var = var - bias.square()
+            if factor is not None:
+                var = var - torch.nan_to_num(factor).square().sum(-1)
+            se = var.clamp(min=0).sqrt()
         moved = values.movedim(len(model.batch_shape), -1)  # (..., *v, M)
         se_m = torch.nan_to_num(se).movedim(len(model.batch_shape), -1)
         z = torch.randn((n_draws,) + moved.shape, generator=gen, dtype=values.dtype,
@@ -156,6 +165,13 @@ def sample_models(
             s = torch.randn((n_draws,) + (1,) * bias.ndim, generator=gen, dtype=values.dtype,
                             device=values.device)
             noisy = noisy + s * torch.nan_to_num(bias)
+        if factor is not None:
+            # the bias estimate's own noise, correlated across entries and bins: F z
+            batch = factor.shape[:len(model.batch_shape)]
+            z = torch.randn((n_draws,) + batch + (factor.shape[-1],), generator=gen,
+                            dtype=values.dtype, device=values.device)
+            z = z.reshape(z.shape[:-1] + (1,) * (factor.ndim - len(batch) - 1) + z.shape[-1:])
+            noisy = noisy + (torch.nan_to_num(factor) * z).sum(-1)
         return fit_fourier(centres, noisy, series.order, value_ndim=series.value_ndim)
 
     window = meta.get("window") or 0.5
@@ -164,7 +180,7 @@ def sample_models(
     M = None
     if model.M is not None and bins.M is not None and bins.M_se is not None:
         M = redraw(model.M, bins.M, bins.M_se, meta.get("metric_window") or window,
-                   bins.M_bias)
+                   bins.M_bias, bins.M_change_factor)
     # draws of the Jacobian only (dA_fit, the prediction coefficient, is not drawn)
     return dataclasses.replace(model, A=A, dA=dA, M=M, dA_fit=None)
 

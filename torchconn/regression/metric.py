@@ -78,6 +78,12 @@ class MetricFit:
             is as large as ``bias_M`` the change does not resolve the bias; with
             ``order_bias="posterior"`` its variance is in ``se_M`` (with ``"dropped"`` only
             where the held-out order is below the order given).
+        change_factor_M: ``(..., M, d, d, R)`` a factor of the part of the covariance of
+            ``M̂`` that is that change's sampling covariance, across entries *and* phases
+            (``Σ_r F[..., r] ⊗ F[..., r]``; its diagonal is the change's variance in ``se_M``):
+            with ``order_bias="posterior"`` (``"dropped"``: zero where nothing was dropped);
+            None otherwise. ``R`` is at most the number of cycles; directions whose variance
+            is below ``1e-14`` of the largest are left out.
     """
 
     M: Tensor
@@ -99,6 +105,7 @@ class MetricFit:
     order: Tensor | None = None
     bias_M: Tensor | None = None
     se_bias_M: Tensor | None = None
+    change_factor_M: Tensor | None = None
 
 
 def metric_n_coef(d: int, with_metric_derivative: bool) -> int:
@@ -428,7 +435,7 @@ def tied_metric_coefficients(
               - m_series(fit.influence, fit.max_order))  # (..., C, W q)
     change = m_series(richer.coef, richer.max_order) - m_series(fit.coef, fit.max_order)
     return replace(fit, order_change=change.unflatten(-1, (wide, q)),
-                   order_change_cov=spread.mT @ spread, order_bias=order_bias)
+                   order_change_spread=spread, order_bias=order_bias)
 
 
 def _tied_fit(
@@ -651,9 +658,10 @@ class TiedMetricCoefficients:
             error (``cov = influenceᵀ influence``; cycles without samples give zero rows).
         order_change: ``(..., 2(max_order+2)+1, q)`` the change of ``M(φ)``'s series
             coefficients from each element's order to two more harmonics (``order_bias``),
-            taken as its bias; None without the allowance. order_change_cov: ``(..., W q, W
-            q)`` (``W = 2(max_order+2)+1``) the change's own sampling covariance, from the two
-            fits' joint influence. order_bias: the rule of the allowance (``order_bias``).
+            taken as its bias; None without the allowance. order_change_spread: ``(..., C, W
+            q)`` (``W = 2(max_order+2)+1``) each cycle's share of that change's error, from the
+            two fits' joint influence (``order_change_cov = spreadᵀ spread``, the change's own
+            sampling covariance). order_bias: the rule of the allowance (``order_bias``).
     """
 
     coef: Tensor
@@ -669,8 +677,14 @@ class TiedMetricCoefficients:
     residual: Tensor
     influence: Tensor
     order_change: Tensor | None = None
-    order_change_cov: Tensor | None = None
+    order_change_spread: Tensor | None = None
     order_bias: bool | str = False
+
+    @property
+    def order_change_cov(self) -> Tensor | None:
+        """``(..., W q, W q)`` the order change's own sampling covariance, or None."""
+        spread = self.order_change_spread
+        return None if spread is None else spread.mT @ spread
 
     def at(self, phase_m: Tensor, gamma_dot_m: Tensor) -> MetricFit:
         """The :class:`MetricFit` at phases ``phase_m (M,)`` with ``γ̇`` there
@@ -708,7 +722,7 @@ def _tied_at(fit: TiedMetricCoefficients, phase_m: Tensor, gd: Tensor) -> Metric
     cov_blk = cov[..., :n_m, :n_m].unflatten(-1, (2 * order + 1, q)).unflatten(-3, (
         2 * order + 1, q))  # (..., h, q, h', q')
     cov_m = torch.einsum("mh,...hapb,mp->...mab", basis, cov_blk, basis)
-    bias_m = se_bias_m = None
+    bias_m = se_bias_m = factor_m = None
     if fit.order_change is not None:
         # the bias allowed for: its outer product added to the covariance (a mean squared error)
         n_w = fit.order_change.shape[-2]
@@ -720,9 +734,12 @@ def _tied_at(fit: TiedMetricCoefficients, phase_m: Tensor, gd: Tensor) -> Metric
         cov_m = cov_m + bias_m.unsqueeze(-1) * bias_m.unsqueeze(-2)
         if fit.order_bias == "posterior":
             cov_m = cov_m + cov_change
+            factor_m = _change_factor(fit.order_change_spread, wide, d)
         elif fit.order_bias == "dropped":  # where the choice fell below the order given
             dropped = (chosen < order)[..., None, None, None]
             cov_m = torch.where(dropped, cov_m + cov_change, cov_m)
+            factor_m = _change_factor(fit.order_change_spread, wide, d)
+            factor_m = torch.where(dropped[..., None], factor_m, 0.0)
     se_m = cov_m.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
     d_m = se_d = None
     if derivative_order is not None:
@@ -756,7 +773,22 @@ def _tied_at(fit: TiedMetricCoefficients, phase_m: Tensor, gd: Tensor) -> Metric
         noise_correction=per_phase(applied), cov_M=cov_m, order=chosen,
         bias_M=None if bias_m is None else _symmetric(bias_m, d),
         se_bias_M=None if se_bias_m is None else _symmetric(se_bias_m, d),
+        change_factor_M=factor_m,
     )
+
+
+def _change_factor(spread: Tensor, wide: Tensor, d: int) -> Tensor:
+    """A factor ``(..., M, d, d, R)`` of the order change's sampling covariance across the
+    entries and phases of ``M̂``: each cycle's share ``spread (..., C, W q)`` evaluated at the
+    phases (``wide (M, W)``, the series' design there), compressed by an SVD to the ``R``
+    directions whose variance exceeds ``1e-14`` of the largest (``R ≤ min(C, W q)``)."""
+    n_w, q = wide.shape[-1], d * (d + 1) // 2
+    at = torch.einsum("mh,...chq->...cmq", wide, spread.unflatten(-1, (n_w, q)))
+    _, sv, vh = torch.linalg.svd(at.flatten(-2), full_matrices=False)  # (..., k), (..., k, M q)
+    kept = sv > 1e-7 * sv[..., :1]
+    rank = max(int(kept.sum(-1).max()), 1) if kept.numel() else 1
+    factor = (sv[..., :rank, None] * vh[..., :rank, :]).unflatten(-1, at.shape[-2:])
+    return _symmetric(factor, d).movedim(-4, -1)  # (..., M, d, d, R)
 
 
 def _signal_floor(n_coef: int, n_samples: Tensor) -> Tensor:

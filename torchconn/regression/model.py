@@ -49,6 +49,10 @@ class BinEstimates:
             metric standard errors; :func:`~torchconn.regression.metric.tied_metric_regression`'s
             ``order_bias``): one systematic error shared by the entries and bins, not independent
             scatter; None where not estimated.
+        M_change_factor: ``(..., M, d, d, R)`` a factor of the part of ``M_se``'s variance that
+            is the sampling noise of that bias estimate (``metric_order_bias="posterior"``):
+            its covariance across entries and bins is ``Σ_r F[..., r] ⊗ F[..., r]``; None
+            where that noise is not in ``M_se``.
     """
 
     phase: Tensor
@@ -70,6 +74,7 @@ class BinEstimates:
     power_on_cycle: Tensor | None = None
     power_on_cycle_se: Tensor | None = None
     M_bias: Tensor | None = None
+    M_change_factor: Tensor | None = None
 
 
 @dataclass(frozen=True)
