@@ -30,7 +30,15 @@ differences of the noisy poses for ``NoiseAwareRegression``):
 short recordings; ``c`` at the end of a row gives its orders), and ``--baseline-model-order``
 then keeps the check's phase average at the model's order (the intercept alone truncated).
 The summary also counts losses against the model-order phase average, the components whose
-shape terms are kept, and the mean R² per component.
+shape terms are kept, the mean R² per component, and the full model's ``Â`` at the chosen
+complexity against the swimmer's (relative RMS on the fitted cycle and the best scale factor,
+``accuracy.connection_errors``), as delivered (``A`` at the end of a row: rows 0 where a
+component is phase-averaged) and of the full model (``full``: every component's terms).
+
+``--no-ridge-connection`` fits with ``NoiseAwareRegression(ridge_connection=False)`` (the
+chosen ridge leaves ``Â`` unpenalised); ``--z``, ``--margin``, ``--offset-z`` and
+``--every-cycle`` (a model with shape terms must also beat the phase average on every scored
+held-out cycle) measure other settings of the check's rules (``skill._choose_terms``).
 
 Only ``Phaser(min_cycles=2.5)`` differs from the defaults: a recording of exactly 3 cycles
 often phases to 2.9-3.0 and the default Phaser (3 cycles) refuses it.
@@ -64,6 +72,8 @@ from torchconn import (
 )
 from torchconn.physics.gaits import FourierGait, reference_gait
 from torchconn.regression import skill
+
+from accuracy import connection_errors  # benchmarks/ is on sys.path when run as a script
 
 SAMPLES_PER_CYCLE = 126  # Δt ≈ 0.05
 TEST_CYCLES = 4
@@ -137,7 +147,8 @@ def _held_out_order_r2(est: ConnectionEstimator, test) -> torch.Tensor:
 
 
 def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
-            with_fixed: bool = True, short_intercept: str | None = None) -> dict:
+            with_fixed: bool = True, short_intercept: str | None = None,
+            ridge_connection: bool = True) -> dict:
     traj = recording(n_links, kind, n_cycles, seed, omega)
     cut = n_cycles * SAMPLES_PER_CYCLE + 1
     train, test = traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
@@ -154,13 +165,20 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
                 pass  # cannot be fitted: NaN
         start = time.perf_counter()
         est = ConnectionEstimator(phaser=phaser, regression=NoiseAwareRegression(
-            short_intercept_order=short_intercept)).fit(train)
+            short_intercept_order=short_intercept,
+            ridge_connection=ridge_connection)).fit(train)
         out["seconds"] = time.perf_counter() - start
         s = est.score(test)
     c = est.complexity_
     out.update(default=s.r2.reshape(-1), phase_avg=s.r2_phase_average.reshape(-1),
                template=s.r2_template.reshape(-1), exact=_exact_r2(est, test, n_links),
                pa_ho=_held_out_order_r2(est, test), pa12=_order12_r2(est, test))
+    # Â as delivered (rows 0 where a component is phase-averaged) and the full model's Â at
+    # the chosen complexity (every component's terms)
+    full = est.regression_.fit(est.trajectory_, est.limit_cycle_, pool=est.pool)
+    for key, model in (("A", est.model_), ("A_full", full)):
+        err = connection_errors(model, n_links)
+        out[key + "_err"], out[key + "_scale"] = float(err["A"].mean()), float(err["scale"].mean())
     out["kept"] = 3 if c is None else int(3 - torch.as_tensor(c.phase_averaged).sum())
     orders = (est.model_.meta or {}).get("intercept_component_order")
     out["c_order"] = "-" if orders is None else ",".join(
@@ -200,6 +218,7 @@ def table(args) -> int:
     ho_losses = [[] for _ in COMPONENTS]  # against the held-out-order phase average
     o12_losses = [[] for _ in COMPONENTS]  # against the model-order phase average
     kept, n_rec, r2_sum = 0, 0, torch.zeros(3, dtype=torch.float64)
+    a_sums = dict.fromkeys(("A_err", "A_scale", "A_full_err", "A_full_scale"), 0.0)
     refused = 0
     for n_links in args.links:
         for kind in args.gaits:
@@ -209,7 +228,7 @@ def table(args) -> int:
                 for seed in args.seeds:
                     try:
                         r = run_one(n_links, kind, n, seed, args.omega, not args.skip_fixed,
-                                    args.short_intercept)
+                                    args.short_intercept, not args.no_ridge_connection)
                     except ValueError as err:  # the default refuses the recording
                         print(f"{n_links:>5} {kind:>9} {n:>2} {seed:>4} | not fitted: "
                               f"{str(err)[:100]}", flush=True)
@@ -230,12 +249,16 @@ def table(args) -> int:
                     kept += r["kept"]
                     n_rec += 1
                     r2_sum += r["default"]
+                    for key in a_sums:
+                        a_sums[key] += r[key]
 
                     print(f"{n_links:>5} {kind:>9} {n:>2} {seed:>4} | {_fmt(r['fixed'])}| "
                           f"{_fmt(r['default'], bad)}| {_fmt(pa)}| {_fmt(r['pa_ho'])}| "
                           f"{_fmt(r['template'])}| "
                           f"{_fmt(r['exact'])}| {r['choice']:10s} {'yes' if r['warned'] else 'no':4s}"
-                          f" {r['seconds']:5.2f} c {r['c_order']}", flush=True)
+                          f" {r['seconds']:5.2f} c {r['c_order']} A {r['A_err']:.1%} "
+                          f"x{r['A_scale']:.2f} full {r['A_full_err']:.1%} "
+                          f"x{r['A_full_scale']:.2f}", flush=True)
     print("default against the phase average, where its R² > 0 (tie: the component is "
           "predicted by the phase average, R² equal)")
     print(f"{'component':>9} {'wins':>5} {'ties':>5} {'losses':>6} {'median shortfall':>17} "
@@ -260,6 +283,11 @@ def table(args) -> int:
           f"largest {max(short, default=0):.4f}); shape terms kept (not phase-averaged) in "
           f"{kept} of {3 * n_rec}; mean R² v_x / v_y / ω "
           + " / ".join(f"{float(v) / max(n_rec, 1):.4f}" for v in r2_sum))
+    mean = {key: v / max(n_rec, 1) for key, v in a_sums.items()}
+    print(f"Â against the swimmer's, relative RMS on the fitted cycle (mean, at mean scale): "
+          f"as delivered (rows 0 where phase-averaged) {mean['A_err']:.1%} at "
+          f"{mean['A_scale']:.2f}; the full model's at the chosen complexity "
+          f"{mean['A_full_err']:.1%} at {mean['A_full_scale']:.2f}")
     return 0
 
 
@@ -318,6 +346,12 @@ def main(argv=None) -> int:
                    help="skill.FALLBACK_Z to measure (default: the library's)")
     p.add_argument("--offset-z", type=float, default=None,
                    help="skill.OFFSET_TERMS_Z to measure (default: the library's)")
+    p.add_argument("--no-ridge-connection", action="store_true",
+                   help="NoiseAwareRegression(ridge_connection=False): the chosen ridge leaves "
+                   "Â's columns unpenalised")
+    p.add_argument("--every-cycle", action="store_true",
+                   help="measure: a model with shape terms beats the phase average "
+                   "(skill._clearly_better) only if it does on every scored held-out cycle too")
     p.add_argument("--baseline-model-order", action="store_true",
                    help="measure: the phase-average candidate and score()'s baseline keep the "
                    "model's order while the intercept is truncated")
@@ -326,6 +360,13 @@ def main(argv=None) -> int:
     if args.baseline_model_order:
         skill.baseline_orders = lambda model, order: None
     torch.set_num_threads(1)
+    if args.every_cycle:
+        clearly = skill._clearly_better
+
+        def every_cycle(gaps):
+            diff = gaps[..., 0]  # (..., C, 3), 0 on cycles without scored samples
+            return clearly(gaps) & (diff <= 0).all(-2)
+        skill._clearly_better = every_cycle
     if args.margin is not None:
         skill.FALLBACK_MARGIN = args.margin
     if args.z is not None:
