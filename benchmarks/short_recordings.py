@@ -60,6 +60,7 @@ from functools import partial
 
 import numpy as np
 import torch
+from accuracy import connection_errors  # beside this file
 
 from torchconn import (
     ConnectionEstimator,
@@ -72,8 +73,6 @@ from torchconn import (
 )
 from torchconn.physics.gaits import FourierGait, reference_gait
 from torchconn.regression import skill
-
-from accuracy import connection_errors  # benchmarks/ is on sys.path when run as a script
 
 SAMPLES_PER_CYCLE = 126  # Δt ≈ 0.05
 TEST_CYCLES = 4
