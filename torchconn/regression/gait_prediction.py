@@ -142,15 +142,16 @@ def sample_models(
     gen = torch.Generator(device=model.device).manual_seed(seed)
     centres = bins.phase
 
-    def redraw(series, values, se, window, bias=None, factor=None):
+    def redraw(series, values, se, window, bias=None, factors=(), extra_bias=None):
         m = values.shape[len(model.batch_shape)]
         chol = _bin_noise_factor(m, window, kernel, values)
-        if bias is not None or factor is not None:
-            # the scatter apart from the bias and its noise, which are drawn whole below
+        factors = [f for f in factors if f is not None]
+        if bias is not None or factors:
+            # the scatter apart from the bias and the noise drawn whole below
             var = se.square()
             if bias is not None:
                 var = var - bias.square()
-            if factor is not None:
+            for factor in factors:
                 var = var - torch.nan_to_num(factor).square().sum(-1)
             se = var.clamp(min=0).sqrt()
         moved = values.movedim(len(model.batch_shape), -1)  # (..., *v, M)
@@ -165,8 +166,13 @@ def sample_models(
             s = torch.randn((n_draws,) + (1,) * bias.ndim, generator=gen, dtype=values.dtype,
                             device=values.device)
             noisy = noisy + s * torch.nan_to_num(bias)
-        if factor is not None:
-            # the bias estimate's own noise, correlated across entries and bins: F z
+        if extra_bias is not None:
+            # an allowance beyond se (the tube's second-order bias), drawn like the bias
+            s = torch.randn((n_draws,) + (1,) * extra_bias.ndim, generator=gen,
+                            dtype=values.dtype, device=values.device)
+            noisy = noisy + s * torch.nan_to_num(extra_bias)
+        for factor in factors:
+            # noise correlated across entries and bins (the fit's, the bias estimate's): F z
             batch = factor.shape[:len(model.batch_shape)]
             z = torch.randn((n_draws,) + batch + (factor.shape[-1],), generator=gen,
                             dtype=values.dtype, device=values.device)
@@ -180,7 +186,8 @@ def sample_models(
     M = None
     if model.M is not None and bins.M is not None and bins.M_se is not None:
         M = redraw(model.M, bins.M, bins.M_se, meta.get("metric_window") or window,
-                   bins.M_bias, bins.M_change_factor)
+                   bins.M_bias, (bins.M_change_factor, bins.M_sampling_factor),
+                   bins.M_offset_bias)
     # draws of the Jacobian only (dA_fit, the prediction coefficient, is not drawn)
     return dataclasses.replace(model, A=A, dA=dA, M=M, dA_fit=None)
 
@@ -292,7 +299,7 @@ def _integrate(model, phi, r_theta, delta, h, n_steps, with_cost: bool = True):
     disp = magnus_displacement(xi.reshape(xi.shape[:-2] + (n_steps, 2, 3)), h)
     if not with_cost or model.M is None:
         return disp, None
-    power = torch.einsum("...i,...ij,...j->...", r_theta, model.metric(phi), r_theta)
+    power = torch.einsum("...i,...ij,...j->...", r_theta, model.metric_at(phi, delta), r_theta)
     return disp, gauss_cost(power.reshape(power.shape[:-1] + (n_steps, 2)), h)
 
 

@@ -37,6 +37,11 @@ from ..phase.fourier import fourier_design
 from . import _wls
 from .binning import BinIndex
 
+#: the tied model's second-order offset term: None (none), ``"diagonal"`` (``δ_k²``) or
+#: ``"full"`` (``δ_k δ_l``); see :func:`tied_metric_regression`
+SecondOrder = Literal["diagonal", "full"] | None
+_SECOND_ORDERS = (None, "diagonal", "full")
+
 __all__ = ["MetricFit", "metric_regression", "metric_design", "metric_n_coef",
            "tied_metric_regression", "tied_metric_coefficients", "TiedMetricCoefficients",
            "tied_metric_n_coef", "tied_metric_predict",
@@ -84,6 +89,13 @@ class MetricFit:
             with ``order_bias="posterior"`` (``"dropped"``: zero where nothing was dropped);
             None otherwise. ``R`` is at most the number of cycles; directions whose variance
             is below ``1e-14`` of the largest are left out.
+        sampling_factor_M: ``(..., M, d, d, R)`` a factor of ``M̂``'s own sampling covariance
+            (the cluster-robust sandwich's, before any bias allowance) across entries *and*
+            phases, from each cycle's share of the error (``TiedMetricCoefficients.influence``)
+            at the phases; compressed like ``change_factor_M``. Tied model only, else None.
+        offset_bias_M: ``(..., M, d, d)`` the tube's second-order bias of ``M̂`` as estimated
+            by ``offset_bias`` (the change of ``M̂`` when that term is fitted too), or None;
+            not in ``se_M``.
     """
 
     M: Tensor
@@ -106,6 +118,8 @@ class MetricFit:
     bias_M: Tensor | None = None
     se_bias_M: Tensor | None = None
     change_factor_M: Tensor | None = None
+    sampling_factor_M: Tensor | None = None
+    offset_bias_M: Tensor | None = None
 
 
 def metric_n_coef(d: int, with_metric_derivative: bool) -> int:
@@ -253,12 +267,22 @@ _BIAS_ORDER_STEP = 2
 _ORDER_BIAS = (False, True, "posterior", "dropped")
 
 
-def tied_metric_n_coef(d: int, order: int, derivative_order: int | None) -> int:
+def tied_metric_n_coef(d: int, order: int, derivative_order: int | None,
+                       second_order: SecondOrder = None) -> int:
     """Coefficients of the tied model: ``(2K+1)·q`` for ``M(φ)`` plus ``(2K_d+1)·d·q`` for
-    ``∂M/∂r(φ)``, ``q = d(d+1)/2``."""
+    ``∂M/∂r(φ)`` plus ``½∂²M/∂r²``'s ``d·q`` (``second_order="diagonal"``) or ``q·q``
+    (``"full"``), ``q = d(d+1)/2``."""
     q = d * (d + 1) // 2
-    n_feat = 2 * order + 1 + (0 if derivative_order is None else (2 * derivative_order + 1) * d)
-    return n_feat * q
+    return _n_features(d, order, derivative_order, second_order) * q
+
+
+def _n_features(d: int, order: int, derivative_order: int | None,
+                second_order: SecondOrder) -> int:
+    """Features of the tied model (each multiplies the ``q`` products ``v_i v_j``): ``M(φ)``'s
+    ``2K+1``, then ``∂M/∂r(φ)``'s ``(2K_d+1)·d``, then ``½∂²M/∂r²``'s ``d`` or ``d(d+1)/2``."""
+    n_second = {None: 0, "diagonal": d, "full": d * (d + 1) // 2}[second_order]
+    return 2 * order + 1 + (0 if derivative_order is None else (2 * derivative_order + 1) * d) \
+        + n_second
 
 
 def _cycles_needed(phase: Tensor, valid: Tensor, samples: int) -> str:
@@ -283,6 +307,7 @@ def tied_metric_regression(
     *,
     order: int = 6,
     derivative_order: int | None = 2,
+    second_order: SecondOrder = None,
     noise_variance: Tensor | None = None,
     held_out_order: bool = False,
     order_bias: bool | Literal["posterior", "dropped"] = False,
@@ -368,7 +393,8 @@ def tied_metric_regression(
     _check_phases(fn, phase_m, gamma_dot_m, tuple(delta.shape[:-2]), delta)
     return tied_metric_coefficients(
         offset, velocity, power, phase, order=order, derivative_order=derivative_order,
-        noise_variance=noise_variance, held_out_order=held_out_order, order_bias=order_bias,
+        second_order=second_order, noise_variance=noise_variance,
+        held_out_order=held_out_order, order_bias=order_bias,
         min_samples_per_coef=min_samples_per_coef, max_condition=max_condition,
     ).at(phase_m, gamma_dot_m)
 
@@ -390,23 +416,41 @@ def tied_metric_coefficients(
     *,
     order: int = 6,
     derivative_order: int | None = 2,
+    second_order: SecondOrder = None,
     noise_variance: Tensor | None = None,
     held_out_order: bool = False,
     order_bias: bool | Literal["posterior", "dropped"] = False,
+    offset_bias: SecondOrder = None,
     min_samples_per_coef: float = 3.0,
     max_condition: float | None = None,
 ) -> TiedMetricCoefficients:
     """:func:`tied_metric_regression`'s fit without the phases to report at: its coefficients,
     their covariance and residuals (:class:`TiedMetricCoefficients`), which do not depend on
     those phases; ``.at(phase_m, gamma_dot_m)`` gives the :class:`MetricFit` (the same bit for
-    bit). Arguments and errors as :func:`tied_metric_regression`'s."""
+    bit). Arguments and errors as :func:`tied_metric_regression`'s, and:
+
+    Args:
+        offset_bias: also fit the second-order offset term of this form (``second_order``'s
+            choices) at each element's order of ``M(φ)``, and keep the change of ``M(φ)``'s
+            coefficients it makes (``TiedMetricCoefficients.offset_change``): an estimate of
+            the tube's second-order bias of ``M̂`` (``M̂`` absorbs ``½∂²M/∂r² : E[δδᵀ]``), for
+            the draws of nearby gaits (README, "Is the cost standard error honest?"). None: not
+            estimated; where that fit fails, a warning and none.
+    """
+    for name, value in (("second_order", second_order), ("offset_bias", offset_bias)):
+        if value not in _SECOND_ORDERS:
+            raise ValueError(f"tied_metric_regression: {name} must be one of "
+                             f"{_SECOND_ORDERS}, got {value!r}")
     if not (isinstance(order_bias, bool) or order_bias in _ORDER_BIAS):
         raise ValueError(f"tied_metric_regression: order_bias must be one of {_ORDER_BIAS}, "
                          f"got {order_bias!r}")
-    opts = dict(derivative_order=derivative_order, noise_variance=noise_variance,
+    opts = dict(derivative_order=derivative_order, second_order=second_order,
+                noise_variance=noise_variance,
                 min_samples_per_coef=min_samples_per_coef, max_condition=max_condition)
     fit = _tied_fit(offset, velocity, power, phase, order=order, held_out_order=held_out_order,
                     **opts)
+    if offset_bias is not None and second_order is None:
+        fit = _with_offset_change(fit, offset, velocity, power, phase, offset_bias, opts)
     if not order_bias:
         return fit
     # the same data at two more harmonics of M(φ) than each element's order (the layout of
@@ -438,6 +482,52 @@ def tied_metric_coefficients(
                    order_change_spread=spread, order_bias=order_bias)
 
 
+def _with_offset_change(fit: TiedMetricCoefficients, offset: Tensor, velocity: Tensor,
+                        power: Tensor, phase: Tensor, form: SecondOrder, opts: dict
+                        ) -> TiedMetricCoefficients:
+    """``fit`` with ``offset_change``: the change of ``M(φ)``'s coefficients when the
+    second-order offset term ``form`` is fitted beside them (at ``fit``'s orders)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", _wls.IllConditionedBinWarning)
+            second = _tied_fit(offset, velocity, power, phase, order=fit.max_order,
+                               orders=fit.order, **{**opts, "second_order": form})
+    except ValueError as err:
+        warnings.warn(f"tied_metric_regression: the metric's second-order offset bias is not "
+                      f"estimated (its fit failed: {err})", stacklevel=3)
+        return fit
+    q = fit.n_joints * (fit.n_joints + 1) // 2
+    n_m = (2 * fit.max_order + 1) * q
+    change = (second.coef[..., :n_m] - fit.coef[..., :n_m]).unflatten(-1, (-1, q))
+    return replace(fit, offset_change=change)
+
+
+def _features(phase: Tensor, delta: Tensor, order: int, derivative_order: int | None,
+              second_order: SecondOrder) -> Tensor:
+    """The tied model's features ``(..., n, g)`` (:func:`_n_features`'s layout) of samples at
+    ``phase (..., n)`` with offsets ``delta (..., n, d)``: ``M(φ)``'s Fourier columns, then
+    ``∂M/∂r(φ)``'s (``b_h(φ) δ_k`` at ``h·d + k``), then ``½∂²M/∂r²``'s
+    (:func:`_second_order_features`)."""
+    f = [fourier_design(phase, order)]
+    if derivative_order is not None:
+        fd = fourier_design(phase, derivative_order)
+        f.append((fd.unsqueeze(-1) * delta.unsqueeze(-2)).flatten(-2))
+    if second_order is not None:
+        f.append(_second_order_features(delta, second_order))
+    return torch.cat(f, -1) if len(f) > 1 else f[0]
+
+
+def _second_order_features(delta: Tensor, second_order: SecondOrder) -> Tensor:
+    """The second-order term's features of offsets ``delta (..., n, d)``, constant in phase:
+    ``"diagonal"``: ``δ_k²`` ``(..., n, d)``; ``"full"``: ``δ_k δ_l``, ``k ≤ l``
+    (:func:`torch.triu_indices` order) ``(..., n, d(d+1)/2)``."""
+    if second_order == "diagonal":
+        return delta.square()
+    d = delta.shape[-1]
+    ku, lu = torch.triu_indices(d, d, device=delta.device)
+    return delta[..., ku] * delta[..., lu]
+
+
 def _tied_fit(
     offset: Tensor,
     velocity: Tensor,
@@ -446,6 +536,7 @@ def _tied_fit(
     *,
     order: int,
     derivative_order: int | None,
+    second_order: SecondOrder = None,
     noise_variance: Tensor | None,
     held_out_order: bool = False,
     orders: Tensor | None = None,
@@ -469,7 +560,7 @@ def _tied_fit(
     if max_condition is None:
         max_condition = 1e12 if dtype == torch.float64 else 1e-2 / torch.finfo(dtype).eps
     q = d * (d + 1) // 2
-    p = tied_metric_n_coef(d, order, derivative_order)
+    p = tied_metric_n_coef(d, order, derivative_order, second_order)
     sig = delta.new_zeros(batch + (d,))
     if noise_variance is not None:
         nv = torch.as_tensor(noise_variance, dtype=dtype, device=dev)
@@ -504,11 +595,8 @@ def _tied_fit(
     on_diag = (iu == ju).to(dtype)
 
     def features(rows: slice) -> Tensor:  # (..., n, g)
-        f = fourier_design(ph[..., rows], order)
-        if derivative_order is not None:
-            fd = fourier_design(ph[..., rows], derivative_order)
-            f = torch.cat([f, (fd.unsqueeze(-1) * delta[..., rows, None, :]).flatten(-2)], -1)
-        return f
+        return _features(ph[..., rows], delta[..., rows, :], order, derivative_order,
+                         second_order)
 
     # whole cycles of phase: the clusters of the standard errors and the held-out blocks
     cyc = torch.floor(ph / (2 * math.pi))
@@ -634,7 +722,8 @@ def _tied_fit(
     influence = influence_r.new_zeros(batch + (n_c, p)).index_copy_(-1, cols, influence_r)
     return TiedMetricCoefficients(
         coef=beta, cov=cov, order=chosen, condition=condition, noise_correction=applied,
-        max_order=order, derivative_order=derivative_order, n_joints=d, phase=ph, weight=w,
+        max_order=order, derivative_order=derivative_order, second_order=second_order,
+        n_joints=d, phase=ph, weight=w,
         residual=torch.cat(resids, -1) if resids else ph.new_zeros(ph.shape),
         influence=influence)
 
@@ -648,8 +737,8 @@ class TiedMetricCoefficients:
     Attributes:
         coef: ``(..., P)`` coefficients (the layout of ``max_order``); cov: ``(..., P, P)``
             their cluster-robust covariance.
-        order: ``(...)`` the order of ``M(φ)`` used; max_order, derivative_order: the orders
-            of the layout; n_joints: ``d``.
+        order: ``(...)`` the order of ``M(φ)`` used; max_order, derivative_order,
+            second_order: the orders of the layout; n_joints: ``d``.
         condition, noise_correction: ``(...)`` the fit's condition number and least share
             of the noise correction applied.
         phase, weight, residual: ``(..., N)`` the samples' phase (0 where excluded), weight
@@ -662,6 +751,9 @@ class TiedMetricCoefficients:
             q)`` (``W = 2(max_order+2)+1``) each cycle's share of that change's error, from the
             two fits' joint influence (``order_change_cov = spreadᵀ spread``, the change's own
             sampling covariance). order_bias: the rule of the allowance (``order_bias``).
+        offset_change: ``(..., 2·max_order+1, q)`` the change of ``M(φ)``'s series
+            coefficients when the second-order offset term is fitted too (``offset_bias``),
+            taken as the tube's second-order bias; None without it.
     """
 
     coef: Tensor
@@ -671,6 +763,7 @@ class TiedMetricCoefficients:
     noise_correction: Tensor
     max_order: int
     derivative_order: int | None
+    second_order: SecondOrder
     n_joints: int
     phase: Tensor
     weight: Tensor
@@ -679,6 +772,7 @@ class TiedMetricCoefficients:
     order_change: Tensor | None = None
     order_change_spread: Tensor | None = None
     order_bias: bool | str = False
+    offset_change: Tensor | None = None
 
     @property
     def order_change_cov(self) -> Tensor | None:
@@ -722,6 +816,8 @@ def _tied_at(fit: TiedMetricCoefficients, phase_m: Tensor, gd: Tensor) -> Metric
     cov_blk = cov[..., :n_m, :n_m].unflatten(-1, (2 * order + 1, q)).unflatten(-3, (
         2 * order + 1, q))  # (..., h, q, h', q')
     cov_m = torch.einsum("mh,...hapb,mp->...mab", basis, cov_blk, basis)
+    sampling_m = _bin_factor(fit.influence[..., :n_m], basis, d)
+    offset_m = None if fit.offset_change is None else _symmetric(basis @ fit.offset_change, d)
     bias_m = se_bias_m = factor_m = None
     if fit.order_change is not None:
         # the bias allowed for: its outer product added to the covariance (a mean squared error)
@@ -734,19 +830,20 @@ def _tied_at(fit: TiedMetricCoefficients, phase_m: Tensor, gd: Tensor) -> Metric
         cov_m = cov_m + bias_m.unsqueeze(-1) * bias_m.unsqueeze(-2)
         if fit.order_bias == "posterior":
             cov_m = cov_m + cov_change
-            factor_m = _change_factor(fit.order_change_spread, wide, d)
+            factor_m = _bin_factor(fit.order_change_spread, wide, d)
         elif fit.order_bias == "dropped":  # where the choice fell below the order given
             dropped = (chosen < order)[..., None, None, None]
             cov_m = torch.where(dropped, cov_m + cov_change, cov_m)
-            factor_m = _change_factor(fit.order_change_spread, wide, d)
+            factor_m = _bin_factor(fit.order_change_spread, wide, d)
             factor_m = torch.where(dropped[..., None], factor_m, 0.0)
     se_m = cov_m.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
     d_m = se_d = None
     if derivative_order is not None:
         bd = fourier_design(phase_m.to(ph), derivative_order)
-        blk = beta[..., n_m:].unflatten(-1, (2 * derivative_order + 1, d, q))
+        n_d = (2 * derivative_order + 1) * d * q
+        blk = beta[..., n_m:n_m + n_d].unflatten(-1, (2 * derivative_order + 1, d, q))
         d_m = _symmetric(torch.einsum("mh,...hkq->...mkq", bd, blk), d).movedim(-3, -1)
-        var = cov[..., n_m:, n_m:].diagonal(dim1=-2, dim2=-1).unflatten(
+        var = cov[..., n_m:n_m + n_d, n_m:n_m + n_d].diagonal(dim1=-2, dim2=-1).unflatten(
             -1, (2 * derivative_order + 1, d, q))
         # standard errors of ∂M/∂r ignoring the covariance between its harmonics (a guide)
         se_d = _symmetric(torch.einsum("mh,...hkq->...mkq", bd.square(), var).sqrt(),
@@ -773,15 +870,16 @@ def _tied_at(fit: TiedMetricCoefficients, phase_m: Tensor, gd: Tensor) -> Metric
         noise_correction=per_phase(applied), cov_M=cov_m, order=chosen,
         bias_M=None if bias_m is None else _symmetric(bias_m, d),
         se_bias_M=None if se_bias_m is None else _symmetric(se_bias_m, d),
-        change_factor_M=factor_m,
+        change_factor_M=factor_m, sampling_factor_M=sampling_m, offset_bias_M=offset_m,
     )
 
 
-def _change_factor(spread: Tensor, wide: Tensor, d: int) -> Tensor:
-    """A factor ``(..., M, d, d, R)`` of the order change's sampling covariance across the
-    entries and phases of ``M̂``: each cycle's share ``spread (..., C, W q)`` evaluated at the
-    phases (``wide (M, W)``, the series' design there), compressed by an SVD to the ``R``
-    directions whose variance exceeds ``1e-14`` of the largest (``R ≤ min(C, W q)``)."""
+def _bin_factor(spread: Tensor, wide: Tensor, d: int) -> Tensor:
+    """A factor ``(..., M, d, d, R)`` of a sampling covariance of series coefficients across
+    the entries and phases of ``M̂`` (the order change's, or the fit's own): each cycle's share
+    ``spread (..., C, W q)`` evaluated at the phases (``wide (M, W)``, the series' design
+    there), compressed by an SVD to the ``R`` directions whose variance exceeds ``1e-14`` of
+    the largest (``R ≤ min(C, W q)``)."""
     n_w, q = wide.shape[-1], d * (d + 1) // 2
     at = torch.einsum("mh,...chq->...cmq", wide, spread.unflatten(-1, (n_w, q)))
     _, sv, vh = torch.linalg.svd(at.flatten(-2), full_matrices=False)  # (..., k), (..., k, M q)
@@ -1075,13 +1173,14 @@ def _noise_terms(s2: Tensor, s0: Tensor, fy: Tensor, sig: Tensor, iu: Tensor, ju
 
 
 def tied_metric_predict(coef: Tensor, offset: Tensor, velocity: Tensor, phase: Tensor, *,
-                        order: int, derivative_order: int | None) -> tuple[Tensor, Tensor]:
+                        order: int, derivative_order: int | None,
+                        second_order: SecondOrder = None) -> tuple[Tensor, Tensor]:
     """Power and ``M̂(φ) v`` the tied model predicts for samples.
 
     Args:
         coef: ``(..., P)`` coefficients from :func:`tied_metric_regression` (its ``coef``).
         offset, velocity: ``(..., N, d)``; phase: ``(..., N)``.
-        order, derivative_order: the orders the coefficients were fitted with.
+        order, derivative_order, second_order: the model the coefficients were fitted with.
 
     Returns:
         ``(power (..., N), M̂v (..., N, d))`` (``M̂`` on the cycle, without the offset term).
@@ -1090,19 +1189,22 @@ def tied_metric_predict(coef: Tensor, offset: Tensor, velocity: Tensor, phase: T
     q = d * (d + 1) // 2
     iu, ju = torch.triu_indices(d, d, device=velocity.device)
     n_m = (2 * order + 1) * q
+    n_d = 0 if derivative_order is None else (2 * derivative_order + 1) * d * q
     m_coef = coef[..., :n_m].unflatten(-1, (2 * order + 1, q))  # (..., h, q)
     power, m_v = [], []
     for start in range(0, phase.shape[-1], _ROW_CHUNK):
         rows = slice(start, min(start + _ROW_CHUNK, phase.shape[-1]))
         b = fourier_design(phase[..., rows], order)
         mq = b @ m_coef  # (..., n, q)
+        mq_full = mq
         if derivative_order is not None:
             bd = fourier_design(phase[..., rows], derivative_order)
-            dq = coef[..., n_m:].unflatten(-1, (2 * derivative_order + 1, d * q))
+            dq = coef[..., n_m:n_m + n_d].unflatten(-1, (2 * derivative_order + 1, d * q))
             dq = (bd @ dq).unflatten(-1, (d, q))  # (..., n, d, q)
             mq_full = mq + (offset[..., rows, :, None] * dq).sum(-2)
-        else:
-            mq_full = mq
+        if second_order is not None:  # ½ δᵀ∂²M/∂r²δ
+            mq_full = mq_full + _second_order_features(offset[..., rows, :], second_order) @ coef[
+                ..., n_m + n_d:].unflatten(-1, (-1, q))
         vr = velocity[..., rows, :]
         power.append((mq_full * vr[..., iu] * vr[..., ju]).sum(-1))
         m_v.append((_symmetric(mq, d) @ vr.unsqueeze(-1)).squeeze(-1))

@@ -53,6 +53,17 @@ class BinEstimates:
             is the sampling noise of that bias estimate (``metric_order_bias="posterior"``):
             its covariance across entries and bins is ``Σ_r F[..., r] ⊗ F[..., r]``; None
             where that noise is not in ``M_se``.
+        dM: ``(..., M, d, d, d)`` the metric's shape derivative ``∂M̂_ij/∂r_k`` at
+            ``[..., i, j, k]`` (the tied model's ``∂M/∂r(φ)``), or None.
+        M_offset_bias: ``(..., M, d, d)`` the tube's second-order bias of ``M̂`` (``M̂`` absorbs
+            ``½∂²M/∂r² : E[δδᵀ]``), estimated as the change of ``M̂`` when that term is fitted
+            too (``TubeRegression.metric_offset_bias``): not in ``M_se``; nearby-gait draws
+            add it as one error shared by entries and bins. None where not estimated.
+        M_sampling_factor: ``(..., M, d, d, R)`` a factor of the part of ``M_se``'s variance
+            that is the fit's own sampling noise (the tied model's cluster-robust covariance),
+            across entries and bins: each cycle's share of the error evaluated at the bins
+            (``R ≤`` cycles); None where not estimated (the paper's per-bin model, models
+            saved by older versions): then that noise is drawn entry by entry.
     """
 
     phase: Tensor
@@ -75,6 +86,9 @@ class BinEstimates:
     power_on_cycle_se: Tensor | None = None
     M_bias: Tensor | None = None
     M_change_factor: Tensor | None = None
+    M_sampling_factor: Tensor | None = None
+    dM: Tensor | None = None
+    M_offset_bias: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -88,6 +102,9 @@ class LocalConnectionModel:
         c, b, A, dA: Fourier series of the regression terms, value shapes ``(3,)``,
             ``(3, d)``, ``(3, d)``, ``(3, d, d)`` (``dA[..., k, i, j] = ∂A^k_i/∂r_j``).
         M: Fourier series of the metric ``(d, d)``, or None when no power was recorded.
+        dM: Fourier series of its shape derivative ``∂M̂/∂r`` ``(d, d, d)`` (``[i, j, k] =
+            ∂M_ij/∂r_k``), or None (no power, the paper's metric model, no derivative term):
+            the cost of a nearby gait then uses ``M̂`` on the cycle alone.
         bins: the per-bin estimates the series were fitted to.
         meta: settings and provenance (JSON-serialisable).
         dA_fit: where ``dA`` is the tied estimate of ``∂Â/∂r`` (``tie_derivative``), the
@@ -108,6 +125,7 @@ class LocalConnectionModel:
     M: FourierSeries | None = None
     meta: dict | None = None
     dA_fit: FourierSeries | None = None
+    dM: FourierSeries | None = None
 
     @property
     def shape_dim(self) -> int:
@@ -133,7 +151,7 @@ class LocalConnectionModel:
         return LocalConnectionModel(
             gamma=move(self.gamma), phase_rate=move(self.phase_rate), c=move(self.c),
             b=move(self.b), A=move(self.A), dA=move(self.dA), bins=BinEstimates(**bins),
-            M=move(self.M), meta=self.meta, dA_fit=move(self.dA_fit),
+            M=move(self.M), meta=self.meta, dA_fit=move(self.dA_fit), dM=move(self.dM),
         )
 
     # ------------------------------------------------------------------ evaluation
@@ -162,6 +180,14 @@ class LocalConnectionModel:
         if self.M is None:
             raise ValueError("this model has no metric: fit it to data with a power channel")
         return self.M(phase)
+
+    def metric_at(self, phase: Tensor, delta: Tensor) -> Tensor:
+        """``M̂(γ(φ) + δ)`` to first order, ``M̂(φ) + ∂M̂/∂r(φ) δ`` (``M̂(φ)`` alone without
+        ``dM``): phase ``(..., P)``, offsets ``δ (..., P, d)`` -> ``(..., P, d, d)``."""
+        m = self.metric(phase)
+        if self.dM is None:
+            return m
+        return m + torch.einsum("...ijk,...k->...ij", self.dM(phase), delta)
 
     def metric_gamma_dot(self, phase: Tensor) -> Tensor:
         """``M̂γ̇`` on the cycle, the part of ``M̂`` the gait itself identifies:
@@ -235,7 +261,7 @@ class LocalConnectionModel:
         return LocalConnectionModel(
             gamma=pick(self.gamma), phase_rate=self.phase_rate[index], c=pick(self.c),
             b=pick(self.b), A=pick(self.A), dA=pick(self.dA), bins=BinEstimates(**bins),
-            M=pick(self.M), meta=self.meta, dA_fit=pick(self.dA_fit),
+            M=pick(self.M), meta=self.meta, dA_fit=pick(self.dA_fit), dM=pick(self.dM),
         )
 
     # ------------------------------------------------------------------ persistence
@@ -279,11 +305,12 @@ class LocalConnectionModel:
             c=series["c"], b=series["b"], A=series["A"],
             dA=series["dA"], M=series.get("M"), bins=BinEstimates(**bins),
             meta=json.loads(str(arrays["meta"])), dA_fit=series.get("dA_fit"),
+            dM=series.get("dM"),
         )
 
 
-#: the series a model file holds (``M`` and ``dA_fit`` where present)
-_SERIES = ("gamma", "c", "b", "A", "dA", "M", "dA_fit")
+#: the series a model file holds (``M``, ``dA_fit`` and ``dM`` where present)
+_SERIES = ("gamma", "c", "b", "A", "dA", "M", "dA_fit", "dM")
 
 
 def _apply(matrix: Tensor, vector: Tensor) -> Tensor:

@@ -45,11 +45,13 @@ __all__ = ["Regression", "TubeRegression"]
 _MIN_SAMPLES_PER_COEF = 3.0
 #: the fields of :class:`TubeRegression` that its tied metric's coefficients depend on
 #: (besides the data, the cycle and the pooling; not the bins, where they are only evaluated)
-METRIC_SETTINGS = ("metric_order", "metric_derivative_order", "metric_held_out_order",
-                   "metric_noise_correction", "metric_noise_level", "metric_order_bias")
+METRIC_SETTINGS = ("metric_order", "metric_derivative_order", "metric_second_order",
+                   "metric_held_out_order", "metric_noise_correction", "metric_noise_level",
+                   "metric_order_bias", "metric_offset_bias")
 #: the metric's per-bin fields of :class:`~torchconn.regression.model.BinEstimates`
 _METRIC_BIN_FIELDS = ("M", "M_se", "M_gamma_dot", "M_gamma_dot_se", "power_on_cycle",
-                      "power_on_cycle_se", "M_bias", "M_change_factor")
+                      "power_on_cycle_se", "M_bias", "M_change_factor", "M_sampling_factor", "dM",
+                      "M_offset_bias")
 
 
 class Regression(Options, abc.ABC):
@@ -191,6 +193,8 @@ class TubeRegression(Regression):
     metric_method: Literal["tied", "paper"] = "tied"
     metric_order: int = option(6, ge=0)
     metric_derivative_order: int | None = option(1, ge=0)
+    metric_second_order: Literal["diagonal", "full"] | None = None
+    metric_offset_bias: bool = True
     metric_held_out_order: bool = True
     metric_noise_correction: bool = True
     metric_noise_level: Literal["combined", "spectrum", "residuals"] = "combined"
@@ -258,10 +262,12 @@ class TubeRegression(Regression):
             traj, pool, (phase, r, r_dot, xi), gamma_m, gamma_dot_m, opts, bins_for)
         # the metric's per-bin estimates (BinEstimates' fields), window, noise and order
         metric, metric_window, noise, metric_order = {}, None, None, None
+        second_order = None
         if self.metric is not False and power is not None:
             if self.metric_method == "tied":
                 coefficients, noise = self._tied_metric(traj, cycle, pool, metric_cache)
                 metric_fit = coefficients.at(centres, gamma_dot_m)
+                second_order = coefficients.second_order
             else:
                 mbins, metric_window = bins_for(metric_n_coef(d, False))
                 metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
@@ -270,7 +276,8 @@ class TubeRegression(Regression):
             metric = dict(zip(_METRIC_BIN_FIELDS, (
                 metric_fit.M, metric_fit.se_M, metric_fit.M_gamma_dot,
                 metric_fit.se_M_gamma_dot, metric_fit.power_on_cycle,
-                metric_fit.se_power_on_cycle, metric_fit.bias_M, metric_fit.change_factor_M),
+                metric_fit.se_power_on_cycle, metric_fit.bias_M, metric_fit.change_factor_M,
+                metric_fit.sampling_factor_M, metric_fit.dM, metric_fit.offset_bias_M),
                 strict=True))
             metric_order = None if metric_fit.order is None else metric_fit.order.tolist()
 
@@ -296,11 +303,13 @@ class TubeRegression(Regression):
             c=intercept_series(centres, fit.c, self.fourier_order, c_order), b=series(fit.b, 2),
             A=a_series, dA=series(fit.dA, 3),
             M=series(metric["M"], 2) if metric else None,
+            dM=series(metric["dM"], 3) if metric and metric["dM"] is not None else None,
             dA_fit=None if fit.dA_direct is None else series(fit.dA_direct, 3),
             bins=estimates,
             meta={"settings": {"regression": asdict(self), "pool": pool}, "dt": traj.dt,
                   "batch_shape": list(batch), "window": window, "metric_window": metric_window,
                   "metric_noise_std": noise, "metric_order": metric_order,
+                  "metric_second_order": second_order,
                   **connection_meta,
                   "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
@@ -422,7 +431,18 @@ class TubeRegression(Regression):
                 "M̂γ̇ 30-40 % off, against 3 % with 4 trials). Pool more trials or cycles",
                 stacklevel=3)
             derivative = None
-        orders = dict(order=self.metric_order, derivative_order=derivative)
+
+        def identified(form):  # the second-order term only beside the first, where identified
+            return derivative is not None and int(usable) >= _MIN_SAMPLES_PER_COEF * \
+                tied_metric_n_coef(d, self.metric_order, derivative, form)
+
+        second = self.metric_second_order if identified(self.metric_second_order) else None
+        # its bias allowance in the form the data identify (the 9-link's 36² coefficients of
+        # the full form outnumber 4 x 30 cycles' samples / 3; its diagonal's 8·36 do not)
+        offset_bias = next((f for f in ("full", "diagonal") if identified(f)), None) \
+            if self.metric_offset_bias and second is None else None
+        orders = dict(order=self.metric_order, derivative_order=derivative,
+                      second_order=second)
         noise, noise_variance = None, None
         if self.metric_noise_correction:
             omega2 = self._metric_noise(traj, offset, v, power, phase, orders,
@@ -433,6 +453,7 @@ class TubeRegression(Regression):
                                        noise_variance=noise_variance,
                                        held_out_order=self.metric_held_out_order,
                                        order_bias=self.metric_order_bias,
+                                       offset_bias=offset_bias,
                                        min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         if cache is not None:
             cache[key] = fit, noise
