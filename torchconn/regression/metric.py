@@ -325,6 +325,17 @@ def tied_metric_regression(
     ``b_h(φ) δ_k v_i v_j`` (``i ≤ j`` in :func:`torch.triu_indices` order, ``b`` the
     :func:`~torchconn.phase.fourier.fourier_design` columns).
 
+    The tube's second order: the power is ``vᵀ M(γ + δ) v``, and the first-order model leaves
+    ``½ δᵀ∂²M/∂r²δ`` out. Its mean over the offsets, ``½ ∂²M/∂r² : E[δδᵀ]``, goes into
+    ``M(φ)``: ``M̂`` is then the metric averaged over the tube, not the metric on the cycle
+    (measured on the swimmer, paper SDE: the on-cycle power +0.1 % (3-link) and +0.3 %
+    (5-link) at ω = 0, scaling as ``η²``; README "Is the cost standard error honest?").
+    ``second_order`` fits that term too, constant in phase: ``"full"`` the products
+    ``δ_k δ_l v_i v_j`` (``q·q`` coefficients), ``"diagonal"`` only ``δ_k² v_i v_j`` (``d·q``;
+    removes the bias where the offsets of different joints are uncorrelated). It removes the
+    bias but costs variance under noise (the products' mean is collinear with ``M(φ)``'s
+    constant), so it is not the default (README).
+
     Noise: ``v`` comes from raw sample differences, so observation noise ``ε`` on ``r``
     enters as ``e = (ε_{k+1} − ε_k)/Δt``, Gaussian with covariance
     ``Σ = diag(noise_variance)`` (``= 2ω²/Δt²``) and independent of the noise on ``r̄``
@@ -351,6 +362,9 @@ def tied_metric_regression(
         phase_m: ``(M,)`` phases at which to report (bin centres).
         gamma_dot_m: ``(..., M, d)`` ``γ̇`` there, for ``M̂γ̇`` and the on-cycle power.
         order, derivative_order: Fourier orders of ``M(φ)`` and ``∂M/∂r(φ)``.
+        second_order: the second-order offset term (above): None (default), ``"diagonal"``
+            or ``"full"``; its columns follow ``∂M/∂r``'s in ``coef``. The offsets' own
+            observation noise (variance ``ω²/2`` beside ``E[δ²] = η²/2α``) is not corrected.
         noise_variance: ``(..., d)`` or ``(d,)`` variance of the noise on ``velocity``;
             None: no correction.
         held_out_order: choose the Fourier order of ``M(φ)`` per batch element in

@@ -134,6 +134,19 @@ class TubeRegression(Regression):
             usable samples per coefficient with it, e.g. a 9-link trial of 30 cycles). Chosen
             by measurement on 3- and 5-link gaits other than the benchmark's (README, "Known
             limits").
+        metric_second_order: the tied model's second-order offset term ``½ δᵀ∂²M/∂r²δ``
+            (:func:`~torchconn.regression.metric.tied_metric_regression`'s ``second_order``):
+            None (default), ``"diagonal"`` or ``"full"``. Without it ``M̂`` is the metric
+            averaged over the tube (on-cycle power +0.1-0.3 % at ω = 0 on the 3- and 5-link).
+            Measured (README, "Is the cost standard error honest?"): it removes that bias on
+            clean data (5-link on-cycle power 0.24 -> 0.01 %) but costs variance under noise
+            (5-link M̂γ̇ 2.3 -> 2.9 % at ω = 0.002, 5.3 -> 8.9 % at 0.005), so it is an option.
+            Left out where the data hold fewer than 3 usable samples per coefficient with it.
+        metric_offset_bias: estimate that bias as the change of ``M̂`` when the term is fitted
+            (one more fit, ``"full"`` where the data identify it, else ``"diagonal"``), kept
+            in ``BinEstimates.M_offset_bias``: not in the bands, but drawn by nearby-gait
+            predictions as one error shared by entries and bins, so that ``predict_gait``'s
+            cost standard error covers it (README). Ignored with ``metric_second_order``.
         metric_held_out_order: choose the order of ``M(φ)`` in ``0 … metric_order`` from the
             data, by the noise-corrected error on held-out blocks of whole cycles (lower orders
             where the noise leaves the higher harmonics unresolved); False: ``metric_order``.
