@@ -638,10 +638,10 @@ def test_cost_standard_error_of_the_recorded_gait_is_honest():
     """``predict_gait``'s cost of the recorded 3-link Tam–Hosoi gait against the exact cost
     (``evaluate`` on the swimmer), 4 trials x 30 cycles pooled, ω = 0 and 0.002, two seed sets
     used for nothing else: the mean ``e²/se²`` is near 1. Before (the fit's noise drawn entry
-    by entry, no second-order allowance, ``M̂`` on the cycle alone) the standard error was
-    far too wide under noise (``e²/se²`` 0.01-0.2); with the fit's noise drawn consistently but
-    without the allowance for the tube's second-order bias it is far too narrow on clean
-    data. The displacement's standard errors are unchanged (``torch.equal``)."""
+    by entry, no allowance for the tube's second-order bias nor for the metric off the cycle)
+    the standard error was far too wide under noise (``e²/se²`` 0.01-0.2); with the fit's
+    noise drawn consistently but without those allowances it is far too narrow on clean data.
+    The cost itself and the displacement's standard errors are unchanged (``torch.equal``)."""
     system, gait = NLinkSwimmer(3), reference_gait("3link")
     exact = evaluate(system, gait, n_steps=256).cost
     ratios: dict = {}
@@ -653,7 +653,7 @@ def test_cost_standard_error_of_the_recorded_gait_is_honest():
             model = _fit(traj).model_
             before = replace(model, dM=None, bins=replace(
                 model.bins, M_sampling_factor=None, M_offset_bias=None))
-            no_allowance = replace(model, bins=replace(model.bins, M_offset_bias=None))
+            no_allowance = replace(model, dM=None, bins=replace(model.bins, M_offset_bias=None))
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 preds = {k: predict_gait(m, gait, n_draws=256) for k, m in (
@@ -662,6 +662,7 @@ def test_cost_standard_error_of_the_recorded_gait_is_honest():
                 ratios.setdefault((k, omega), []).append(
                     float((p.cost - exact).square() / p.cost_se.square()))
             assert torch.equal(preds["now"].displacement_se, preds["before"].displacement_se)
+            assert torch.equal(preds["now"].cost, preds["before"].cost)
     mean = {k: sum(v) / len(v) for k, v in ratios.items()}
     print({k: round(v, 3) for k, v in mean.items()})
     for omega in (0.0, 0.002):

@@ -103,8 +103,9 @@ class LocalConnectionModel:
             ``(3, d)``, ``(3, d)``, ``(3, d, d)`` (``dA[..., k, i, j] = ∂A^k_i/∂r_j``).
         M: Fourier series of the metric ``(d, d)``, or None when no power was recorded.
         dM: Fourier series of its shape derivative ``∂M̂/∂r`` ``(d, d, d)`` (``[i, j, k] =
-            ∂M_ij/∂r_k``), or None (no power, the paper's metric model, no derivative term):
-            the cost of a nearby gait then uses ``M̂`` on the cycle alone.
+            ∂M_ij/∂r_k``), or None (no power, the paper's metric model, no derivative term).
+            A nearby gait's cost uses ``M̂`` on the cycle; this term's change of it enters the
+            cost's standard error (:func:`~torchconn.regression.gait_prediction.predict_gait`).
         bins: the per-bin estimates the series were fitted to.
         meta: settings and provenance (JSON-serialisable).
         dA_fit: where ``dA`` is the tied estimate of ``∂Â/∂r`` (``tie_derivative``), the
