@@ -136,8 +136,8 @@ def sample_models(
     the gait pins down (the cost's standard error 5-50 times its error under noise, README
     "Is the cost standard error honest?"). The tube's second-order bias (``bins.M_offset_bias``,
     not in ``M_se``) is added as one more shared error. ``∂M̂/∂r`` (``model.dM``) is not
-    redrawn (:func:`predict_gait` adds its first-order change of the cost whole). The Fourier series are refitted at the model's order. The result has batch dims
-    ``(n_draws, ...)``.
+    redrawn (:func:`predict_gait` adds its first-order change of the cost whole). The Fourier
+    series are refitted at the model's order. The result has batch dims ``(n_draws, ...)``.
     """
     if not isinstance(n_draws, int) or n_draws < 1:
         raise ValueError(f"n_draws must be a positive integer, got {n_draws!r}")
