@@ -133,7 +133,7 @@ def sample_models(
     drawn from its covariance across entries and bins (``F z``, ``z`` standard normal of
     length ``R`` per draw), and so is the fit's own sampling noise where the model keeps its
     factor (``bins.M_sampling_factor``): drawn entry by entry it spread the on-cycle power that
-    the gait pins down (the cost's standard error 5-50 times its error under noise, README
+    the gait pins down (the cost's standard error 7-30 times its error under noise, README
     "Is the cost standard error honest?"). The tube's second-order bias (``bins.M_offset_bias``,
     not in ``M_se``) is added as one more shared error. ``∂M̂/∂r`` (``model.dM``) is not
     redrawn (:func:`predict_gait` adds its first-order change of the cost whole). The Fourier
