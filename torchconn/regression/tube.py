@@ -177,8 +177,9 @@ class TubeRegression(Regression):
             cover 84 → 93 % at ω = 0; bands that already held the truth widen 1.3-2.3 times
             under noise. Nearby-gait draws take that variance as one error correlated across
             entries and bins (``BinEstimates.M_change_factor``), so ``predict_gait``'s cost
-            standard error is ``True``'s (within 0.2 %, 48 held-out recordings). ``True``:
-            the change's square alone. ``"dropped"``: that variance only where the held-out
+            standard error was ``True``'s (within 0.2 %, 48 held-out recordings); with the
+            fit's own noise drawn that way too, 0.99-1.28 times (README). ``True``: the
+            change's square alone. ``"dropped"``: that variance only where the held-out
             order fell below ``metric_order`` (README: the same as ``"posterior"`` on every
             5-link recording measured, whose order is always dropped).
         tie_derivative: ``∂Â/∂r`` tied to ``b̂`` and the phase derivative of ``Â``
