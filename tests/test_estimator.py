@@ -151,8 +151,10 @@ def test_model_save_load_round_trip(tmp_path):
     path = model.save(tmp_path / "m.npz")
     back = LocalConnectionModel.load(path)
     phi = torch.linspace(0, 6, 7, dtype=F64)
-    for name in ("gamma", "c", "b", "A", "dA", "M"):
+    for name in ("gamma", "c", "b", "A", "dA", "M", "dM"):
         assert torch.equal(getattr(model, name).coeffs, getattr(back, name).coeffs)
+    for name in ("M_sampling_factor", "M_offset_bias", "dM"):  # the cost's draws
+        assert torch.equal(getattr(model.bins, name), getattr(back.bins, name))
     for name in ("connection", "connection_jacobian", "metric", "gamma_at", "gamma_dot_at"):
         torch.testing.assert_close(getattr(model, name)(phi), getattr(back, name)(phi),
                                    rtol=0, atol=1e-15)

@@ -140,7 +140,8 @@ class TubeRegression(Regression):
             averaged over the tube (on-cycle power +0.1-0.3 % at ω = 0 on the 3- and 5-link).
             Measured (README, "Is the cost standard error honest?"): it removes that bias on
             clean data (5-link on-cycle power 0.24 -> 0.01 %) but costs variance under noise
-            (5-link M̂γ̇ 2.3 -> 2.9 % at ω = 0.002, 5.3 -> 8.9 % at 0.005), so it is an option.
+            (5-link M̂γ̇ 2.3 -> 3.1 % at ω = 0.002, 5.5 -> 8.7 % at 0.005, 8 held-out seed
+            sets), so it is an option.
             Left out where the data hold fewer than 3 usable samples per coefficient with it.
         metric_offset_bias: estimate that bias as the change of ``M̂`` when the term is fitted
             (one more fit, ``"full"`` where the data identify it, else ``"diagonal"``), kept
