@@ -669,3 +669,23 @@ def test_cost_standard_error_of_the_recorded_gait_is_honest():
         assert 0.25 < mean["now", omega] < 4
     assert mean["before", 0.002] < 0.25  # far too wide
     assert mean["no allowance", 0.0] > 10  # far too narrow: the bias is not covered
+
+
+def test_second_order_option_reaches_the_fit_and_is_left_out_with_a_warning():
+    """``TubeRegression(metric_second_order=...)``: used where identified (recorded in the
+    meta), left out with a warning naming the option where the first-order term is not fitted;
+    the default records None and the allowance (``M_offset_bias``) is estimated."""
+    traj = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=10,
+                    seeds=np.arange(1))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = ConnectionEstimator(regression=TubeRegression(metric_second_order="full"))
+        used = est.fit(traj).model_
+        left = ConnectionEstimator(regression=TubeRegression(
+            metric_second_order="full", metric_derivative_order=None)).fit(traj).model_
+    assert used.meta["metric_second_order"] == "full" and used.bins.M_offset_bias is None
+    assert left.meta["metric_second_order"] is None
+    assert any("metric_second_order='full'" in str(w.message) for w in caught)
+    default = _fit(traj).model_
+    assert default.meta["metric_second_order"] is None
+    assert default.bins.M_offset_bias is not None and default.dM is not None

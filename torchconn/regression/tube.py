@@ -452,6 +452,13 @@ class TubeRegression(Regression):
                 tied_metric_n_coef(d, self.metric_order, derivative, form)
 
         second = self.metric_second_order if identified(self.metric_second_order) else None
+        if self.metric_second_order is not None and second is None:
+            warnings.warn(
+                f"metric: the second-order offset term (metric_second_order="
+                f"{self.metric_second_order!r}) is left out: it needs the ∂M/∂r term and "
+                f"{_MIN_SAMPLES_PER_COEF:g} usable power samples per coefficient "
+                f"({int(usable)} usable); M̂ keeps the tube's second-order bias. Pool more "
+                "trials or cycles, or use 'diagonal'", stacklevel=3)
         # its bias allowance in the form the data identify (the 9-link's 36² coefficients of
         # the full form outnumber 4 x 30 cycles' samples / 3; its diagonal's 8·36 do not)
         offset_bias = next((f for f in ("full", "diagonal") if identified(f)), None) \
