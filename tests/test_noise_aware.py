@@ -225,7 +225,7 @@ def test_low_rate_floor_is_the_gait_floor_only_where_the_harmonics_reach_the_top
         low, gait, flat = (getattr(est[k], name) for k in ("low_rate", "gait", "flat"))
         assert torch.equal(low[0], gait[0]) and torch.equal(low[1], flat[1]), name
     assert not torch.equal(est["gait"].variance[0], est["flat"].variance[0])
-    with pytest.raises(ValueError, match="floor must be 'gait', 'flat' or 'low_rate'"):
+    with pytest.raises(ValueError, match="floor must be 'gait', 'flat', 'low_rate' or 'normal'"):
         estimate_noise(x, cycle=cycle, samples_per_cycle=per_cycle, floor="shaped")
 
 

@@ -195,7 +195,7 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             only; with 5 % of the samples missing at random ``σ̂²`` came out about 6 % low on
             random walks observed with white noise).
         band: ``(f_lo, f_hi)`` to fit that band exactly, ``0 < f_lo < f_hi ≤ 0.5``; None
-            (default): chosen from the data as above.
+            (default): chosen from the data as above (``floor="normal"``: ``[0.1, 0.5]``).
         angular: optional ``(C,)`` bool, channels whose increments are wrapped to ``(−π, π]``
             (a heading recorded wrapped).
         cycle: optional :class:`~torchconn.phase.fourier.FourierSeries` of the gait each
@@ -214,8 +214,9 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             only for the batch elements whose gait's harmonics reach the top band (where
             :func:`_off_harmonics` leaves ordinates out: at 32 or fewer samples per cycle for
             an order-8 cycle, where the lines' tails fill the band) and keeps the others'
-            flat, bit for bit. ``"normal"`` (needs ``phase``): the increments projected on the
-            cycle's normal space (:func:`normal_increments`), fitted with a flat floor: the
+            flat, bit for bit. ``"normal"`` (needs ``phase``): the increments projected out of
+            the span of the cycle's first derivatives (:func:`normal_increments`), fitted
+            with a flat floor: the
             phase noise, which moves every channel along the cycle's tangent, is projected
             out, and with it the lines' tilt of the band (README "Noise estimates"); the band
             is fixed, ``[0.1, 0.5]`` unless ``band`` is given (:data:`_NORMAL_BAND_LOW`). The
@@ -2121,7 +2122,8 @@ class NoiseAwareRegression(TubeRegression):
         cycle = _cycle_series(gamma_m) if gamma_m is not None else None
         # (..., d), each element on its own; the cycle also correlates the joints' estimates
         # (their shared phase noise) for the joint test below, with either floor
-        floor = self.noise_floor if cycle is not None or self.noise_floor != "normal" else "flat"
+        # the normal projection needs the cycle; without one the floor is flat, as "gait"'s
+        floor = "flat" if cycle is None and self.noise_floor == "normal" else self.noise_floor
         noise = estimate_noise(traj.r, band=band, cycle=cycle, floor=floor,
                                samples_per_cycle=None if cycle is None else per_trial,
                                phase=traj.phase if floor == "normal" else None)
