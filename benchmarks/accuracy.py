@@ -17,6 +17,9 @@ smoothed one where the data cannot support the correction);
 ``corrected`` = ``NoiseAwareRegression(shrink_to_smoothed=False)`` (the correction alone);
 ``noise_aware_gait`` = ``NoiseAwareRegression(noise_floor="gait")`` (the noise fit's floor
 shaped by the gait);
+``noise_aware_normal`` = ``NoiseAwareRegression(noise_floor="normal")`` (the noise fitted on the
+joint increments projected out of the cycle's first derivatives; 5- and 9-link only, the
+3-link's is the default's bit for bit);
 ``uncorrected_bias`` = ``NoiseAwareRegression(bias_correction=False)`` (the bins' bias left in);
 ``untied`` = ``NoiseAwareRegression(tie_derivative=False)`` (``∂Â/∂r`` the direct estimate);
 ``no_bias_allowance`` = ``NoiseAwareRegression(derivative_bias_allowance=False)`` (under noise
@@ -156,6 +159,7 @@ METHODS = {
     "noise_aware": NoiseAwareRegression(),
     "corrected": NoiseAwareRegression(shrink_to_smoothed=False),
     "noise_aware_gait": NoiseAwareRegression(noise_floor="gait"),
+    "noise_aware_normal": NoiseAwareRegression(noise_floor="normal"),
     "uncorrected_bias": NoiseAwareRegression(bias_correction=False),
     "untied": NoiseAwareRegression(tie_derivative=False),
     "no_bias_allowance": NoiseAwareRegression(derivative_bias_allowance=False),

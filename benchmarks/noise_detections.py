@@ -1,5 +1,7 @@
 """How often the noise test calls recordings noisy: clean recordings (false detections) and
-recordings at a given ω (detections, and the level found), flat against gait-shaped floor.
+recordings at a given ω (detections, and the level found): flat floor, gait-shaped floor and
+the increments projected out of the cycle's first derivatives at each sample's estimated phase
+(``normal``; the 3-link's is ``flat``'s, :func:`~torchconn.regression.noise_aware.normal_span`).
 
 Recordings from the paper's SDE (α = 0.05, η = 0.025; ``benchmarks/accuracy.py``'s gaits),
 ``R`` recordings per cell, each either ``pooled`` (4 trials × 30 cycles) or ``single`` (one
@@ -16,6 +18,7 @@ Recording ``r``'s trial ``i`` has seed ``1000 (first + r) + i + 7``. Run by hand
 
     python benchmarks/noise_detections.py --first 60 --recordings 20          # clean, all cells
     python benchmarks/noise_detections.py --omega 0.002 --first 100 --links 3 9 --gaits reference
+    python benchmarks/noise_detections.py --first 80 --links 9 --floors normal normal@0.05
 """
 
 from __future__ import annotations
@@ -68,7 +71,10 @@ def run_cell(n_links: int, gait: str, per_cycle: int, kind: str, omega: float, f
     spc = 2 * math.pi / (phase_rate(prep.phase, traj.dt) * traj.dt)
     cells = []
     for floor in floors:
-        est = estimate_noise(traj.r, cycle=cycle, samples_per_cycle=spc, floor=floor)
+        method, _, low = floor.partition("@")
+        est = estimate_noise(traj.r, cycle=cycle, samples_per_cycle=spc, floor=method,
+                             band=(float(low), 0.5) if low else None,
+                             phase=prep.phase if method == "normal" else None)
         mean, se = recording_z(est, n_recordings)
         z = mean / se
         text = (f"{floor}: {int((z > 2).sum()):>2}/{n_recordings} z {float(z.mean()):+.2f} "
@@ -87,7 +93,8 @@ def main(argv=None) -> int:
     p.add_argument("--gaits", nargs="+", default=["circle", "reference"])
     p.add_argument("--per-cycle", type=int, nargs="+", default=[64, 126])
     p.add_argument("--kinds", nargs="+", default=list(KINDS), choices=list(KINDS))
-    p.add_argument("--floors", nargs="+", default=["flat", "gait"], choices=["flat", "gait"])
+    p.add_argument("--floors", nargs="+", default=["flat", "gait", "normal"],
+                   help="flat, gait or normal; FLOOR@F fits the band [F, 0.5] (e.g. flat@0.1)")
     p.add_argument("--omega", type=float, default=0.0)
     p.add_argument("--first", type=int, default=60, help="first recording's seed block")
     p.add_argument("--recordings", type=int, default=20)

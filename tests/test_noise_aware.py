@@ -225,7 +225,7 @@ def test_low_rate_floor_is_the_gait_floor_only_where_the_harmonics_reach_the_top
         low, gait, flat = (getattr(est[k], name) for k in ("low_rate", "gait", "flat"))
         assert torch.equal(low[0], gait[0]) and torch.equal(low[1], flat[1]), name
     assert not torch.equal(est["gait"].variance[0], est["flat"].variance[0])
-    with pytest.raises(ValueError, match="floor must be 'gait', 'flat' or 'low_rate'"):
+    with pytest.raises(ValueError, match="floor must be 'gait', 'flat', 'low_rate' or 'normal'"):
         estimate_noise(x, cycle=cycle, samples_per_cycle=per_cycle, floor="shaped")
 
 
@@ -395,6 +395,110 @@ def test_noise_estimate_at_64_samples_per_cycle_on_curved_gaits(n_links):
     z = ((est.variance - 0.005**2) / est.variance_se).flatten()
     assert abs(float(z.mean())) < 0.5 and 0.6 < float(z.std()) < 1.4, (z.mean(), z.std())
     print(f"{n_links}-link: gait floor {ratio:.2f}, flat floor {flat:.2f} of ω = 0.002")
+
+
+def _curved_cycle_recording(omega, n_trials, seed, n_samples=1920, per_cycle=64):
+    """``n_trials`` recordings of a non-planar 4-channel cycle (harmonics 1-3 in every
+    channel) at ``per_cycle`` samples per cycle: the phase a random walk about ``t`` and the
+    offset a random walk in every channel, both of ``η = 0.025`` (the paper's SDE without
+    the offset's slow pull), plus white noise ``omega``. Returns the recording, its true
+    phase and the cycle."""
+    from torchconn.phase.fourier import FourierSeries
+
+    coeffs = torch.tensor([[0.1, -0.2, 0.0, 0.3],
+                           [0.8, 0.1, -0.5, 0.2], [0.0, 0.7, 0.3, -0.4],
+                           [0.2, -0.3, 0.25, 0.1], [-0.15, 0.1, 0.2, 0.3],
+                           [0.05, 0.08, -0.1, 0.06], [0.1, -0.05, 0.04, -0.08]], dtype=F64)
+    cycle = FourierSeries(coeffs, value_ndim=1)
+    g = torch.Generator().manual_seed(seed)
+    dt = 2 * math.pi / per_cycle
+    q = 0.025 * math.sqrt(dt)
+    t = torch.arange(n_samples, dtype=F64) * dt
+    phase = t + torch.cumsum(q * torch.randn(n_trials, n_samples, generator=g, dtype=F64), -1)
+    offset = torch.cumsum(q * torch.randn(n_trials, n_samples, 4, generator=g, dtype=F64), -2)
+    noise = omega * torch.randn(n_trials, n_samples, 4, generator=g, dtype=F64)
+    return cycle(phase) + offset + noise, phase, cycle
+
+
+def test_normal_projection_estimates_known_white_noise_on_a_curved_cycle():
+    # the normal projection's σ̂² against the noise put in, within 3 of its own standard
+    # errors (the trials' and channels' mean, channels correlated by the projection), where
+    # the flat floor on the same joints is off by more than 4 of its own (0.62 ω²: the phase
+    # noise's lines tilt its band; the projection takes them out)
+    omega = 0.002
+    x, phase, cycle = _curved_cycle_recording(omega, 40, seed=11)
+    normal = estimate_noise(x, cycle=cycle, samples_per_cycle=64.0, floor="normal", phase=phase)
+    mean, se = normal.pooled_mean(1, channels=True)
+    assert abs(float(mean[0]) - omega**2) < 3 * float(se[0]), (float(mean[0]) / omega**2, se)
+    flat = estimate_noise(x, cycle=cycle, samples_per_cycle=64.0)
+    mean_flat, se_flat = flat.pooled_mean(1, channels=True)
+    assert omega**2 - float(mean_flat[0]) > 4 * float(se_flat[0]), (mean_flat, se_flat)
+    # honest per-trial standard errors: (σ̂² − ω²)/SE over trials has spread near 1
+    m1, s1 = normal.pooled_mean(0, channels=True)
+    z = (m1[:, 0] - omega**2) / s1[:, 0]
+    assert abs(float(z.mean())) < 0.6 and 0.6 < float(z.std()) < 1.4, (z.mean(), z.std())
+    # clean: near 0 (within 3 standard errors, and below a tenth of ω = 0.002 in σ)
+    x0, phase0, _ = _curved_cycle_recording(0.0, 40, seed=12)
+    clean = estimate_noise(x0, cycle=cycle, samples_per_cycle=64.0, floor="normal", phase=phase0)
+    mean0, se0 = clean.pooled_mean(1, channels=True)
+    assert abs(float(mean0[0])) < 3 * float(se0[0]), (mean0, se0)
+    assert math.sqrt(max(float(mean0[0]), 0.0)) < 0.2 * omega
+
+
+def test_normal_projection_spectrum_weights_are_exact():
+    # white + MA(1) noise projected by a projector that turns along the record: the fit with
+    # the projection's weights (P_ii and (P_k P_k+1)_ii) recovers σ² without bias over a fixed
+    # band, where the same channels taken as unweighted increments would not
+    from torchconn.regression.noise_aware import _normal_weights, _project_normal
+
+    omega = 0.01
+    x, phase, cycle = _curved_cycle_recording(omega, 60, seed=13)
+    u, frame = _project_normal(torch.diff(x, dim=-2), phase, cycle)
+    assert frame.shape[-2] == 2  # d = 4: γ', γ'' projected out
+    w0, w1 = _normal_weights(frame)
+    # the frame is orthonormal where it is defined
+    gram = (frame.unsqueeze(-2) * frame.unsqueeze(-3)).sum(-1)
+    torch.testing.assert_close(gram, torch.eye(2, dtype=F64).expand_as(gram), atol=1e-12,
+                               rtol=0)
+    assert float(w0.min()) >= -1e-12 and float(w0.max()) <= 1 + 1e-12
+    est = estimate_noise(x, cycle=cycle, samples_per_cycle=64.0, floor="normal", phase=phase,
+                         band=(0.05, 0.5))
+    mean, se = est.pooled_mean(1, channels=True)
+    assert abs(float(mean[0]) / omega**2 - 1) < 3 * float(se[0]) / omega**2, (mean, se)
+    assert float(se[0]) / omega**2 < 0.02
+
+
+def test_normal_projection_with_two_joints_is_the_flat_floor_and_batch_free():
+    from torchconn.regression.noise_aware import normal_increments, normal_span
+
+    assert [normal_span(d) for d in (1, 2, 3, 4, 8, 12)] == [0, 0, 1, 2, 4, 4]
+    prep, cycle = _unpooled_trials([0.0, 0.005])
+    gamma = cycle.gamma
+    per_cycle = torch.full(prep.phase.shape[:-1], 64.0, dtype=F64)
+    flat = estimate_noise(prep.r, cycle=gamma, samples_per_cycle=per_cycle)
+    normal = estimate_noise(prep.r, cycle=gamma, samples_per_cycle=per_cycle, floor="normal",
+                            phase=prep.phase)
+    for name in ("measurement", "process", "variance_se", "variance", "correlation"):
+        assert torch.equal(getattr(flat, name), getattr(normal, name)), name
+    # d = 2: nothing projected
+    assert torch.equal(normal_increments(prep.r, prep.phase, gamma), torch.diff(prep.r, dim=-2))
+    # a trial's estimate does not depend on its batch (4 channels)
+    x, phase, cycle4 = _curved_cycle_recording(0.003, 5, seed=14, n_samples=999)
+    whole = estimate_noise(x, cycle=cycle4, samples_per_cycle=64.0, floor="normal", phase=phase)
+    part = estimate_noise(x[2:3], cycle=cycle4, samples_per_cycle=64.0, floor="normal",
+                          phase=phase[2:3])
+    for name in ("measurement", "process", "variance_se", "variance", "correlation"):
+        assert torch.equal(getattr(whole, name)[2:3], getattr(part, name)), name
+
+
+def test_normal_projection_names_its_missing_inputs():
+    x, phase, cycle = _curved_cycle_recording(0.002, 1, seed=15, n_samples=200)
+    with pytest.raises(ValueError, match="phase="):
+        estimate_noise(x, cycle=cycle, samples_per_cycle=64.0, floor="normal")
+    with pytest.raises(ValueError, match="cycle="):
+        estimate_noise(x, floor="normal", phase=phase)
+    with pytest.raises(ValueError, match=r"phase must be a tensor \(..., T\) = \(1, 200\)"):
+        estimate_noise(x, cycle=cycle, samples_per_cycle=64.0, floor="normal", phase=phase[:, 1:])
 
 
 def test_noise_fit_leaves_out_the_gaits_harmonics_in_the_top_band():
