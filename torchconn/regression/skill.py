@@ -142,10 +142,10 @@ class Skill:
                 "held-out check: some phase bins cannot be fitted when one block of whole "
                 "cycles is left out, at this or any simpler complexity, so the model cannot "
                 f"be checked on this short recording; {', '.join(choice.phase_averaged_names())}"
-                " are predicted by the phase-averaged velocity of the training data (the rows "
-                "of b̂, Â and ∂Â/∂r of the unchecked trials are 0: not estimated from this "
-                "recording); record more cycles", PoorHeldOutSkillWarning,
-                stacklevel=stacklevel)
+                " are predicted by the phase-averaged velocity of the training data (predict() "
+                "and forecast_model_: rows of b̂, Â and ∂Â/∂r 0 in the unchecked trials; "
+                "model_ keeps the given complexity's estimates, unchecked); record more cycles",
+                PoorHeldOutSkillWarning, stacklevel=stacklevel)
             return
         if bool(self.unscored.any()):
             warnings.warn(
@@ -160,18 +160,21 @@ class Skill:
             if reduced:
                 warnings.warn(
                     f"the offset terms b̂ and ∂Â/∂r did not improve the held-out prediction of "
-                    f"{', '.join(reduced)} beyond the connection Â alone, so their rows are 0 "
-                    "(not estimated from this recording; Â is kept); record more cycles, or "
-                    "cycles that leave the gait further, to estimate them",
+                    f"{', '.join(reduced)} beyond the connection Â alone, so the forecasting "
+                    "model (predict(), forecast_model_) sets their rows to 0 and keeps Â; "
+                    "model_ keeps them as estimated; record more cycles, or cycles that leave "
+                    "the gait further, to estimate them",
                     PoorHeldOutSkillWarning, stacklevel=stacklevel)
             if fallback:
                 warnings.warn(
                     f"the shape terms do not predict held-out cycles of {', '.join(fallback)} "
-                    "better than their phase-averaged velocity, so the model predicts "
+                    "better than their phase-averaged velocity, so the forecasting model "
+                    "(predict(), forecast_model_) predicts "
                     f"{'it' if len(fallback) == 1 else 'them'} by the phase-averaged velocity "
-                    "of the training data: the rows of b̂, Â and ∂Â/∂r for "
-                    f"{', '.join(fallback)} are 0, not estimated from this recording; record "
-                    "more cycles to estimate them", PoorHeldOutSkillWarning,
+                    "of the training data: its rows of b̂, Â and ∂Â/∂r for "
+                    f"{', '.join(fallback)} are 0; model_ keeps them as estimated, though they "
+                    "did not beat it held out; record more cycles to estimate them",
+                    PoorHeldOutSkillWarning,
                     stacklevel=stacklevel)
             return
         names = [n for n, w in zip(COMPONENTS, worse.tolist(), strict=True) if w]
