@@ -58,7 +58,7 @@ from .regression.estimator import (
 )
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
-from .regression.skill import COMPONENTS, PoorHeldOutSkillWarning
+from .regression.skill import COMPONENTS, PoorHeldOutSkillWarning, nested_list
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
@@ -294,8 +294,8 @@ def main(argv: list[str] | None = None) -> int:
                             "ridge": est.complexity_.ridge,
                             "checked": est.complexity_.checked,
                             "components": list(COMPONENTS),
-                            "phase_averaged": _nested_list(est.complexity_.phase_averaged),
-                            "connection_only": _nested_list(
+                            "phase_averaged": nested_list(est.complexity_.phase_averaged),
+                            "connection_only": nested_list(
                                 est.complexity_.connection_only)}),
             "held_out_skill": None if held_out is None else _skill_summary(held_out, folds),
             "outputs": outputs,
@@ -364,11 +364,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     return run_command(PROG, body)
-
-
-def _nested_list(x):
-    """Nested tuples as nested lists (JSON)."""
-    return [_nested_list(v) for v in x] if isinstance(x, tuple) else x
 
 
 def _skill_summary(skill, n_folds: int) -> dict:

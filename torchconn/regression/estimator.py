@@ -297,8 +297,8 @@ class ConnectionEstimator:
         # the connection: every row as estimated, and Â unpenalised where the ridge chosen
         # by held-out prediction penalises it (README "The ridge and Â")
         unshrunk = _unshrunk(regression, choice)
-        if unshrunk is not None:
-            model = _fit(unshrunk, traj, cycle, self.pool, cache)
+        connection = model if unshrunk is None else _fit(unshrunk, traj, cycle, self.pool,
+                                                          cache)
         self.trajectory_ = traj
         self.phaser_ = fitted_phaser
         self.limit_cycle_ = cycle
@@ -307,8 +307,9 @@ class ConnectionEstimator:
         self.held_out_skill_ = held
         self.forecast_model_ = _with_settings(forecast, estimator_settings(self, regression))
         self.model_ = self.forecast_model_
-        if forecast is not model:
-            self.model_ = _with_settings(model, estimator_settings(self, unshrunk or regression),
+        if forecast is not connection:
+            self.model_ = _with_settings(connection,
+                                         estimator_settings(self, unshrunk or regression),
                                          forecast_model=_forecast_meta(choice, unshrunk))
         if held is not None:
             held.warn_if_poor(stacklevel=3, choice=choice)
@@ -473,16 +474,11 @@ def _forecast_meta(choice: "skill.ComplexityChoice | None", unshrunk: Regression
     predicts by the phase average or by the connection alone (nested lists of bools shaped
     like the model's batch dims x 3, or None)."""
     def listed(mask, names):
-        return None if not names else _nested_list(mask)
+        return None if not names else skill.nested_list(mask)
 
     return {"A_ridge": 0.0 if unshrunk is None else float(unshrunk.ridge),
             "phase_averaged": listed(choice.phase_averaged, choice.phase_averaged_names()),
             "connection_only": listed(choice.connection_only, choice.connection_only_names())}
-
-
-def _nested_list(x):
-    """Nested tuples as nested lists (JSON)."""
-    return [_nested_list(v) for v in x] if isinstance(x, tuple) else x
 
 
 def _with_settings(model: LocalConnectionModel, settings: dict, **meta: Any

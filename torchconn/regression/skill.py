@@ -47,7 +47,7 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_G
            "regression_view", "cross_validate", "checked_terms", "few_cycles",
            "phase_average_orders", "unchecked_choice",
            "select_complexity", "skill", "with_phase_average", "with_intercept_orders",
-           "baseline_orders", "model_intercept_orders"]
+           "baseline_orders", "model_intercept_orders", "nested_list"]
 
 #: the body-velocity components, in the order of the last axis of ξ
 COMPONENTS = ("v_x", "v_y", "omega")
@@ -197,8 +197,9 @@ class ComplexityChoice:
         scores: ``(n_bins, fourier_order, ridge, loss)`` of every candidate.
         phase_averaged: nested tuples of bools shaped ``(..., 3)`` (the model's batch dims,
             components ``v_x, v_y, ω``): True where the component is predicted by the
-            phase-averaged velocity of the training data, its shape terms set to 0, because
-            they did not beat it on held-out cycles (:data:`FALLBACK_Z`).
+            phase-averaged velocity of the training data, its shape terms set to 0 in the
+            forecasting model (``ConnectionEstimator.forecast_model_``; ``model_`` keeps
+            them), because they did not beat it on held-out cycles (:data:`FALLBACK_Z`).
         connection_only: likewise: True where the component keeps ``ĉ`` and its row of
             ``Â`` but its rows of ``b̂`` and ``∂Â/∂r`` are set to 0, because the connection
             alone beat the phase average on held-out cycles and those terms did not clearly
@@ -913,6 +914,12 @@ def _choose_terms(gaps: Tensor, gaps_conn: Tensor, short: Tensor | bool
     conn_only = torch.where(short, ~keep & conn,
                             ~fallback & _lower_by(diff_conn - diff, OFFSET_TERMS_Z))
     return fallback, conn_only
+
+
+def nested_list(mask: tuple) -> list:
+    """A nested tuple of bools (:attr:`ComplexityChoice.phase_averaged`, ...) as nested lists
+    (JSON)."""
+    return [nested_list(v) for v in mask] if isinstance(mask, tuple) else mask
 
 
 def _nested_tuple(mask: Tensor) -> tuple:
