@@ -166,7 +166,7 @@ def test_fit_says_when_no_held_out_check_can_score_a_short_recording(tmp_path, c
     assert "forecast_model.npz: the forecasting model" in text
     model = LocalConnectionModel.load(out / "model.npz")
     assert "phase_averaged" not in model.meta and bool((model.A.coeffs != 0).any())
-    assert model.meta["forecast_model"] == {"A_ridge": 0.0,
+    assert model.meta["forecast_model"] == {"n_bins": 48, "fourier_order": 12, "A_ridge": 0.0,
                                             "phase_averaged": [True, True, True],
                                             "connection_only": None}
     table = np.loadtxt(out / "connection.csv", delimiter=",", skiprows=1)

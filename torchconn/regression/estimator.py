@@ -294,9 +294,9 @@ class ConnectionEstimator:
                                                 *_masks(choice, model.device))
             # one order for both, so that score() finds them tied exactly
             self.phase_average_ = skill.padded(self.phase_average_, forecast.c.order)
-        # the connection: every row as estimated, and Â unpenalised where the ridge chosen
-        # by held-out prediction penalises it (README "The ridge and Â")
-        unshrunk = _unshrunk(regression, choice)
+        # the connection: every row as estimated, and its complexity chosen with Â
+        # unpenalised where the forecasts' choice would penalise it (README "The ridge and Â")
+        unshrunk = self._unshrunk(traj, cycle, regression, choice)
         connection = model if unshrunk is None else _fit(unshrunk, traj, cycle, self.pool,
                                                           cache)
         self.trajectory_ = traj
@@ -310,13 +310,36 @@ class ConnectionEstimator:
         if forecast is not connection:
             self.model_ = _with_settings(connection,
                                          estimator_settings(self, unshrunk or regression),
-                                         forecast_model=_forecast_meta(choice, unshrunk))
+                                         forecast_model=_forecast_meta(choice, regression))
         if held is not None:
             held.warn_if_poor(stacklevel=3, choice=choice)
         return self
 
     def _folds(self) -> int:
         return self.held_out_folds or 3
+
+    def _unshrunk(self, traj: Trajectory, cycle: LimitCycle, regression: Regression,
+                  choice: "skill.ComplexityChoice | None") -> Regression | None:
+        """The regression of the connection ``model_`` where it is not the forecasts'
+        ``regression``: where the complexity was chosen by held-out error and the given
+        regression's ridge penalises ``Â`` (``ridge_connection``), the complexity chosen
+        the same way with ``Â`` unpenalised (:func:`~torchconn.regression.skill.
+        select_complexity` of ``ridge_connection=False``: the connection then predicts held-out
+        cycles best unshrunk, instead of the bins whose shrunk ``Â`` did); None where that is
+        ``regression``'s own fit (nothing chosen, ``Â`` left alone, or the same complexity
+        without a ridge)."""
+        if (choice is None or not choice.checked
+                or not getattr(self.regression, "ridge_connection", False)):
+            return None
+        free = self.regression.replace(ridge_connection=False)
+        try:
+            free = skill.select_complexity(traj, cycle, free, pool=self.pool,
+                                           n_folds=self._folds())[0]
+        except ValueError:  # no candidate scored (the forecasts' choice did): its complexity
+            free = regression.replace(ridge_connection=False)
+        if free.ridge == 0 and free.replace(ridge_connection=True) == regression:
+            return None
+        return free
 
     def _held_out(self, traj, cycle, regression, model, choice=None, terms=False
                   ) -> tuple[skill.Skill | None, Tensor]:
@@ -456,27 +479,18 @@ def _refit(chosen: Regression, given: Regression, model: LocalConnectionModel | 
     return _fit(chosen, traj, cycle, pool, cache)
 
 
-def _unshrunk(regression: Regression, choice: "skill.ComplexityChoice | None"
-              ) -> Regression | None:
-    """``regression`` with ``ridge_connection=False`` where the ridge chosen by held-out
-    prediction (``choice``) also penalises ``Â`` (the connection is fitted so, the forecasts
-    keep the ridge on ``Â``); None where no ridge was chosen or it leaves ``Â`` alone."""
-    if (choice is None or not choice.checked or regression.ridge <= 0
-            or not getattr(regression, "ridge_connection", False)):
-        return None
-    return regression.replace(ridge_connection=False)
-
-
-def _forecast_meta(choice: "skill.ComplexityChoice | None", unshrunk: Regression | None
-                   ) -> dict:
-    """How the forecasting model differs from the connection model (``meta["forecast_model"]``
-    of ``model_``; JSON-ready): the ridge it puts on ``Â`` (0: none) and the components it
-    predicts by the phase average or by the connection alone (nested lists of bools shaped
-    like the model's batch dims x 3, or None)."""
+def _forecast_meta(choice: "skill.ComplexityChoice", regression: Regression) -> dict:
+    """How the forecasting model (the fit of ``regression``, with ``choice``'s components
+    zeroed) differs from the connection model (``meta["forecast_model"]`` of ``model_``;
+    JSON-ready): its bins and Fourier order, the ridge it puts on ``Â`` (0: none) and the
+    components it predicts by the phase average or by the connection alone (nested lists of
+    bools shaped like the model's batch dims x 3, or None)."""
     def listed(mask, names):
         return None if not names else skill.nested_list(mask)
 
-    return {"A_ridge": 0.0 if unshrunk is None else float(unshrunk.ridge),
+    penalised = getattr(regression, "ridge_connection", False)
+    return {"n_bins": regression.n_bins, "fourier_order": regression.fourier_order,
+            "A_ridge": float(regression.ridge) if penalised else 0.0,
             "phase_averaged": listed(choice.phase_averaged, choice.phase_averaged_names()),
             "connection_only": listed(choice.connection_only, choice.connection_only_names())}
 
