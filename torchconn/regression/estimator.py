@@ -98,7 +98,7 @@ class ConnectionEstimator:
             (:func:`~torchconn.regression.skill.select_complexity`), where each component
             is predicted by the full model, the connection alone or the phase-averaged
             velocity, whichever clearly wins held out (in ``forecast_model_``; ``model_``
-            keeps every component's terms, with ``Â`` unpenalised);
+            keeps every component's terms, its complexity chosen with ``Â`` unpenalised);
             ``"auto"`` (default): as given, unless on held-out blocks the fit loses to the
             phase-averaged velocity or a component's full model is not the one to keep
             (short recordings), then chosen as by ``"cv"``.
@@ -117,10 +117,11 @@ class ConnectionEstimator:
     - ``limit_cycle_``: the :class:`~torchconn.phase.limit_cycle.LimitCycle`;
     - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`, the
       connection (``Â``, ``∂Â/∂r``, ``M̂`` and their bands) to read, save and design gaits
-      with: the regression's fit at the chosen complexity, every row estimated, and ``Â``
-      unpenalised where the ridge chosen by held-out error would shrink it (the fit of
-      ``regression_.replace(ridge_connection=False)``; README "The ridge and Â"). Where it
-      differs from ``forecast_model_``, ``meta["forecast_model"]`` says how;
+      with: every row estimated, and where the complexity chosen by held-out error has a
+      ridge that would shrink ``Â``, the complexity chosen and fitted the same way with
+      ``Â`` unpenalised (the full model of ``regression.replace(ridge_connection=False)``;
+      its settings in ``meta["settings"]``; README "The connection delivered, the forecasts
+      kept"). Where it differs from ``forecast_model_``, ``meta["forecast_model"]`` says how;
     - ``forecast_model_``: the model :meth:`predict`, :meth:`score`, :meth:`cross_validate`
       and the held-out check use: the fit of ``regression_`` (the chosen ridge on ``Â`` too)
       with the components ``complexity_`` gave to the phase average or the connection alone
