@@ -332,12 +332,15 @@ def main(argv: list[str] | None = None) -> int:
                       "to it on held-out cycles; their rows of b and dA/dr are 0 in "
                       f"{FORECAST_FILE}, A is kept): {', '.join(c.connection_only_names())}")
         if forecast is not None:
-            differs = model.meta["forecast_model"]
+            differs, own = model.meta["forecast_model"], model.meta["settings"]["regression"]
             ridge = differs["A_ridge"]
-            print("model.npz, connection.csv and the plots: the connection, every row estimated"
-                  + (f", A unpenalised (the chosen ridge {ridge:g} only on b and dA/dr)"
-                     if ridge else ""))
-            how = ([f"A shrunk by the ridge {ridge:g}"] if ridge else []) + (
+            print("model.npz, connection.csv and the plots: the connection, every row estimated "
+                  f"({own['n_bins']} bins, Fourier order {own['fourier_order']}, ridge "
+                  f"{own['ridge']:g}" + (" on b and dA/dr only, A unpenalised: the complexity "
+                                         "chosen held out with A unpenalised)"
+                                         if ridge else ")"))
+            how = [f"{differs['n_bins']} bins, Fourier order {differs['fourier_order']}"] + (
+                [f"A shrunk by the ridge {ridge:g}"] if ridge else []) + (
                 ["rows 0 where named above"]
                 if differs["phase_averaged"] or differs["connection_only"] else [])
             print(f"{FORECAST_FILE}: the forecasting model (what ConnectionEstimator.predict "
