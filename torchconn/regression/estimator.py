@@ -117,8 +117,8 @@ class ConnectionEstimator:
     - ``limit_cycle_``: the :class:`~torchconn.phase.limit_cycle.LimitCycle`;
     - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`, the
       connection (``Â``, ``∂Â/∂r``, ``M̂`` and their bands) to read, save and design gaits
-      with: every row estimated, and where the complexity chosen by held-out error has a
-      ridge that would shrink ``Â``, the complexity chosen and fitted the same way with
+      with: every row estimated, and where the complexity was chosen by held-out error among
+      ridges that shrink ``Â``, the complexity chosen and fitted the same way with
       ``Â`` unpenalised (the full model of ``regression.replace(ridge_connection=False)``;
       its settings in ``meta["settings"]``; README "The connection delivered, the forecasts
       kept"). Where it differs from ``forecast_model_``, ``meta["forecast_model"]`` says how;
@@ -295,8 +295,9 @@ class ConnectionEstimator:
                                                 *_masks(choice, model.device))
             # one order for both, so that score() finds them tied exactly
             self.phase_average_ = skill.padded(self.phase_average_, forecast.c.order)
-        # the connection: every row as estimated, and its complexity chosen with Â
-        # unpenalised where the forecasts' choice would penalise it (README "The ridge and Â")
+        # the connection: every row as estimated, and where the complexity was chosen among
+        # ridges that penalise Â, chosen again with Â unpenalised (README "The connection
+        # delivered, the forecasts kept")
         unshrunk = self._unshrunk(traj, cycle, regression, choice)
         connection = model if unshrunk is None else _fit(unshrunk, traj, cycle, self.pool,
                                                           cache)
@@ -322,13 +323,13 @@ class ConnectionEstimator:
     def _unshrunk(self, traj: Trajectory, cycle: LimitCycle, regression: Regression,
                   choice: "skill.ComplexityChoice | None") -> Regression | None:
         """The regression of the connection ``model_`` where it is not the forecasts'
-        ``regression``: where the complexity was chosen by held-out error and the given
-        regression's ridge penalises ``Â`` (``ridge_connection``), the complexity chosen
-        the same way with ``Â`` unpenalised (:func:`~torchconn.regression.skill.
-        select_complexity` of ``ridge_connection=False``: the connection then predicts held-out
-        cycles best unshrunk, instead of the bins whose shrunk ``Â`` did); None where that is
-        ``regression``'s own fit (nothing chosen, ``Â`` left alone, or the same complexity
-        without a ridge)."""
+        ``regression``: where the complexity was chosen by held-out error among ridges that
+        penalise ``Â`` (the given regression's ``ridge_connection``; whichever ridge won,
+        0 included), the complexity chosen the same way with ``Â`` unpenalised
+        (:func:`~torchconn.regression.skill.select_complexity` of ``ridge_connection=False``:
+        the bins, order and ridge whose unshrunk connection predicts held-out cycles best,
+        not those whose shrunk one did); None where that is ``regression``'s own fit (nothing
+        chosen, ``Â`` never penalised, or the same complexity without a ridge)."""
         if (choice is None or not choice.checked
                 or not getattr(self.regression, "ridge_connection", False)):
             return None
