@@ -30,10 +30,12 @@ differences of the noisy poses for ``NoiseAwareRegression``):
 short recordings; ``c`` at the end of a row gives its orders), and ``--baseline-model-order``
 then keeps the check's phase average at the model's order (the intercept alone truncated).
 The summary also counts losses against the model-order phase average, the components whose
-shape terms are kept, the mean R² per component, and the full model's ``Â`` at the chosen
-complexity against the swimmer's (relative RMS on the fitted cycle and the best scale factor,
-``accuracy.connection_errors``), as delivered (``A`` at the end of a row: rows 0 where a
-component is phase-averaged) and of the full model (``full``: every component's terms).
+shape terms are kept, the mean R² per component, and ``Â`` against the swimmer's (relative
+RMS on the fitted cycle and the best scale factor, ``accuracy.connection_errors``) as
+delivered (``A`` at the end of a row: ``est.model_``, every row estimated, ``Â`` unpenalised)
+and of the forecasting model (``forecast``: ``est.forecast_model_``, the chosen ridge on ``Â``
+and rows 0 where a component is phase-averaged; ``est.model_`` before the two were told
+apart). The R² columns are the forecasting model's (``score()``).
 
 ``--no-ridge-connection`` fits with ``NoiseAwareRegression(ridge_connection=False)`` (the
 chosen ridge leaves ``Â`` unpenalised); ``--z``, ``--margin``, ``--offset-z`` and
@@ -110,8 +112,8 @@ def _exact_r2(est: ConnectionEstimator, test, n_links: int) -> torch.Tensor:
     target the fitted regression sees (:func:`~torchconn.regression.skill.regression_view`:
     raw interval differences for the noise-aware regression, the smoothed velocities for
     ``TubeRegression``), phase-free."""
-    view = skill.regression_view(est.prepare(test), est.regression_, est.model_, pool=False,
-                                 flatten=False)
+    view = skill.regression_view(est.prepare(test), est.regression_, est.forecast_model_,
+                                 pool=False, flatten=False)
     pred = (NLinkSwimmer(n_links).connection(view.r) @ view.r_dot.unsqueeze(-1)).squeeze(-1)
     y = view.xi
     sst = (y - y.nanmean(-2, keepdim=True)).square().nansum(-2)
@@ -122,7 +124,7 @@ def _order12_r2(est: ConnectionEstimator, test) -> torch.Tensor:
     """R² on the test recording of the training cycles' phase average of the model's Fourier
     order (12 unless the complexity was re-chosen) for every component: ``score()``'s
     baseline with ``short_intercept_order=False``."""
-    reg, model = est.regression_, est.model_
+    reg, model = est.regression_, est.forecast_model_
     base = skill.phase_average(skill.regression_view(est.trajectory_, reg, model, pool=False),
                                reg.fourier_order)
     # phased by the fitted phaser, as score() does
@@ -134,7 +136,7 @@ def _held_out_order_r2(est: ConnectionEstimator, test) -> torch.Tensor:
     """R² on the test recording of the training cycles' phase average with each component's
     order chosen on held-out blocks (:func:`~torchconn.regression.skill.phase_average_orders`,
     up to order 12), on the samples and target :meth:`ConnectionEstimator.score` uses."""
-    reg, model = est.regression_, est.model_
+    reg, model = est.regression_, est.forecast_model_
     unflat = skill.regression_view(est.trajectory_, reg, model, pool=False, flatten=False)
     top = max(reg.fourier_order, skill.COMPLEXITY_GRID[-1][1])
     orders = skill.phase_average_orders(unflat, top, pool=False)
@@ -172,14 +174,14 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
     out.update(default=s.r2.reshape(-1), phase_avg=s.r2_phase_average.reshape(-1),
                template=s.r2_template.reshape(-1), exact=_exact_r2(est, test, n_links),
                pa_ho=_held_out_order_r2(est, test), pa12=_order12_r2(est, test))
-    # Â as delivered (rows 0 where a component is phase-averaged) and the full model's Â at
-    # the chosen complexity (every component's terms)
-    full = est.regression_.fit(est.trajectory_, est.limit_cycle_, pool=est.pool)
-    for key, model in (("A", est.model_), ("A_full", full)):
+    # Â as delivered (model_: every row estimated, Â unpenalised) and of the forecasting
+    # model (forecast_model_: the chosen ridge on Â, rows 0 where a component is
+    # phase-averaged; what model_ was before they were told apart)
+    for key, model in (("A", est.model_), ("A_fc", est.forecast_model_)):
         err = connection_errors(model, n_links)
         out[key + "_err"], out[key + "_scale"] = float(err["A"].mean()), float(err["scale"].mean())
     out["kept"] = 3 if c is None else int(3 - torch.as_tensor(c.phase_averaged).sum())
-    orders = (est.model_.meta or {}).get("intercept_component_order")
+    orders = (est.forecast_model_.meta or {}).get("intercept_component_order")
     out["c_order"] = "-" if orders is None else ",".join(
         str(int(k)) for k in torch.as_tensor(orders).reshape(-1))
     out["choice"] = "fixed" if c is None else f"{c.n_bins}/{c.fourier_order}/{c.ridge:g}" + "".join(
@@ -217,7 +219,7 @@ def table(args) -> int:
     ho_losses = [[] for _ in COMPONENTS]  # against the held-out-order phase average
     o12_losses = [[] for _ in COMPONENTS]  # against the model-order phase average
     kept, n_rec, r2_sum = 0, 0, torch.zeros(3, dtype=torch.float64)
-    a_sums = dict.fromkeys(("A_err", "A_scale", "A_full_err", "A_full_scale"), 0.0)
+    a_sums = dict.fromkeys(("A_err", "A_scale", "A_fc_err", "A_fc_scale"), 0.0)
     refused = 0
     for n_links in args.links:
         for kind in args.gaits:
@@ -256,8 +258,8 @@ def table(args) -> int:
                           f"{_fmt(r['template'])}| "
                           f"{_fmt(r['exact'])}| {r['choice']:10s} {'yes' if r['warned'] else 'no':4s}"
                           f" {r['seconds']:5.2f} c {r['c_order']} A {r['A_err']:.1%} "
-                          f"x{r['A_scale']:.2f} full {r['A_full_err']:.1%} "
-                          f"x{r['A_full_scale']:.2f}", flush=True)
+                          f"x{r['A_scale']:.2f} forecast {r['A_fc_err']:.1%} "
+                          f"x{r['A_fc_scale']:.2f}", flush=True)
     print("default against the phase average, where its R² > 0 (tie: the component is "
           "predicted by the phase average, R² equal)")
     print(f"{'component':>9} {'wins':>5} {'ties':>5} {'losses':>6} {'median shortfall':>17} "
@@ -284,9 +286,9 @@ def table(args) -> int:
           + " / ".join(f"{float(v) / max(n_rec, 1):.4f}" for v in r2_sum))
     mean = {key: v / max(n_rec, 1) for key, v in a_sums.items()}
     print(f"Â against the swimmer's, relative RMS on the fitted cycle (mean, at mean scale): "
-          f"as delivered (rows 0 where phase-averaged) {mean['A_err']:.1%} at "
-          f"{mean['A_scale']:.2f}; the full model's at the chosen complexity "
-          f"{mean['A_full_err']:.1%} at {mean['A_full_scale']:.2f}")
+          f"as delivered (model_) {mean['A_err']:.1%} at {mean['A_scale']:.2f}; the "
+          f"forecasting model's (forecast_model_: ridge on Â, rows 0 where phase-averaged) "
+          f"{mean['A_fc_err']:.1%} at {mean['A_fc_scale']:.2f}")
     return 0
 
 

@@ -112,8 +112,18 @@ def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tm
     assert "held-out R² (v_x, v_y, omega)" in text and "phase-averaged velocity" in text
     model = LocalConnectionModel.load(out / "model.npz")
     assert model.batch_shape == ()
-    # the per-component choice: fit.json, the model's meta and the printout agree
-    chosen = json.loads((out / "fit.json").read_text())["complexity"]
+    # the forecasting model is written beside the connection where the two differ, and
+    # fit.json and the printout say so
+    sidecar = json.loads((out / "fit.json").read_text())
+    forecast_file = out / "forecast_model.npz"
+    assert forecast_file.exists() == (sidecar["forecast_model"] is not None)
+    assert ("forecast_model.npz: the forecasting model" in text) == forecast_file.exists()
+    if forecast_file.exists():
+        assert sidecar["forecast_model"] == {"file": "forecast_model.npz",
+                                             **model.meta["forecast_model"]}
+        model = LocalConnectionModel.load(forecast_file)
+    # the per-component choice: fit.json, the forecasting model's meta and the printout agree
+    chosen = sidecar["complexity"]
     assert chosen["components"] == ["v_x", "v_y", "omega"]
     assert chosen["checked"] is True  # chosen by held-out error
     fallback = chosen["phase_averaged"]
@@ -150,6 +160,57 @@ def test_fit_says_when_no_held_out_check_can_score_a_short_recording(tmp_path, c
     chosen = json.loads((out / "fit.json").read_text())["complexity"]
     assert chosen["checked"] is False
     assert chosen["phase_averaged"] == [True, True, True]
+    # model.npz (and connection.csv) hold the connection estimated at the given complexity;
+    # forecast_model.npz the phase average everywhere, and the printout tells them apart
+    assert "model.npz, connection.csv and the plots: the connection, every row estimated" in text
+    assert "forecast_model.npz: the forecasting model" in text
     model = LocalConnectionModel.load(out / "model.npz")
-    assert model.meta["phase_averaged"] == [True, True, True]
-    assert bool((model.A.coeffs == 0).all())
+    assert "phase_averaged" not in model.meta and bool((model.A.coeffs != 0).any())
+    assert model.meta["forecast_model"] == {"n_bins": 48, "fourier_order": 12, "A_ridge": 0.0,
+                                            "phase_averaged": [True, True, True],
+                                            "connection_only": None}
+    table = np.loadtxt(out / "connection.csv", delimiter=",", skiprows=1)
+    assert np.abs(table[:, 1 + 8:1 + 8 + 3 * 8]).max() > 0  # A's columns
+    forecast = LocalConnectionModel.load(out / "forecast_model.npz")
+    assert forecast.meta["phase_averaged"] == [True, True, True]
+    assert bool((forecast.A.coeffs == 0).all())
+    assert json.loads((out / "fit.json").read_text())["outputs"][:3] == [
+        "model.npz", "connection.csv", "forecast_model.npz"]
+
+
+def test_fit_tells_the_connection_from_the_forecasts_when_a_ridge_is_chosen(tmp_path, capsys):
+    """5-link travelling wave, 3 cycles, ω = 0.005 (seed 32): held-out error chooses a ridge
+    that penalises A for the forecasts, so model.npz holds the connection chosen and fitted
+    with A unpenalised and forecast_model.npz the forecasts; the printout names both."""
+    import math
+
+    from torchconn.physics.gaits import FourierGait
+    from torchconn.regression.estimator import estimator_from_settings
+
+    lag = torch.arange(4, dtype=torch.float64) * (math.pi / 2)
+    coeffs = torch.zeros(3, 4, dtype=torch.float64)
+    coeffs[1], coeffs[2] = 0.7 * torch.cos(lag), 0.7 * torch.sin(lag)
+    seeds = np.array([32])
+    clean = simulate(NLinkSwimmer(5), FourierGait(coeffs), eta=0.025, n_cycles=3,
+                     samples_per_cycle=126, seeds=seeds)
+    path = tmp_path / "short.csv"
+    write_csv(observe(clean, 0.005, seeds=seeds).with_fields(power=None), path)
+    out = tmp_path / "fit"
+    assert main([str(path), "--links", "5", "--out", str(out), "--no-figures", "--set",
+                 "phaser.min_cycles=2.5"]) == 0
+    text = capsys.readouterr().out
+    model = LocalConnectionModel.load(out / "model.npz")
+    forecast = LocalConnectionModel.load(out / "forecast_model.npz")
+    differs, own = model.meta["forecast_model"], model.meta["settings"]["regression"]
+    assert differs["A_ridge"] > 0 and own["ridge_connection"] is False
+    assert forecast.meta["settings"]["regression"]["ridge_connection"] is True
+    assert (f"the connection, every row estimated ({own['n_bins']} bins, Fourier order "
+            f"{own['fourier_order']}, ridge {own['ridge']:g} on b and dA/dr only, A "
+            "unpenalised") in text
+    assert f"A shrunk by the ridge {differs['A_ridge']:g}" in text
+    assert "held-out R² (v_x, v_y, omega) of the forecasting model" in text
+    # model.npz is the fit of the settings it records, on the estimator's own data
+    est = estimator_from_settings(model.meta["settings"])
+    assert est.regression.ridge_connection is False
+    assert json.loads((out / "fit.json").read_text())["forecast_model"]["file"] == \
+        "forecast_model.npz"

@@ -8,7 +8,12 @@ checks before fitting (:mod:`torchconn.io.preflight`); estimates phase and limit
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>,
-M_gamma_dot_<i>, power_on_cycle]``) and PNG plots with 95% confidence bands. ``M_gamma_dot``
+M_gamma_dot_<i>, power_on_cycle]``) and PNG plots with 95% confidence bands: the connection
+(``ConnectionEstimator.model_``). Where the forecasting model differs from it (a short
+recording, whose complexity was chosen by held-out error: a ridge on ``Â``, or components
+predicted by the phase average or the connection alone), that model
+(``ConnectionEstimator.forecast_model_``, what ``predict`` uses and the printed held-out R² is
+of) goes to ``DIR/forecast_model.npz``, and the printout says which is which. ``M_gamma_dot``
 (``M̂γ̇``) and ``power_on_cycle`` (``γ̇ᵀM̂γ̇``) are what the gait itself identifies; the full
 ``M̂`` is only as good as the recording's off-cycle excitation (see the bands in ``metric.png``).
 ``DIR/fit.json`` records the settings of every estimator stage, the data (and conversion)
@@ -48,17 +53,18 @@ from .physics.systems.swimmer import NLinkSwimmer
 from .regression.estimator import (
     FLAT_KEYS,
     ConnectionEstimator,
-    RidgeShrinksConnectionWarning,
     estimator_from_settings,
     estimator_settings,
 )
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
-from .regression.skill import COMPONENTS, PoorHeldOutSkillWarning
+from .regression.skill import COMPONENTS, PoorHeldOutSkillWarning, nested_list
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 
 PROG = "torchconn-fit"
+#: where ``fit`` writes the forecasting model when it differs from the connection (model.npz)
+FORECAST_FILE = "forecast_model.npz"
 
 
 def connection_table(model: LocalConnectionModel, n_points: int = 100):
@@ -243,16 +249,20 @@ def main(argv: list[str] | None = None) -> int:
                              + "; ".join(check.problems["fit"]))
         traj = traj.to(device)  # read and checked on the CPU, moved once
         with warnings.catch_warnings():
-            for reported_below in (PoorHeldOutSkillWarning, RidgeShrinksConnectionWarning):
-                warnings.simplefilter("ignore", reported_below)
+            warnings.simplefilter("ignore", PoorHeldOutSkillWarning)  # reported below
             est = estimator.fit(traj)
         held_out, folds = est.held_out_skill_, est.held_out_folds
         model = est.model_.to("cpu")  # outputs are written from CPU copies
+        # the model predict() uses, where it differs from the connection (short recordings)
+        forecast = None if est.forecast_model_ is est.model_ else est.forecast_model_.to("cpu")
         # everything is computed before the first file is written: no partial outputs
         cols, rows = connection_table(model, args.grid)
         model.save(out / "model.npz")
         _write_table(out / "connection.csv", cols, rows)
         outputs = ["model.npz", "connection.csv"]
+        if forecast is not None:
+            forecast.save(out / FORECAST_FILE)
+            outputs.append(FORECAST_FILE)
         if not args.no_figures:
             plot_connection(model, out / "connection.png")
             plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r.cpu())
@@ -274,14 +284,18 @@ def main(argv: list[str] | None = None) -> int:
                       # short recordings with short_intercept_order: per trial and component
                       "intercept_component_order": model.meta.get(
                           "intercept_component_order")},
+            # how the forecasting model (forecast_model.npz) differs from model.npz; None:
+            # model.npz is the forecasting model too
+            "forecast_model": None if forecast is None else {
+                "file": FORECAST_FILE, **model.meta["forecast_model"]},
             "complexity": (None if est.complexity_ is None else
                            {"n_bins": est.complexity_.n_bins,
                             "fourier_order": est.complexity_.fourier_order,
                             "ridge": est.complexity_.ridge,
                             "checked": est.complexity_.checked,
                             "components": list(COMPONENTS),
-                            "phase_averaged": _nested_list(est.complexity_.phase_averaged),
-                            "connection_only": _nested_list(
+                            "phase_averaged": nested_list(est.complexity_.phase_averaged),
+                            "connection_only": nested_list(
                                 est.complexity_.connection_only)}),
             "held_out_skill": None if held_out is None else _skill_summary(held_out, folds),
             "outputs": outputs,
@@ -304,25 +318,36 @@ def main(argv: list[str] | None = None) -> int:
                       f"{c.fourier_order}, ridge {c.ridge:g}): no held-out check can score it "
                       "or a simpler one on this short recording, so "
                       f"{', '.join(c.phase_averaged_names())} are predicted by the "
-                      "phase-averaged velocity (rows of A, b and dA/dr 0, not estimated)")
+                      f"phase-averaged velocity (rows of A, b and dA/dr 0 in {FORECAST_FILE}; "
+                      "model.npz holds the given complexity's estimates, unchecked)")
             else:
                 print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
                       f"{c.fourier_order}, ridge {c.ridge:g}")
-                if c.ridge > 0 and getattr(est.regression_, "ridge_connection", False):
-                    print("the ridge also penalises A, so A is shrunk towards 0; for the "
-                          "connection itself refit with --set regression.ridge_connection=false "
-                          "or --complexity fixed")
             if c.checked and c.phase_averaged_names():
-                print("predicted by the phase-averaged velocity (the shape terms did not beat "
-                      "it on held-out cycles; their rows of A, b and dA/dr are 0, not "
-                      f"estimated): {', '.join(c.phase_averaged_names())}")
+                print("forecasts predict by the phase-averaged velocity (the shape terms did not "
+                      "beat it on held-out cycles; their rows of A, b and dA/dr are 0 in "
+                      f"{FORECAST_FILE}): {', '.join(c.phase_averaged_names())}")
             if c.connection_only_names():
-                print("predicted by the connection alone (the offset terms did not add to it "
-                      "on held-out cycles; their rows of b and dA/dr are 0, not estimated, A "
-                      f"is kept): {', '.join(c.connection_only_names())}")
+                print("forecasts predict by the connection alone (the offset terms did not add "
+                      "to it on held-out cycles; their rows of b and dA/dr are 0 in "
+                      f"{FORECAST_FILE}, A is kept): {', '.join(c.connection_only_names())}")
+        if forecast is not None:
+            differs, own = model.meta["forecast_model"], model.meta["settings"]["regression"]
+            ridge = differs["A_ridge"]
+            print("model.npz, connection.csv and the plots: the connection, every row estimated "
+                  f"({own['n_bins']} bins, Fourier order {own['fourier_order']}, ridge "
+                  f"{own['ridge']:g}" + (" on b and dA/dr only, A unpenalised: the complexity "
+                                         "chosen held out with A unpenalised)"
+                                         if ridge else ")"))
+            how = [f"{differs['n_bins']} bins, Fourier order {differs['fourier_order']}"] + (
+                [f"A shrunk by the ridge {ridge:g}"] if ridge else []) + (
+                ["rows 0 where named above"]
+                if differs["phase_averaged"] or differs["connection_only"] else [])
+            print(f"{FORECAST_FILE}: the forecasting model (what ConnectionEstimator.predict "
+                  "uses, and the held-out R² below): " + ", ".join(how))
         if held_out is not None:
-            print(f"held-out R² (v_x, v_y, omega), each of {folds} blocks of whole cycles "
-                  "left out in turn:")
+            print(f"held-out R² (v_x, v_y, omega) of the forecasting model, each of {folds} "
+                  "blocks of whole cycles left out in turn:")
             for name, r2 in (("model", held_out.r2),
                              ("phase-averaged velocity", held_out.r2_phase_average),
                              ("template", held_out.r2_template)):
@@ -342,11 +367,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     return run_command(PROG, body)
-
-
-def _nested_list(x):
-    """Nested tuples as nested lists (JSON)."""
-    return [_nested_list(v) for v in x] if isinstance(x, tuple) else x
 
 
 def _skill_summary(skill, n_folds: int) -> dict:

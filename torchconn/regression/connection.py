@@ -93,6 +93,13 @@ def unpenalised_columns(d: int, device=None) -> Tensor:
     return mask
 
 
+def ridge_exemptions(d: int, ridge_connection: bool, device=None) -> Tensor | None:
+    """The solver's ``unpenalised`` argument for a regression's ``ridge_connection`` setting:
+    None (the ridge penalises every column but the intercept) where it is True, else
+    :func:`unpenalised_columns` ``(1 + 2d + d²,)``."""
+    return None if ridge_connection else unpenalised_columns(d, device)
+
+
 def _blocks(delta: Tensor, delta_dot: Tensor, row_scale: Tensor) -> list[Tensor]:
     """The column blocks of ``row_scale · [1, δ, δ̇, δ̇⊗δ]``, scaled through the small factors."""
     scaled_dot = row_scale * delta_dot
@@ -156,7 +163,7 @@ def connection_regression(
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge,
                      min_samples=min_samples, max_condition=max_condition,
                      on_ill_conditioned=on_ill_conditioned, standard_errors=standard_errors,
-                     unpenalised=None if ridge_connection else unpenalised_columns(d, s.r.device))
+                     unpenalised=ridge_exemptions(d, ridge_connection, s.r.device))
     return _connection_fit(sol.unflatten(s.batch_shape, s.n_bins), d)
 
 

@@ -51,13 +51,8 @@ from .tube import Regression, TubeRegression
 
 __all__ = [
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
-    "prepare", "fit_local_model", "EstimatorSettings", "RidgeShrinksConnectionWarning",
+    "prepare", "fit_local_model", "EstimatorSettings",
 ]
-
-
-class RidgeShrinksConnectionWarning(UserWarning):
-    """The complexity chosen by held-out prediction has a ridge, and the ridge penalises Â:
-    the connection comes out shrunk towards 0 (README, "The ridge and Â")."""
 
 #: the estimator's stages: keyword -> (base class, {method name: class}); the first method is
 #: the default. A settings table picks one with ``method = "name"``.
@@ -102,7 +97,8 @@ class ConnectionEstimator:
             ``"cv"`` chosen by held-out error over blocks of whole cycles
             (:func:`~torchconn.regression.skill.select_complexity`), where each component
             is predicted by the full model, the connection alone or the phase-averaged
-            velocity, whichever clearly wins held out;
+            velocity, whichever clearly wins held out (in ``forecast_model_``; ``model_``
+            keeps every component's terms, its complexity chosen with ``Â`` unpenalised);
             ``"auto"`` (default): as given, unless on held-out blocks the fit loses to the
             phase-averaged velocity or a component's full model is not the one to keep
             (short recordings), then chosen as by ``"cv"``.
@@ -119,22 +115,39 @@ class ConnectionEstimator:
     - ``phaser_``: the fitted phaser (its ``model_`` can phase new recordings with the same
       origin), or None when the phase was given or already in the trajectory;
     - ``limit_cycle_``: the :class:`~torchconn.phase.limit_cycle.LimitCycle`;
-    - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`;
-    - ``regression_``: the regression stage fitted (``regression`` with the chosen complexity);
+    - ``model_``: the :class:`~torchconn.regression.model.LocalConnectionModel`, the
+      connection (``Â``, ``∂Â/∂r``, ``M̂`` and their bands) to read, save and design gaits
+      with: every row estimated, and where the complexity was chosen by held-out error among
+      ridges that shrink ``Â``, the complexity chosen and fitted the same way with
+      ``Â`` unpenalised (the full model of ``regression.replace(ridge_connection=False)``;
+      its settings in ``meta["settings"]``; README "The connection delivered, the forecasts
+      kept"). Where it differs from ``forecast_model_``, ``meta["forecast_model"]`` says how;
+    - ``forecast_model_``: the model :meth:`predict`, :meth:`score`, :meth:`cross_validate`
+      and the held-out check use: the fit of ``regression_`` (the chosen ridge on ``Â`` too)
+      with the components ``complexity_`` gave to the phase average or the connection alone
+      predicted so. It is ``model_`` itself where nothing was shrunk or zeroed (no complexity
+      chosen, as on long recordings and with ``complexity="fixed"``; or no ridge chosen and
+      every component's full model kept). On short recordings the shrunk, zeroed model
+      predicts later cycles better (5-link, 3-6 cycles, ω = 0.005: README "Short
+      recordings"), and the unpenalised ``Â`` is closer to the swimmer's;
+    - ``regression_``: the regression stage fitted for ``forecast_model_`` (``regression``
+      with the chosen complexity);
     - ``complexity_``: the :class:`~torchconn.regression.skill.ComplexityChoice` when the
       complexity was chosen by held-out error, else None; its ``phase_averaged`` names the
       components (per trial) predicted by the phase-averaged velocity because their shape
-      terms did not beat it on held-out cycles (their rows of ``b``, ``A``, ``∂A/∂r`` are 0),
-      its ``connection_only`` those predicted by ``c + Aδ̇`` because ``b`` and ``∂A/∂r`` did
-      not add to the connection held out (their rows of ``b`` and ``∂A/∂r`` are 0, ``A`` kept);
+      terms did not beat it on held-out cycles (their rows of ``b``, ``A``, ``∂A/∂r`` are 0 in
+      ``forecast_model_``), its ``connection_only`` those predicted by ``c + Aδ̇`` because
+      ``b`` and ``∂A/∂r`` did not add to the connection held out (their rows of ``b`` and
+      ``∂A/∂r`` are 0 there, ``A`` kept);
     - ``held_out_skill_``: the held-out :class:`~torchconn.regression.skill.Skill` of the
-      check (None when ``held_out_folds=0`` or the regression is not a built-in one).
+      check, of ``forecast_model_`` (None when ``held_out_folds=0`` or the regression is not
+      a built-in one).
 
     Example::
 
         est = ConnectionEstimator(regression=NoiseAwareRegression(n_bins=48, fourier_order=12))
         est.fit(traj)
-        xi_hat = est.predict(traj)               # (..., T, 3)
+        xi_hat = est.predict(traj)               # (..., T, 3), by forecast_model_
         A_on_cycle = est.model_.connection(phi)  # (..., P, 3, d)
         est.set_params(regression__n_bins=24)    # a new regression stage, unfitted settings
 
@@ -268,42 +281,67 @@ class ConnectionEstimator:
                     model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
                     regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
-                    if chosen.ridge > 0 and getattr(chosen, "ridge_connection", False):
-                        warnings.warn(
-                            f"the complexity chosen by held-out prediction has a ridge "
-                            f"({chosen.ridge:g}) that also penalises A: the connection A is "
-                            "shrunk towards 0 (measured at low frame rates: to 0.2-0.7 of the "
-                            "swimmer's). For the connection itself fit with "
-                            "regression ridge_connection=False (A unpenalised; predicts later "
-                            "cycles slightly worse on short recordings) or complexity='fixed'",
-                            RidgeShrinksConnectionWarning, stacklevel=2)
         view = skill.regression_view(traj, regression, model, pool=self.pool)
         # the phase average of the intercept's orders (short recordings) or the model's
         self.phase_average_ = skill.phase_average(
             view, regression.fourier_order,
             skill.baseline_orders(model, regression.fourier_order))
+        forecast = model
         if choice is not None and (choice.phase_averaged_names()
                                    or choice.connection_only_names()):
             # components whose shape terms lost to the phase average held out predict it;
             # those whose offset terms did not help keep the connection alone
-            model = skill.with_phase_average(model, self.phase_average_,
-                                             *_masks(choice, model.device))
+            forecast = skill.with_phase_average(model, self.phase_average_,
+                                                *_masks(choice, model.device))
             # one order for both, so that score() finds them tied exactly
-            self.phase_average_ = skill.padded(self.phase_average_, model.c.order)
+            self.phase_average_ = skill.padded(self.phase_average_, forecast.c.order)
+        # the connection: every row as estimated, and where the complexity was chosen among
+        # ridges that penalise Â, chosen again with Â unpenalised (README "The connection
+        # delivered, the forecasts kept")
+        unshrunk = self._unshrunk(traj, cycle, regression, choice)
+        connection = model if unshrunk is None else _fit(unshrunk, traj, cycle, self.pool,
+                                                          cache)
         self.trajectory_ = traj
         self.phaser_ = fitted_phaser
         self.limit_cycle_ = cycle
         self.regression_ = regression
         self.complexity_ = choice
         self.held_out_skill_ = held
-        settings = estimator_settings(self, regression)
-        self.model_ = dataclasses.replace(model, meta={**(model.meta or {}), "settings": settings})
+        self.forecast_model_ = _with_settings(forecast, estimator_settings(self, regression))
+        self.model_ = self.forecast_model_
+        if forecast is not connection:
+            self.model_ = _with_settings(connection,
+                                         estimator_settings(self, unshrunk or regression),
+                                         forecast_model=_forecast_meta(choice, regression))
         if held is not None:
             held.warn_if_poor(stacklevel=3, choice=choice)
         return self
 
     def _folds(self) -> int:
         return self.held_out_folds or 3
+
+    def _unshrunk(self, traj: Trajectory, cycle: LimitCycle, regression: Regression,
+                  choice: "skill.ComplexityChoice | None") -> Regression | None:
+        """The regression of the connection ``model_`` where it is not the forecasts'
+        ``regression``: where the complexity was chosen by held-out error among ridges that
+        penalise ``Â`` (the given regression's ``ridge_connection``; whichever ridge won,
+        0 included), the complexity chosen the same way with ``Â`` unpenalised
+        (:func:`~torchconn.regression.skill.select_complexity` of ``ridge_connection=False``:
+        the bins, order and ridge whose unshrunk connection predicts held-out cycles best,
+        not those whose shrunk one did); None where that is ``regression``'s own fit (nothing
+        chosen, ``Â`` never penalised, or the same complexity without a ridge)."""
+        if (choice is None or not choice.checked
+                or not getattr(self.regression, "ridge_connection", False)):
+            return None
+        free = self.regression.replace(ridge_connection=False)
+        try:
+            free = skill.select_complexity(traj, cycle, free, pool=self.pool,
+                                           n_folds=self._folds())[0]
+        except ValueError:  # no candidate scored (the forecasts' choice did): its complexity
+            free = regression.replace(ridge_connection=False)
+        if free.ridge == 0 and free.replace(ridge_connection=True) == regression:
+            return None
+        return free
 
     def _held_out(self, traj, cycle, regression, model, choice=None, terms=False
                   ) -> tuple[skill.Skill | None, Tensor]:
@@ -326,8 +364,9 @@ class ConnectionEstimator:
 
     # ------------------------------------------------------------------ held-out skill
     def score(self, traj: Trajectory, phase: Tensor | None = None) -> skill.Skill:
-        """Skill on recordings ``traj`` the fit did not see, beside the phase-averaged velocity
-        of the training data and the template (:class:`~torchconn.regression.skill.Skill`).
+        """Skill of ``forecast_model_`` on recordings ``traj`` the fit did not see, beside the
+        phase-averaged velocity of the training data and the template
+        (:class:`~torchconn.regression.skill.Skill`).
 
         The target is the observed velocity the way the regression sees it. ``traj`` is
         phased with the fitted phaser (same origin) unless ``phase`` is given.
@@ -338,8 +377,8 @@ class ConnectionEstimator:
         return skill.skill(model, self.phase_average_, view)
 
     def cross_validate(self, n_folds: int = 3) -> skill.Skill:
-        """Held-out skill on the training recordings over ``n_folds`` blocks of whole cycles
-        (:func:`~torchconn.regression.skill.cross_validate`)."""
+        """Held-out skill of ``forecast_model_``'s regression on the training recordings over
+        ``n_folds`` blocks of whole cycles (:func:`~torchconn.regression.skill.cross_validate`)."""
         model = self._fitted()
         fallback, conn = _masks(self.complexity_, model.device)
         return skill.cross_validate(
@@ -381,7 +420,8 @@ class ConnectionEstimator:
         return _prepare(traj, phase, self.smoother, self.phaser)[0]
 
     def predict(self, traj: Trajectory) -> Tensor:
-        """Body velocity ``(..., T, 3)`` the fitted model predicts for (prepared) recordings.
+        """Body velocity ``(..., T, 3)`` the forecasting model (``forecast_model_``) predicts
+        for (prepared) recordings.
 
         A trajectory without smoothed state is smoothed with this estimator's smoother; one
         without phase and with the training data's batch shape (the same trials, recorded
@@ -407,9 +447,10 @@ class ConnectionEstimator:
         return self.prepare(traj, phase)
 
     def _fitted(self) -> LocalConnectionModel:
-        if not hasattr(self, "model_") or not hasattr(self, "regression_"):
+        """The forecasting model (``forecast_model_``), or an error before :meth:`fit`."""
+        if not hasattr(self, "forecast_model_") or not hasattr(self, "regression_"):
             raise RuntimeError("this ConnectionEstimator is not fitted yet: call fit(traj) first")
-        return self.model_
+        return self.forecast_model_
 
     def __repr__(self) -> str:
         default = ConnectionEstimator()
@@ -438,6 +479,28 @@ def _refit(chosen: Regression, given: Regression, model: LocalConnectionModel | 
     if model is not None and chosen == given:
         return model
     return _fit(chosen, traj, cycle, pool, cache)
+
+
+def _forecast_meta(choice: "skill.ComplexityChoice", regression: Regression) -> dict:
+    """How the forecasting model (the fit of ``regression``, with ``choice``'s components
+    zeroed) differs from the connection model (``meta["forecast_model"]`` of ``model_``;
+    JSON-ready): its bins and Fourier order, the ridge it puts on ``Â`` (0: none) and the
+    components it predicts by the phase average or by the connection alone (nested lists of
+    bools shaped like the model's batch dims x 3, or None)."""
+    def listed(mask, names):
+        return None if not names else skill.nested_list(mask)
+
+    penalised = getattr(regression, "ridge_connection", False)
+    return {"n_bins": regression.n_bins, "fourier_order": regression.fourier_order,
+            "A_ridge": float(regression.ridge) if penalised else 0.0,
+            "phase_averaged": listed(choice.phase_averaged, choice.phase_averaged_names()),
+            "connection_only": listed(choice.connection_only, choice.connection_only_names())}
+
+
+def _with_settings(model: LocalConnectionModel, settings: dict, **meta: Any
+                   ) -> LocalConnectionModel:
+    """``model`` with the estimator's settings (and ``meta``) added to its ``meta``."""
+    return dataclasses.replace(model, meta={**(model.meta or {}), "settings": settings, **meta})
 
 
 def _masks(choice: "skill.ComplexityChoice | None", device) -> tuple[Tensor | None,

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from . import _wls
-from .connection import _blocks, unpenalised_columns
+from .connection import _blocks, ridge_exemptions
 
 __all__ = ["leave_blocks_out"]
 
@@ -65,7 +65,8 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
     total, n_max = s.rows.shape
     width = p + s.y.shape[-1]
     out = s.r.new_full((len(ridges), total, n_blocks, p, s.y.shape[-1]), math.nan)
-    free = None if ridge_connection else unpenalised_columns(d, s.r.device)[keep]
+    free = ridge_exemptions(d, ridge_connection, s.r.device)
+    free = None if free is None else free[keep]
     # chunks of bins bound the memory of the per-block sums (F of them per bin)
     for sel in _wls._chunks(total, n_max * width * s.r.dtype.itemsize * 4):
         sums, counts = _block_sums(s, sel, block, n_blocks, delta_max)  # (b, F, C, C), (b, F)

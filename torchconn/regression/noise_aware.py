@@ -53,7 +53,7 @@ from .connection import (
     _blocks,
     _connection_fit,
     connection_regression,
-    unpenalised_columns,
+    ridge_exemptions,
 )
 from .tied import _lag_correlations, _window_correlation, cycle_tangent, tie_connection_derivative
 from .tube import TubeRegression, _auto_window, _auto_windows
@@ -1092,7 +1092,7 @@ def noise_aware_regression(
     def correction(gram: Tensor, sel) -> Tensor:
         return eiv_correction(gram, var_delta[sel], var_rate[sel])
 
-    free = None if ridge_connection else unpenalised_columns(d, s.r.device)
+    free = ridge_exemptions(d, ridge_connection, s.r.device)
     sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge, min_samples=None,
                      max_condition=None, on_ill_conditioned=on_ill_conditioned,
                      correction=correction, unpenalised=free)

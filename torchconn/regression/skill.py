@@ -47,7 +47,7 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_G
            "regression_view", "cross_validate", "checked_terms", "few_cycles",
            "phase_average_orders", "unchecked_choice",
            "select_complexity", "skill", "with_phase_average", "with_intercept_orders",
-           "baseline_orders", "model_intercept_orders"]
+           "baseline_orders", "model_intercept_orders", "nested_list"]
 
 #: the body-velocity components, in the order of the last axis of ξ
 COMPONENTS = ("v_x", "v_y", "omega")
@@ -142,10 +142,10 @@ class Skill:
                 "held-out check: some phase bins cannot be fitted when one block of whole "
                 "cycles is left out, at this or any simpler complexity, so the model cannot "
                 f"be checked on this short recording; {', '.join(choice.phase_averaged_names())}"
-                " are predicted by the phase-averaged velocity of the training data (the rows "
-                "of b̂, Â and ∂Â/∂r of the unchecked trials are 0: not estimated from this "
-                "recording); record more cycles", PoorHeldOutSkillWarning,
-                stacklevel=stacklevel)
+                " are predicted by the phase-averaged velocity of the training data (predict() "
+                "and forecast_model_: rows of b̂, Â and ∂Â/∂r 0 in the unchecked trials; "
+                "model_ keeps the given complexity's estimates, unchecked); record more cycles",
+                PoorHeldOutSkillWarning, stacklevel=stacklevel)
             return
         if bool(self.unscored.any()):
             warnings.warn(
@@ -160,18 +160,21 @@ class Skill:
             if reduced:
                 warnings.warn(
                     f"the offset terms b̂ and ∂Â/∂r did not improve the held-out prediction of "
-                    f"{', '.join(reduced)} beyond the connection Â alone, so their rows are 0 "
-                    "(not estimated from this recording; Â is kept); record more cycles, or "
-                    "cycles that leave the gait further, to estimate them",
+                    f"{', '.join(reduced)} beyond the connection Â alone, so the forecasting "
+                    "model (predict(), forecast_model_) sets their rows to 0 and keeps Â; "
+                    "model_ keeps them as estimated; record more cycles, or cycles that leave "
+                    "the gait further, to estimate them",
                     PoorHeldOutSkillWarning, stacklevel=stacklevel)
             if fallback:
                 warnings.warn(
                     f"the shape terms do not predict held-out cycles of {', '.join(fallback)} "
-                    "better than their phase-averaged velocity, so the model predicts "
+                    "better than their phase-averaged velocity, so the forecasting model "
+                    "(predict(), forecast_model_) predicts "
                     f"{'it' if len(fallback) == 1 else 'them'} by the phase-averaged velocity "
-                    "of the training data: the rows of b̂, Â and ∂Â/∂r for "
-                    f"{', '.join(fallback)} are 0, not estimated from this recording; record "
-                    "more cycles to estimate them", PoorHeldOutSkillWarning,
+                    "of the training data: its rows of b̂, Â and ∂Â/∂r for "
+                    f"{', '.join(fallback)} are 0; model_ keeps them as estimated, though they "
+                    "did not beat it held out; record more cycles to estimate them",
+                    PoorHeldOutSkillWarning,
                     stacklevel=stacklevel)
             return
         names = [n for n, w in zip(COMPONENTS, worse.tolist(), strict=True) if w]
@@ -194,8 +197,9 @@ class ComplexityChoice:
         scores: ``(n_bins, fourier_order, ridge, loss)`` of every candidate.
         phase_averaged: nested tuples of bools shaped ``(..., 3)`` (the model's batch dims,
             components ``v_x, v_y, ω``): True where the component is predicted by the
-            phase-averaged velocity of the training data, its shape terms set to 0, because
-            they did not beat it on held-out cycles (:data:`FALLBACK_Z`).
+            phase-averaged velocity of the training data, its shape terms set to 0 in the
+            forecasting model (``ConnectionEstimator.forecast_model_``; ``model_`` keeps
+            them), because they did not beat it on held-out cycles (:data:`FALLBACK_Z`).
         connection_only: likewise: True where the component keeps ``ĉ`` and its row of
             ``Â`` but its rows of ``b̂`` and ``∂Â/∂r`` are set to 0, because the connection
             alone beat the phase average on held-out cycles and those terms did not clearly
@@ -910,6 +914,12 @@ def _choose_terms(gaps: Tensor, gaps_conn: Tensor, short: Tensor | bool
     conn_only = torch.where(short, ~keep & conn,
                             ~fallback & _lower_by(diff_conn - diff, OFFSET_TERMS_Z))
     return fallback, conn_only
+
+
+def nested_list(mask: tuple) -> list:
+    """A nested tuple of bools (:attr:`ComplexityChoice.phase_averaged`, ...) as nested lists
+    (JSON)."""
+    return [nested_list(v) for v in mask] if isinstance(mask, tuple) else mask
 
 
 def _nested_tuple(mask: Tensor) -> tuple:

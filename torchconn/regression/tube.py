@@ -116,6 +116,9 @@ class TubeRegression(Regression):
             is better for ``Â`` wherever the complexity is chosen (README "The ridge and Â")
             but predicts v_x on the later cycles of short recordings worse (losses to the
             phase average 6 -> 18 of 360 components), so it is not the default.
+            :class:`~torchconn.regression.estimator.ConnectionEstimator` chooses and fits its
+            connection (``model_``) with False wherever the ridge it chose would penalise
+            ``A``, and keeps the penalised fit for its forecasts (``forecast_model_``).
         on_ill_conditioned: what to do with bins with too few samples or a rank-deficient
             design: raise, warn, or regularise (``"ridge"``).
         metric: estimate the dissipation metric: None (default) when the data carry a power
