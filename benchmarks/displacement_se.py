@@ -25,6 +25,7 @@ import warnings
 
 import numpy as np
 import torch
+from metric_accuracy import gait_for
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
 from torchconn.phase.fourier import fit_fourier
@@ -32,8 +33,6 @@ from torchconn.physics.gaits.evaluate import evaluate
 from torchconn.physics.gaits.gait import as_gait
 from torchconn.regression.gait_prediction import predict_gait, sample_models
 from torchconn.regression.tube import TubeRegression
-
-from metric_accuracy import gait_for
 
 HELD_OUT = [11000, 12000, 13000, 14000, 15000, 16000, 17000, 18000]
 
@@ -64,7 +63,7 @@ def one_set(system, gait, exact, seed: int, omega: float, regression, draws: int
     drawn = sample_models(model, draws).A(model.bins.phase)  # (S, M, 3, d)
     for k, (est, true, dr) in enumerate(zip(tangent_parts(model, model.bins.A),
                                             tangent_parts(model, truth),
-                                            tangent_parts(model, drawn))):
+                                            tangent_parts(model, drawn), strict=True)):
         name = ("along", "across")[k]
         out[name] = low_harmonics(model, est - true, 1 + k).numpy()
         out[name + "_sd"] = low_harmonics(model, dr, 1 + k).std(0).numpy()
