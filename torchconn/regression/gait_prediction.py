@@ -18,6 +18,14 @@ their standard errors -- correlated between neighbouring bins as much as their p
 overlap -- the Fourier series refitted, and the prediction repeated per draw
 (:func:`sample_models`). How far ``γ'`` leaves the data is measured in radii of the tube the data
 covered (``meta["tube_rms"]``, the per-joint RMS of the recorded offsets ``δ``).
+
+How honest the displacement's standard error is (README, "Is the displacement standard error
+honest?"): against the exact displacement, mean ``(e/se)²`` 0.36-3.0 on held-out 3- and 5-link
+recordings (1 = honest), 0.2 on the 9-link. Under noise it is too wide: ``Â`` is drawn entry by
+entry, as uncertain along the cycle's tangent as across it, while its error along the tangent
+(what the displacement integrates) is smaller. Without noise the ``x`` displacement of the
+3-link gait is 1.6 % short, a bias of ``Â`` (the tube's second order, the sampling interval)
+that the draws do not hold.
 """
 
 from __future__ import annotations
