@@ -51,13 +51,13 @@ from accuracy import SAMPLES_PER_CYCLE, connection_errors, gait_for, recording  
 from torchconn import ConnectionEstimator, NLinkSwimmer, NoiseAwareRegression  # noqa: E402
 from torchconn.evaluation.models import clean_trajectory, reference_models  # noqa: E402
 from torchconn.phase.fourier import fit_fourier  # noqa: E402
+from torchconn.physics.gaits import FourierGait, evaluate  # noqa: E402
 from torchconn.regression import skill  # noqa: E402
 from torchconn.regression.noise_aware import (  # noqa: E402
     _BIAS_HARMONIC_Z,
     _SERIES_SHRINK,
     _harmonic_noise,
 )
-from torchconn.physics.gaits import FourierGait, evaluate  # noqa: E402
 
 
 def errors(links: int, gait: str, omega: float, seed: int, trials: int, cycles: int):
@@ -95,6 +95,23 @@ def _resolved_kept(est, model):
     return dataclasses.replace(model, A=dataclasses.replace(plain.A, coeffs=plain.A.coeffs * coeff))
 
 
+def _per_entry(est, model):
+    """The default's factor ``1 − 0.5 noise / power`` per entry of ``Â`` and harmonic: the
+    entry's power ``a_k² + b_k²`` against its share of the harmonic's noise expectation (the
+    noise model's, split over the entries as their bins' mean squared standard errors)."""
+    plain = _plain(model)
+    _, noise = _harmonic_noise(plain.A, model.bins.A_se, model.meta["window"],
+                               est.regression_.kernel)  # (K + 1,)
+    level = model.bins.A_se.square().nanmean(0)  # (3, d)
+    noise = noise[:, None, None] * level / level.sum()  # (K + 1, 3, d)
+    c = plain.A.coeffs  # (2K + 1, 3, d)
+    power = torch.cat([c[:1].square(), c[1::2].square() + c[2::2].square()])
+    factor = (1 - _SERIES_SHRINK * noise / power.clamp_min(1e-300)).clamp(0, 1)
+    factor[0] = 1
+    coeff = torch.cat([factor[:1], factor[1:].repeat_interleave(2, 0)])
+    return dataclasses.replace(model, A=dataclasses.replace(plain.A, coeffs=c * coeff))
+
+
 def _refit_cb(est, model):
     """The shrunk ``Â`` with ``ĉ`` and ``b̂`` refitted to it (the guess that the bins' ``Â``
     errors are offset by the jointly fitted ``ĉ`` and ``b̂``): in each of the model's bins
@@ -105,7 +122,7 @@ def _refit_cb(est, model):
     view = skill.regression_view(est.trajectory_, est.regression_, model, pool=True)
     delta, delta_dot = model.offsets(view.phase, view.r, view.r_dot)  # (N, d)
     change = -((model.A(view.phase) - plain.A(view.phase)) @ delta_dot.unsqueeze(-1))[..., 0]
-    m, d = model.bins.phase.shape[-1], delta.shape[-1]
+    m = model.bins.phase.shape[-1]
     index = torch.round(view.phase % (2 * math.pi) / (2 * math.pi / m)).long() % m  # (N,)
     x = torch.cat([torch.ones_like(delta[:, :1]), delta], -1)  # (N, 1 + d)
     coef = []
@@ -124,7 +141,8 @@ def _refit_cb(est, model):
 
 #: models beside plain and shrunk that ``--variants`` adds to each row: name -> (fitted
 #: estimator, shrunk model) -> model
-VARIANTS = {"resolved_kept": _resolved_kept, "refit_cb": _refit_cb}
+VARIANTS = {"resolved_kept": _resolved_kept, "refit_cb": _refit_cb, "per_entry": _per_entry,
+            "resolved_kept_refit_cb": lambda est, model: _refit_cb(est, _resolved_kept(est, model))}
 
 
 def prediction_errors(est, model, links: int, gait, test, clean_train, clean_test) -> dict:
@@ -201,7 +219,7 @@ def pooled_table(args) -> int:
               + " ; ".join(", ".join(f"{v:+.1f}" for v in x.tolist()) for x in dr2) + " | "
               + " ".join(worse) + " |", flush=True)
         if args.verbose:
-            for s, r in zip(args.seeds, runs):
+            for s, r in zip(args.seeds, runs, strict=True):
                 print(f"  seed {s}: " + "; ".join(
                     f"{n}: " + ", ".join(f"{k} {r[n][k]:.4g}" for k in keys)
                     + " R2 " + ",".join(f"{v:.4f}" for v in r[n]["R2"].tolist())
