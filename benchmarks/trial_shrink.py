@@ -142,7 +142,8 @@ def _refit_cb(est, model):
 #: models beside plain and shrunk that ``--variants`` adds to each row: name -> (fitted
 #: estimator, shrunk model) -> model
 VARIANTS = {"resolved_kept": _resolved_kept, "refit_cb": _refit_cb, "per_entry": _per_entry,
-            "resolved_kept_refit_cb": lambda est, model: _refit_cb(est, _resolved_kept(est, model))}
+            "resolved_kept_refit_cb": lambda est, model: _refit_cb(est, _resolved_kept(est, model)),
+            "per_entry_refit_cb": lambda est, model: _refit_cb(est, _per_entry(est, model))}
 
 
 def prediction_errors(est, model, links: int, gait, test, clean_train, clean_test) -> dict:
