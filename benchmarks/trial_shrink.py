@@ -95,10 +95,11 @@ def _resolved_kept(est, model):
     return dataclasses.replace(model, A=dataclasses.replace(plain.A, coeffs=plain.A.coeffs * coeff))
 
 
-def _per_entry(est, model):
+def _per_entry(est, model, rows: bool = False):
     """The default's factor ``1 − 0.5 noise / power`` per entry of ``Â`` and harmonic: the
     entry's power ``a_k² + b_k²`` against its share of the harmonic's noise expectation (the
-    noise model's, split over the entries as their bins' mean squared standard errors)."""
+    noise model's, split over the entries as their bins' mean squared standard errors).
+    ``rows``: per row of ``Â`` (``x, y, θ``; power and noise summed over the joints)."""
     plain = _plain(model)
     _, noise = _harmonic_noise(plain.A, model.bins.A_se, model.meta["window"],
                                est.regression_.kernel)  # (K + 1,)
@@ -106,6 +107,8 @@ def _per_entry(est, model):
     noise = noise[:, None, None] * level / level.sum()  # (K + 1, 3, d)
     c = plain.A.coeffs  # (2K + 1, 3, d)
     power = torch.cat([c[:1].square(), c[1::2].square() + c[2::2].square()])
+    if rows:
+        noise, power = (x.sum(-1, keepdim=True) for x in (noise, power))  # (K + 1, 3, 1)
     factor = (1 - _SERIES_SHRINK * noise / power.clamp_min(1e-300)).clamp(0, 1)
     factor[0] = 1
     coeff = torch.cat([factor[:1], factor[1:].repeat_interleave(2, 0)])
@@ -142,6 +145,7 @@ def _refit_cb(est, model):
 #: models beside plain and shrunk that ``--variants`` adds to each row: name -> (fitted
 #: estimator, shrunk model) -> model
 VARIANTS = {"resolved_kept": _resolved_kept, "refit_cb": _refit_cb, "per_entry": _per_entry,
+            "per_row": lambda est, model: _per_entry(est, model, rows=True),
             "resolved_kept_refit_cb": lambda est, model: _refit_cb(est, _resolved_kept(est, model)),
             "per_entry_refit_cb": lambda est, model: _refit_cb(est, _per_entry(est, model))}
 
