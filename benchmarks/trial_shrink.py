@@ -15,7 +15,8 @@ Run by hand (about a minute on one core for the defaults)::
 
 ``--pooled``: ``--trials`` trials of ``--cycles`` cycles at 126 samples per cycle pooled into one
 model (the default ``NoiseAwareRegression()``, whose pooled series of ``Â`` is shrunk,
-``resolved_harmonics=True``), plain → shrunk on the same bins, per cell (mean over seeds):
+``resolved_harmonics=True``, one factor per harmonic and row), plain → shrunk on the same
+bins, per cell (mean over seeds):
 
 - ``Â``: as above;
 - ``disp gait`` / ``disp cycle``: the model's one-cycle net displacement
@@ -95,6 +96,18 @@ def _resolved_kept(est, model):
     return dataclasses.replace(model, A=dataclasses.replace(plain.A, coeffs=plain.A.coeffs * coeff))
 
 
+def _per_harmonic(est, model):
+    """The shrink before it was per row: one factor ``1 − 0.5 noise / power`` per harmonic,
+    power and noise summed over all entries of ``Â``."""
+    plain = _plain(model)
+    power, noise = _harmonic_noise(plain.A, model.bins.A_se, model.meta["window"],
+                                   est.regression_.kernel)  # (K + 1,)
+    factor = (1 - _SERIES_SHRINK * noise / power.clamp_min(1e-300)).clamp(0, 1)
+    factor[0] = 1
+    coeff = torch.cat([factor[:1], factor[1:].repeat_interleave(2)])[:, None, None]
+    return dataclasses.replace(model, A=dataclasses.replace(plain.A, coeffs=plain.A.coeffs * coeff))
+
+
 def _per_entry(est, model, rows: bool = False):
     """The default's factor ``1 − 0.5 noise / power`` per entry of ``Â`` and harmonic: the
     entry's power ``a_k² + b_k²`` against its share of the harmonic's noise expectation (the
@@ -145,7 +158,8 @@ def _refit_cb(est, model):
 #: models beside plain and shrunk that ``--variants`` adds to each row: name -> (fitted
 #: estimator, shrunk model) -> model
 VARIANTS = {"resolved_kept": _resolved_kept, "refit_cb": _refit_cb, "per_entry": _per_entry,
-            "per_row": lambda est, model: _per_entry(est, model, rows=True),
+            "per_row": lambda est, model: _per_entry(est, model, rows=True),  # the default now
+            "per_harmonic": _per_harmonic,
             "resolved_kept_refit_cb": lambda est, model: _refit_cb(est, _resolved_kept(est, model)),
             "per_entry_refit_cb": lambda est, model: _refit_cb(est, _per_entry(est, model))}
 
