@@ -1183,14 +1183,15 @@ def _model_target(one: _OneSampleOffsets, h: int, kernel: str, a_series,
     return y.unfold(-2, h, 1) @ interval_weights(h, kernel, dtype=y.dtype, device=y.device)
 
 
-def _harmonic_noise(series, se: Tensor, window: float | Tensor, kernel: str
-                    ) -> tuple[Tensor, Tensor]:
+def _harmonic_noise(series, se: Tensor, window: float | Tensor, kernel: str, *,
+                    rows: bool = False) -> tuple[Tensor, Tensor]:
     """Power and noise ``(..., K + 1)`` of each harmonic of a per-bin estimate's Fourier
     series ``series`` (of ``Â (..., M, 3, d)`` or ``∂Â/∂r``, standard errors ``se``): the
     squares of its coefficients (cosine and sine) summed over the entries, and their
     expectation from the bins' noise alone. ``window``, ``kernel``: the bins' half-width (a
     number, or ``(...)`` per batch element: each element's noise from its own window only)
-    and kernel.
+    and kernel. ``rows``: each row's own (the first value dim: ``x, y, θ`` of ``Â``), summed
+    over the entries of the row, ``(..., 3, K + 1)``.
 
     The bins' errors are taken as ``se`` with the correlation ``ρ(s)`` of two windows ``s``
     spacings apart (``∫K(x)K(x − s)dx / ∫K²`` of the bins' kernel), so harmonic ``k ≥ 1``
@@ -1208,8 +1209,16 @@ def _harmonic_noise(series, se: Tensor, window: float | Tensor, kernel: str
     nu = (rho * torch.cos(2 * math.pi * k[:, None] * lags / m)).sum(-1).clamp_min(0)
     nu = nu * torch.where(k > 0, 4.0, 1.0) / m
     values = tuple(range(-series.value_ndim, 0))
-    level = se.square().nanmean(-1 - series.value_ndim).sum(values)  # (...)
     c = series.coeffs  # (..., 2K+1, *value_shape)
+    if rows:
+        rest = values[1:]  # the entries of a row
+        level = se.square().nanmean(-1 - series.value_ndim)
+        level = level.sum(rest) if rest else level  # (..., R)
+        square = c.square().sum(rest) if rest else c.square()  # (..., 2K+1, R)
+        square = square.movedim(-2, -1)  # (..., R, 2K+1)
+        power = torch.cat([square[..., :1], square[..., 1::2] + square[..., 2::2]], -1)
+        return power, level.unsqueeze(-1) * nu.unsqueeze(-2).to(power)  # (..., R, K + 1)
+    level = se.square().nanmean(-1 - series.value_ndim).sum(values)  # (...)
     power = c.square().sum(values)  # (..., 2K+1)
     power = torch.cat([power[..., :1], power[..., 1::2] + power[..., 2::2]], -1)
     return power, level.unsqueeze(-1) * nu.to(power)
@@ -1599,7 +1608,10 @@ _BIAS_HARMONIC_SCALE = 2.0
 #: 0.006 points), keeping the harmonics above 1 / 1.5 / 2 times their noise 67.7 / 62.9 / 60.0 %.
 #: It gains most on short recordings, and the convergence slope of ``Â``'s error with cycles
 #: (3-link circle, ω = 0.002, seeds 0-1, 10 / 30 / 90 cycles; issue 12 asks ≤ −0.35) was −0.43
-#: with all harmonics, −0.34 with c = 1, −0.32 keeping those above 2, −0.37 with c = 0.5
+#: with all harmonics, −0.34 with c = 1, −0.32 keeping those above 2, −0.37 with c = 0.5.
+#: The factor was one per harmonic (power and noise summed over all entries) until the pooled
+#: 9-link's displacement over a cycle was found 1.5-2.6x further off with it than with the
+#: plain series; it is now one per harmonic and row of ``Â`` (same c, not re-tuned; README)
 _SERIES_SHRINK = 0.5
 
 
@@ -1719,9 +1731,10 @@ class NoiseAwareRegression(TubeRegression):
             ``joint_covariance`` and ``tie_derivative`` (a ``ValueError`` otherwise: there
             would be nothing to weigh by).
         resolved_harmonics: the series of ``Â`` shrinks each harmonic (up to
-            ``fourier_order``) by how far its power stands out of the bins' noise
-            (:data:`_SERIES_SHRINK`, :func:`_harmonic_noise`; the factors are
-            ``meta["A_harmonic_factors"]``, ``(..., K + 1)`` unpooled). True: pooled fits only;
+            ``fourier_order``) of each row (``x, y, θ``) by how far its power stands out of
+            the bins' noise (:data:`_SERIES_SHRINK`, :func:`_harmonic_noise`; the factors are
+            ``meta["A_harmonic_factors"]``, ``(K + 1, 3)``, ``(..., K + 1, 3)`` unpooled).
+            True: pooled fits only;
             ``"per_trial"``: also each element of an unpooled fit, by its own bins' noise and
             window (README: ``Â`` closer to the truth in every one-trial cell measured, but the
             default sweep's predicted motion worse on the 9-link, so not the default); False:
@@ -2063,22 +2076,27 @@ class NoiseAwareRegression(TubeRegression):
         return tied, "tied"
 
     def _a_series(self, centres: Tensor, fit: ConnectionFit, window, pool: bool):
-        """``Â``'s series, each harmonic shrunk by how far it stands out of the bins' noise
-        when pooled (``resolved_harmonics``; unpooled with ``"per_trial"``, each element by its
-        own bins' noise at its own window, ``window (...)``), and the meta entries that record
-        it."""
+        """``Â``'s series, each harmonic of each row shrunk by how far it stands out of the
+        bins' noise when pooled (``resolved_harmonics``; unpooled with ``"per_trial"``, each
+        element by its own bins' noise at its own window, ``window (...)``), and the meta
+        entries that record it."""
         series, meta = super()._a_series(centres, fit, window, pool)
         if not self.resolved_harmonics or (not pool and self.resolved_harmonics != "per_trial"):
             return series, meta
         window = window if pool else torch.as_tensor(window, dtype=torch.float64,
                                                      device=centres.device)
-        power, noise = _harmonic_noise(series, fit.se_A, window, self.kernel)  # (..., K + 1)
+        # each row (x, y, θ) by its own power: one factor for the whole harmonic would shrink
+        # the rows where it stands far out of its noise (the fundamental that carries the
+        # gait's displacement) as much as those where it is noise (README)
+        power, noise = _harmonic_noise(series, fit.se_A, window, self.kernel,
+                                       rows=True)  # (..., 3, K + 1)
         factor = (1 - _SERIES_SHRINK * noise / power.clamp_min(1e-300)).clamp(0, 1)
         factor[..., 0] = 1  # the mean
-        coeff_factor = torch.cat([factor[..., :1], factor[..., 1:].repeat_interleave(2, -1)], -1)
-        shrunk = series.coeffs * coeff_factor.reshape(coeff_factor.shape + (1, 1))
-        factors = ([round(float(f), 4) for f in factor.reshape(-1)] if pool
-                   else (torch.round(factor * 1e4) / 1e4).tolist())  # (..., K + 1) unpooled
+        factor = factor.transpose(-1, -2)  # (..., K + 1, 3)
+        coeff_factor = torch.cat([factor[..., :1, :],
+                                  factor[..., 1:, :].repeat_interleave(2, -2)], -2)
+        shrunk = series.coeffs * coeff_factor.unsqueeze(-1)
+        factors = (torch.round(factor * 1e4) / 1e4).tolist()  # (..., K + 1, 3)
         return dataclasses.replace(series, coeffs=shrunk), {"A_harmonic_factors": factors}
 
     def _window(self, phase: Tensor, d: int, ratio: float) -> float:
