@@ -861,7 +861,7 @@ def select_complexities(traj: Trajectory, cycle: LimitCycle,
     """
     settings = [_ridge_setting(reg) for reg in regressions]
     first = regressions[0]
-    for reg, setting in zip(regressions[1:], settings[1:]):
+    for reg, setting in zip(regressions[1:], settings[1:], strict=True):
         if first != (reg if None in (setting, settings[0])
                      else reg.replace(ridge_connection=settings[0])):
             raise ValueError("select_complexities: the regressions may differ only in "
