@@ -348,6 +348,47 @@ def test_the_connection_is_unpenalised_and_whole_while_forecasts_keep_the_ridge(
     assert loaded.meta["forecast_model"] == est.model_.meta["forecast_model"]
 
 
+def test_one_search_chooses_both_complexities_fitting_no_ridge_0_candidate_twice(
+        short_and_later, monkeypatch):
+    """Seed 7 (4 cycles): :func:`skill.select_complexities` of the regression with Â
+    penalised and without makes the choices :func:`skill.select_complexity` makes for each
+    alone (equal scores, bins, order, ridge and masks), while each ``(n_bins, order)`` gets
+    one whole-recording fit and one held-out pass per setting, and ridge 0 (which penalises
+    nothing) is solved once: in the first setting's pass."""
+    train, _ = short_and_later
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IllConditionedBinWarning)
+        warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
+        est = ConnectionEstimator(complexity="fixed").fit(train)
+    traj, cycle = est.trajectory_, est.limit_cycle_
+    both = (NoiseAwareRegression(), NoiseAwareRegression(ridge_connection=False))
+    alone = [skill.select_complexity(traj, cycle, reg, pool=False) for reg in both]
+    passes, fits = [], []
+    held_out, fit = skill.held_out_coefficients, NoiseAwareRegression.fit
+
+    def counted_pass(traj, regression, *args, ridges=None, **kwargs):
+        if type(regression) is NoiseAwareRegression:  # not the smoothed blend's own pass
+            passes.append((regression.n_bins, regression.ridge_connection, tuple(ridges)))
+        return held_out(traj, regression, *args, ridges=ridges, **kwargs)
+
+    def counted_fit(self, *args, **kwargs):
+        fits.append(self.n_bins)
+        return fit(self, *args, **kwargs)
+
+    monkeypatch.setattr(skill, "held_out_coefficients", counted_pass)
+    monkeypatch.setattr(NoiseAwareRegression, "fit", counted_fit)
+    together = skill.select_complexities(traj, cycle, both, pool=False)
+    assert together == alone
+    assert alone[0][1].ridge > 0 and alone[0][1] != alone[1][1]  # the choices differ here
+    grid = [n_bins for n_bins, _ in skill.COMPLEXITY_GRID]
+    assert sorted(fits) == sorted(grid)
+    assert sorted(passes) == sorted([(n, True, skill.RIDGE_GRID) for n in grid]
+                                    + [(n, False, skill.RIDGE_GRID[1:]) for n in grid])
+    with pytest.raises(ValueError, match="differ only in ridge_connection"):
+        skill.select_complexities(traj, cycle, (both[0], both[1].replace(n_bins=96)),
+                                  pool=False)
+
+
 def test_the_terms_choice_presumes_the_simpler_model_on_few_cycles_only():
     """_choose_terms on made-up per-cycle gaps: the same evidence chooses the connection alone
     on a short recording (4 held-out cycles) and keeps the full model on a longer one (12)."""

@@ -244,11 +244,10 @@ class ConnectionEstimator:
             )
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
-        regression, choice = self.regression, None
+        regression, choice, free = self.regression, None, None
         with _cycles_in_errors(traj, regression, self.complexity):
             if self.complexity == "cv":
-                regression, choice = skill.select_complexity(traj, cycle, regression,
-                                                             pool=self.pool, n_folds=self._folds())
+                regression, choice, free = self._select(traj, cycle)
             cache = {}  # the tied metric's coefficients, shared with a refit
             try:
                 model = _fit(regression, traj, cycle, self.pool, cache)
@@ -267,8 +266,7 @@ class ConnectionEstimator:
                     (held.worse_than_phase_average | held.unscored[..., None] | ~full).any()))):
                 # the given complexity overfits this recording: choose it by held-out error
                 try:
-                    chosen, choice = skill.select_complexity(
-                        traj, cycle, regression, pool=self.pool, n_folds=self._folds())
+                    chosen, choice, free = self._select(traj, cycle)
                 except ValueError:
                     if model is None:
                         raise
@@ -296,9 +294,9 @@ class ConnectionEstimator:
             # one order for both, so that score() finds them tied exactly
             self.phase_average_ = skill.padded(self.phase_average_, forecast.c.order)
         # the connection: every row as estimated, and where the complexity was chosen among
-        # ridges that penalise Â, chosen again with Â unpenalised (README "The connection
-        # delivered, the forecasts kept")
-        unshrunk = self._unshrunk(traj, cycle, regression, choice)
+        # ridges that penalise Â, chosen in the same search with Â unpenalised (README "The
+        # connection delivered, the forecasts kept")
+        unshrunk = _unshrunk(regression, free)
         connection = model if unshrunk is None else _fit(unshrunk, traj, cycle, self.pool,
                                                           cache)
         self.trajectory_ = traj
@@ -320,28 +318,25 @@ class ConnectionEstimator:
     def _folds(self) -> int:
         return self.held_out_folds or 3
 
-    def _unshrunk(self, traj: Trajectory, cycle: LimitCycle, regression: Regression,
-                  choice: "skill.ComplexityChoice | None") -> Regression | None:
-        """The regression of the connection ``model_`` where it is not the forecasts'
-        ``regression``: where the complexity was chosen by held-out error among ridges that
-        penalise ``Â`` (the given regression's ``ridge_connection``; whichever ridge won,
-        0 included), the complexity chosen the same way with ``Â`` unpenalised
-        (:func:`~torchconn.regression.skill.select_complexity` of ``ridge_connection=False``:
-        the bins, order and ridge whose unshrunk connection predicts held-out cycles best,
-        not those whose shrunk one did); None where that is ``regression``'s own fit (nothing
-        chosen, ``Â`` never penalised, or the same complexity without a ridge)."""
-        if (choice is None or not choice.checked
-                or not getattr(self.regression, "ridge_connection", False)):
-            return None
-        free = self.regression.replace(ridge_connection=False)
-        try:
-            free = skill.select_complexity(traj, cycle, free, pool=self.pool,
-                                           n_folds=self._folds())[0]
-        except ValueError:  # no candidate scored (the forecasts' choice did): its complexity
-            free = regression.replace(ridge_connection=False)
-        if free.ridge == 0 and free.replace(ridge_connection=True) == regression:
-            return None
-        return free
+    def _select(self, traj: Trajectory, cycle: LimitCycle
+                ) -> tuple[Regression, "skill.ComplexityChoice", Regression | None]:
+        """The given regression with the complexity chosen by held-out error
+        (:func:`~torchconn.regression.skill.select_complexity`), its choice, and, where its
+        ridges penalise ``Â`` (``ridge_connection``; whichever ridge wins, 0 included), the
+        connection's regression: the complexity chosen the same way with ``Â`` unpenalised
+        (the bins, order and ridge whose unshrunk connection predicts held-out cycles best,
+        not those whose shrunk one did; where no such candidate scores, the forecasts'
+        complexity), else None. One search serves both: the candidates they fit alike (ridge
+        0) are fitted once (:func:`~torchconn.regression.skill.select_complexities`)."""
+        given = (self.regression,)
+        if getattr(self.regression, "ridge_connection", False):
+            given += (self.regression.replace(ridge_connection=False),)
+        (chosen, choice), *free = skill.select_complexities(
+            traj, cycle, given, pool=self.pool, n_folds=self._folds())
+        if not free:
+            return chosen, choice, None
+        return chosen, choice, (chosen.replace(ridge_connection=False) if free[0] is None
+                                else free[0][0])
 
     def _held_out(self, traj, cycle, regression, model, choice=None, terms=False
                   ) -> tuple[skill.Skill | None, Tensor]:
@@ -756,3 +751,13 @@ class EstimatorSettings:
         warnings.warn("EstimatorSettings is deprecated: build the estimator from its stages, or "
                       "from a settings table with estimator_from_settings", DeprecationWarning,
                       stacklevel=3)
+
+
+def _unshrunk(regression: Regression, free: Regression | None) -> Regression | None:
+    """The regression of the connection ``model_`` where it is not the forecasts'
+    ``regression``: ``free`` (:meth:`ConnectionEstimator._select`'s, ``Â`` unpenalised);
+    None where that is ``regression``'s own fit (nothing chosen, ``Â`` never penalised, or
+    the same complexity without a ridge)."""
+    if free is None or (free.ridge == 0 and free.replace(ridge_connection=True) == regression):
+        return None
+    return free

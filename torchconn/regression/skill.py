@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -829,28 +830,96 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
 
     Returns ``regression`` with the chosen fields and the :class:`ComplexityChoice`.
 
+    :func:`select_complexities` makes this choice for several settings of ``ridge_connection``
+    at once, sharing every candidate the settings fit alike.
+
     Raises:
         ValueError: no candidate can be fitted on ``n_folds − 1`` blocks (too few cycles),
             naming the first failure.
     """
-    scores, failed, fallbacks = [], [], {}
+    return select_complexities(traj, cycle, (regression,), pool=pool, n_folds=n_folds,
+                               fallback_ok=fallback_ok, ridges=ridges)[0]
+
+
+def select_complexities(traj: Trajectory, cycle: LimitCycle,
+                        regressions: Sequence[Regression], *, pool: bool, n_folds: int = 3,
+                        fallback_ok: bool = True, ridges: tuple[float, ...] = RIDGE_GRID
+                        ) -> list[tuple[Regression, ComplexityChoice] | None]:
+    """:func:`select_complexity` of each of ``regressions``, which differ at most in
+    ``ridge_connection`` (e.g. ``Â`` penalised and not), in one search: a candidate the
+    settings fit alike (every one of ridge 0, which penalises nothing) is fitted and scored
+    once, and every ``(n_bins, fourier_order)`` fits its whole-recording model once. Each
+    choice is the one :func:`select_complexity` makes for its regression alone.
+
+    Returns one ``(regression, choice)`` per regression; None for a later one none of whose
+    candidates could be fitted.
+
+    Raises:
+        ValueError: ``regressions`` differ in more than ``ridge_connection``, or no candidate
+            of the first can be fitted on ``n_folds − 1`` blocks (too few cycles), naming the
+            first failure.
+    """
+    settings = [_ridge_setting(reg) for reg in regressions]
+    first = regressions[0]
+    for reg, setting in zip(regressions[1:], settings[1:], strict=True):
+        if first != (reg if None in (setting, settings[0])
+                     else reg.replace(ridge_connection=settings[0])):
+            raise ValueError("select_complexities: the regressions may differ only in "
+                             f"ridge_connection, got {first!r} and {reg!r}")
+    # a ridge-0 candidate penalises nothing: the first setting's fit serves every setting
+    penalties = list(dict.fromkeys(_penalty(ridge, setting, settings[0])
+                                   for setting in settings for ridge in ridges))
     short = few_cycles(traj.phase, pool)
+    results = {}  # (n_bins, order, ridge, setting) -> (loss, fallback, conn) or the failure
     for n_bins, order in COMPLEXITY_GRID:
-        for ridge, (s, gaps), (s_conn, gaps_conn) in _candidate_skills(
-                traj, cycle, regression, n_bins, order, pool, n_folds, failed, ridges):
-            # the models must beat the baseline on the held-out data as observed (the noisy
-            # inputs); the candidates are ranked by the noise-corrected loss
-            if fallback_ok:
-                fallback, conn = _choose_terms(gaps, gaps_conn, short)
-            else:
-                fallback = conn = torch.zeros_like(s.r2, dtype=torch.bool)
-            loss = torch.where(fallback, 1 - s.r2_phase_average,
-                               torch.where(conn, 1 - s_conn.r2, 1 - s.r2))
-            scores.append((n_bins, order, ridge, float(loss.mean())))
-            fallbacks[n_bins, order, ridge] = fallback, conn
-    if not scores:
-        raise ValueError(f"select_complexity: no candidate could be fitted on {n_folds - 1} of "
-                         f"{n_folds} blocks of cycles ({failed[0]}); record more cycles")
+        for penalty, result in _candidate_skills(traj, cycle, first, n_bins, order, pool,
+                                                 n_folds, penalties).items():
+            if not isinstance(result, str):
+                (s, gaps), (s_conn, gaps_conn) = result
+                # the models must beat the baseline on the held-out data as observed (the
+                # noisy inputs); the candidates are ranked by the noise-corrected loss
+                if fallback_ok:
+                    fallback, conn = _choose_terms(gaps, gaps_conn, short)
+                else:
+                    fallback = conn = torch.zeros_like(s.r2, dtype=torch.bool)
+                loss = torch.where(fallback, 1 - s.r2_phase_average,
+                                   torch.where(conn, 1 - s_conn.r2, 1 - s.r2))
+                result = float(loss.mean()), fallback, conn
+            results[(n_bins, order) + penalty] = result
+    out = []
+    for k, (reg, setting) in enumerate(zip(regressions, settings, strict=True)):
+        own = [(n_bins, order, ridge, results[n_bins, order,
+                                              *_penalty(ridge, setting, settings[0])])
+               for n_bins, order in COMPLEXITY_GRID for ridge in ridges]
+        scores = [row[:3] + (row[3][0],) for row in own if not isinstance(row[3], str)]
+        if not scores:
+            if k:
+                out.append(None)
+                continue
+            failed = next(row[3] for row in own)
+            raise ValueError(f"select_complexity: no candidate could be fitted on {n_folds - 1} "
+                             f"of {n_folds} blocks of cycles ({failed}); record more cycles")
+        out.append(_chosen(reg, scores, {row[:3]: row[3][1:] for row in own
+                                         if not isinstance(row[3], str)}))
+    return out
+
+
+def _ridge_setting(regression: Regression) -> bool | None:
+    """The regression's ``ridge_connection`` (None: it has no such setting)."""
+    return getattr(regression, "ridge_connection", None)
+
+
+def _penalty(ridge: float, setting: bool | None, first: bool | None) -> tuple[float, bool | None]:
+    """The candidate ``(ridge, ridge_connection)`` that fits ``ridge`` under ``setting``: at
+    ridge 0 the first setting's (no column is penalised, so every setting fits alike)."""
+    return float(ridge), first if ridge == 0 else setting
+
+
+def _chosen(regression: Regression, scores: list, fallbacks: dict
+            ) -> tuple[Regression, ComplexityChoice]:
+    """:func:`select_complexity`'s choice among ``scores`` ``[(n_bins, order, ridge, loss)]``
+    (``fallbacks[n_bins, order, ridge]``: the components' phase-average and connection-only
+    masks)."""
     best = min(scores, key=lambda row: row[3])
     plain = [row for row in scores if row[2] == 0]
     if plain and best[2] > 0:
@@ -928,49 +997,57 @@ def _nested_tuple(mask: Tensor) -> tuple:
     return tup(mask.tolist())
 
 
-def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, failed, ridges):
-    """``(ridge, (Skill, gaps), (Skill, gaps))`` of every ridge in ``ridges`` at
-    ``(n_bins, order)``: of the model as fitted and of the connection alone
+def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, penalties
+                      ) -> dict:
+    """Per candidate ``(ridge, ridge_connection)`` of ``penalties`` at ``(n_bins, order)``:
+    ``((Skill, gaps), (Skill, gaps))`` of the model as fitted and of the connection alone
     (:func:`_variant_scores`), the noise-corrected skill and per held-out cycle the observed
-    SSE minus the phase average's; a candidate that cannot be fitted is left out and named in
-    ``failed``."""
+    SSE minus the phase average's; or, for a candidate that cannot be fitted, the failure (a
+    string). One whole-recording fit serves every candidate, and one pass over the data every
+    ridge of a setting."""
     base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
+
+    def penalised(setting):
+        return base if setting is None else base.replace(ridge_connection=setting)
+
+    out = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         if not downdates(base):
-            out = []
-            for ridge in ridges:
+            for ridge, setting in penalties:
                 try:
-                    out.append((ridge, *_held_out_skills(
-                        traj, cycle, base.replace(ridge=ridge), pool=pool, n_folds=n_folds,
-                        noise_corrected=True, model=None, refit=True, variants=True)))
+                    out[ridge, setting] = _held_out_skills(
+                        traj, cycle, penalised(setting).replace(ridge=ridge), pool=pool,
+                        n_folds=n_folds, noise_corrected=True, model=None, refit=True,
+                        variants=True)
                 except ValueError as err:
-                    failed.append(f"{n_bins} bins, ridge {ridge:g}: {err}")
+                    out[ridge, setting] = f"{n_bins} bins, ridge {ridge:g}: {err}"
             return out
         try:
             # the whole recording's window, interval and noise level (bins that need a
             # ridge are NaN here and do not matter: only the fits without each block count)
             model = base.replace(on_ill_conditioned="warn").fit(traj, cycle, pool=pool)
         except ValueError as err:
-            failed.append(f"{n_bins} bins: {err}")
-            return []
+            return dict.fromkeys(penalties, f"{n_bins} bins: {err}")
     unflat = regression_view(traj, base, model, pool=pool, flatten=False)
     view = regression_view(traj, base, model, pool=pool)
     fold = _cycle_blocks(unflat.phase, n_folds)
-    coef = held_out_coefficients(traj, base, model, unflat, fold, n_folds, pool=pool,
-                                 ridges=ridges)
-    coef = blended_held_out(traj, base, model, coef, n_folds, pool=pool, ridges=ridges)
     flat_fold = pool_batch(fold, 0) if pool else fold
     cycles = _cycle_index(unflat.phase, pool)
-    out = []
-    for k, ridge in enumerate(ridges):
-        models = [with_coefficients(model, coef[k, f], order) for f in range(n_folds)]
-        full, conn = _variant_scores(models, view, flat_fold, base, traj.dt, pool, cycles)
-        if bool(full[0].unscored.any()):
-            failed.append(f"{n_bins} bins, ridge {ridge:g}: some bins cannot be fitted "
-                          f"without one of the {n_folds} blocks of cycles")
-            continue
-        out.append((ridge, full, conn))
+    for setting in dict.fromkeys(setting for _, setting in penalties):
+        ridges = tuple(ridge for ridge, s in penalties if s == setting)
+        reg = penalised(setting)
+        coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool,
+                                     ridges=ridges)
+        coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool, ridges=ridges)
+        for k, ridge in enumerate(ridges):
+            models = [with_coefficients(model, coef[k, f], order) for f in range(n_folds)]
+            full, conn = _variant_scores(models, view, flat_fold, base, traj.dt, pool, cycles)
+            if bool(full[0].unscored.any()):
+                out[ridge, setting] = (f"{n_bins} bins, ridge {ridge:g}: some bins cannot be "
+                                       f"fitted without one of the {n_folds} blocks of cycles")
+            else:
+                out[ridge, setting] = full, conn
     return out
 
 
