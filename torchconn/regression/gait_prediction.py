@@ -174,17 +174,14 @@ def sample_models(
                         device=values.device)
         noisy = moved + se_m * (z @ chol.mT)
         noisy = noisy.movedim(-1, len(model.batch_shape) + 1)  # (S, ..., M, *v)
-        if bias is not None:
-            # one systematic error, shared by every entry and bin (its covariance is the
-            # outer product of the bias, not a diagonal), scaled by one Gaussian per draw
-            s = torch.randn((n_draws,) + (1,) * bias.ndim, generator=gen, dtype=values.dtype,
-                            device=values.device)
-            noisy = noisy + s * torch.nan_to_num(bias)
-        if extra_bias is not None:
-            # an allowance beyond se (the tube's second-order bias), drawn like the bias
-            s = torch.randn((n_draws,) + (1,) * extra_bias.ndim, generator=gen,
-                            dtype=values.dtype, device=values.device)
-            noisy = noisy + s * torch.nan_to_num(extra_bias)
+        # the bias, and an allowance beyond se (the tube's second-order bias): each one
+        # systematic error, shared by every entry and bin (its covariance is the outer
+        # product of the error, not a diagonal), scaled by one Gaussian per draw
+        for shared in (bias, extra_bias):
+            if shared is not None:
+                s = torch.randn((n_draws,) + (1,) * shared.ndim, generator=gen,
+                                dtype=values.dtype, device=values.device)
+                noisy = noisy + s * torch.nan_to_num(shared)
         for factor in factors:
             # noise correlated across entries and bins (the fit's, the bias estimate's): F z
             batch = factor.shape[:len(model.batch_shape)]
