@@ -334,11 +334,14 @@ def main(argv: list[str] | None = None) -> int:
         if forecast is not None:
             differs, own = model.meta["forecast_model"], model.meta["settings"]["regression"]
             ridge = differs["A_ridge"]
+            # the connection's own setting, not the forecasts' ridge: its complexity may have
+            # been chosen with A unpenalised where the forecasts' ridge is 0
+            free = own.get("ridge_connection", True) is False
             print("model.npz, connection.csv and the plots: the connection, every row estimated "
                   f"({own['n_bins']} bins, Fourier order {own['fourier_order']}, ridge "
                   f"{own['ridge']:g}" + (" on b and dA/dr only, A unpenalised: the complexity "
                                          "chosen held out with A unpenalised)"
-                                         if ridge else ")"))
+                                         if free else ")"))
             how = [f"{differs['n_bins']} bins, Fourier order {differs['fourier_order']}"] + (
                 [f"A shrunk by the ridge {ridge:g}"] if ridge else []) + (
                 ["rows 0 where named above"]
