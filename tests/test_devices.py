@@ -12,6 +12,9 @@ CUDA inputs. The commands' ``--device`` flag is checked here too.
 
 from __future__ import annotations
 
+import os
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -160,11 +163,31 @@ def test_cpu_and_cuda_diagnoses_of_the_same_data_agree():
     assert ((gpu.fits["final"].p.cpu() - p).abs() <= 1e-3 * se).all()
 
 
+#: torch.optim makes its own scalars (Adam's ``step`` counter, ``torch.tensor(0.0)`` in torch
+#: 2.11) on the default device, which torch keeps on the CPU by design: not ours to move
+_TORCH_OPTIM = os.sep + os.path.join("torch", "optim") + os.sep
+
+
+def _called_from_torch_optim() -> bool:
+    """Whether the torch call being checked was made by code in ``torch/optim``: the first
+    caller frame outside torch's own dispatch (this mode, ``torch.overrides``, the device
+    context)."""
+    frame = sys._getframe(2)  # the caller of __torch_function__
+    while frame is not None and frame.f_code.co_filename.endswith(
+            (os.path.join("torch", "overrides.py"), os.path.join("torch", "utils", "_device.py"))):
+        frame = frame.f_back
+    return frame is not None and _TORCH_OPTIM in frame.f_code.co_filename
+
+
 class _NoDefaultDevice(TorchFunctionMode):
-    """Fails on any tensor made on the default device (``meta`` here) or via NumPy."""
+    """Fails on any tensor made on the default device (``meta`` here) or via NumPy, but for
+    torch.optim's own scalars, which are made on the CPU as torch's real default would."""
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = dict(kwargs or {})
+        if _called_from_torch_optim():
+            with torch.device("cpu"):  # where torch keeps them with the default device unset
+                return func(*args, **kwargs)
         if func is torch.from_numpy:
             raise AssertionError("torch.from_numpy on the pipeline's path (a CPU round trip)")
         if (func in (torch.as_tensor, torch.asarray) and args
@@ -176,6 +199,19 @@ class _NoDefaultDevice(TorchFunctionMode):
                 raise AssertionError(f"{getattr(func, '__name__', func)} made a tensor on the "
                                      "default device instead of the inputs' device")
         return out
+
+
+def test_the_guard_spares_torch_optims_own_scalars_only():
+    # torch 2.11's Adam makes its step counter with torch.tensor(0.0) and no device; the same
+    # call from any other file must still fail the guard
+    code = "def make():\n    return torch.tensor(0.0)\n"
+    optim, ours = {"torch": torch}, {"torch": torch}
+    exec(compile(code, os.path.join(os.sep, "site", "torch", "optim", "adam.py"), "exec"), optim)
+    exec(compile(code, os.path.join(os.sep, "src", "torchconn", "fit.py"), "exec"), ours)
+    with torch.device("meta"), _NoDefaultDevice():
+        assert optim["make"]().device.type == "cpu"
+        with pytest.raises(AssertionError, match="default device"):
+            ours["make"]()
 
 
 def test_no_tensor_is_made_on_the_default_device():

@@ -32,6 +32,11 @@ Design = Callable[[Tensor, Tensor, Tensor], list[Tensor]]
 #: cache between forming XᵀWX and the residuals (measured faster than one huge chunk; 8 MiB
 #: measured faster than 16 and than 2 on a loaded machine, one thread).
 _CHUNK_BYTES = 8 * 2**20
+#: the same budget on an accelerator (CUDA): there a chunk is a few kernel launches, and a
+#: chunk of a few bins leaves the device idle between launches, so chunks are as large as
+#: memory allows (a 9-link fit of 40 trials x 30 cycles made ~4,000 chunks of 8 MiB, each
+#: ~40 launches and host syncs). Per-bin results do not depend on the chunking.
+_DEVICE_CHUNK_BYTES = 1 * 2**30
 #: the "ridge" policy regularises ill-conditioned bins down to this condition number
 _RIDGE_TARGET_CONDITION = 1e8
 #: errors-in-variables guard: the subtracted noise part may remove at most this fraction of the
@@ -244,9 +249,11 @@ def ridge_cholesky(gram: Tensor, lam: Tensor | float, unpenalised: Tensor | None
     gram.diagonal(dim1=-2, dim2=-1).add_(torch.where(dead, 1.0, penalty))
     chol, info = torch.linalg.cholesky_ex(gram)
     failed = info != 0
-    if bool(failed.any()):
-        eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
-        chol = torch.where(failed[:, None, None], eye, chol)
+    # unconditionally (asking whether any failed would stop a GPU for a host sync), and in
+    # place: the factor's column-major layout is kept (the triangular solves' rounding
+    # depends on it)
+    eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
+    chol.copy_(torch.where(failed[..., None, None], eye, chol))
     return chol, failed, dead, d2
 
 
@@ -399,7 +406,8 @@ def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: T
     p = sol.coef.shape[-2]
     total, n_max = s.rows.shape
     out = []
-    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 8):
+    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 8,
+                       s.r.device):
         xy, w = _chunk_design(s, sel, design, delta_max)
         xw, yw = xy[..., :p], xy[..., p:]
         a_inv, kappa = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel,
@@ -448,7 +456,8 @@ def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, column
     p = sol.coef.shape[-2]
     total, n_max = s.rows.shape
     out = []
-    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 2):
+    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 2,
+                       s.r.device):
         xy, w = _chunk_design(s, sel, design, delta_max)
         xw = xy[..., :p]
         a_inv, _ = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel,
@@ -510,8 +519,11 @@ def _solve_bins(s: BinnedSamples, sel_list, design: Design, lam: Tensor, delta_m
     return [torch.cat(parts) for parts in zip(*outs, strict=True)]
 
 
-def _chunks(n_bins_total: int, bytes_per_bin: int) -> list[slice]:
-    step = max(1, _CHUNK_BYTES // max(bytes_per_bin, 1))
+def _chunks(n_bins_total: int, bytes_per_bin: int, device: torch.device) -> list[slice]:
+    """Slices of ``n_bins_total`` bins of ``bytes_per_bin`` working memory each, at most
+    :data:`_CHUNK_BYTES` per slice on the CPU and :data:`_DEVICE_CHUNK_BYTES` elsewhere."""
+    budget = _CHUNK_BYTES if torch.device(device).type == "cpu" else _DEVICE_CHUNK_BYTES
+    step = max(1, budget // max(bytes_per_bin, 1))
     return [slice(i, min(i + step, n_bins_total)) for i in range(0, n_bins_total, step)]
 
 
@@ -565,7 +577,7 @@ def solve(s: BinnedSamples, design: Design, n_coef: int, *, fn: str, delta_max, 
     dtype, dev = s.r.dtype, s.r.device
     lam = torch.full((total,), float(ridge), dtype=dtype, device=dev)
     binary = bool(((s.weight == 0) | (s.weight == 1)).all())
-    chunks = _chunks(total, n_max * (p + s.r.shape[-1]) * dtype.itemsize * 2)
+    chunks = _chunks(total, n_max * (p + s.r.shape[-1]) * dtype.itemsize * 2, dev)
 
     if total == 0 or n_max == 0:
         beta = torch.full((total, p, s.y.shape[-1]), torch.nan, dtype=dtype, device=dev)

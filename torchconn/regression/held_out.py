@@ -64,11 +64,13 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
         min_samples = keep.numel() + 5
     total, n_max = s.rows.shape
     width = p + s.y.shape[-1]
-    out = s.r.new_full((len(ridges), total, n_blocks, p, s.y.shape[-1]), math.nan)
+    n_ridges = len(ridges)
+    lams = torch.tensor([float(lam) for lam in ridges], dtype=s.r.dtype, device=s.r.device)
+    out = s.r.new_zeros((n_ridges, total, n_blocks, p, s.y.shape[-1]))  # columns not kept: 0
     free = ridge_exemptions(d, ridge_connection, s.r.device)
     free = None if free is None else free[keep]
     # chunks of bins bound the memory of the per-block sums (F of them per bin)
-    for sel in _wls._chunks(total, n_max * width * s.r.dtype.itemsize * 4):
+    for sel in _wls._chunks(total, n_max * width * s.r.dtype.itemsize * 4, s.r.device):
         sums, counts = _block_sums(s, sel, block, n_blocks, delta_max)  # (b, F, C, C), (b, F)
         full = sums.sum(1, keepdim=True) - sums  # every block but f
         gram, rhs = full[..., :p, :p], full[..., :p, p:]
@@ -80,12 +82,11 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
             flat, _ = _wls._guarded_correction(flat, correction(flat, bins))
         flat = flat[:, keep][:, :, keep]
         rhs = rhs.reshape(b * n_blocks, p, -1)[:, keep]
-        for k, lam in enumerate(ridges):
-            beta = _solve(flat, rhs, float(lam), free).reshape(b, n_blocks, keep.numel(), -1)
-            beta = beta.masked_fill(few[..., None, None], math.nan)
-            full_beta = beta.new_zeros((b, n_blocks, p, beta.shape[-1]))
-            full_beta[:, :, keep] = beta
-            out[k, sel] = full_beta
+        # every ridge in one batch: (R·b·F, P', P')
+        beta = _solve(flat.repeat(n_ridges, 1, 1), rhs.repeat(n_ridges, 1, 1),
+                      lams.repeat_interleave(flat.shape[0]), free)
+        beta = beta.reshape(n_ridges, b, n_blocks, keep.numel(), -1)
+        out[:, sel, :, keep] = beta.masked_fill(few[..., None, None], math.nan)
     return out
 
 
@@ -113,13 +114,13 @@ def _block_sums(s: _wls.BinnedSamples, sel: slice, block: Tensor, n_blocks: int,
     return part.mT @ part, count
 
 
-def _solve(gram: Tensor, rhs: Tensor, lam: float, unpenalised: Tensor | None) -> Tensor:
-    """``β`` of the normal equations ``(b, P, P) β = (b, P, K)`` with the solver's ridge
-    ``lam``, not on the columns ``unpenalised (P,)`` (None: on every column but the intercept)
-    (:func:`~torchconn.regression._wls.ridge_cholesky`); NaN where a column has no data
-    or the matrix is not positive definite."""
-    chol, failed, dead, _ = _wls.ridge_cholesky(gram.clone(), lam, unpenalised)
-    bad = failed | dead.any(-1) if lam == 0 else failed
+def _solve(gram: Tensor, rhs: Tensor, lam: Tensor, unpenalised: Tensor | None) -> Tensor:
+    """``β`` of the normal equations ``(b, P, P) β = (b, P, K)`` with the solver's ridges
+    ``lam (b,)``, not on the columns ``unpenalised (P,)`` (None: on every column but the
+    intercept) (:func:`~torchconn.regression._wls.ridge_cholesky`); NaN where a column has no
+    data (without a ridge) or the matrix is not positive definite. ``gram`` is overwritten."""
+    chol, failed, dead, _ = _wls.ridge_cholesky(gram, lam, unpenalised)
+    bad = failed | (dead.any(-1) & (lam == 0))
     beta = torch.cholesky_solve(rhs, chol)
     beta = beta.masked_fill(bad[:, None, None], math.nan)
     return beta.masked_fill(dead.unsqueeze(-1), math.nan)

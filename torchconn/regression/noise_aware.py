@@ -982,11 +982,16 @@ def eiv_correction(gram: Tensor, var_delta: Tensor, var_rate: Tensor) -> Tensor:
     out[:, 1:1 + d, 1:1 + d] = torch.diag_embed(w[:, None] * sb)
     out[:, 1 + d:1 + 2 * d, 1 + d:1 + 2 * d] = torch.diag_embed(w[:, None] * sa)
     # [δ_k, z_ij] = S_rate_i sb_k [j = k];  [δ̇_k, z_ij] = S_delta_j sa_k [i = k]
-    dz = torch.einsum("bi,bk,jk->bkij", s_rate, sb, eye).flatten(-2)
-    rz = torch.einsum("bj,bk,ik->bkij", s_delta, sa, eye).flatten(-2)
-    zz = (torch.einsum("bik,bj,jl->bijkl", q_rate, sb, eye)
-          + torch.einsum("bjl,bi,ik->bijkl", q_delta, sa, eye)
-          - torch.einsum("b,bi,bj,ik,jl->bijkl", w, sa, sb, eye, eye)).reshape(-1, d * d, d * d)
+    # (broadcast products, not einsum: with opt_einsum installed every >= 3-operand einsum
+    # searches a contraction path in Python; the factors multiply left to right as torch's
+    # own einsum does, so the values are the same bit for bit)
+    dz = ((sb[:, :, None, None] * s_rate[:, None, :, None]) * eye[:, None, :]).flatten(-2)
+    rz = ((sa[:, :, None, None] * s_delta[:, None, None, :]) * eye[:, :, None]).flatten(-2)
+    # indices b, i, j, k, l
+    zz = ((q_rate[:, :, None, :, None] * sb[:, None, :, None, None]) * eye[:, None, :]
+          + (q_delta[:, None, :, None, :] * sa[:, :, None, None, None]) * eye[:, None, :, None]
+          - (((w[:, None, None] * sa[:, :, None]) * sb[:, None, :])[..., None, None]
+             * eye[:, None, :, None]) * eye[:, None, :]).reshape(-1, d * d, d * d)
     z0 = 1 + 2 * d
     out[:, 1:1 + d, z0:] = dz
     out[:, 1 + d:z0, z0:] = rz
