@@ -95,7 +95,9 @@ def results(est) -> dict[str, torch.Tensor]:
         elif depth < 4 and hasattr(obj, "__dict__") and not isinstance(obj, type):
             for k, v in vars(obj).items():
                 walk(f"{name}.{k}", v, depth + 1)
-        elif isinstance(obj, (int, float, str, bool)) or obj is None:
+        elif isinstance(obj, (int, float, bool)):
+            out[name] = torch.tensor(float(obj), dtype=torch.float64)
+        elif isinstance(obj, str) or obj is None:
             out[name] = torch.tensor(zlib.crc32(str(obj).encode()), dtype=torch.float64)
 
     for attr in ("model_", "forecast_model_", "limit_cycle_", "complexity_", "held_out_skill_",
