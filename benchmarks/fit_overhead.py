@@ -2,8 +2,8 @@
 
 On a GPU the default fit is bound by how many small torch calls it makes (each a kernel launch,
 some a device-to-host sync), not by its arithmetic. This prints, per recording (``--links``-link
-swimmer on its reference gait (others: a circle of radius 0.7), ``--trials`` trials x ``--cycles`` cycles, motion-capture noise
-``--omega``, simulated with seeds ``0..trials-1``):
+swimmer on its reference gait (other link counts: a circle of radius 0.7), ``--trials`` trials x
+``--cycles`` cycles, motion-capture noise ``--omega``, simulated with seeds ``0..trials-1``):
 
 - ``torch calls``: every torch function and tensor method the fit calls (counted by a
   ``TorchFunctionMode``, in a separate fit from the timed one);
@@ -35,13 +35,12 @@ import zlib
 
 import numpy as np
 import torch
+from accuracy import circle_gait  # beside this file
 from torch.overrides import TorchFunctionMode
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
 from torchconn.physics.gaits import reference_gait
 from torchconn.regression import _wls
-
-from accuracy import circle_gait  # beside this file
 
 #: the calls that bring a value to the host (a GPU->CPU synchronisation on CUDA)
 SYNCS = {"item", "tolist", "nonzero", "__bool__", "__int__", "__float__", "__index__",
