@@ -463,6 +463,37 @@ def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, column
     return torch.cat(out)
 
 
+def held_gain(s: BinnedSamples, design: Design, sol: Solution, free: int, held: slice, *,
+              delta_max=None, correction: Correction | None = None,
+              unpenalised: Tensor | None = None) -> Tensor:
+    """How the first ``free`` coefficients of every bin of a :func:`solve` result ``sol`` move
+    when the coefficients ``held`` are set to other values and held there, the rest
+    re-estimated: ``G = −N_ff⁻¹ N_fh`` ``(B·M, free, len(held))``, so that the least-squares
+    solution with ``β_h`` held at ``β̂_h + Δ`` is ``β̂_f + G Δ`` (each output alike; the
+    columns neither free nor held stay at their estimates).
+
+    ``N`` is the bin's normal matrix as :func:`solve` made it: ``XᵀWX`` less the fit's share
+    ``κ`` (``sol.eiv_scale``) of ``correction``, with its ridge (``sol.ridge``, the
+    convention of :func:`ridge_cholesky`). The free columns come first, so the leading block
+    of ``N``'s Cholesky factor ``L`` is that of ``N_ff`` and ``G = −L_ffᵀ⁻¹ L_hfᵀ``. One pass
+    over the design, no solve of the full system. NaN where the bin's coefficients are NaN."""
+    p = sol.coef.shape[-2]
+    total, n_max = s.rows.shape
+    out = []
+    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 2):
+        xy, _ = _chunk_design(s, sel, design, delta_max)
+        xw = xy[..., :p]
+        gram = xw.mT @ xw
+        if correction is not None:
+            gram = gram - sol.eiv_scale[sel][:, None, None] * correction(gram, sel)
+        chol, _, _, _ = ridge_cholesky(gram, sol.ridge[sel], unpenalised)
+        gain = -torch.linalg.solve_triangular(chol[:, :free, :free].mT,
+                                              chol[:, held, :free].mT, upper=True)
+        bad = ~torch.isfinite(sol.coef[sel]).all(-2).all(-1)
+        out.append(torch.where(bad[:, None, None], torch.nan, gain))
+    return torch.cat(out)
+
+
 def _row_sum(x: Tensor, dim: int) -> Tensor:
     """Sum over the bins' padded rows in sample order (a running sum): trailing zero rows leave
     it unchanged, so a bin's sum does not depend on how far the batch pads its rows (torch's
