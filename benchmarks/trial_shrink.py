@@ -15,8 +15,9 @@ Run by hand (about a minute on one core for the defaults)::
 
 ``--pooled``: ``--trials`` trials of ``--cycles`` cycles at 126 samples per cycle pooled into one
 model (the default ``NoiseAwareRegression()``, whose pooled series of ``Â`` is shrunk,
-``resolved_harmonics=True``, one factor per harmonic and row), plain → shrunk on the same
-bins, per cell (mean over seeds):
+``resolved_harmonics=True``, one factor per harmonic and row, with ``ĉ`` and ``b̂`` re-estimated
+to it, ``refit_offsets=True``), plain → shrunk on the same bins (plain: the plain series of the
+bins' ``Â``, ``ĉ`` and ``b̂``), per cell (mean over seeds):
 
 - ``Â``: as above;
 - ``disp gait`` / ``disp cycle``: the model's one-cycle net displacement
@@ -26,7 +27,8 @@ bins, per cell (mean over seeds):
 - ``x train`` / ``x test``: the sweep's error, RMS of the predicted ``v_x`` (``predict`` on the
   smoothed samples: ``ĉ + b̂δ + Âδ̇ + …``) against the swimmer on the noise-free samples
   (:func:`torchconn.evaluation.models.reference_models`), on the training cycles and on
-  ``--test-cycles`` later cycles of the same trials (phased by the fitted phaser), mean over trials;
+  ``--test-cycles`` later cycles of the same trials (phased by the fitted phaser), mean over
+  trials; ``y test`` / ``ω test``: the same for ``v_y`` and ``ω`` on the later cycles;
 - ``ΔR²``: held-out R² (``est.score`` on the later cycles, against the observed velocity the
   way the regression sees it), shrunk − plain per component ``v_x, v_y, ω``.
 
@@ -59,6 +61,7 @@ from torchconn.regression.noise_aware import (  # noqa: E402
     _SERIES_SHRINK,
     _harmonic_noise,
 )
+from torchconn.regression.tube import intercept_series  # noqa: E402
 
 
 def errors(links: int, gait: str, omega: float, seed: int, trials: int, cycles: int):
@@ -77,12 +80,26 @@ def errors(links: int, gait: str, omega: float, seed: int, trials: int, cycles: 
 
 
 def _plain(model):
-    """``model`` with the plain order-``K`` least-squares series of its bins' ``Â``."""
-    return dataclasses.replace(model, A=fit_fourier(model.bins.phase, model.bins.A,
-                                                    model.A.order, value_ndim=2))
+    """``model`` with the plain order-``K`` least-squares series of its bins' ``Â``, and
+    ``ĉ``, ``b̂`` as fitted (:func:`_no_refit`)."""
+    return dataclasses.replace(_no_refit(model), A=fit_fourier(model.bins.phase, model.bins.A,
+                                                               model.A.order, value_ndim=2))
+
+
+def _no_refit(model):
+    """``model`` with the series of its bins' ``ĉ`` and ``b̂`` as fitted, not re-estimated to
+    the shrunk ``Â`` (``NoiseAwareRegression(refit_offsets=False)``, the previous default; the
+    same series bit for bit)."""
+    centres, order = model.bins.phase, model.b.order
+    c_order = model.meta.get("intercept_order")
+    c_order = None if c_order is None else torch.as_tensor(c_order)
+    return dataclasses.replace(
+        model, c=intercept_series(centres, model.bins.c, order, c_order),
+        b=fit_fourier(centres, model.bins.b, order, value_ndim=2))
 
 
 def _resolved_kept(est, model):
+    model = _no_refit(model)
     """The shrink left off the harmonics that stand out of their noise: factor 1 where the
     plain harmonic's power is at least ``_BIAS_HARMONIC_Z`` (4) times its noise expectation
     (the bias correction's "resolved"), ``1 − 0.5 noise / power`` (the default's) below."""
@@ -105,7 +122,7 @@ def _per_harmonic(est, model):
     factor = (1 - _SERIES_SHRINK * noise / power.clamp_min(1e-300)).clamp(0, 1)
     factor[0] = 1
     coeff = torch.cat([factor[:1], factor[1:].repeat_interleave(2)])[:, None, None]
-    return dataclasses.replace(model, A=dataclasses.replace(plain.A, coeffs=plain.A.coeffs * coeff))
+    return dataclasses.replace(plain, A=dataclasses.replace(plain.A, coeffs=plain.A.coeffs * coeff))
 
 
 def _per_entry(est, model, rows: bool = False):
@@ -125,16 +142,17 @@ def _per_entry(est, model, rows: bool = False):
     factor = (1 - _SERIES_SHRINK * noise / power.clamp_min(1e-300)).clamp(0, 1)
     factor[0] = 1
     coeff = torch.cat([factor[:1], factor[1:].repeat_interleave(2, 0)])
-    return dataclasses.replace(model, A=dataclasses.replace(plain.A, coeffs=c * coeff))
+    return dataclasses.replace(plain, A=dataclasses.replace(plain.A, coeffs=c * coeff))
 
 
 def _refit_cb(est, model):
     """The shrunk ``Â`` with ``ĉ`` and ``b̂`` refitted to it (the guess that the bins' ``Â``
-    errors are offset by the jointly fitted ``ĉ`` and ``b̂``): in each of the model's bins
+    errors are offset by the jointly fitted ``ĉ`` and ``b̂``; poolshrink's prototype of the
+    default ``refit_offsets``, on the model without it): in each of the model's bins
     (hard bins at the centres), the change ``−ΔÂ(φ) δ̇`` the shrink makes to the prediction on
     the samples the regression saw is regressed on ``[1, δ]`` (ordinary least squares), and the
     series of those coefficients are added to ``ĉ`` and ``b̂``."""
-    plain = _plain(model)
+    model, plain = _no_refit(model), _plain(model)
     view = skill.regression_view(est.trajectory_, est.regression_, model, pool=True)
     delta, delta_dot = model.offsets(view.phase, view.r, view.r_dot)  # (N, d)
     change = -((model.A(view.phase) - plain.A(view.phase)) @ delta_dot.unsqueeze(-1))[..., 0]
@@ -157,8 +175,10 @@ def _refit_cb(est, model):
 
 #: models beside plain and shrunk that ``--variants`` adds to each row: name -> (fitted
 #: estimator, shrunk model) -> model
-VARIANTS = {"resolved_kept": _resolved_kept, "refit_cb": _refit_cb, "per_entry": _per_entry,
-            "per_row": lambda est, model: _per_entry(est, model, rows=True),  # the default now
+VARIANTS = {"no_refit": lambda est, model: _no_refit(model),  # the previous default
+            "resolved_kept": _resolved_kept, "refit_cb": _refit_cb, "per_entry": _per_entry,
+            # the default's shrink, recomputed, without the refit (as no_refit)
+            "per_row": lambda est, model: _per_entry(est, model, rows=True),
             "per_harmonic": _per_harmonic,
             "resolved_kept_refit_cb": lambda est, model: _refit_cb(est, _resolved_kept(est, model)),
             "per_entry_refit_cb": lambda est, model: _refit_cb(est, _per_entry(est, model))}
@@ -178,17 +198,20 @@ def prediction_errors(est, model, links: int, gait, test, clean_train, clean_tes
     out = {"A": float(connection_errors(model, links)["A"]),
            "disp_gait": float((d_gait - xy).norm() / xy.norm()),
            "disp_cycle": float((d_own - xy_own).norm() / xy_own.norm())}
-    fitted = est.model_
-    try:
-        est.model_ = model
+    fitted = est.model_, est.forecast_model_
+    try:  # (score() predicts with forecast_model_: the same object here, complexity "fixed")
+        est.model_ = est.forecast_model_ = model
         for key, traj, clean in (("x_train", est.trajectory_, clean_train),
                                  ("x_test", est._prepare_new(test, None), clean_test)):
             preds = reference_models(system, model, traj, clean)
-            err = (preds["data_driven"] - preds["ground_truth"])[..., 0]  # (trials, T)
-            out[key] = float(err.square().nanmean(-1).sqrt().mean())
+            err = preds["data_driven"] - preds["ground_truth"]  # (trials, T, 3)
+            rms = err.square().nanmean(-2).sqrt().mean(0)  # (3,)
+            out[key] = float(rms[0])
+            if key == "x_test":
+                out["y_test"], out["w_test"] = float(rms[1]), float(rms[2])
         out["R2"] = est.score(test).r2.reshape(-1)
     finally:
-        est.model_ = fitted
+        est.model_, est.forecast_model_ = fitted
     return out
 
 
@@ -215,21 +238,21 @@ def pooled(links: int, gait: str, omega: float, seed: int, trials: int, cycles: 
 
 def pooled_table(args) -> int:
     names = ["plain", "shrunk", *args.variants]
-    keys = ("A", "disp_gait", "disp_cycle", "x_train", "x_test")
+    keys = ("A", "disp_gait", "disp_cycle", "x_train", "x_test", "y_test", "w_test")
     print(f"pooled {args.trials} x {args.cycles} cycles (+{args.test_cycles} held out), seeds "
           f"{args.seeds}; % for Â and displacement, 1e-4 for x RMS; " + " → ".join(names))
-    print("| links | gait | ω | Â | disp gait | disp cycle | x train | x test | ΔR² ×1e4 "
-          "(v_x, v_y, ω) | worse (disp gait, x test) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| links | gait | ω | Â | disp gait | disp cycle | x train | x test | y test | ω test "
+          "| ΔR² ×1e4 (v_x, v_y, ω) | worse (disp gait, x test) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for links, gait, omega in itertools.product(args.links, args.gaits, args.omega):
         runs = [pooled(links, gait, omega, s, args.trials, args.cycles, args.test_cycles,
                        tuple(args.variants)) for s in args.seeds]
         cols = []
         for key in keys:
-            unit = 1e4 if key.startswith("x_") else 100
+            rms = key.endswith(("_train", "_test"))
+            unit = 1e4 if rms else 100
             means = [unit * sum(r[n][key] for r in runs) / len(runs) for n in names]
-            cols.append(" → ".join(f"{m:.3f}" if key.startswith("x_") else f"{m:.2f}"
-                                   for m in means))
+            cols.append(" → ".join(f"{m:.3f}" if rms else f"{m:.2f}" for m in means))
         dr2 = [1e4 * torch.stack([r[n]["R2"] - r["plain"]["R2"] for r in runs]).mean(0)
                for n in names[1:]]
         worse = [f"{sum(r[n][k] > r['plain'][k] for r in runs)}/{len(runs)}"

@@ -1989,3 +1989,99 @@ def test_the_ridge_can_leave_the_connection_unpenalised():
     chol_all, _, _, _ = _wls.ridge_cholesky(gram.clone()[None], lam)  # every column
     shrunk = torch.cholesky_solve(rhs[None], chol_all)[0]
     assert float(shrunk[a].norm()) < 0.8 * float(beta_true[a].norm())
+
+
+@pytest.mark.parametrize(("noise", "ridge"), [(0.0, 0.0), (0.0, 0.3), (0.02, 0.0)])
+def test_offsets_refitted_with_a_held_are_the_bins_least_squares_at_that_a(noise, ridge):
+    """offset_gain / offsets_at: ĉ and b̂ of each bin re-estimated with Â moved by ΔÂ and held
+    there (∂Â/∂r held at its estimate) are the bin's least-squares solution at that Â,
+    computed here independently per bin in numpy from the bin's weighted samples: without
+    noise and ridge by np.linalg.lstsq of √w[1, δ] on √w(ξ − Âδ̇ − ∂Â/∂r δ̇⊗δ); with a ridge
+    by lstsq on the rows augmented with √(λ Σw δ_j²) (the solver's penalty on the
+    standardised δ columns); with measurement noise from the corrected normal equations:
+    the noise σ²g_r of δ (g_r the filter's gain) removed from Σwδδᵀ, and from the δ-(δ̇⊗δ)
+    block the part Σwδ̇_i σ²g_r [j = k] it adds, which enters with ∂Â/∂r held (the
+    δ-δ̇ block has none: the two noises are uncorrelated)."""
+    from torchconn.regression.noise_aware import IntervalSamples, offset_gain, offsets_at
+
+    gen = torch.Generator().manual_seed(11)
+    d, n, m = 2, 3000, 12
+    phase = 2 * math.pi * torch.rand(n, generator=gen, dtype=F64)
+    cyc = torch.stack([0.9 * torch.cos(phase), 0.9 * torch.sin(phase)], -1)
+    r = cyc + 0.1 * torch.randn(n, d, generator=gen, dtype=F64)
+    r_dot = torch.stack([-0.9 * torch.sin(phase), 0.9 * torch.cos(phase)], -1) \
+        + 0.3 * torch.randn(n, d, generator=gen, dtype=F64)
+    xi = (torch.randn(n, 3, generator=gen, dtype=F64) * 0.05
+          + r_dot @ torch.randn(d, 3, generator=gen, dtype=F64)
+          + (r * r_dot).sum(-1, keepdim=True) * 0.3)
+    samples = IntervalSamples(phase=phase, r=r, r_dot=r_dot, xi=xi, h=3, dt=0.05)
+    bins = assign_bins(phase, m, window=1.5, kernel="tricube")
+    centres = torch.arange(m, dtype=F64) * (2 * math.pi / m)
+    gamma_m = torch.stack([0.9 * torch.cos(centres), 0.9 * torch.sin(centres)], -1)
+    gamma_dot_m = torch.stack([-0.9 * torch.sin(centres), 0.9 * torch.cos(centres)], -1)
+    var = torch.full((d,), noise**2, dtype=F64)
+    fit = noise_aware_regression(samples, bins, gamma_m, gamma_dot_m, var, ridge=ridge)
+    assert bool((fit.eiv_scale == 1).all())  # (the guard left the correction whole)
+    fit = dataclasses.replace(fit, offset_gain=offset_gain(fit, samples, bins, gamma_m,
+                                                           gamma_dot_m, var))
+    delta_a = 0.2 * torch.randn(m, 3, d, generator=gen, dtype=F64)
+    c, b = offsets_at(fit, delta_a)
+    assert float((c - fit.c).abs().max()) > 1e-3  # (the refit moves them)
+    g_r = samples.noise_gains()[0]
+    for k in range(m):
+        w = bins.weight[k].numpy()
+        idx = bins.index[k].numpy()[w > 0]
+        w = w[w > 0]
+        delta = r[idx].numpy() - gamma_m[k].numpy()
+        delta_dot = r_dot[idx].numpy() - gamma_dot_m[k].numpy()
+        a = (fit.A[k] + delta_a[k]).numpy()  # (3, d)
+        cross = np.einsum("kij,ni,nj->nk", fit.dA[k].numpy(), delta_dot, delta)
+        y = xi[idx].numpy() - delta_dot @ a.T - cross  # (n, 3)
+        x = np.concatenate([np.ones((len(w), 1)), delta], 1)
+        sw = np.sqrt(w)[:, None]
+        if noise:
+            s2 = noise**2 * g_r
+            normal = (x * w[:, None]).T @ x
+            normal[1:, 1:] -= np.diag(w.sum() * s2 * np.ones(d))
+            rhs = (x * w[:, None]).T @ y
+            rate_sum = (w[:, None] * delta_dot).sum(0)  # Σw δ̇_i
+            rhs[1:] += s2 * np.einsum("i,kij->jk", rate_sum, fit.dA[k].numpy())
+            want = np.linalg.solve(normal, rhs)
+        else:
+            xa, ya = x * sw, y * sw
+            if ridge:
+                pen = np.sqrt(ridge * (w[:, None] * delta**2).sum(0))
+                xa = np.concatenate([xa, np.concatenate([np.zeros((d, 1)), np.diag(pen)], 1)])
+                ya = np.concatenate([ya, np.zeros((d, 3))])
+            want = np.linalg.lstsq(xa, ya, rcond=None)[0]  # (1 + d, 3)
+        np.testing.assert_allclose(c[k].numpy(), want[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(b[k].numpy(), want[1:].T, rtol=1e-9, atol=1e-12)
+
+
+def test_a_shrunk_series_gets_its_offsets_refitted_and_nothing_else_moves(clean30):
+    """refit_offsets (default True): where Â's series is shrunk in a pooled fit, ĉ and b̂
+    are re-estimated to it (the bins' least squares, test above); Â, ∂Â/∂r (tied and
+    direct) and the bins' estimates are those of refit_offsets=False bit for bit. Unpooled,
+    only refit_offsets="per_trial" refits the per-trial shrink; the default unpooled fit (no
+    shrink) is the same with every setting."""
+    traj = _recording(0.005, clean=clean30)
+    on, off = (_fit(traj, refit_offsets=r) for r in (True, False))
+    a, b = on.model_, off.model_
+    assert a.meta["offsets_refit"] is True and "offsets_refit" not in b.meta
+    for name in ("A", "dA", "dA_fit"):
+        assert torch.equal(getattr(a, name).coeffs, getattr(b, name).coeffs), name
+    for name in ("c", "b", "A", "dA", "c_se", "b_se"):
+        assert torch.equal(getattr(a.bins, name), getattr(b.bins, name)), name
+    assert not torch.equal(a.c.coeffs, b.c.coeffs) and not torch.equal(a.b.coeffs, b.b.coeffs)
+    prep, cycle = _unpooled_trials([0.005, 0.01])
+    fits = {(h, r): NoiseAwareRegression(metric=False, resolved_harmonics=h, refit_offsets=r)
+            .fit(prep, cycle) for h in (True, "per_trial") for r in ("per_trial", True, False)}
+    for h, r in fits:
+        if (h, r) != ("per_trial", "per_trial"):
+            assert "offsets_refit" not in fits[h, r].meta, (h, r)
+            assert torch.equal(fits[h, r].c.coeffs, fits[h, False].c.coeffs), (h, r)
+            assert torch.equal(fits[h, r].b.coeffs, fits[h, False].b.coeffs), (h, r)
+    trial_on, trial_off = fits["per_trial", "per_trial"], fits["per_trial", False]
+    assert trial_on.meta["offsets_refit"] is True
+    assert torch.equal(trial_on.A.coeffs, trial_off.A.coeffs)
+    assert not torch.equal(trial_on.b.coeffs, trial_off.b.coeffs)

@@ -404,11 +404,8 @@ def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: T
     on fits). Rows more than ``lags`` samples apart are taken as uncorrelated.
     """
     p = sol.coef.shape[-2]
-    total, n_max = s.rows.shape
     out = []
-    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 8,
-                       s.r.device):
-        xy, w = _chunk_design(s, sel, design, delta_max)
+    for sel, xy, w in _design_chunks(s, design, p, delta_max, copies=8):
         xw, yw = xy[..., :p], xy[..., p:]
         a_inv, kappa = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel,
                                                unpenalised)
@@ -454,11 +451,8 @@ def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, column
     variances 1.2-1.9 times too small and correlations off; :func:`score_covariance` models
     those."""
     p = sol.coef.shape[-2]
-    total, n_max = s.rows.shape
     out = []
-    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * 2,
-                       s.r.device):
-        xy, w = _chunk_design(s, sel, design, delta_max)
+    for sel, xy, w in _design_chunks(s, design, p, delta_max):
         xw = xy[..., :p]
         a_inv, _ = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel,
                                            unpenalised)
@@ -470,6 +464,47 @@ def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, column
         bad = ~torch.isfinite(sol.coef[sel]).all(-2).all(-1)
         out.append(torch.where(bad[:, None, None], torch.nan, corr))
     return torch.cat(out)
+
+
+def held_gain(s: BinnedSamples, design: Design, sol: Solution, free: int, held: slice, *,
+              delta_max=None, correction: Correction | None = None,
+              unpenalised: Tensor | None = None) -> Tensor:
+    """How the first ``free`` coefficients of every bin of a :func:`solve` result ``sol`` move
+    when the coefficients ``held`` are set to other values and held there, the rest
+    re-estimated: ``G = −N_ff⁻¹ N_fh`` ``(B·M, free, len(held))``, so that the least-squares
+    solution with ``β_h`` held at ``β̂_h + Δ`` is ``β̂_f + G Δ`` (each output alike; the
+    columns neither free nor held stay at their estimates).
+
+    ``N`` is the bin's normal matrix as :func:`solve` made it: ``XᵀWX`` less the fit's share
+    ``κ`` (``sol.eiv_scale``) of ``correction``, with its ridge (``sol.ridge``, the
+    convention of :func:`ridge_cholesky`). The free columns come first, so the leading block
+    of ``N``'s Cholesky factor ``L`` is that of ``N_ff`` and ``G = −L_ffᵀ⁻¹ L_hfᵀ``. One pass
+    over the design, no solve of the full system. NaN where the bin's coefficients are NaN."""
+    p = sol.coef.shape[-2]
+    out = []
+    for sel, xy, _ in _design_chunks(s, design, p, delta_max):
+        xw = xy[..., :p]
+        gram = xw.mT @ xw
+        if correction is not None:
+            gram = gram - sol.eiv_scale[sel][:, None, None] * correction(gram, sel)
+        chol, _, _, _ = ridge_cholesky(gram, sol.ridge[sel], unpenalised)
+        gain = -torch.linalg.solve_triangular(chol[:, :free, :free].mT,
+                                              chol[:, held, :free].mT, upper=True)
+        bad = ~torch.isfinite(sol.coef[sel]).all(-2).all(-1)
+        out.append(torch.where(bad[:, None, None], torch.nan, gain))
+    return torch.cat(out)
+
+
+def _design_chunks(s: BinnedSamples, design: Design, p: int, delta_max, copies: int = 2):
+    """``(sel, xy, w)`` for the chunks of bins of ``s`` that the post-fit passes over a
+    ``P = p`` design (:func:`score_covariance`, :func:`sandwich_correlation`,
+    :func:`held_gain`) take at once: ``sel`` a slice into ``B·M``, ``xy = √w [X | y]`` and ``w``
+    (:func:`_chunk_design`), sized for ``copies`` working copies of the design."""
+    total, n_max = s.rows.shape
+    for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * copies,
+                       s.r.device):
+        xy, w = _chunk_design(s, sel, design, delta_max)
+        yield sel, xy, w
 
 
 def _row_sum(x: Tensor, dim: int) -> Tensor:

@@ -52,6 +52,9 @@ class ConnectionFit:
             (:func:`~torchconn.regression.noise_aware.noise_aware_regression`), under which
             :func:`~torchconn.regression.tie_connection_derivative` takes its variance; None
             otherwise (the two taken as independent, with variances ``se_b², se_dA²``).
+        offset_gain: ``(..., M, 1 + d, d)`` where known, how ``ĉ, b̂`` move when ``Â`` is
+            moved and held, ``ĉ, b̂`` re-estimated in the bin's normal equations
+            (:func:`~torchconn.regression.noise_aware.offset_gain`); None otherwise.
     """
 
     c: Tensor
@@ -71,6 +74,7 @@ class ConnectionFit:
     eiv_scale: Tensor | None = None
     dA_direct: Tensor | None = None
     cov_b_dA: Tensor | None = None
+    offset_gain: Tensor | None = None
 
 
 def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:

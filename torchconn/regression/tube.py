@@ -313,12 +313,13 @@ class TubeRegression(Regression):
         if c_order is not None:
             connection_meta["intercept_order"] = c_order.tolist()
         # (unpooled fits may bin each element at its own window: meta["windows"], (...))
-        a_series, a_meta = self._a_series(centres, fit, connection_meta.get("windows", window),
-                                          pool)
+        a_series, offsets, a_meta = self._a_series(centres, fit,
+                                                   connection_meta.get("windows", window), pool)
         connection_meta.update(a_meta)
         model = LocalConnectionModel(
             gamma=cycle.gamma, phase_rate=cycle.phase_rate,
-            c=intercept_series(centres, fit.c, self.fourier_order, c_order), b=series(fit.b, 2),
+            c=intercept_series(centres, offsets.c, self.fourier_order, c_order),
+            b=series(offsets.b, 2),
             A=a_series, dA=series(fit.dA, 3),
             M=series(metric["M"], 2) if metric else None,
             dM=series(metric["dM"], 3) if metric and metric["dM"] is not None else None,
@@ -354,13 +355,13 @@ class TubeRegression(Regression):
         return skill.with_intercept_orders(model, orders.masked_fill(long, model.c.order),
                                            base.masked_fill(long, self.fourier_order))
 
-    def _a_series(self, centres: Tensor, fit, window, pool: bool
-                  ) -> tuple[FourierSeries, dict]:
-        """The Fourier series of ``Â`` (order ``fourier_order``) and extra meta (none here;
-        :class:`~torchconn.regression.NoiseAwareRegression` may shrink unresolved harmonics).
-        ``window``: the bins' half-width, a number or, unpooled, per element (nested lists of
-        the batch's shape)."""
-        return fit_fourier(centres, fit.A, self.fourier_order, value_ndim=2), {}
+    def _a_series(self, centres: Tensor, fit, window, pool: bool):
+        """The Fourier series of ``Â`` (order ``fourier_order``), the fit whose per-bin ``ĉ``
+        and ``b̂`` go with it (``fit`` here; :class:`~torchconn.regression.NoiseAwareRegression`
+        may shrink unresolved harmonics and re-estimate those to the shrunk series) and extra
+        meta (none here). ``window``: the bins' half-width, a number or, unpooled, per element
+        (nested lists of the batch's shape)."""
+        return fit_fourier(centres, fit.A, self.fourier_order, value_ndim=2), fit, {}
 
     def intercept_orders(self, traj: Trajectory, pool: bool) -> Tensor | None:
         """The intercept's Fourier order ``(...)`` per batch element (``()`` when ``pool``) of a
