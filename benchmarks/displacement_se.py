@@ -2,8 +2,9 @@
 
 Recordings as in ``metric_accuracy.py`` (the paper's SDE, α = 0.05, η = 0.025, 4 trials × 30
 cycles pooled, 64 samples per cycle, observation noise ω; the 3-link Tam–Hosoi gait, a 5-link
-travelling wave of amplitude 0.7). For each seed set the one-cycle displacement of the recorded
-gait is predicted from the fitted model alone and compared with the exact one
+travelling wave of amplitude 0.7, the 9-link reference gait). For each seed set the one-cycle
+displacement of the recorded gait is predicted from the fitted model alone and compared with
+the exact one
 (:func:`~torchconn.physics.gaits.evaluate` on the swimmer). Printed per ω:
 
 - ``z2``: mean over sets of ``(e / se)²`` per component ``(x, y, θ)`` and over all (1 = honest);
@@ -16,6 +17,7 @@ gait is predicted from the fitted model alone and compared with the exact one
 
     python benchmarks/displacement_se.py --links 3 --omega 0 0.002 --seeds 11000 12000 13000
     python benchmarks/displacement_se.py --regression tube   # the smoothed regression
+    python benchmarks/displacement_se.py --regression previous   # Â drawn entry by entry
 """
 
 from __future__ import annotations
@@ -29,12 +31,24 @@ from metric_accuracy import gait_for
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
 from torchconn.phase.fourier import fit_fourier
+from torchconn.physics.gaits import reference_gait
 from torchconn.physics.gaits.evaluate import evaluate
 from torchconn.physics.gaits.gait import as_gait
 from torchconn.regression.gait_prediction import predict_gait, sample_models
+from torchconn.regression.noise_aware import NoiseAwareRegression
 from torchconn.regression.tube import TubeRegression
 
 HELD_OUT = [11000, 12000, 13000, 14000, 15000, 16000, 17000, 18000]
+#: ``--regression``: the default; the smoothed regression; the default with ``Â`` drawn entry
+#: by entry (no sampling factor); without the bias allowances; with neither (the previous
+#: version)
+REGRESSIONS = {
+    "default": lambda: None,
+    "tube": TubeRegression,
+    "entrywise": lambda: NoiseAwareRegression(sampling_factor=False),
+    "no-allowance": lambda: NoiseAwareRegression(bias_allowance=False),
+    "previous": lambda: NoiseAwareRegression(sampling_factor=False, bias_allowance=False),
+}
 
 
 def tangent_parts(model, A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -75,14 +89,15 @@ def main(argv=None) -> int:
     p.add_argument("--links", type=int, nargs="+", default=[3, 5])
     p.add_argument("--omega", type=float, nargs="+", default=[0.0, 0.002, 0.005])
     p.add_argument("--seeds", type=int, nargs="+", default=HELD_OUT)
-    p.add_argument("--regression", choices=["default", "tube"], default="default")
+    p.add_argument("--regression", choices=list(REGRESSIONS), default="default")
     p.add_argument("--draws", type=int, default=256)
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
-    regression = TubeRegression() if a.regression == "tube" else None
+    regression = REGRESSIONS[a.regression]()
     for links in a.links:
-        system, gait = NLinkSwimmer(links), as_gait(gait_for(links))
+        gait = reference_gait("9link") if links == 9 else gait_for(links)
+        system, gait = NLinkSwimmer(links), as_gait(gait)
         exact = evaluate(system, gait, n_steps=256).displacement
         for omega in a.omega:
             rows = [one_set(system, gait, exact, s, omega, regression, a.draws) for s in a.seeds]

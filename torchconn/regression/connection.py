@@ -52,6 +52,18 @@ class ConnectionFit:
             (:func:`~torchconn.regression.noise_aware.noise_aware_regression`), under which
             :func:`~torchconn.regression.tie_connection_derivative` takes its variance; None
             otherwise (the two taken as independent, with variances ``se_b², se_dA²``).
+        influence_A: ``(..., M, 3, d, C)`` where asked for (``noise_aware_regression``'s
+            ``cycles``), each of ``C`` cycles' share of the error of ``Â`` in every bin
+            (``Σ_c`` of its outer products is the cluster-robust covariance of ``Â`` across
+            entries *and* bins); None otherwise.
+        sampling_factor_A: ``(..., M, 3, d, R)`` a factor of ``Â``'s sampling covariance
+            across entries and bins whose diagonal is ``se_A²``
+            (:func:`~torchconn.regression.noise_aware.sampling_factor`, from
+            ``influence_A``): what nearby-gait draws use; None where not estimated.
+        bias_allowance_A: ``(..., M, 3, d)`` an allowance for the bias of ``Â`` (the tube's
+            second order and the sampling interval,
+            :class:`~torchconn.regression.noise_aware.NoiseAwareRegression`'s
+            ``bias_allowance``), not in ``se_A``; None where not estimated.
     """
 
     c: Tensor
@@ -71,6 +83,9 @@ class ConnectionFit:
     eiv_scale: Tensor | None = None
     dA_direct: Tensor | None = None
     cov_b_dA: Tensor | None = None
+    influence_A: Tensor | None = None
+    sampling_factor_A: Tensor | None = None
+    bias_allowance_A: Tensor | None = None
 
 
 def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:

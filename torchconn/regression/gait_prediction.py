@@ -156,7 +156,10 @@ def sample_models(
     gen = torch.Generator(device=model.device).manual_seed(seed)
     centres = bins.phase
 
-    def redraw(series, values, se, window, bias=None, factors=(), extra_bias=None):
+    def redraw(series, values, se, window, bias=None, factors=(), allowances=(), shared=gen):
+        """``values`` drawn: the scatter ``se`` entry by entry (bins correlated by their
+        windows' overlap) less what ``bias`` and ``factors`` hold, which are drawn whole,
+        and the ``allowances`` beyond ``se``; the shared draws come from ``shared``."""
         m = values.shape[len(model.batch_shape)]
         chol = _bin_noise_factor(m, window, kernel, values)
         factors = [f for f in factors if f is not None]
@@ -174,31 +177,36 @@ def sample_models(
                         device=values.device)
         noisy = moved + se_m * (z @ chol.mT)
         noisy = noisy.movedim(-1, len(model.batch_shape) + 1)  # (S, ..., M, *v)
-        # the bias, and an allowance beyond se (the tube's second-order bias): each one
-        # systematic error, shared by every entry and bin (its covariance is the outer
-        # product of the error, not a diagonal), scaled by one Gaussian per draw
-        for shared in (bias, extra_bias):
-            if shared is not None:
-                s = torch.randn((n_draws,) + (1,) * shared.ndim, generator=gen,
+        # the bias, and allowances beyond se (the tube's second-order bias, the sampling
+        # interval's): each one systematic error, shared by every entry and bin (its
+        # covariance is the outer product of the error, not a diagonal), scaled by one
+        # Gaussian per draw
+        for one in (bias, *allowances):
+            if one is not None:
+                s = torch.randn((n_draws,) + (1,) * one.ndim, generator=shared,
                                 dtype=values.dtype, device=values.device)
-                noisy = noisy + s * torch.nan_to_num(shared)
+                noisy = noisy + s * torch.nan_to_num(one)
         for factor in factors:
             # noise correlated across entries and bins (the fit's, the bias estimate's): F z
             batch = factor.shape[:len(model.batch_shape)]
-            z = torch.randn((n_draws,) + batch + (factor.shape[-1],), generator=gen,
+            z = torch.randn((n_draws,) + batch + (factor.shape[-1],), generator=shared,
                             dtype=values.dtype, device=values.device)
             z = z.reshape(z.shape[:-1] + (1,) * (factor.ndim - len(batch) - 1) + z.shape[-1:])
             noisy = noisy + (torch.nan_to_num(factor) * z).sum(-1)
         return fit_fourier(centres, noisy, series.order, value_ndim=series.value_ndim)
 
     window = meta.get("window") or 0.5
-    A = redraw(model.A, bins.A, bins.A_se, window)
+    # Â's drawn-whole parts from a stream of their own: ∂Â/∂r's and M̂'s draws stay those
+    # of models without them
+    gen_a = torch.Generator(device=model.device).manual_seed(seed + 2)
+    A = redraw(model.A, bins.A, bins.A_se, window, factors=(bins.A_sampling_factor,),
+               allowances=(bins.A_bias_allowance,), shared=gen_a)
     dA = redraw(model.dA, bins.dA, bins.dA_se, window)
     M = None
     if model.M is not None and bins.M is not None and bins.M_se is not None:
         M = redraw(model.M, bins.M, bins.M_se, meta.get("metric_window") or window,
                    bins.M_bias, (bins.M_change_factor, bins.M_sampling_factor),
-                   bins.M_offset_bias)
+                   (bins.M_offset_bias,))
     # draws of the Jacobian only (dA_fit, the prediction coefficient, is not drawn)
     return dataclasses.replace(model, A=A, dA=dA, M=M, dA_fit=None)
 
