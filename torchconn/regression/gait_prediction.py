@@ -20,12 +20,13 @@ overlap -- the Fourier series refitted, and the prediction repeated per draw
 covered (``meta["tube_rms"]``, the per-joint RMS of the recorded offsets ``δ``).
 
 How honest the displacement's standard error is (README, "Is the displacement standard error
-honest?"): against the exact displacement, mean ``(e/se)²`` 0.36-3.0 on held-out 3- and 5-link
-recordings (1 = honest), 0.2 on the 9-link. Under noise it is too wide: ``Â`` is drawn entry by
-entry, as uncertain along the cycle's tangent as across it, while its error along the tangent
-(what the displacement integrates) is smaller. Without noise the ``x`` displacement of the
-3-link gait is 1.6 % short, a bias of ``Â`` (the tube's second order, the sampling interval)
-that the draws do not hold.
+honest?"): ``Â`` is drawn from its sampling factor across entries and bins (each whole cycle's
+share of its error, ``bins.A_sampling_factor``), so the draws are as narrow along the cycle's
+tangent as the error there (drawn entry by entry they were 1.7-2.4 times too wide along it on
+the clean 3-link), and, without detected noise, with an allowance for the bias of ``Â`` (the
+tube's second order and the sampling interval, ``bins.A_bias_allowance``) drawn as one shared
+error. Held out, mean ``(e/se)²`` 0.27-1.05 on the 3- and 5-link (1 = honest; 0.21-3.07
+before); the clean 5-link's is too wide (0.27: the allowance there is 2-3 times its bias).
 """
 
 from __future__ import annotations
@@ -133,19 +134,27 @@ def sample_models(
 
     Every bin estimate of ``Â``, ``∂Â/∂r`` (and ``M̂``) is perturbed by Gaussian noise with its
     standard error; bins whose phase windows overlap share samples, so their noise is correlated
-    with the overlap of their kernel weights. The part of ``M̂``'s standard error that is its
-    bias allowance (``bins.M_bias``) is drawn as one error shared by all entries and bins
-    (``s · M_bias``, ``s`` standard normal per draw): drawn entry by entry, it would spread the
-    on-cycle power that the gait pins down. Likewise the sampling noise of that bias estimate,
-    where ``M_se`` holds it (``bins.M_change_factor``, ``metric_order_bias="posterior"``), is
-    drawn from its covariance across entries and bins (``F z``, ``z`` standard normal of
-    length ``R`` per draw), and so is the fit's own sampling noise where the model keeps its
-    factor (``bins.M_sampling_factor``): drawn entry by entry it spread the on-cycle power that
-    the gait pins down (the cost's standard error 7-30 times its error under noise, README
-    "Is the cost standard error honest?"). The tube's second-order bias (``bins.M_offset_bias``,
-    not in ``M_se``) is added as one more shared error. ``∂M̂/∂r`` (``model.dM``) is not
-    redrawn (:func:`predict_gait` adds its first-order change of the cost whole). The Fourier
-    series are refitted at the model's order. The result has batch dims ``(n_draws, ...)``.
+    with the overlap of their kernel weights. Where the model keeps ``Â``'s sampling factor
+    (``bins.A_sampling_factor``, a pooled noise-aware fit) ``Â``'s noise is drawn from it
+    instead (``F z``, ``z`` standard normal of length ``R`` per draw): correlated across
+    entries and bins as each whole cycle's share of the error is, so that ``Âγ̇``, which the
+    displacement integrates and the data know better than the entries one by one, is drawn
+    with its own spread; its bias allowance (``bins.A_bias_allowance``, not in ``A_se``) is
+    added as one error shared by all entries and bins. These come from a stream of their own
+    (``seed + 2``): ``∂Â/∂r``'s and ``M̂``'s draws are those of a model without them. The
+    part of ``M̂``'s standard error that is its bias allowance (``bins.M_bias``) is drawn as
+    one error shared by all entries and bins (``s · M_bias``, ``s`` standard normal per draw):
+    drawn entry by entry, it would spread the on-cycle power that the gait pins down. Likewise
+    the sampling noise of that bias estimate, where ``M_se`` holds it
+    (``bins.M_change_factor``, ``metric_order_bias="posterior"``), is drawn from its
+    covariance across entries and bins, and so is the fit's own sampling noise where the
+    model keeps its factor (``bins.M_sampling_factor``): drawn entry by entry it spread the
+    on-cycle power that the gait pins down (the cost's standard error 7-30 times its error
+    under noise, README "Is the cost standard error honest?"). The tube's second-order bias
+    (``bins.M_offset_bias``, not in ``M_se``) is added as one more shared error. ``∂M̂/∂r``
+    (``model.dM``) is not redrawn (:func:`predict_gait` adds its first-order change of the
+    cost whole). The Fourier series are refitted at the model's order. The result has batch
+    dims ``(n_draws, ...)``.
     """
     if not isinstance(n_draws, int) or n_draws < 1:
         raise ValueError(f"n_draws must be a positive integer, got {n_draws!r}")
