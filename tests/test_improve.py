@@ -111,12 +111,20 @@ def test_alignment_recovers_a_phase_shift(fitted_3link):
 
 def test_redrawn_models_spread_like_the_standard_errors(fitted_3link):
     _, _, model = fitted_3link
-    draws = sample_models(model, 400, seed=1)
-    # bin values refitted: the spread of A at a bin centre matches its standard error
+    # bin values refitted: the spread of A at a bin centre matches its standard error (drawn
+    # from the sampling factor, whose diagonal it is) ...
+    allowance = model.bins.A_bias_allowance  # a clean pooled fit: its bias allowance too
+    assert model.bins.A_sampling_factor is not None and allowance is not None
     phi = model.bins.phase[:1]
-    spread = draws.connection(phi).std(0)[0]
     se = model.bins.A_se[0]
+    bare = dataclasses.replace(model, bins=dataclasses.replace(model.bins,
+                                                               A_bias_allowance=None))
+    spread = sample_models(bare, 400, seed=1).connection(phi).std(0)[0]
     ratio = (spread / se).flatten()
+    assert float(ratio.median()) == pytest.approx(1.0, abs=0.25)
+    # ... and with the allowance, drawn whole beside it, √(se² + allowance²)
+    spread = sample_models(model, 400, seed=1).connection(phi).std(0)[0]
+    ratio = (spread / (se.square() + allowance[0].square()).sqrt()).flatten()
     assert float(ratio.median()) == pytest.approx(1.0, abs=0.25)
 
 
