@@ -111,12 +111,20 @@ def test_alignment_recovers_a_phase_shift(fitted_3link):
 
 def test_redrawn_models_spread_like_the_standard_errors(fitted_3link):
     _, _, model = fitted_3link
-    draws = sample_models(model, 400, seed=1)
-    # bin values refitted: the spread of A at a bin centre matches its standard error
+    # bin values refitted: the spread of A at a bin centre matches its standard error (drawn
+    # from the sampling factor, whose diagonal it is) ...
+    allowance = model.bins.A_bias_allowance  # a clean pooled fit: its bias allowance too
+    assert model.bins.A_sampling_factor is not None and allowance is not None
     phi = model.bins.phase[:1]
-    spread = draws.connection(phi).std(0)[0]
     se = model.bins.A_se[0]
+    bare = dataclasses.replace(model, bins=dataclasses.replace(model.bins,
+                                                               A_bias_allowance=None))
+    spread = sample_models(bare, 400, seed=1).connection(phi).std(0)[0]
     ratio = (spread / se).flatten()
+    assert float(ratio.median()) == pytest.approx(1.0, abs=0.25)
+    # ... and with the allowance, drawn whole beside it, √(se² + allowance²)
+    spread = sample_models(model, 400, seed=1).connection(phi).std(0)[0]
+    ratio = (spread / (se.square() + allowance[0].square()).sqrt()).flatten()
     assert float(ratio.median()) == pytest.approx(1.0, abs=0.25)
 
 
@@ -342,3 +350,49 @@ def test_three_link_loop_reaches_the_straight_ceiling_with_covering_intervals():
     kept = [r for r in res.rounds if r.accepted]
     for a, b in zip(kept, kept[1:], strict=False):
         assert b.true > a.true - 2 * math.hypot(a.measured_se, b.measured_se)
+
+
+def test_connection_draws_take_a_s_sampling_factor_and_bias_allowance_whole(tmp_path):
+    """``sample_models`` draws ``Â``'s sampling noise from its factor across entries and bins
+    (``A_sampling_factor``, ``F``, holding all of ``A_se``) and its bias allowance
+    (``A_bias_allowance``, ``b``) as one error shared by every entry and bin: the draws'
+    covariance of ``Â`` at the bins is ``F Fᵀ + b bᵀ`` (Monte Carlo, 4000 draws, within 5
+    standard errors of each covariance entry); drawn entry by entry from the same ``A_se``
+    (no factor, no allowance) it is rejected by the same bound. ``∂Â/∂r``'s draws are those of
+    the model without them, bit for bit (the factor and allowance come from a stream of
+    their own). Both survive a save and load."""
+    system = NLinkSwimmer(3)
+    model = exact_local_model(system, circle_gait(2, 0.5), n_grid=16)
+    phase, n = model.bins.phase, 4000
+    g = torch.Generator().manual_seed(4)
+
+    def smooth(*shape):  # values of Fourier order 2 at the bins (the series' span)
+        c = torch.randn((5, 3, 2) + shape, generator=g, dtype=torch.float64)
+        return torch.einsum("mh,hij...->mij...", fourier_design(phase, 2), c) * 0.01
+
+    bias, factor = smooth(), smooth(4)  # (M, 3, d), (M, 3, d, R = 4)
+    bins = dataclasses.replace(model.bins, A_se=factor.square().sum(-1).sqrt(),
+                               dA_se=torch.full_like(model.bins.dA, 1e-3),
+                               A_sampling_factor=factor, A_bias_allowance=bias)
+    model = dataclasses.replace(model, bins=bins)
+    back = type(model).load(model.save(tmp_path / "model.npz"))
+    assert torch.equal(back.bins.A_sampling_factor, factor)
+    assert torch.equal(back.bins.A_bias_allowance, bias)
+    closed = (bias.flatten()[:, None] * bias.flatten()[None, :]
+              + factor.flatten(0, 2) @ factor.flatten(0, 2).T)
+    mc_se = ((closed.diagonal()[:, None] * closed.diagonal()[None, :] + closed.square())
+             / n).sqrt()
+
+    def z_max(m) -> float:
+        draws = sample_models(m, n, seed=5).connection(phase).flatten(1)  # (S, M 3 d)
+        dev = draws - m.bins.A.flatten()
+        z = float(((dev.T @ dev / n - closed) / mc_se).abs().max())
+        print(f"max |z| of the draws' covariance: {z:.1f}")
+        return z
+
+    assert z_max(back) < 5
+    entrywise = dataclasses.replace(model, bins=dataclasses.replace(
+        bins, A_sampling_factor=None, A_bias_allowance=None))
+    assert z_max(entrywise) > 10
+    assert torch.equal(sample_models(back, 8, seed=5).dA.coeffs,
+                       sample_models(entrywise, 8, seed=5).dA.coeffs)

@@ -255,3 +255,73 @@ def test_score_covariance_with_the_correction_is_the_covariance_of_corrected_est
     se = sol.se[:, COLUMNS, 0]
     solver = mean(corr * se[:, :, None] * se[:, None, :])
     assert _whitened_z(emp, solver, n_rep) > 2 * _Z, _whitened_z(emp, solver, n_rep)
+
+
+def test_cluster_scores_are_each_cycles_share_of_the_error_written_out_per_bin():
+    # cluster_scores (what Â's sampling factor is built from) against its closed form per bin,
+    # written out here with dense matrices: A⁻¹ Σ_{t ∈ c} w_t x_t ê_t for the rows of cluster c
+    # (ê the bin's residuals), for overlapping tricube bins with missing samples and a ridge,
+    # on A's columns δ̇ and ∂A/∂r's. Over the clusters the shares sum to A⁻¹ Σ_t w_t x_t ê_t,
+    # zero without a ridge (the normal equations), and Σ_c share_c share_cᵀ is the cluster-
+    # robust sandwich A⁻¹ (Σ_c s_c s_cᵀ) A⁻¹: with one cluster per row it is score_covariance
+    # at lags=0 without its n/(n − P).
+    gen = torch.Generator().manual_seed(21)
+    n, n_bins = 240, 4
+    phase, r, r_dot, x, beta = _design(n, gen)
+    valid = (torch.rand(n, generator=gen) > 0.15).to(F64)
+    clusters = torch.div(torch.arange(n), 20, rounding_mode="floor")  # 12 "cycles"
+    columns = torch.arange(1, P)
+    for ridge in (0.0, 0.2):
+        y = (x @ beta)[:, 0] + (0.2 + r_dot.square().sum(-1)) * torch.randn(
+            n, generator=gen, dtype=F64)
+        y = torch.where(valid > 0, y, torch.nan)
+        s, sol = _fit(phase, r[None], r_dot[None], y[None, :, None], n_bins, 1.5, "tricube",
+                      ridge)
+        got = _wls.cluster_scores(s, _blocks, sol, columns, clusters, 12)  # (M, 12, 1, c)
+        closed = []
+        for m, (idx, w, a_inv, xm) in enumerate(
+                _bin_matrices(phase, x, n_bins, 1.5, "tricube", ridge, valid)):
+            resid = y[idx] - xm @ sol.coef[m, :, 0]
+            share = torch.zeros(12, P, dtype=F64).index_add_(
+                0, clusters[idx], (w * resid)[:, None] * xm) @ a_inv
+            closed.append(share[:, columns])
+        closed = torch.stack(closed)
+        torch.testing.assert_close(got[:, :, 0], closed, rtol=1e-9, atol=1e-12)
+        total = got.sum(1).abs().max() / got.abs().max()
+        assert (float(total) < 1e-9) == (ridge == 0), (ridge, float(total))
+    per_row = _wls.cluster_scores(s, _blocks, sol, columns, torch.arange(n), n)[:, :, 0]
+    robust = _wls.score_covariance(s, _blocks, sol, columns, lags=0)[:, 0]
+    count = (s.weight > 0).sum(-1).to(F64)
+    torch.testing.assert_close(per_row.mT @ per_row, robust * ((count - P) / count)[:, None, None],
+                               rtol=1e-9, atol=0)
+
+
+def test_cluster_scores_with_the_correction_sum_to_zero_over_the_clusters():
+    # With the errors-in-variables correction the estimate solves Σ_t ψ_t = 0, ψ_t carrying
+    # each row's share of the correction (eiv_row_correction): the clusters' shares of the
+    # corrected estimates sum to zero only with that share (without it, to the correction
+    # times β̂, far from zero).
+    gen = torch.Generator().manual_seed(6)
+    n, n_bins, sd_r = 400, 2, 0.3
+    phase, r, r_dot, x, beta = _design(n, gen)
+    r_obs = r + sd_r * torch.randn(n, D, generator=gen, dtype=F64)
+    r_dot_obs = r_dot + sd_r * torch.randn(n, D, generator=gen, dtype=F64)
+    y = x @ beta + 0.1 * torch.randn(n, 1, generator=gen, dtype=F64)
+    var = torch.full((n_bins, D), sd_r**2, dtype=F64)
+
+    def correction(gram, sel):
+        return eiv_correction(gram, var[sel], var[sel])
+
+    def row_correction(xw, b, sel):
+        return eiv_row_correction(xw, b, var[sel], var[sel])
+
+    s, sol = _fit(phase, r_obs[None], r_dot_obs[None], y[None], n_bins, 0.5, "box",
+                  correction=correction)
+    assert bool((sol.eiv_scale == 1).all())
+    clusters = torch.div(torch.arange(n), 25, rounding_mode="floor")
+    kw = dict(correction=correction)
+    shares = _wls.cluster_scores(s, _blocks, sol, COLUMNS, clusters, 16, **kw,
+                                 row_correction=row_correction)
+    plain = _wls.cluster_scores(s, _blocks, sol, COLUMNS, clusters, 16, **kw)
+    assert float(shares.sum(1).abs().max() / shares.abs().max()) < 1e-9
+    assert float(plain.sum(1).abs().max() / plain.abs().max()) > 1e-2

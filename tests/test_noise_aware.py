@@ -22,14 +22,17 @@ from torchconn import (
 from torchconn.physics.gaits import FourierGait
 from torchconn.regression import IllConditionedBinWarning
 from torchconn.regression.binning import assign_bins
-from torchconn.regression.connection import connection_design
+from torchconn.regression.connection import connection_design, connection_regression
 from torchconn.regression.noise_aware import (
     eiv_correction,
     estimate_noise,
+    interval_cycles,
     interval_noise_gains,
     interval_samples,
     noise_aware_regression,
+    offset_bias,
     overlap_inflation,
+    sampling_factor,
     velocity_interval_for,
 )
 from torchconn.regression.skill import COMPLEXITY_GRID, RIDGE_GRID, PoorHeldOutSkillWarning
@@ -2085,3 +2088,100 @@ def test_a_shrunk_series_gets_its_offsets_refitted_and_nothing_else_moves(clean3
     assert trial_on.meta["offsets_refit"] is True
     assert torch.equal(trial_on.A.coeffs, trial_off.A.coeffs)
     assert not torch.equal(trial_on.b.coeffs, trial_off.b.coeffs)
+
+
+# ------------------------------------------------------------ what nearby-gait draws take of Â
+def test_sampling_factor_keeps_the_standard_errors_and_the_cycles_correlation():
+    """``sampling_factor``: each entry's row of the cycles' shares scaled to its standard error,
+    so ``F Fᵀ = D S Sᵀ D`` with ``D = se / ‖S_row‖`` (closed form), compressed to at most ``C``
+    directions; an entry without shares or a finite standard error gets zeros."""
+    g = torch.Generator().manual_seed(2)
+    shares = torch.randn(6, 3, 2, 10, generator=g, dtype=F64)  # (M, 3, d, C = 10 < 36 entries)
+    shares[0, 1, 0] = 0
+    se = torch.rand(6, 3, 2, generator=g, dtype=F64) + 0.1
+    se[2, 0, 1] = torch.nan
+    f = sampling_factor(shares, se)
+    assert f.shape[:3] == (6, 3, 2) and f.shape[-1] <= 10
+    scale = se / shares.square().sum(-1).sqrt()
+    scale = torch.where(torch.isfinite(scale), scale, 0.0).flatten()
+    flat = shares.flatten(0, 2)
+    closed = scale[:, None] * (flat @ flat.T) * scale[None, :]
+    got = f.flatten(0, 2) @ f.flatten(0, 2).T
+    torch.testing.assert_close(got, closed, rtol=1e-9, atol=1e-12)
+    var = f.square().sum(-1)
+    assert float(var[0, 1, 0]) < 1e-28 and float(var[2, 0, 1]) < 1e-28  # (SVD rounding)
+    ok = torch.ones_like(se, dtype=torch.bool)
+    ok[0, 1, 0] = ok[2, 0, 1] = False
+    torch.testing.assert_close(var[ok], se[ok].square(), rtol=1e-9, atol=0)
+
+
+def test_interval_cycles_number_whole_cycles_per_trial_and_through_a_pool():
+    # two trials, 3 and 2 cycles from different starting phases, one wrapped: an interval
+    # takes its first sample's cycle; pooled, the second trial's cycles follow the first's
+    k = torch.arange(31, dtype=F64)
+    phase = torch.stack([0.5 + k * (2 * math.pi / 9.7),  # cycles start at k = 0, 10, 20
+                         torch.remainder(4.0 + k * (2 * math.pi / 14.7), 2 * math.pi)])  # 0, 15
+    cyc = interval_cycles(phase, 2)
+    assert cyc.shape == (2, 29)
+    assert cyc[0].tolist() == [j // 10 for j in range(29)]
+    assert cyc[1].tolist() == [j // 15 for j in range(29)]
+    assert interval_cycles(phase, 2, pool=True).tolist() == cyc[0].tolist() + (
+        cyc[1] + 3).tolist()
+
+
+def test_offset_bias_is_the_first_order_fits_error_on_a_second_order_connection():
+    """On body velocities made exactly of the first-order terms plus ``δ⊗δ`` and ``δ̇⊗δ⊗δ``
+    (a connection with a second derivative, noise-free), the extended fit is exact, so
+    ``offset_bias`` is the first-order fit's error in ``Â`` (closed form: that fit minus the
+    true ``A``), not small here (the offsets' cube has a mean: the tube is not symmetric
+    about the cycle), and its variance is not positive (the extended fit has no residual:
+    there is no noise for the allowance to stand out of)."""
+    g = torch.Generator().manual_seed(8)
+    n, d, m = 2400, 2, 4
+    phase = torch.rand(n, generator=g, dtype=F64) * 2 * math.pi
+    r = 0.3 * torch.randn(n, d, generator=g, dtype=F64) + 0.2 * torch.rand(n, 1, generator=g,
+                                                                            dtype=F64)
+    r_dot = torch.randn(n, d, generator=g, dtype=F64)
+    c, b, a = (torch.randn(3, *shape, generator=g, dtype=F64) for shape in ((), (d,), (d,)))
+    da = torch.randn(3, d, d, generator=g, dtype=F64)
+    hess = torch.randn(3, d, 3, generator=g, dtype=F64)  # on δ̇_k δ_i δ_j, i ≤ j
+    quad = torch.randn(3, 3, generator=g, dtype=F64)  # on δ_i δ_j, i ≤ j
+    iu, ju = torch.triu_indices(d, d)
+    square = r[:, iu] * r[:, ju]  # (n, 3)
+    xi = (c + r @ b.T + r_dot @ a.T + torch.einsum("kij,ni,nj->nk", da, r_dot, r)
+          + torch.einsum("kiq,ni,nq->nk", hess, r_dot, square) + square @ quad.T)
+    iv = interval_samples(torch.zeros(n + 1, 3, dtype=F64), torch.zeros(n + 1, d, dtype=F64),
+                          torch.zeros(n + 1, dtype=F64), 0.1, 1)
+    iv = dataclasses.replace(iv, phase=phase, r=r, r_dot=r_dot, xi=xi)
+    bins = assign_bins(phase, m, window=1.0, kernel="tricube")
+    zero = torch.zeros(m, d, dtype=F64)
+    bias, var = offset_bias(iv, bins, zero, zero)
+    first = connection_regression(r, r_dot, xi, bins, zero, zero)
+    closed = first.A - a
+    torch.testing.assert_close(bias, closed, rtol=1e-7, atol=1e-9)
+    assert float(closed.abs().max()) > 0.05
+    assert float(var.max()) <= 1e-20
+
+
+def test_a_s_draw_parts_are_kept_beside_estimates_unchanged_bit_for_bit(clean30):
+    """A pooled fit keeps ``Â``'s sampling factor (its diagonal ``A_se²``, at most one direction
+    per cycle) and, without detected noise, its bias allowance; the estimates are those of the
+    fit without them bit for bit (every series and per-bin field). Under detected noise the
+    factor is kept and the allowance is not estimated."""
+    new, old = _fit(clean30).model_, _fit(clean30, sampling_factor=False,
+                                           bias_allowance=False).model_
+    for name in ("c", "b", "A", "dA", "dA_fit"):
+        assert torch.equal(getattr(new, name).coeffs, getattr(old, name).coeffs), name
+    for f in dataclasses.fields(old.bins):
+        value = getattr(old.bins, f.name)
+        if value is not None:
+            assert torch.equal(getattr(new.bins, f.name), value), f.name
+    assert old.bins.A_sampling_factor is None and old.bins.A_bias_allowance is None
+    factor = new.bins.A_sampling_factor
+    # at most one direction per cycle: each trial's 30 and the partial one at its end
+    assert factor.shape[:-1] == new.bins.A.shape and factor.shape[-1] <= 4 * 31
+    torch.testing.assert_close(factor.square().sum(-1), new.bins.A_se.square(), rtol=1e-9,
+                               atol=0)
+    assert float(new.bins.A_bias_allowance.abs().max()) > 0
+    noisy = _fit(_recording(0.005, clean=clean30)).model_
+    assert noisy.bins.A_sampling_factor is not None and noisy.bins.A_bias_allowance is None

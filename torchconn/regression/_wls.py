@@ -405,15 +405,10 @@ def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: T
     """
     p = sol.coef.shape[-2]
     out = []
-    for sel, xy, w in _design_chunks(s, design, p, delta_max, copies=8):
-        xw, yw = xy[..., :p], xy[..., p:]
-        a_inv, kappa = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel,
-                                               unpenalised)
-        beta = torch.nan_to_num(sol.coef[sel])
-        score = xw.unsqueeze(-2) * (yw - xw @ beta).unsqueeze(-1)  # (b, n, K, P)
-        if row_correction is not None:
-            score = score + kappa[:, None, None, None] * row_correction(xw, beta, sel)
-        proj = score @ a_inv.unsqueeze(1)  # (b, n, K, c)
+    for sel, proj, w in _projected_scores(s, design, sol, columns, delta_max=delta_max,
+                                          correction=correction,
+                                          row_correction=row_correction,
+                                          unpenalised=unpenalised):
         # rows in sample order, padding last: a pair of rows at most `lags` samples apart is
         # at most that many slots apart
         index = torch.where(w > 0, s.rows[sel], torch.iinfo(s.rows.dtype).max)
@@ -429,6 +424,60 @@ def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: T
         bad = ~torch.isfinite(sol.coef[sel]).all(-2).all(-1)
         out.append(torch.where(bad[:, None, None, None], torch.nan, cov))
     return torch.cat(out)
+
+
+def cluster_scores(s: BinnedSamples, design: Design, sol: Solution, columns: Tensor,
+                   clusters: Tensor, n_clusters: int, *, delta_max=None,
+                   correction: Correction | None = None,
+                   row_correction: RowCorrection | None = None,
+                   unpenalised: Tensor | None = None) -> Tensor:
+    """Each cluster's share ``(B·M, C, K, c)`` of the error of the coefficients ``columns
+    (c,)`` of every bin of a :func:`solve` result ``sol``: ``A⁻¹ Σ_{t ∈ cluster} ψ_t`` with
+    the rows' scores ``ψ_t`` of :func:`score_covariance` (the errors-in-variables row
+    correction included). Over the clusters the shares sum to zero (the estimating
+    equations), and ``Σ_c share_c share_cᵀ`` is the cluster-robust sandwich
+    ``A⁻¹ (Σ_c s_c s_cᵀ) A⁻¹`` (``s_c`` the cluster's summed score; no small-sample factor).
+    Rows of one cluster may fall in several bins (overlapping windows): the shares of
+    different bins are then correlated through them, as their errors are.
+
+    Args:
+        clusters: ``(B·N,)`` int64 cluster of every flattened sample (``s.r``'s rows), in
+            ``[0, n_clusters)`` (numbered within each batch element: a bin's rows are all its
+            element's).
+
+    NaN where the bin's coefficients are NaN."""
+    k = sol.coef.shape[-1]
+    out = []
+    for sel, proj, w in _projected_scores(s, design, sol, columns, delta_max=delta_max,
+                                          correction=correction,
+                                          row_correction=row_correction,
+                                          unpenalised=unpenalised):
+        label = clusters[s.rows[sel]]  # (b, n)
+        proj = proj * (w > 0)[..., None, None].to(proj)  # padding and excluded rows: none
+        sums = proj.new_zeros((proj.shape[0], n_clusters, k, proj.shape[-1]))
+        sums.scatter_add_(1, label[..., None, None].expand_as(proj), proj)
+        bad = ~torch.isfinite(sol.coef[sel]).all(-2).all(-1)
+        out.append(torch.where(bad[:, None, None, None], torch.nan, sums))
+    return torch.cat(out)
+
+
+def _projected_scores(s: BinnedSamples, design: Design, sol: Solution, columns: Tensor, *,
+                      delta_max, correction: Correction | None,
+                      row_correction: RowCorrection | None, unpenalised: Tensor | None):
+    """Per chunk of bins ``sel`` (:func:`_design_chunks`): every row's score times the columns
+    ``columns (c,)`` of ``A⁻¹``, ``(b, n, K, c)`` (the rows as :func:`_chunk_design` gathers
+    them), and the rows' weights ``(b, n)`` (what :func:`score_covariance` and
+    :func:`cluster_scores` sum)."""
+    p = sol.coef.shape[-2]
+    for sel, xy, w in _design_chunks(s, design, p, delta_max, copies=8):
+        xw, yw = xy[..., :p], xy[..., p:]
+        a_inv, kappa = _inverse_normal_columns(xw, sol.ridge[sel], columns, correction, sel,
+                                               unpenalised)
+        beta = torch.nan_to_num(sol.coef[sel])
+        score = xw.unsqueeze(-2) * (yw - xw @ beta).unsqueeze(-1)  # (b, n, K, P)
+        if row_correction is not None:
+            score = score + kappa[:, None, None, None] * row_correction(xw, beta, sel)
+        yield sel, score @ a_inv.unsqueeze(1), w
 
 
 def sandwich_correlation(s: BinnedSamples, design: Design, sol: Solution, columns: Tensor, *,
@@ -497,9 +546,10 @@ def held_gain(s: BinnedSamples, design: Design, sol: Solution, free: int, held: 
 
 def _design_chunks(s: BinnedSamples, design: Design, p: int, delta_max, copies: int = 2):
     """``(sel, xy, w)`` for the chunks of bins of ``s`` that the post-fit passes over a
-    ``P = p`` design (:func:`score_covariance`, :func:`sandwich_correlation`,
-    :func:`held_gain`) take at once: ``sel`` a slice into ``B·M``, ``xy = √w [X | y]`` and ``w``
-    (:func:`_chunk_design`), sized for ``copies`` working copies of the design."""
+    ``P = p`` design (:func:`score_covariance`, :func:`cluster_scores`,
+    :func:`sandwich_correlation`, :func:`held_gain`) take at once: ``sel`` a slice into
+    ``B·M``, ``xy = √w [X | y]`` and ``w`` (:func:`_chunk_design`), sized for
+    ``copies`` working copies of the design."""
     total, n_max = s.rows.shape
     for sel in _chunks(total, n_max * (p + s.r.shape[-1]) * s.r.dtype.itemsize * copies,
                        s.r.device):

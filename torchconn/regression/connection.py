@@ -55,6 +55,18 @@ class ConnectionFit:
         offset_gain: ``(..., M, 1 + d, d)`` where known, how ``ĉ, b̂`` move when ``Â`` is
             moved and held, ``ĉ, b̂`` re-estimated in the bin's normal equations
             (:func:`~torchconn.regression.noise_aware.offset_gain`); None otherwise.
+        influence_A: ``(..., M, 3, d, C)`` where asked for (``noise_aware_regression``'s
+            ``cycles``), each of ``C`` cycles' share of the error of ``Â`` in every bin
+            (``Σ_c`` of its outer products is the cluster-robust covariance of ``Â`` across
+            entries *and* bins); None otherwise.
+        sampling_factor_A: ``(..., M, 3, d, R)`` a factor of ``Â``'s sampling covariance
+            across entries and bins whose diagonal is ``se_A²``
+            (:func:`~torchconn.regression.noise_aware.sampling_factor`, from
+            ``influence_A``): what nearby-gait draws use; None where not estimated.
+        bias_allowance_A: ``(..., M, 3, d)`` an allowance for the bias of ``Â`` (the tube's
+            second order and the sampling interval,
+            :class:`~torchconn.regression.noise_aware.NoiseAwareRegression`'s
+            ``bias_allowance``), not in ``se_A``; None where not estimated.
     """
 
     c: Tensor
@@ -75,6 +87,9 @@ class ConnectionFit:
     dA_direct: Tensor | None = None
     cov_b_dA: Tensor | None = None
     offset_gain: Tensor | None = None
+    influence_A: Tensor | None = None
+    sampling_factor_A: Tensor | None = None
+    bias_allowance_A: Tensor | None = None
 
 
 def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:

@@ -20,12 +20,13 @@ overlap -- the Fourier series refitted, and the prediction repeated per draw
 covered (``meta["tube_rms"]``, the per-joint RMS of the recorded offsets ``δ``).
 
 How honest the displacement's standard error is (README, "Is the displacement standard error
-honest?"): against the exact displacement, mean ``(e/se)²`` 0.36-3.0 on held-out 3- and 5-link
-recordings (1 = honest), 0.2 on the 9-link. Under noise it is too wide: ``Â`` is drawn entry by
-entry, as uncertain along the cycle's tangent as across it, while its error along the tangent
-(what the displacement integrates) is smaller. Without noise the ``x`` displacement of the
-3-link gait is 1.6 % short, a bias of ``Â`` (the tube's second order, the sampling interval)
-that the draws do not hold.
+honest?"): ``Â`` is drawn from its sampling factor across entries and bins (each whole cycle's
+share of its error, ``bins.A_sampling_factor``), so the draws are as narrow along the cycle's
+tangent as the error there (drawn entry by entry they were 1.7-2.4 times too wide along it on
+the clean 3-link), and, without detected noise, with an allowance for the bias of ``Â`` (the
+tube's second order and the sampling interval, ``bins.A_bias_allowance``) drawn as one shared
+error. Held out, mean ``(e/se)²`` 0.27-1.05 on the 3- and 5-link (1 = honest; 0.21-3.07
+before); the clean 5-link's is too wide (0.27: the allowance there is 2-3 times its bias).
 """
 
 from __future__ import annotations
@@ -133,19 +134,27 @@ def sample_models(
 
     Every bin estimate of ``Â``, ``∂Â/∂r`` (and ``M̂``) is perturbed by Gaussian noise with its
     standard error; bins whose phase windows overlap share samples, so their noise is correlated
-    with the overlap of their kernel weights. The part of ``M̂``'s standard error that is its
-    bias allowance (``bins.M_bias``) is drawn as one error shared by all entries and bins
-    (``s · M_bias``, ``s`` standard normal per draw): drawn entry by entry, it would spread the
-    on-cycle power that the gait pins down. Likewise the sampling noise of that bias estimate,
-    where ``M_se`` holds it (``bins.M_change_factor``, ``metric_order_bias="posterior"``), is
-    drawn from its covariance across entries and bins (``F z``, ``z`` standard normal of
-    length ``R`` per draw), and so is the fit's own sampling noise where the model keeps its
-    factor (``bins.M_sampling_factor``): drawn entry by entry it spread the on-cycle power that
-    the gait pins down (the cost's standard error 7-30 times its error under noise, README
-    "Is the cost standard error honest?"). The tube's second-order bias (``bins.M_offset_bias``,
-    not in ``M_se``) is added as one more shared error. ``∂M̂/∂r`` (``model.dM``) is not
-    redrawn (:func:`predict_gait` adds its first-order change of the cost whole). The Fourier
-    series are refitted at the model's order. The result has batch dims ``(n_draws, ...)``.
+    with the overlap of their kernel weights. Where the model keeps ``Â``'s sampling factor
+    (``bins.A_sampling_factor``, a pooled noise-aware fit) ``Â``'s noise is drawn from it
+    instead (``F z``, ``z`` standard normal of length ``R`` per draw): correlated across
+    entries and bins as each whole cycle's share of the error is, so that ``Âγ̇``, which the
+    displacement integrates and the data know better than the entries one by one, is drawn
+    with its own spread; its bias allowance (``bins.A_bias_allowance``, not in ``A_se``) is
+    added as one error shared by all entries and bins. These come from a stream of their own
+    (``seed + 2``): ``∂Â/∂r``'s and ``M̂``'s draws are those of a model without them. The
+    part of ``M̂``'s standard error that is its bias allowance (``bins.M_bias``) is drawn as
+    one error shared by all entries and bins (``s · M_bias``, ``s`` standard normal per draw):
+    drawn entry by entry, it would spread the on-cycle power that the gait pins down. Likewise
+    the sampling noise of that bias estimate, where ``M_se`` holds it
+    (``bins.M_change_factor``, ``metric_order_bias="posterior"``), is drawn from its
+    covariance across entries and bins, and so is the fit's own sampling noise where the
+    model keeps its factor (``bins.M_sampling_factor``): drawn entry by entry it spread the
+    on-cycle power that the gait pins down (the cost's standard error 7-30 times its error
+    under noise, README "Is the cost standard error honest?"). The tube's second-order bias
+    (``bins.M_offset_bias``, not in ``M_se``) is added as one more shared error. ``∂M̂/∂r``
+    (``model.dM``) is not redrawn (:func:`predict_gait` adds its first-order change of the
+    cost whole). The Fourier series are refitted at the model's order. The result has batch
+    dims ``(n_draws, ...)``.
     """
     if not isinstance(n_draws, int) or n_draws < 1:
         raise ValueError(f"n_draws must be a positive integer, got {n_draws!r}")
@@ -156,7 +165,10 @@ def sample_models(
     gen = torch.Generator(device=model.device).manual_seed(seed)
     centres = bins.phase
 
-    def redraw(series, values, se, window, bias=None, factors=(), extra_bias=None):
+    def redraw(series, values, se, window, bias=None, factors=(), allowances=(), shared=gen):
+        """``values`` drawn: the scatter ``se`` entry by entry (bins correlated by their
+        windows' overlap) less what ``bias`` and ``factors`` hold, which are drawn whole,
+        and the ``allowances`` beyond ``se``; the shared draws come from ``shared``."""
         m = values.shape[len(model.batch_shape)]
         chol = _bin_noise_factor(m, window, kernel, values)
         factors = [f for f in factors if f is not None]
@@ -174,31 +186,36 @@ def sample_models(
                         device=values.device)
         noisy = moved + se_m * (z @ chol.mT)
         noisy = noisy.movedim(-1, len(model.batch_shape) + 1)  # (S, ..., M, *v)
-        # the bias, and an allowance beyond se (the tube's second-order bias): each one
-        # systematic error, shared by every entry and bin (its covariance is the outer
-        # product of the error, not a diagonal), scaled by one Gaussian per draw
-        for shared in (bias, extra_bias):
-            if shared is not None:
-                s = torch.randn((n_draws,) + (1,) * shared.ndim, generator=gen,
+        # the bias, and allowances beyond se (the tube's second-order bias, the sampling
+        # interval's): each one systematic error, shared by every entry and bin (its
+        # covariance is the outer product of the error, not a diagonal), scaled by one
+        # Gaussian per draw
+        for one in (bias, *allowances):
+            if one is not None:
+                s = torch.randn((n_draws,) + (1,) * one.ndim, generator=shared,
                                 dtype=values.dtype, device=values.device)
-                noisy = noisy + s * torch.nan_to_num(shared)
+                noisy = noisy + s * torch.nan_to_num(one)
         for factor in factors:
             # noise correlated across entries and bins (the fit's, the bias estimate's): F z
             batch = factor.shape[:len(model.batch_shape)]
-            z = torch.randn((n_draws,) + batch + (factor.shape[-1],), generator=gen,
+            z = torch.randn((n_draws,) + batch + (factor.shape[-1],), generator=shared,
                             dtype=values.dtype, device=values.device)
             z = z.reshape(z.shape[:-1] + (1,) * (factor.ndim - len(batch) - 1) + z.shape[-1:])
             noisy = noisy + (torch.nan_to_num(factor) * z).sum(-1)
         return fit_fourier(centres, noisy, series.order, value_ndim=series.value_ndim)
 
     window = meta.get("window") or 0.5
-    A = redraw(model.A, bins.A, bins.A_se, window)
+    # Â's drawn-whole parts from a stream of their own: ∂Â/∂r's and M̂'s draws stay those
+    # of models without them
+    gen_a = torch.Generator(device=model.device).manual_seed(seed + 2)
+    A = redraw(model.A, bins.A, bins.A_se, window, factors=(bins.A_sampling_factor,),
+               allowances=(bins.A_bias_allowance,), shared=gen_a)
     dA = redraw(model.dA, bins.dA, bins.dA_se, window)
     M = None
     if model.M is not None and bins.M is not None and bins.M_se is not None:
         M = redraw(model.M, bins.M, bins.M_se, meta.get("metric_window") or window,
                    bins.M_bias, (bins.M_change_factor, bins.M_sampling_factor),
-                   bins.M_offset_bias)
+                   (bins.M_offset_bias,))
     # draws of the Jacobian only (dA_fit, the prediction coefficient, is not drawn)
     return dataclasses.replace(model, A=A, dA=dA, M=M, dA_fit=None)
 

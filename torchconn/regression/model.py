@@ -64,6 +64,20 @@ class BinEstimates:
             across entries and bins: each cycle's share of the error evaluated at the bins
             (``R ≤`` cycles); None where not estimated (the paper's per-bin model, models
             saved by older versions): then that noise is drawn entry by entry.
+        A_sampling_factor: ``(..., M, 3, d, R)`` a factor of ``Â``'s sampling covariance across
+            entries and bins, ``Σ_r F[..., r] ⊗ F[..., r]`` with the diagonal ``A_se²``: each
+            whole cycle's share of the error (``R ≤`` cycles;
+            :func:`~torchconn.regression.noise_aware.sampling_factor`). Nearby-gait draws take
+            ``Â`` from it: the displacement integrates ``Âγ̇``, known better than the entries
+            one by one. None where not estimated (unpooled fits, ``TubeRegression``, models
+            saved by older versions): ``Â`` is drawn entry by entry.
+        A_bias_allowance: ``(..., M, 3, d)`` an allowance for the bias of ``Â``: the tube's
+            second order (``Â`` absorbs ``½∂²A/∂r² : E[δδᵀ]``,
+            :func:`~torchconn.regression.noise_aware.offset_bias`) and the sampling
+            interval's (:func:`~torchconn.regression.noise_aware.interval_bias`), summed: not
+            in ``A_se``; nearby-gait draws add it as one error shared by entries and bins.
+            None where not estimated (recordings with detected measurement noise, unpooled
+            fits).
     """
 
     phase: Tensor
@@ -89,6 +103,8 @@ class BinEstimates:
     M_sampling_factor: Tensor | None = None
     dM: Tensor | None = None
     M_offset_bias: Tensor | None = None
+    A_sampling_factor: Tensor | None = None
+    A_bias_allowance: Tensor | None = None
 
 
 @dataclass(frozen=True)

@@ -303,7 +303,8 @@ class TubeRegression(Regression):
             phase=centres, gamma=gamma_m, gamma_dot=gamma_dot_m,
             c=fit.c, b=fit.b, A=fit.A, dA=fit.dA,
             c_se=fit.se_c, b_se=fit.se_b, A_se=fit.se_A, dA_se=fit.se_dA,
-            n_samples=fit.n_samples, **metric,
+            n_samples=fit.n_samples, A_sampling_factor=fit.sampling_factor_A,
+            A_bias_allowance=fit.bias_allowance_A, **metric,
         )
 
         def series(values: Tensor, ndim: int):
