@@ -1739,6 +1739,13 @@ class NoiseAwareRegression(TubeRegression):
             window (README: ``Â`` closer to the truth in every one-trial cell measured, but the
             default sweep's predicted motion worse on the 9-link, so not the default); False:
             the plain least-squares series (the previous version).
+        blend_covariance: with ``shrink_to_smoothed`` and ``joint_covariance``, the joint
+            covariance of ``b̂`` and the direct ``∂Â/∂r`` after the shrink (:func:`blend_fits`'s
+            ``covariance``, for the tie's bands): ``"shift"`` allows for the shift the shrink
+            makes (the smoothed estimate's attenuation, of which the combination keeps a
+            ``1 − w`` share); ``"interpolated"`` without it (the previous version). Only the
+            tie's bands change (its weights are the standard errors): ``∂Â/∂r`` is the same
+            bit for bit (with ``joint_weights`` the covariance weighs too, and it changes).
     """
 
     velocity_interval: int | None = option(None, ge=1)
@@ -1752,6 +1759,7 @@ class NoiseAwareRegression(TubeRegression):
     resolved_harmonics: bool | Literal["per_trial"] = True
     joint_covariance: Literal["solver", "robust"] | None = "solver"
     joint_weights: bool = False
+    blend_covariance: Literal["shift", "interpolated"] = "shift"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -2019,7 +2027,7 @@ class NoiseAwareRegression(TubeRegression):
             fit = self._with_joint_covariance(fit, chosen, gamma_m, gamma_dot_m, opts)
         if self.shrink_to_smoothed:
             tube, _, _ = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
-            fit, weights = blend_fits(tube, fit)
+            fit, weights = blend_fits(tube, fit, covariance=self.blend_covariance)
             meta["corrected_weight"] = weights.tolist()
         if self.tie_derivative:
             # the direct estimate stays the coefficient the model predicts with (dA_fit)
@@ -2159,7 +2167,9 @@ class NoiseAwareRegression(TubeRegression):
 
 
 def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
-               variance_factor: float = _BLEND_VARIANCE_FACTOR) -> tuple[ConnectionFit, Tensor]:
+               variance_factor: float = _BLEND_VARIANCE_FACTOR,
+               covariance: Literal["shift", "interpolated"] = "shift"
+               ) -> tuple[ConnectionFit, Tensor]:
     """The noise-corrected estimate shrunk towards the smoothed one where the data cannot tell
     them apart (a positive-part Stein combination).
 
@@ -2178,21 +2188,37 @@ def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
     ``variance_factor`` > 1 guards against the heavy tails of the corrected estimate in
     nearly noise-dominated bins, which its standard errors understate (see the module constant).
 
+    The standard errors ``(1 − w) se_s + w se_c`` bound the combination's variance but leave
+    out the smoothed estimate's attenuation, of which it keeps a ``1 − w`` share. The joint
+    covariance of ``b̂`` and the direct ``∂Â/∂r`` (``corrected.cov_b_dA``, which only the
+    tie's bands use) is rescaled to those standard errors and, with ``covariance="shift"``,
+    the shift the shrink makes is allowed for on its diagonal: per entry
+    ``(1 − w)² (β̂_c − β̂_s)² · max(1 − V / D², 0)``, the shift's square times the block's
+    share of ``D²`` beyond the corrected estimate's noise (``D² − V`` estimates
+    ``E‖β̂_s − β‖²``: where the two differ within that noise the shift is mostly the
+    corrected estimate's noise, and the full square over-widened the bands, README "The tied
+    ``∂Â/∂r``'s bands at ω = 0.01"). ``"interpolated"``: without it (the previous version).
+
     Args:
         smoothed, corrected: fits of the same bins, batch dims ``...``.
+        variance_factor, covariance: as above.
 
     Returns:
         the combined :class:`~torchconn.regression.ConnectionFit` (fields other than the four
-        blocks and their standard errors are the corrected fit's; the standard errors are
-        ``(1 − w) se_s + w se_c``, an upper bound) and ``w (..., 4)`` for ``c, b, A, ∂A/∂r``.
+        blocks, their standard errors and ``cov_b_dA`` are the corrected fit's) and
+        ``w (..., 4)`` for ``c, b, A, ∂A/∂r``.
     """
-    out, weights = {}, []
+    if covariance not in ("shift", "interpolated"):
+        raise ValueError(f"blend_fits: covariance must be 'shift' or 'interpolated', got "
+                         f"{covariance!r}")
+    out, weights, shifts = {}, [], {}
     for name in ("c", "b", "A", "dA"):
         est_s, est_c = getattr(smoothed, name), getattr(corrected, name)
         se_s, se_c = getattr(smoothed, "se_" + name), getattr(corrected, "se_" + name)
         n_tail = est_s.ndim - smoothed.n_samples.ndim + 1  # the bins and the block's entries
         dims = tuple(range(-n_tail, 0))
-        d2 = (est_c - est_s).square().nansum(dims)
+        diff2 = (est_c - est_s).square()
+        d2 = diff2.nansum(dims)
         var = se_c.square().nansum(dims)
         w = torch.where(d2 > 0, (1 - variance_factor * var / d2.clamp_min(1e-300)).clamp(0, 1),
                         0.0)
@@ -2200,10 +2226,14 @@ def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
         out[name] = est_s + wx * (est_c - est_s)
         out["se_" + name] = (1 - wx) * se_s + wx * se_c
         weights.append(w)
+        beyond = torch.where(d2 > 0, 1 - var / d2.clamp_min(1e-300), 0.0).clamp_min(0)
+        shifts[name] = (1 - wx).square() * diff2 * beyond.reshape(wx.shape)
     cov = corrected.cov_b_dA
     if cov is not None:
         cov = _rescaled_covariance(cov, (corrected.se_b, corrected.se_dA),
                                    (out["se_b"], out["se_dA"]))
+        if covariance == "shift":
+            cov = cov + torch.diag_embed(torch.cat([shifts["b"], shifts["dA"].flatten(-2)], -1))
     return dataclasses.replace(corrected, **out, cov_b_dA=cov), torch.stack(weights, -1)
 
 
