@@ -2193,11 +2193,12 @@ def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
     covariance of ``b̂`` and the direct ``∂Â/∂r`` (``corrected.cov_b_dA``, which only the
     tie's bands use) is rescaled to those standard errors and, with ``covariance="shift"``,
     the shift the shrink makes is allowed for on its diagonal: per entry
-    ``(1 − w)² (β̂_c − β̂_s)² · max(1 − V / D², 0)``, the shift's square times the block's
-    share of ``D²`` beyond the corrected estimate's noise (``D² − V`` estimates
-    ``E‖β̂_s − β‖²``: where the two differ within that noise the shift is mostly the
-    corrected estimate's noise, and the full square over-widened the bands, README "The tied
-    ``∂Â/∂r``'s bands at ω = 0.01"). ``"interpolated"``: without it (the previous version).
+    ``(1 − w)² (β̂_c − β̂_s)² · max(1 − (V + V_s) / D², 0)`` (``V_s`` the smoothed estimate's
+    ``Σ se_s²``), the shift's square times the block's share of ``D²`` beyond the two
+    estimates' noise: ``D² − V − V_s`` estimates the smoothed estimate's squared bias
+    ``‖E β̂_s − β‖²``, whose ``1 − w`` share the combination keeps (README "The tied
+    ``∂Â/∂r``'s bands at ω = 0.01": the full square, or without ``V_s``, over-widened the
+    bands on the 3-link circle). ``"interpolated"``: without it (the previous version).
 
     Args:
         smoothed, corrected: fits of the same bins, batch dims ``...``.
@@ -2226,7 +2227,10 @@ def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
         out[name] = est_s + wx * (est_c - est_s)
         out["se_" + name] = (1 - wx) * se_s + wx * se_c
         weights.append(w)
-        beyond = torch.where(d2 > 0, 1 - var / d2.clamp_min(1e-300), 0.0).clamp_min(0)
+        # the block's D² − V − V_s: the smoothed estimate's squared bias (its variance is in
+        # the standard errors already)
+        spread = var + se_s.square().nansum(dims)
+        beyond = torch.where(d2 > 0, 1 - spread / d2.clamp_min(1e-300), 0.0).clamp_min(0)
         shifts[name] = (1 - wx).square() * diff2 * beyond.reshape(wx.shape)
     cov = corrected.cov_b_dA
     if cov is not None:
