@@ -2231,7 +2231,8 @@ def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
         # the standard errors already)
         spread = var + se_s.square().nansum(dims)
         beyond = torch.where(d2 > 0, 1 - spread / d2.clamp_min(1e-300), 0.0).clamp_min(0)
-        shifts[name] = (1 - wx).square() * diff2 * beyond.reshape(wx.shape)
+        shift = (1 - wx).square() * diff2 * beyond.reshape(wx.shape)
+        shifts[name] = torch.where(torch.isfinite(shift), shift, 0.0)  # (a NaN bin: as before)
     cov = corrected.cov_b_dA
     if cov is not None:
         cov = _rescaled_covariance(cov, (corrected.se_b, corrected.se_dA),
