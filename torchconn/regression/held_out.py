@@ -69,8 +69,11 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
     out = s.r.new_zeros((n_ridges, total, n_blocks, p, s.y.shape[-1]))  # columns not kept: 0
     free = ridge_exemptions(d, ridge_connection, s.r.device)
     free = None if free is None else free[keep]
-    # chunks of bins bound the memory of the per-block sums (F of them per bin)
-    for sel in _wls._chunks(total, n_max * width * s.r.dtype.itemsize * 4, s.r.device):
+    # chunks of bins bound the working memory per bin: the design's copies, the F per-block
+    # sums and their complements, and the R·F normal matrices solved at once (with the
+    # solver's copies)
+    per_bin = 4 * n_max * width + 2 * n_blocks * width * width + 3 * n_ridges * n_blocks * p * p
+    for sel in _wls._chunks(total, per_bin * s.r.dtype.itemsize, s.r.device):
         sums, counts = _block_sums(s, sel, block, n_blocks, delta_max)  # (b, F, C, C), (b, F)
         full = sums.sum(1, keepdim=True) - sums  # every block but f
         gram, rhs = full[..., :p, :p], full[..., :p, p:]
