@@ -604,11 +604,16 @@ def _solve_bins(s: BinnedSamples, sel_list, design: Design, lam: Tensor, delta_m
     return [torch.cat(parts) for parts in zip(*outs, strict=True)]
 
 
+def chunk_budget(device: torch.device) -> int:
+    """Bytes of working memory one batched pass over bins may take on ``device``:
+    :data:`_CHUNK_BYTES` on the CPU, :data:`_DEVICE_CHUNK_BYTES` elsewhere."""
+    return _CHUNK_BYTES if torch.device(device).type == "cpu" else _DEVICE_CHUNK_BYTES
+
+
 def _chunks(n_bins_total: int, bytes_per_bin: int, device: torch.device) -> list[slice]:
     """Slices of ``n_bins_total`` bins of ``bytes_per_bin`` working memory each, at most
     :data:`_CHUNK_BYTES` per slice on the CPU and :data:`_DEVICE_CHUNK_BYTES` elsewhere."""
-    budget = _CHUNK_BYTES if torch.device(device).type == "cpu" else _DEVICE_CHUNK_BYTES
-    step = max(1, budget // max(bytes_per_bin, 1))
+    step = max(1, chunk_budget(device) // max(bytes_per_bin, 1))
     return [slice(i, min(i + step, n_bins_total)) for i in range(0, n_bins_total, step)]
 
 

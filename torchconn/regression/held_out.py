@@ -69,11 +69,11 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
     out = s.r.new_zeros((n_ridges, total, n_blocks, p, s.y.shape[-1]))  # columns not kept: 0
     free = ridge_exemptions(d, ridge_connection, s.r.device)
     free = None if free is None else free[keep]
-    # chunks of bins bound the working memory per bin: the design's copies, the F per-block
-    # sums and their complements, and the R·F normal matrices solved at once (with the
-    # solver's copies)
-    per_bin = 4 * n_max * width + 2 * n_blocks * width * width + 3 * n_ridges * n_blocks * p * p
-    for sel in _wls._chunks(total, per_bin * s.r.dtype.itemsize, s.r.device):
+    # chunks of bins bound the memory of the per-block sums (F of them per bin); they do not
+    # depend on the ridges asked for, so neither do a bin's sums (their padding, and so their
+    # rounding, is the chunk's)
+    item = s.r.dtype.itemsize
+    for sel in _wls._chunks(total, n_max * width * item * 4, s.r.device):
         sums, counts = _block_sums(s, sel, block, n_blocks, delta_max)  # (b, F, C, C), (b, F)
         full = sums.sum(1, keepdim=True) - sums  # every block but f
         gram, rhs = full[..., :p, :p], full[..., :p, p:]
@@ -85,11 +85,16 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
             flat, _ = _wls._guarded_correction(flat, correction(flat, bins))
         flat = flat[:, keep][:, :, keep]
         rhs = rhs.reshape(b * n_blocks, p, -1)[:, keep]
-        # every ridge in one batch: (R·b·F, P', P')
-        beta = _solve(flat.repeat(n_ridges, 1, 1), rhs.repeat(n_ridges, 1, 1),
-                      lams.repeat_interleave(flat.shape[0]), free)
-        beta = beta.reshape(n_ridges, b, n_blocks, keep.numel(), -1)
-        out[:, sel, :, keep] = beta.masked_fill(few[..., None, None], math.nan)
+        # as many ridges in one batch (g·b·F, P', P') as the chunk budget holds (the solver
+        # makes about three copies of its normal matrices)
+        group = max(1, _wls.chunk_budget(s.r.device) // (3 * flat.numel() * item))
+        for first in range(0, n_ridges, group):
+            lam = lams[first:first + group]
+            beta = _solve(flat.repeat(len(lam), 1, 1), rhs.repeat(len(lam), 1, 1),
+                          lam.repeat_interleave(flat.shape[0]), free)
+            beta = beta.reshape(len(lam), b, n_blocks, keep.numel(), -1)
+            out[first:first + len(lam), sel, :, keep] = beta.masked_fill(
+                few[..., None, None], math.nan)
     return out
 
 
