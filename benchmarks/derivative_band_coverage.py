@@ -19,23 +19,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import warnings
 
 import torch
 from accuracy import connection_errors, recording
-
-from torchconn import ConnectionEstimator, NoiseAwareRegression
+from derivative_bands import fit  # the default regression, pooled, fixed complexity
 
 BANDS = ("interpolated", "shift")
-
-
-def fit(traj, **options):
-    est = ConnectionEstimator(pool=True, regression=NoiseAwareRegression(**options),
-                              complexity="fixed", held_out_folds=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        est.fit(traj)
-    return est.model_
 
 
 def seed_range(text: str) -> list[int]:
