@@ -1988,8 +1988,9 @@ class NoiseAwareRegression(TubeRegression):
             error too wide along ``γ̇`` under noise, README "Is the displacement standard error
             honest?").
         bias_allowance: a pooled fit of a recording without detected measurement noise also
-            estimates the bias of ``Â`` from the tube's second order (:func:`offset_bias`)
-            and the sampling interval (:func:`interval_bias`), their sum shrunk by how far
+            estimates the bias of the ``Â`` it delivers from the tube's second order
+            (:func:`offset_bias`: that ``Â`` minus the second-order fit's) and the sampling
+            interval (:func:`interval_bias`), their sum shrunk by how far
             it stands out of its own noise (``model.bins.A_bias_allowance``), which
             nearby-gait predictions draw as one error shared by the entries and bins; not in
             ``se_A`` or the bands, and the estimates are the same bit for bit. Under detected
