@@ -2203,6 +2203,48 @@ def test_offset_bias_is_the_first_order_fits_error_on_a_second_order_connection(
     torch.testing.assert_close(bias, closed, rtol=1e-7, atol=1e-9)
     assert float(closed.abs().max()) > 0.05
     assert float(var.max()) <= 1e-20
+    # of another estimate of Â (as a delivered one, moved from the plain fit): its own error,
+    # E − A, with the same variance
+    moved = first.A + 0.1 * torch.randn(first.A.shape, generator=g, dtype=F64)
+    bias_moved, var_moved = offset_bias(iv, bins, zero, zero, estimate=moved)
+    torch.testing.assert_close(bias_moved, moved - a, rtol=1e-7, atol=1e-9)
+    assert torch.equal(var_moved, var)
+
+
+def test_clean_bias_allowance_is_that_of_the_delivered_a(clean30, monkeypatch):
+    """A clean pooled fit's allowance is the bias of the ``Â`` it delivers (which the bins' bias
+    correction has moved from the plain fit), not of the plain fit: ``offset_bias`` is asked
+    for the delivered ``Â``'s change, and the allowance is the resolved sum of the two parts."""
+    from torchconn.regression import noise_aware
+
+    seen = {}
+
+    def spy(name):
+        original = getattr(noise_aware, name)
+
+        def wrapped(*args, **kw):
+            seen[name] = (args, kw, original(*args, **kw))
+            return seen[name][2]
+        monkeypatch.setattr(noise_aware, name, wrapped)
+
+    spy("offset_bias")
+    spy("interval_bias")
+    model = _fit(clean30).model_
+    args, kw, (tube, tube_var) = seen["offset_bias"]
+    _, _, (step, step_var) = seen["interval_bias"]
+    assert torch.equal(kw["estimate"], model.bins.A)
+    # the plain fit's change differs from it by the plain fit's move, which is not 0
+    plain_tube, plain_var = noise_aware.offset_bias(*args, **{**kw, "estimate": None})
+    samples, bins, gamma_m, gamma_dot_m = args
+    plain = noise_aware.connection_regression(samples.r, samples.r_dot, samples.xi, bins,
+                                              gamma_m, gamma_dot_m)
+    moved = plain.A - model.bins.A
+    torch.testing.assert_close(plain_tube - tube, moved, rtol=1e-9, atol=1e-15)
+    assert torch.equal(plain_var, tube_var)
+    assert float(moved.abs().max()) > 0.05 * float(tube.abs().max())
+    expected = noise_aware._resolved(torch.nan_to_num(tube) + torch.nan_to_num(step),
+                                     torch.nan_to_num(tube_var) + torch.nan_to_num(step_var))
+    assert torch.equal(model.bins.A_bias_allowance, expected)
 
 
 def test_a_s_draw_parts_are_kept_beside_estimates_unchanged_bit_for_bit(clean30):

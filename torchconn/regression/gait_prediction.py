@@ -25,8 +25,9 @@ share of its error, ``bins.A_sampling_factor``), so the draws are as narrow alon
 tangent as the error there (drawn entry by entry they were 1.7-2.4 times too wide along it on
 the clean 3-link), and, without detected noise, with an allowance for the bias of ``Â`` (the
 tube's second order and the sampling interval, ``bins.A_bias_allowance``) drawn as one shared
-error. Held out, mean ``(e/se)²`` 0.27-1.05 on the 3- and 5-link (1 = honest; 0.21-3.07
-before); the clean 5-link's is too wide (0.27: the allowance there is 2-3 times its bias).
+error. Held out, mean ``(e/se)²`` 0.31-0.84 on the 3- and 5-link (1 = honest; 0.21-3.07
+before); the clean 5-link's is 0.44 (0.27 while its allowance was measured from the plain fit
+instead of the delivered ``Â``, README "The bias allowance measured from the delivered ``Â``").
 """
 
 from __future__ import annotations
