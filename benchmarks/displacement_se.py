@@ -13,7 +13,12 @@ the exact one
 - ``along`` / ``across``: for ``Â``'s error along the cycle's tangent (``Âγ̇``, which the
   displacement integrates) and across it, harmonics 0–2, the scatter of the error over sets
   divided by the SD of :func:`~torchconn.regression.gait_prediction.sample_models`' draws
-  (1 = the draws have the right width).
+  (1 = the draws have the right width); in brackets against the draws without the bias
+  allowance (a bias does not scatter across sets, so this is the sampling part's check), and
+  the error's RMS (bias included) against the full draws.
+
+Each set ``s`` records the seeds ``s..s+3``: sets must be at least 4 apart (sets that share
+trials scatter less than independent ones).
 
     python benchmarks/displacement_se.py --links 3 --omega 0 0.002 --seeds 11000 12000 13000
     python benchmarks/displacement_se.py --regression tube   # the smoothed regression
@@ -25,6 +30,7 @@ the exact one
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import warnings
 
 import numpy as np
@@ -77,12 +83,18 @@ def one_set(system, gait, exact, seed: int, omega: float, regression, draws: int
     out = {"e": (pred.displacement - exact).numpy(), "se": pred.displacement_se.numpy()}
     truth = system.connection(model.bins.gamma)
     drawn = sample_models(model, draws).A(model.bins.phase)  # (S, M, 3, d)
-    for k, (est, true, dr) in enumerate(zip(tangent_parts(model, model.bins.A),
-                                            tangent_parts(model, truth),
-                                            tangent_parts(model, drawn), strict=True)):
+    # the draws without the bias allowance: the scatter across sets cannot see a bias, so
+    # it is compared with these (the allowance with the mean error instead)
+    sampling = dataclasses.replace(model, bins=dataclasses.replace(model.bins,
+                                                                   A_bias_allowance=None))
+    drawn_s = sample_models(sampling, draws).A(model.bins.phase)
+    for k, (est, true, dr, dr_s) in enumerate(zip(
+            tangent_parts(model, model.bins.A), tangent_parts(model, truth),
+            tangent_parts(model, drawn), tangent_parts(model, drawn_s), strict=True)):
         name = ("along", "across")[k]
         out[name] = low_harmonics(model, est - true, 1 + k).numpy()
         out[name + "_sd"] = low_harmonics(model, dr, 1 + k).std(0).numpy()
+        out[name + "_sd_s"] = low_harmonics(model, dr_s, 1 + k).std(0).numpy()
     return out
 
 
@@ -130,6 +142,12 @@ def main(argv=None) -> int:
     p.add_argument("--cost", action="store_true",
                    help="time the fit and evaluate_gait, default against previous, instead")
     a = p.parse_args(argv)
+    starts = sorted(a.seeds)
+    if any(b - s < 4 for s, b in zip(starts, starts[1:], strict=False)):
+        # set s records trials s..s+3: sets closer than 4 share trials, and their scatter
+        # understates the sampling error (4 consecutive sets: to 0.65 of its SD)
+        p.error(f"--seeds must be at least 4 apart (each set records seeds s..s+3), got "
+                f"{a.seeds}")
     torch.set_num_threads(a.threads)
     regression = REGRESSIONS[a.regression]()
     for links in a.links:
@@ -151,7 +169,11 @@ def main(argv=None) -> int:
                 err = np.array([r[name] for r in rows])
                 scatter = ((err - err.mean(0)) ** 2).sum(0) / (len(rows) - 1)
                 sd2 = np.mean([r[name + "_sd"] ** 2 for r in rows], 0)
-                line += f" | {name} scatter/draws {np.sqrt(scatter.mean() / sd2.mean()):.2f}"
+                sd2_s = np.mean([r[name + "_sd_s"] ** 2 for r in rows], 0)
+                rms2 = (err ** 2).mean(0)
+                line += (f" | {name} scatter/draws {np.sqrt(scatter.mean() / sd2.mean()):.2f}"
+                         f" (sampling part {np.sqrt(scatter.mean() / sd2_s.mean()):.2f}),"
+                         f" rms/draws {np.sqrt(rms2.mean() / sd2.mean()):.2f}")
             print(line, flush=True)
     return 0
 

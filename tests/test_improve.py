@@ -128,6 +128,40 @@ def test_redrawn_models_spread_like_the_standard_errors(fitted_3link):
     assert float(ratio.median()) == pytest.approx(1.0, abs=0.25)
 
 
+def test_jacobian_draws_take_the_ties_correlation_within_each_bin(fitted_3link):
+    # bins.dA_correlation (NoiseAwareRegression(derivative_correlation=True)) correlates the
+    # entries of each bin's draw and leaves each entry's spread: with one correlation R and
+    # one standard error per entry in every bin (the series' refit across bins then scales
+    # every entry's covariance alike), the draws' correlation at a bin centre is R; without
+    # it the draws are those of before, bit for bit.
+    _, _, model = fitted_3link
+    assert model.bins.dA_correlation is None  # off by default
+    d = model.shape_dim
+    gen = torch.Generator().manual_seed(3)
+    root = torch.randn(d * d, d * d, generator=gen, dtype=torch.float64)
+    cov = root @ root.T + 0.5 * torch.eye(d * d, dtype=torch.float64)
+    sd = cov.diagonal().sqrt()
+    corr = cov / (sd[:, None] * sd[None, :])
+    se = torch.full_like(model.bins.dA_se, 1e-2)
+    base = dataclasses.replace(model, bins=dataclasses.replace(model.bins, dA_se=se))
+    with_corr = dataclasses.replace(base, bins=dataclasses.replace(
+        base.bins, dA_correlation=corr.expand(se.shape[:-2] + corr.shape).clone()))
+    phi = model.bins.phase[:1]
+    drawn = sample_models(with_corr, 4000, seed=1).connection_jacobian(phi)[:, 0]
+    err = (drawn - drawn.mean(0)).reshape(4000, 3, d * d)
+    emp = torch.einsum("sre,srf->ref", err, err) / 4000
+    emp_sd = emp.diagonal(dim1=-2, dim2=-1).sqrt()
+    emp_corr = emp / (emp_sd[..., :, None] * emp_sd[..., None, :])
+    torch.testing.assert_close(emp_corr, corr.expand(emp_corr.shape), atol=0.06, rtol=0)
+    plain = sample_models(base, 400, seed=1).connection_jacobian(phi)
+    before = sample_models(model, 400, seed=1)
+    again = sample_models(dataclasses.replace(model, bins=dataclasses.replace(
+        model.bins, dA_correlation=None)), 400, seed=1)
+    assert torch.equal(before.dA.coeffs, again.dA.coeffs)
+    assert not torch.allclose(plain, sample_models(with_corr, 400, seed=1)
+                              .connection_jacobian(phi))
+
+
 def test_metric_draws_share_the_bias_and_its_noise_across_entries_and_bins(tmp_path):
     """``sample_models`` draws ``M̂``'s bias allowance (``M_bias``) and that bias estimate's
     own noise (``M_change_factor``, ``F``) as errors shared by every entry and bin: the draws'

@@ -1442,6 +1442,49 @@ def test_tied_derivative_bands_cover_its_errors_under_noise(window):
     assert float((tied.dA - d_true).square().mean()) < 0.5 * float(se_d.square().mean())
 
 
+def test_tied_derivative_correlation_is_its_errors_correlation():
+    # Monte Carlo: with independent Gaussian errors of known standard errors in the three
+    # sources, the tied entries' errors are correlated (the tie pins b̂ = γ̇ᵀD and D γ' far
+    # better than the entries): the variance over 400 records of the contraction γ̇ᵀD (what a
+    # nearby gait's displacement integrates) is the one the returned correlation gives, within
+    # its sampling spread, and far below the entries-independent one. The estimate and its
+    # standard errors are the same bit for bit with and without the correlation.
+    from torchconn.regression.noise_aware import tie_connection_derivative
+
+    gen = torch.Generator().manual_seed(17)
+    n_rec, window = 400, 1.0
+    gamma, tangent, a, d_true, b_true, a_err, a_se = _tie_inputs(gen, n_rec, window=window)
+    scale = 0.05 / float(a_se.mean())
+    se_b = torch.full((n_rec,) + b_true.shape, 0.05, dtype=F64)
+    se_d = torch.full((n_rec,) + d_true.shape, 0.5, dtype=F64)
+    fit = _tie_fit(a + scale * a_err, b_true + se_b * torch.randn(se_b.shape, generator=gen,
+                                                                   dtype=F64),
+                   d_true + se_d * torch.randn(se_d.shape, generator=gen, dtype=F64),
+                   scale * a_se, se_b, se_d)
+    opts = dict(window=window, kernel="tricube", consistency=False)
+    plain = tie_connection_derivative(fit, gamma, tangent, 12, **opts)
+    tied = tie_connection_derivative(fit, gamma, tangent, 12, **opts, correlation=True)
+    assert plain.corr_dA is None
+    assert torch.equal(tied.dA, plain.dA) and torch.equal(tied.se_dA, plain.se_dA)
+    d = d_true.shape[-1]
+    corr = tied.corr_dA  # (n_rec, M, 3, d², d²)
+    assert corr.shape == tied.dA.shape[:-2] + (d * d, d * d)
+    torch.testing.assert_close(corr.diagonal(dim1=-2, dim2=-1), torch.ones_like(corr[..., 0]))
+    # v for the contraction on the velocity index, column j: v[i·d + j'] = γ̇_i [j = j']
+    eye = torch.eye(d, dtype=F64)
+    v = (tangent[:, None, :, None, None] * eye[None, :, None, None, :]).flatten(-3, -2)
+    v = v.flatten(-2)  # (M, j, d²)
+    sd = tied.se_dA.flatten(-2)  # (n_rec, M, 3, d²)
+    cov = corr * sd.unsqueeze(-1) * sd.unsqueeze(-2)
+    predicted = torch.einsum("mje,rmkef,mjf->mkj", v, cov, v) / n_rec  # mean over records
+    independent = torch.einsum("mje,rmke->mkj", v.square(), sd.square()) / n_rec
+    err = (tied.dA - d_true).flatten(-2)
+    actual = torch.einsum("mje,rmke->rmkj", v, err).square().mean(0)
+    ratio = float(actual.sum() / predicted.sum())
+    assert 0.85 < ratio < 1.15, ratio
+    assert float(actual.sum() / independent.sum()) < 0.5
+
+
 def test_tied_derivative_on_the_curved_reference_gait_without_noise():
     # The 3-link reference gait without noise: the direct δ̇⊗δ estimate of ∂Â/∂r is ~20 % off
     # along the fitted cycle (the bins' phase width on a strongly curved gait), far beyond

@@ -67,6 +67,10 @@ class ConnectionFit:
             second order and the sampling interval,
             :class:`~torchconn.regression.noise_aware.NoiseAwareRegression`'s
             ``bias_allowance``), not in ``se_A``; None where not estimated.
+        corr_dA: ``(..., M, 3, d², d²)`` the correlation of each bin and row's tied
+            ``∂Â/∂r`` entries (``vec`` row-major, as ``cov_b_dA``'s), where the tie was asked
+            for it (:func:`~torchconn.regression.tie_connection_derivative`'s
+            ``correlation``); None otherwise.
     """
 
     c: Tensor
@@ -90,6 +94,7 @@ class ConnectionFit:
     influence_A: Tensor | None = None
     sampling_factor_A: Tensor | None = None
     bias_allowance_A: Tensor | None = None
+    corr_dA: Tensor | None = None
 
 
 def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:

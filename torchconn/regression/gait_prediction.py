@@ -166,10 +166,13 @@ def sample_models(
     gen = torch.Generator(device=model.device).manual_seed(seed)
     centres = bins.phase
 
-    def redraw(series, values, se, window, bias=None, factors=(), allowances=(), shared=gen):
+    def redraw(series, values, se, window, bias=None, factors=(), allowances=(), shared=gen,
+               within=None):
         """``values`` drawn: the scatter ``se`` entry by entry (bins correlated by their
-        windows' overlap) less what ``bias`` and ``factors`` hold, which are drawn whole,
-        and the ``allowances`` beyond ``se``; the shared draws come from ``shared``."""
+        windows' overlap; with ``within`` ``(..., M, *v[:-2], E, E)``, ``E`` the last two
+        value dims' entries, those entries correlated by it in each bin) less what ``bias``
+        and ``factors`` hold, which are drawn whole, and the ``allowances`` beyond ``se``; the
+        shared draws come from ``shared``."""
         m = values.shape[len(model.batch_shape)]
         chol = _bin_noise_factor(m, window, kernel, values)
         factors = [f for f in factors if f is not None]
@@ -182,11 +185,18 @@ def sample_models(
                 var = var - torch.nan_to_num(factor).square().sum(-1)
             se = var.clamp(min=0).sqrt()
         moved = values.movedim(len(model.batch_shape), -1)  # (..., *v, M)
-        se_m = torch.nan_to_num(se).movedim(len(model.batch_shape), -1)
         z = torch.randn((n_draws,) + moved.shape, generator=gen, dtype=values.dtype,
                         device=values.device)
-        noisy = moved + se_m * (z @ chol.mT)
-        noisy = noisy.movedim(-1, len(model.batch_shape) + 1)  # (S, ..., M, *v)
+        u = (z @ chol.mT).movedim(-1, len(model.batch_shape) + 1)  # (S, ..., M, *v)
+        if within is not None:
+            # the same standard normals, correlated within each bin by the Cholesky factor of
+            # ``within`` (the diagonal, and so each entry's spread, is unchanged)
+            low, info = torch.linalg.cholesky_ex(torch.nan_to_num(within))
+            eye = torch.eye(low.shape[-1], dtype=low.dtype, device=low.device)
+            low = torch.where((info == 0)[..., None, None], low, eye)  # (not PD: entrywise)
+            flat = u.flatten(-2)  # (S, ..., M, *v[:-2], E)
+            u = (low @ flat.unsqueeze(-1)).squeeze(-1).unflatten(-1, u.shape[-2:])
+        noisy = values + torch.nan_to_num(se) * u  # (S, ..., M, *v)
         # the bias, and allowances beyond se (the tube's second-order bias, the sampling
         # interval's): each one systematic error, shared by every entry and bin (its
         # covariance is the outer product of the error, not a diagonal), scaled by one
@@ -211,7 +221,7 @@ def sample_models(
     gen_a = torch.Generator(device=model.device).manual_seed(seed + 2)
     A = redraw(model.A, bins.A, bins.A_se, window, factors=(bins.A_sampling_factor,),
                allowances=(bins.A_bias_allowance,), shared=gen_a)
-    dA = redraw(model.dA, bins.dA, bins.dA_se, window)
+    dA = redraw(model.dA, bins.dA, bins.dA_se, window, within=bins.dA_correlation)
     M = None
     if model.M is not None and bins.M is not None and bins.M_se is not None:
         M = redraw(model.M, bins.M, bins.M_se, meta.get("metric_window") or window,

@@ -78,6 +78,13 @@ class BinEstimates:
             in ``A_se``; nearby-gait draws add it as one error shared by entries and bins.
             None where not estimated (recordings with detected measurement noise, unpooled
             fits).
+        dA_correlation: ``(..., M, 3, d², d²)`` the correlation of each bin and row's tied
+            ``∂Â/∂r`` entries (``vec`` row-major), from the tie
+            (:func:`~torchconn.regression.tie_connection_derivative`'s ``correlation``).
+            Nearby-gait draws take ``∂Â/∂r`` with it: the displacement's first-order term
+            contracts it with the gait's velocity, which the tie pins through ``b̂``. None
+            where not estimated (unpooled fits, ``TubeRegression``, older models): drawn
+            entry by entry.
     """
 
     phase: Tensor
@@ -105,6 +112,7 @@ class BinEstimates:
     M_offset_bias: Tensor | None = None
     A_sampling_factor: Tensor | None = None
     A_bias_allowance: Tensor | None = None
+    dA_correlation: Tensor | None = None
 
 
 @dataclass(frozen=True)

@@ -1641,7 +1641,8 @@ class _DerivativeBias:
 def derivative_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: IntervalSamples,
                                bins: BinIndex, gamma_m: Tensor, gamma_dot_m: Tensor, *,
                                order: int, pool: bool, steps: int | None = None,
-                               offsets: _OneSampleOffsets | None = None, **opts
+                               offsets: _OneSampleOffsets | None = None,
+                               correlation: bool = False, **opts
                                ) -> tuple[ConnectionFit, Tensor]:
     """The tied ``∂Â/∂r`` (:func:`tie_connection_derivative`) with the bins' bias removed.
 
@@ -1680,20 +1681,20 @@ def derivative_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: In
         corrected = dataclasses.replace(fit, dA=fit.dA - bias_dA, b=fit.b - bias_b)
         tied = tie_connection_derivative(corrected, gamma_m, gamma_dot_m, **tie)
     tied = tie_connection_derivative(corrected, gamma_m, gamma_dot_m,
-                                     **{**tie, "consistency": True})
+                                     **{**tie, "consistency": True}, correlation=correlation)
     shift = tied.dA - first.dA
     # the bias left after the correction, taken as the part of its square the pooled choice
     # assumes (_RESIDUAL_BIAS_FRACTION; without it the squared errors were 2-4.8 times the
     # squared standard errors at ω = 0 on seeds 5-6, with it 0.3-1.8)
     se = (tied.se_dA.square() + _RESIDUAL_BIAS_FRACTION * shift.square()).sqrt()
-    return dataclasses.replace(fit, dA=tied.dA, se_dA=se), shift
+    return dataclasses.replace(fit, dA=tied.dA, se_dA=se, corr_dA=tied.corr_dA), shift
 
 
 def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: IntervalSamples,
                               bins: BinIndex, gamma_m: Tensor, gamma_dot_m: Tensor, *,
                               order: int, pool: bool,
                               offsets: _OneSampleOffsets | None = None,
-                              joint_weights: bool = False, **opts
+                              joint_weights: bool = False, correlation: bool = False, **opts
                               ) -> tuple[ConnectionFit, tuple[Tensor, Tensor]]:
     """The tied ``∂Â/∂r`` (:func:`tie_connection_derivative`) with the bins' bias of its
     sources allowed for in their variances instead of removed (for data with measurement
@@ -1743,8 +1744,9 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
         fit, se_dA=(fit.se_dA.square() + _RESIDUAL_BIAS_FRACTION * bias[0].square()).sqrt(),
         se_b=(fit.se_b.square() + _RESIDUAL_BIAS_FRACTION * bias[1].square()).sqrt(),
         cov_b_dA=cov)
-    tied = tie_connection_derivative(widened, gamma_m, gamma_dot_m, **tie)
-    return dataclasses.replace(fit, dA=tied.dA, se_dA=tied.se_dA), bias
+    tied = tie_connection_derivative(widened, gamma_m, gamma_dot_m, **tie,
+                                     correlation=correlation)
+    return dataclasses.replace(fit, dA=tied.dA, se_dA=tied.se_dA, corr_dA=tied.corr_dA), bias
 
 
 # ------------------------------------------------------------------------ the regression stage
@@ -2011,6 +2013,15 @@ class NoiseAwareRegression(TubeRegression):
             (1.14–1.37 → 0.87–1.30, 3-/5-/9-link); at ω ≤ 0.005 they widen by 0–15 %
             (0.76–1.28 → 0.73–1.26); the mean |log e²/se²| over the 15 held-out cells
             0.165 → 0.156 (README "The tied ``∂Â/∂r``'s bands at ω = 0.01").
+        derivative_correlation: a pooled fit also keeps the correlation of each bin's tied
+            ``∂Â/∂r`` entries (``model.bins.dA_correlation``, the tie's covariance,
+            :func:`~torchconn.regression.tie_connection_derivative`'s ``correlation``), with
+            which nearby-gait draws take ``∂Â/∂r`` (its entries' standard errors unchanged).
+            The displacement's first-order term contracts ``∂Â/∂r`` with the gait's velocity,
+            which the tie pins through ``b̂``: drawn entry by entry, that term's spread on
+            the 9-link reference gait was 20-100 times its actual error (README "The
+            displacement standard error on the 9-link"). Off until measured: the fits are
+            bit for bit the same either way; model files grow by ``M·3·d⁴`` floats.
     """
 
     velocity_interval: int | None = option(None, ge=1)
@@ -2028,6 +2039,7 @@ class NoiseAwareRegression(TubeRegression):
     sampling_factor: bool = True
     bias_allowance: bool = True
     blend_covariance: Literal["shift", "interpolated"] = "shift"
+    derivative_correlation: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -2400,11 +2412,13 @@ class NoiseAwareRegression(TubeRegression):
                 extra = {"joint_weights": self.joint_weights}
             tied, _ = run(fit, traj, chosen.view, bins, gamma_m, gamma_dot_m,
                           order=self.fourier_order, pool=True, offsets=chosen.offsets,
-                          **extra, **opts)
+                          correlation=self.derivative_correlation, **extra, **opts)
             return tied, how
         tied = tie_connection_derivative(fit, gamma_m, gamma_dot_m, self.fourier_order,
                                          window=chosen.windows, kernel=self.kernel,
-                                         joint_weights=self.joint_weights)
+                                         joint_weights=self.joint_weights,
+                                         correlation=(self.derivative_correlation
+                                                      and chosen.view is not None))
         return tied, "tied"
 
     def _a_series(self, centres: Tensor, fit: ConnectionFit, window, pool: bool):

@@ -141,8 +141,8 @@ def _times_tie_design(x: Tensor, gamma_dot_m: Tensor) -> Tensor:
 
 def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: Tensor,
                               order: int, *, window: float | Tensor, kernel: str,
-                              consistency: bool = True, joint_weights: bool = False
-                              ) -> ConnectionFit:
+                              consistency: bool = True, joint_weights: bool = False,
+                              correlation: bool = False) -> ConnectionFit:
     """``fit`` with ``∂Â/∂r`` tied to the terms that identify most of it far better.
 
     With ``D = ∂Aᵏ/∂r`` at a bin (``D[i, j] = ∂Aᵏ_i/∂r_j``), the bin's other estimates hold
@@ -183,6 +183,14 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
             3-link circle 1.4 points further to 10.5 closer, up to 3 % further on the 5-link,
             bands too narrow on the 3-link circle (squared error over squared standard error
             1.2-3.0), so off.
+        correlation: also the correlation of the tied entries of each bin and row
+            (``corr_dA``, ``(..., M, 3, d², d²)``, ``vec D`` row-major: entry ``i·d + j`` is
+            ``D[i, j]``), from the solution's covariance (the sandwich's where it is taken):
+            the tie pins ``D γ̇`` and ``D γ'`` far better than the entries one by one, so the
+            entries' errors are strongly correlated (drawn independently, a 9-link gait's
+            displacement spread 20-100 times its actual error; README "The displacement
+            standard error on the 9-link"). Identity where the normal matrix cannot be
+            factorised. The tied estimate and its standard errors are the same bit for bit.
 
     Returns:
         the fit with ``dA`` and ``se_dA`` tied (other fields unchanged). Non-finite estimates
@@ -255,6 +263,7 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     solution = torch.cholesky_solve(rhs.unsqueeze(-1), safe).squeeze(-1)
     n_inv = torch.cholesky_inverse(safe)
     var = torch.diagonal(n_inv, dim1=-2, dim2=-1)
+    cov_full = n_inv if correlation else None  # (..., M, 3, d², d²)
     if sandwich:
         # the estimate of the independent weights W, its variance under the joint covariance
         # Σ: N⁻¹ (HᵀWΣWH + the slope's part of N) N⁻¹ (N⁻¹ itself where Σ is not finite)
@@ -268,6 +277,8 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
         g = w_ind.unsqueeze(-1) * _tie_design(gamma_dot_m).unsqueeze(-3)  # WH (..., c, d²)
         meat = g.mT @ (cov @ g) + slope_normal  # (..., M, 3, d², d²)
         var = torch.where(finite.unsqueeze(-1), ((n_inv @ meat) * n_inv).sum(-1), var)
+        if correlation:
+            cov_full = torch.where(finite[..., None, None], n_inv @ meat @ n_inv, n_inv)
     if consistency:
         # χ² of the three sources about the tied solution, against its degrees of freedom
         fitted = torch.where(good, solution, 0.0).unflatten(-1, (d, d))
@@ -288,4 +299,10 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     shape = fit.dA.shape
     tied = torch.where(good, solution, fit.dA.flatten(-2)).reshape(shape)
     se = torch.where(good, var.clamp_min(0).sqrt(), fit.se_dA.flatten(-2)).reshape(shape)
-    return dataclasses.replace(fit, dA=tied, se_dA=se)
+    corr = None
+    if correlation:  # (the consistency ratio scales the covariance, not its correlation)
+        sd = torch.diagonal(cov_full, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+        ok = good.unsqueeze(-1) & (sd > 0).unsqueeze(-1) & (sd > 0).unsqueeze(-2)
+        corr = torch.where(ok, cov_full / (sd.unsqueeze(-1) * sd.unsqueeze(-2)).clamp_min(1e-300),
+                           torch.eye(d * d, **opts))
+    return dataclasses.replace(fit, dA=tied, se_dA=se, corr_dA=corr)

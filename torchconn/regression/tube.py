@@ -304,7 +304,7 @@ class TubeRegression(Regression):
             c=fit.c, b=fit.b, A=fit.A, dA=fit.dA,
             c_se=fit.se_c, b_se=fit.se_b, A_se=fit.se_A, dA_se=fit.se_dA,
             n_samples=fit.n_samples, A_sampling_factor=fit.sampling_factor_A,
-            A_bias_allowance=fit.bias_allowance_A, **metric,
+            A_bias_allowance=fit.bias_allowance_A, dA_correlation=fit.corr_dA, **metric,
         )
 
         def series(values: Tensor, ndim: int):
