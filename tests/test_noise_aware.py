@@ -1381,6 +1381,22 @@ def _tie_inputs(gen, n_rec, m=48, d=2, window=2.0):
     return gamma, tangent, a, d_true, b_true, a_err, a_se.expand(a_err.shape)
 
 
+def _noisy_tie_records(gen, n_rec: int, window: float):
+    """``n_rec`` records of the tie's three sources with independent Gaussian errors of known
+    standard errors: ``Â``'s 0.05 per bin (made by real bins of white noise), ``b̂``'s 0.05 and
+    the direct ``∂Â/∂r``'s 0.5. Returns the cycle, its tangent, the true ``∂A/∂r``, the
+    direct estimate's standard errors and the fit."""
+    gamma, tangent, a, d_true, b_true, a_err, a_se = _tie_inputs(gen, n_rec, window=window)
+    scale = 0.05 / float(a_se.mean())  # Â's noise of 0.05 per bin
+    se_b = torch.full((n_rec,) + b_true.shape, 0.05, dtype=F64)
+    se_d = torch.full((n_rec,) + d_true.shape, 0.5, dtype=F64)
+    fit = _tie_fit(a + scale * a_err, b_true + se_b * torch.randn(se_b.shape, generator=gen,
+                                                                   dtype=F64),
+                   d_true + se_d * torch.randn(se_d.shape, generator=gen, dtype=F64),
+                   scale * a_se, se_b, se_d)
+    return gamma, tangent, d_true, se_d, fit
+
+
 def _tie_fit(a, b, da, se_a, se_b, se_da):
     from torchconn.regression.connection import ConnectionFit
 
@@ -1426,15 +1442,7 @@ def test_tied_derivative_bands_cover_its_errors_under_noise(window):
     from torchconn.regression.noise_aware import tie_connection_derivative
 
     gen = torch.Generator().manual_seed(5)
-    n_rec = 200
-    gamma, tangent, a, d_true, b_true, a_err, a_se = _tie_inputs(gen, n_rec, window=window)
-    scale = 0.05 / float(a_se.mean())  # Â's noise of 0.05 per bin
-    se_b = torch.full((n_rec,) + b_true.shape, 0.05, dtype=F64)
-    se_d = torch.full((n_rec,) + d_true.shape, 0.5, dtype=F64)
-    fit = _tie_fit(a + scale * a_err, b_true + se_b * torch.randn(se_b.shape, generator=gen,
-                                                                   dtype=F64),
-                   d_true + se_d * torch.randn(se_d.shape, generator=gen, dtype=F64),
-                   scale * a_se, se_b, se_d)
+    gamma, tangent, d_true, se_d, fit = _noisy_tie_records(gen, 200, window)
     tied = tie_connection_derivative(fit, gamma, tangent, 12, window=window,
                                      kernel="tricube")
     ratio = float((tied.dA - d_true).square().sum() / tied.se_dA.square().sum())
@@ -1453,14 +1461,7 @@ def test_tied_derivative_correlation_is_its_errors_correlation():
 
     gen = torch.Generator().manual_seed(17)
     n_rec, window = 400, 1.0
-    gamma, tangent, a, d_true, b_true, a_err, a_se = _tie_inputs(gen, n_rec, window=window)
-    scale = 0.05 / float(a_se.mean())
-    se_b = torch.full((n_rec,) + b_true.shape, 0.05, dtype=F64)
-    se_d = torch.full((n_rec,) + d_true.shape, 0.5, dtype=F64)
-    fit = _tie_fit(a + scale * a_err, b_true + se_b * torch.randn(se_b.shape, generator=gen,
-                                                                   dtype=F64),
-                   d_true + se_d * torch.randn(se_d.shape, generator=gen, dtype=F64),
-                   scale * a_se, se_b, se_d)
+    gamma, tangent, d_true, se_d, fit = _noisy_tie_records(gen, n_rec, window)
     opts = dict(window=window, kernel="tricube", consistency=False)
     plain = tie_connection_derivative(fit, gamma, tangent, 12, **opts)
     tied = tie_connection_derivative(fit, gamma, tangent, 12, **opts, correlation=True)
