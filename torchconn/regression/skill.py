@@ -180,12 +180,12 @@ class Skill:
             return
         warnings.warn(
             f"the model predicts held-out cycles worse than their phase-averaged velocity for "
-            f"{self._shortfalls()}: its shape terms do not help predict these "
+            f"{self.shortfalls()}: its shape terms do not help predict these "
             f"components on this recording (too few cycles for its coefficients, or joint-"
             f"angle noise that swamps the shape deviations); {fix}", PoorHeldOutSkillWarning,
             stacklevel=stacklevel)
 
-    def _shortfalls(self) -> str:
+    def shortfalls(self) -> str:
         """Each losing component with the model's and the phase average's held-out ``R²`` in
         the trial where it loses most (both from that trial; its index where there are
         several), e.g. ``v_x (held-out R² 0.412 vs phase average 0.455 in trial 2)``, with
