@@ -214,3 +214,25 @@ def test_fit_tells_the_connection_from_the_forecasts_when_a_ridge_is_chosen(tmp_
     assert est.regression.ridge_connection is False
     assert json.loads((out / "fit.json").read_text())["forecast_model"]["file"] == \
         "forecast_model.npz"
+
+
+def test_fit_names_the_components_that_lose_to_the_phase_average(tmp_path, capsys):
+    # 6 noisy cycles at the fixed 48 bins / order 12: the model loses held out somewhere, and
+    # the printout names each such component with both R² (fit.json's numbers)
+    seeds = np.array([3, 4])
+    traj = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=6,
+                    seeds=seeds)
+    path = tmp_path / "short.csv"
+    write_csv(observe(traj, 0.01, seeds=seeds), path)
+    out = tmp_path / "fit"
+    assert main([str(path), "--links", "3", "--out", str(out), "--complexity", "fixed",
+                 "--metric", "no"]) == 0
+    text = capsys.readouterr().out
+    held = json.loads((out / "fit.json").read_text())["held_out_skill"]
+    losing = [k for k, worse in enumerate(held["worse_than_phase_average"]) if worse]
+    assert losing, "this recording was chosen because its fixed-complexity model loses"
+    warning = next(line for line in text.splitlines() if line.startswith("WARNING: the model"))
+    for k, name in enumerate(held["components"]):
+        shown = (f"{name} (held-out R² {held['model'][k]:.3f} vs phase average "
+                 f"{held['phase_average'][k]:.3f})")
+        assert (shown in warning) == (k in losing), (shown, warning)

@@ -562,3 +562,37 @@ def test_a_short_recording_no_held_out_check_can_score_predicts_the_phase_averag
     s = est.score(later)
     assert torch.equal(s.r2, s.r2_phase_average)
     assert bool((s.r2_phase_average > 0.5).all())
+
+
+def test_warning_names_each_loss_with_both_scores_from_the_same_trial():
+    # v_x loses only in trial 1 (0.95 vs 0.97), but the lowest model R² over trials (0.90,
+    # trial 0) is below the lowest phase average (0.92, trial 0): per-column minima would
+    # read as a win. ω loses in both trials, most in trial 0. v_y never loses.
+    r2 = torch.tensor([[0.90, 0.80, 0.50], [0.95, 0.85, 0.60]], dtype=F64)
+    base = torch.tensor([[0.88, 0.70, 0.70], [0.97, 0.75, 0.62]], dtype=F64)
+    s = skill.Skill(r2=r2, r2_phase_average=base, r2_template=base,
+                    n_samples=torch.tensor([100.0, 100.0], dtype=F64))
+    with pytest.warns(PoorHeldOutSkillWarning) as record:
+        s.warn_if_poor()
+    message = str(record[0].message)
+    assert "v_x (held-out R² 0.950 vs phase average 0.970 in trial 1)" in message
+    assert "omega (held-out R² 0.500 vs phase average 0.700 in trial 0)" in message
+    assert "v_y" not in message
+    # one trial: no index; a 2-D batch: the index is the batch's
+    one = skill.Skill(r2=r2[1], r2_phase_average=base[1], r2_template=base[1],
+                      n_samples=torch.tensor(100.0, dtype=F64))
+    with pytest.warns(PoorHeldOutSkillWarning, match=r"v_x \(held-out R² 0.950 vs phase "
+                      r"average 0.970\), omega"):
+        one.warn_if_poor()
+    grid = skill.Skill(r2=r2.reshape(1, 2, 3), r2_phase_average=base.reshape(1, 2, 3),
+                       r2_template=base.reshape(1, 2, 3),
+                       n_samples=torch.full((1, 2), 100.0, dtype=F64))
+    with pytest.warns(PoorHeldOutSkillWarning, match=r"in trial \(0, 1\)"):
+        grid.warn_if_poor()
+    # a loss smaller than the third decimal is printed with the digits that show it
+    close = skill.Skill(r2=torch.tensor([0.99212, 0.5, 0.5], dtype=F64),
+                        r2_phase_average=torch.tensor([0.99238, 0.4, 0.4], dtype=F64),
+                        r2_template=base[0], n_samples=torch.tensor(100.0, dtype=F64))
+    with pytest.warns(PoorHeldOutSkillWarning, match=r"v_x \(held-out R² 0.9921 vs phase "
+                      r"average 0.9924\)"):
+        close.warn_if_poor()

@@ -361,7 +361,8 @@ def main(argv: list[str] | None = None) -> int:
                       "(record more cycles, or use fewer --n-bins)")
             elif bool(held_out.worse_than_phase_average.any()):
                 print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
-                      "velocity: its shape terms do not help predict those components on this "
+                      f"velocity for {held_out.shortfalls()}: its shape terms do not help "
+                      "predict those components on this "
                       "recording (" + ("record more cycles; the complexity was already chosen "
                       "by held-out error)" if est.complexity_ is not None else "try --complexity "
                       "cv, fewer --n-bins, a lower --fourier-order or a wider --window, or "

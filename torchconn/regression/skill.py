@@ -178,14 +178,34 @@ class Skill:
                     PoorHeldOutSkillWarning,
                     stacklevel=stacklevel)
             return
-        names = [n for n, w in zip(COMPONENTS, worse.tolist(), strict=True) if w]
         warnings.warn(
             f"the model predicts held-out cycles worse than their phase-averaged velocity for "
-            f"{', '.join(names)} (held-out R² {_fmt(self.r2)} vs phase average "
-            f"{_fmt(self.r2_phase_average)}): its shape terms do not help predict these "
+            f"{self.shortfalls()}: its shape terms do not help predict these "
             f"components on this recording (too few cycles for its coefficients, or joint-"
             f"angle noise that swamps the shape deviations); {fix}", PoorHeldOutSkillWarning,
             stacklevel=stacklevel)
+
+    def shortfalls(self) -> str:
+        """Each losing component with the model's and the phase average's held-out ``R²`` in
+        the trial where it loses most (both from that trial; its index where there are
+        several), e.g. ``v_x (held-out R² 0.412 vs phase average 0.455 in trial 2)``, with
+        as many decimals (3 to 6) as it takes to tell the two apart."""
+        model = self.r2.reshape(-1, 3)
+        base = self.r2_phase_average.reshape(-1, 3)
+        worse = self.worse_than_phase_average.reshape(-1, 3)
+        shortfall = torch.where(worse, base - model, -torch.inf)
+        parts = []
+        for k, name in enumerate(COMPONENTS):
+            if not bool(worse[:, k].any()):
+                continue
+            trial = int(shortfall[:, k].argmax())
+            where = (f" in trial {_trial_index(trial, self.r2.shape[:-1])}"
+                     if model.shape[0] > 1 else "")
+            a, b = float(model[trial, k]), float(base[trial, k])
+            digits = next((n for n in range(3, 7) if f"{a:.{n}f}" != f"{b:.{n}f}"), 6)
+            parts.append(f"{name} (held-out R² {a:.{digits}f} vs phase average "
+                         f"{b:.{digits}f}{where})")
+        return ", ".join(parts)
 
 
 @dataclass(frozen=True)
@@ -1120,13 +1140,15 @@ def _input_noise_variance(model: LocalConnectionModel, phase: Tensor, r: Tensor,
             + (a.square() * var_rate.unsqueeze(-2)).sum(-1) - cross)
 
 
+def _trial_index(flat: int, batch_shape: torch.Size) -> str:
+    """The batch index of the ``flat``-th trial: ``2`` for one batch dim, ``(1, 0)`` for more."""
+    index = torch.unravel_index(torch.tensor(flat), tuple(batch_shape))
+    return str(int(index[0])) if len(index) == 1 else str(tuple(int(i) for i in index))
+
+
 def _from_sums(sse_model, sse_base, sse_template, sy, syy, n) -> Skill:
     sst = syy - sy.square() / n[..., None]
     return Skill(r2=1 - sse_model / sst, r2_phase_average=1 - sse_base / sst,
                  r2_template=1 - sse_template / sst, n_samples=n)
 
 
-def _fmt(x: Tensor) -> str:
-    flat = x.reshape(-1, 3)
-    worst = "[" + ", ".join(f"{float(v):.3f}" for v in flat.min(0).values) + "]"
-    return worst + (" (worst trial)" if flat.shape[0] > 1 else "")
