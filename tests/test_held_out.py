@@ -562,3 +562,23 @@ def test_a_short_recording_no_held_out_check_can_score_predicts_the_phase_averag
     s = est.score(later)
     assert torch.equal(s.r2, s.r2_phase_average)
     assert bool((s.r2_phase_average > 0.5).all())
+
+
+def test_an_unchecked_fit_on_many_cycles_advises_more_data_not_the_search_it_ran():
+    """5-link wave, 10 cycles at 10 samples per cycle (a tracked zebrafish at 50 fps): no
+    candidate can be fitted without a third of the cycles, so complexity='auto' keeps the
+    given fit unchecked (10 cycles are not few); the warning used to advise
+    complexity='cv', the search that had just failed."""
+    seeds = np.array([1000])
+    clean = simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=10, samples_per_cycle=10,
+                     seeds=seeds)
+    traj = observe(clean, 0.005, seeds=seeds).with_fields(power=None)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = ConnectionEstimator().fit(traj)
+    assert est.complexity_ is None and bool(est.held_out_skill_.unscored.all())
+    poor = [str(w.message) for w in caught if issubclass(w.category, PoorHeldOutSkillWarning)]
+    assert len(poor) == 1 and "cannot be fitted when one block" in poor[0]
+    assert "more samples per cycle" in poor[0] and "complexity='cv'" not in poor[0]
+    with pytest.raises(ValueError, match="no candidate could be fitted"):
+        ConnectionEstimator(complexity="cv").fit(traj)

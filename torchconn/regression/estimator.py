@@ -244,7 +244,7 @@ class ConnectionEstimator:
             )
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
-        regression, choice, free = self.regression, None, None
+        regression, choice, free, searched = self.regression, None, None, False
         with _cycles_in_errors(traj, regression, self.complexity):
             if self.complexity == "cv":
                 regression, choice, free = self._select(traj, cycle)
@@ -275,6 +275,7 @@ class ConnectionEstimator:
                     # presumed (as skill._choose_terms does) and it predicts the phase average
                     choice = skill.unchecked_choice(held, regression,
                                                     skill.few_cycles(traj.phase, self.pool))
+                    searched = True
                 else:
                     model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
                     regression = chosen
@@ -312,7 +313,7 @@ class ConnectionEstimator:
                                          estimator_settings(self, unshrunk or regression),
                                          forecast_model=_forecast_meta(choice, regression))
         if held is not None:
-            held.warn_if_poor(stacklevel=3, choice=choice)
+            held.warn_if_poor(stacklevel=3, choice=choice, searched=searched)
         return self
 
     def _folds(self) -> int:

@@ -127,14 +127,20 @@ class Skill:
         (``R² > 0``)."""
         return (self.r2 < self.r2_phase_average) & (self.r2_phase_average > 0)
 
-    def warn_if_poor(self, stacklevel: int = 3, choice: "ComplexityChoice | None" = None
-                     ) -> None:
+    def warn_if_poor(self, stacklevel: int = 3, choice: "ComplexityChoice | None" = None,
+                     searched: bool = False) -> None:
         """Warn (:class:`PoorHeldOutSkillWarning`) where :attr:`worse_than_phase_average` or
         :attr:`unscored`; ``choice``: the complexity chosen by held-out error, if any (the
-        advice then is more cycles, not fewer bins)."""
+        advice then is more cycles, not fewer bins); ``searched``: the search by held-out
+        error ran and no candidate could be scored (the advice then is more data too)."""
         fix = ("record more cycles (the complexity was already chosen by held-out error: "
                f"{choice.n_bins} bins, Fourier order {choice.fourier_order}, ridge "
                f"{choice.ridge:g})" if choice is not None else
+               "record more cycles, or more samples per cycle (complexity='auto' already "
+               "searched the complexity by held-out error, and no candidate down to "
+               f"{COMPLEXITY_GRID[0][0]} bins, Fourier order {COMPLEXITY_GRID[0][1]} could be "
+               "fitted without one block of cycles, so the given one is kept unchecked)"
+               if searched else
                "choose the complexity by held-out error (ConnectionEstimator(complexity='cv'), "
                "torchconn-fit --complexity cv), or use fewer bins / a lower Fourier order / a "
                "ridge, or record more cycles")
