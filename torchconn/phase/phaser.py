@@ -554,10 +554,11 @@ def _first_pass(x: Tensor, o, fn: str) -> Tensor:
         where = torch.nonzero(cycles < o.min_cycles)[0].tolist()
         advice = ("the phase correction needs several cycles -- record longer trials"
                   if fn != "Phaser.transform" else
-                  "the Hilbert transform of so short a record is unreliable (0.18 rad RMS at 2 "
-                  "cycles against 0.08 at 3, benchmarks/real_recordings.py); to phase the later "
-                  "cycles of a recording, transform the whole recording and keep their part "
-                  "(transform(r)[..., start:], score(later, phase=...))")
+                  "the Hilbert transform of so short a record is unreliable (RMS 0.18 rad at 2 "
+                  "cycles against 0.08 at 3: benchmarks/real_recordings.py --phase-length); to "
+                  "phase the later cycles of a recording, transform the whole recording and "
+                  "keep their part (0.09 rad at any length): transform(r)[..., start:], then "
+                  "score(later, phase=...)")
         raise ValueError(
             f"{fn}: x covers only about {float(cycles.min()):.1f} cycles (batch index "
             f"{tuple(where)}), fewer than min_cycles={o.min_cycles}; {advice}"
@@ -806,12 +807,13 @@ def _fundamental_channels(theta: Tensor, z: Tensor) -> Tensor:
 
     A channel is periodic where it winds at least twice and its
     :func:`~torchconn.io.preflight.periodicity` at the period its own winding gives reaches
-    :data:`~torchconn.io.preflight.MIN_PERIODICITY` (where no channel is, all count). Faster channels carry a harmonic of the gait (xy, x² − y² of a
-    circle); slower ones are dominated by drift or noise, as the head joints of a tracked fish
-    whose tail beats at 9 samples per cycle (wound 3-7 times while the tail beat 15-25 times,
-    periodicity −0.2-0.0 against the tail's 0.3-0.6). Either way their combination with the
-    gait's channels would be ambiguous; taking the slowest channel of all as the reference let
-    such a drifting channel define the phase and leave the gait's channels out."""
+    :data:`~torchconn.io.preflight.MIN_PERIODICITY` (where no channel is, all count).
+    Faster channels carry a harmonic of the gait (xy, x² − y² of a circle); slower ones are
+    dominated by drift or noise, as the head joints of a tracked zebrafish whose tail beats at
+    9 samples per cycle (wound 3-7 times while the tail beat 15-25 times, periodicity
+    −0.2-0.0 against the tail's 0.3-0.6). Either way their combination with the gait's
+    channels would be ambiguous; taking the slowest channel of all as the reference let such a
+    drifting channel define the phase and leave the gait's channels out."""
     turns = (unwrap(theta)[..., -1] - unwrap(theta)[..., 0]).abs() / (2 * math.pi)
     # the autocorrelation at the period means little unless the record holds two of them
     periodic = (periodicity(z.mT.unsqueeze(-1), turns) >= MIN_PERIODICITY) & (turns >= 2)
