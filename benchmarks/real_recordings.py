@@ -15,9 +15,8 @@ regression sees it (``ConnectionEstimator.score``):
 - ``tube``: ``ConnectionEstimator(regression=TubeRegression(), complexity="fixed")``, torchconn
   0.1's method; its target is the Kalman-smoothed velocity, not the raw interval differences;
 - ``phase avg``: the training cycles' phase-averaged velocity (``score()``'s baseline);
-- ``template``: the connection's intercept ``ĉ(φ) = Â(γ)γ̇`` on the later samples (from
-  ``model_``: ``score().r2_template`` is the forecasting model's, which equals the phase average
-  where a component falls back to it).
+- ``template``: the connection's intercept ``ĉ(φ) = Â(γ)γ̇`` on the later samples
+  (``score().r2_template``, of ``model_``).
 
 The later cycles are phased by the phase model fitted to the first ones, applied to the whole
 recording (its later part kept): ``Phaser.transform`` of the later part alone needs 3 cycles,
@@ -90,7 +89,7 @@ def evaluate(traj, train_fraction: float) -> dict:
                                  est.forecast_model_, pool=est.pool)
     delivered = skill.skill(est.model_, est.phase_average_, view)
     out.update(default=scored.r2, connection=delivered.r2, phase_avg=scored.r2_phase_average,
-               template=delivered.r2_template)
+               template=scored.r2_template)
     for name, make in (("fixed", lambda: ConnectionEstimator(complexity="fixed")),
                        ("tube", lambda: ConnectionEstimator(regression=TubeRegression(),
                                                             complexity="fixed"))):

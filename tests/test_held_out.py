@@ -274,6 +274,27 @@ def test_a_component_whose_shape_terms_lose_held_out_falls_back_to_the_phase_ave
     assert torch.equal(est.cross_validate(3).r2, est.held_out_skill_.r2)
 
 
+def test_the_template_stays_the_connection_s_where_a_component_falls_back(short_and_later):
+    """v_y falls back to the phase average (SHORT_SEED): the forecasting model's ĉ is that
+    average there, and the template column used to repeat it; it is Â(γ)γ̇ of the fit."""
+    train, later = short_and_later
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = ConnectionEstimator().fit(train)
+    assert est.complexity_.phase_averaged == ((False, True, False),)
+    scored, held = est.score(later), est.held_out_skill_
+    for s in (scored, held):
+        assert float(s.r2[..., 1]) == float(s.r2_phase_average[..., 1])
+        assert abs(float(s.r2_template[..., 1] - s.r2_phase_average[..., 1])) > 1e-3
+    # score(): ĉ of the connection model_, computed here from the samples score() sees
+    view = skill.regression_view(est._prepare_new(later, None), est.regression_,
+                                 est.forecast_model_, pool=False)
+    ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
+    y, c = view.xi[ok], est.model_.c(view.phase)[ok]
+    r2 = 1 - (y - c).square().sum(0) / (y - y.mean(0)).square().sum(0)
+    torch.testing.assert_close(scored.r2_template.reshape(-1), r2, rtol=0, atol=1e-12)
+
+
 def _same_series_and_bins(a, b):
     """Every Fourier series and per-bin tensor of two models equal bit for bit."""
     for name in ("gamma", "c", "b", "A", "dA", "dA_fit", "M"):

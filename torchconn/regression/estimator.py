@@ -361,8 +361,9 @@ class ConnectionEstimator:
     # ------------------------------------------------------------------ held-out skill
     def score(self, traj: Trajectory, phase: Tensor | None = None) -> skill.Skill:
         """Skill of ``forecast_model_`` on recordings ``traj`` the fit did not see, beside the
-        phase-averaged velocity of the training data and the template
-        (:class:`~torchconn.regression.skill.Skill`).
+        phase-averaged velocity of the training data and the template ``ĉ(φ) = Â(γ)γ̇`` of the
+        connection ``model_`` (:class:`~torchconn.regression.skill.Skill`; the forecasting
+        model's own ``ĉ`` is the phase average where a component falls back to it).
 
         The target is the observed velocity the way the regression sees it. ``traj`` is
         phased with the fitted phaser (same origin) unless ``phase`` is given.
@@ -370,7 +371,7 @@ class ConnectionEstimator:
         model = self._fitted()
         traj = self._prepare_new(traj, phase)
         view = skill.regression_view(traj, self.regression_, model, pool=self.pool)
-        return skill.skill(model, self.phase_average_, view)
+        return skill.skill(model, self.phase_average_, view, template=self.model_)
 
     def cross_validate(self, n_folds: int = 3) -> skill.Skill:
         """Held-out skill of ``forecast_model_``'s regression on the training recordings over
