@@ -547,7 +547,12 @@ def _first_pass(x: Tensor, o, fn: str) -> Tensor:
     _check_values(x, fn)
     z = (x - x.mean(-2, keepdim=True)) / x.std(-2, keepdim=True)
     # with order="auto" the first pass uses the lowest order: it only counts cycles
-    phase = _phaser(z, 1 if o.order == "auto" else o.order, None, o.weighting)[1]
+    with warnings.catch_warnings():
+        # this pass only counts cycles: the fit's own pass warns of the channels it leaves out
+        # (the user saw each warning twice, with different ratios), and a transform was warned
+        # of them by its fit
+        warnings.simplefilter("ignore", PhaseAmbiguityWarning)
+        phase = _phaser(z, 1 if o.order == "auto" else o.order, None, o.weighting)[1]
     span = phase[..., -1] - phase[..., 0]
     cycles = span / (2 * math.pi)
     if bool((cycles < o.min_cycles).any()):
