@@ -274,6 +274,27 @@ def test_a_component_whose_shape_terms_lose_held_out_falls_back_to_the_phase_ave
     assert torch.equal(est.cross_validate(3).r2, est.held_out_skill_.r2)
 
 
+def test_the_template_stays_the_connection_s_where_a_component_falls_back(short_and_later):
+    """v_y falls back to the phase average (SHORT_SEED): the forecasting model's ĉ is that
+    average there, and the template column used to repeat it; it is Â(γ)γ̇ of the fit."""
+    train, later = short_and_later
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = ConnectionEstimator().fit(train)
+    assert est.complexity_.phase_averaged == ((False, True, False),)
+    scored, held = est.score(later), est.held_out_skill_
+    for s in (scored, held):
+        assert float(s.r2[..., 1]) == float(s.r2_phase_average[..., 1])
+        assert abs(float(s.r2_template[..., 1] - s.r2_phase_average[..., 1])) > 1e-3
+    # score(): ĉ of the connection model_, computed here from the samples score() sees
+    view = skill.regression_view(est._prepare_new(later, None), est.regression_,
+                                 est.forecast_model_, pool=False)
+    ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
+    y, c = view.xi[ok], est.model_.c(view.phase)[ok]
+    r2 = 1 - (y - c).square().sum(0) / (y - y.mean(0)).square().sum(0)
+    torch.testing.assert_close(scored.r2_template.reshape(-1), r2, rtol=0, atol=1e-12)
+
+
 def _same_series_and_bins(a, b):
     """Every Fourier series and per-bin tensor of two models equal bit for bit."""
     for name in ("gamma", "c", "b", "A", "dA", "dA_fit", "M"):
@@ -596,3 +617,23 @@ def test_warning_names_each_loss_with_both_scores_from_the_same_trial():
     with pytest.warns(PoorHeldOutSkillWarning, match=r"v_x \(held-out R² 0.9921 vs phase "
                       r"average 0.9924\)"):
         close.warn_if_poor()
+
+
+def test_an_unchecked_fit_on_many_cycles_advises_more_data_not_the_search_it_ran():
+    """5-link wave, 10 cycles at 10 samples per cycle (a tracked zebrafish at 50 fps): no
+    candidate can be fitted without a third of the cycles, so complexity='auto' keeps the
+    given fit unchecked (10 cycles are not few); the warning used to advise
+    complexity='cv', the search that had just failed."""
+    seeds = np.array([1000])
+    clean = simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=10, samples_per_cycle=10,
+                     seeds=seeds)
+    traj = observe(clean, 0.005, seeds=seeds).with_fields(power=None)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = ConnectionEstimator().fit(traj)
+    assert est.complexity_ is None and bool(est.held_out_skill_.unscored.all())
+    poor = [str(w.message) for w in caught if issubclass(w.category, PoorHeldOutSkillWarning)]
+    assert len(poor) == 1 and "cannot be fitted when one block" in poor[0]
+    assert "more samples per cycle" in poor[0] and "complexity='cv'" not in poor[0]
+    with pytest.raises(ValueError, match="no candidate could be fitted"):
+        ConnectionEstimator(complexity="cv").fit(traj)

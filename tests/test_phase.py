@@ -9,6 +9,7 @@ Hilbert phase follows ``p``-like distortions and is wrong by ~0.2 rad.
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -22,6 +23,7 @@ from torchconn.phase.phaser import (
     hilbert_phase_pc1,
     protophase,
 )
+from torchconn.phase.smoothing import unwrap
 
 DT = torch.float64
 SPC = 60  # samples per cycle
@@ -366,3 +368,42 @@ def test_chosen_order_does_not_fit_the_noise():
     e3 = circular_rms(estimate_phase(x, order=3), phi)
     assert auto.model_.order.float().mean() <= 3
     assert e_auto.mean() <= 1.02 * e3.mean()
+
+
+def test_a_drifting_channel_does_not_define_the_phase():
+    # a tracked fish's head joint: a weak gait under a slow random walk, winding fewer times
+    # than the tail's channels; as the reference for the harmonic rule it left the gait's
+    # channels out (the phase counted ~4 of 20 cycles); the slowest periodic channel is used
+    g = torch.Generator().manual_seed(3)
+    T = 126 * 20
+    phi = torch.arange(T, dtype=torch.float64) * (2 * math.pi / 126)
+    wave = torch.stack([torch.sin(phi - 0.8 * k) for k in range(3)], -1)
+    walk = torch.cumsum(torch.randn(T, generator=g, dtype=torch.float64), 0) / 40
+    head = 0.05 * torch.sin(phi - 2.4) + walk
+    x = torch.cat([wave, head[:, None]], -1) + 0.02 * torch.randn(T, 4, generator=g,
+                                                                   dtype=torch.float64)
+    theta = unwrap(protophase(x).mT)
+    turns = (theta[:, -1] - theta[:, 0]).abs() / (2 * math.pi)
+    assert float(turns[3]) < 0.5 * float(turns[:3].min())  # the premise
+    with pytest.warns(PhaseAmbiguityWarning, match="1 channel.*less often.*drift") as caught:
+        fitted = Phaser().fit(x)
+    phase = fitted.phase_
+    # once, by the fit's own pass (the first pass, which only counts cycles, warned too)
+    assert sum(issubclass(w.category, PhaseAmbiguityWarning) for w in caught) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PhaseAmbiguityWarning)
+        fitted.transform(x)  # its fit warned already
+    assert abs(float(phase[-1] - phase[0]) / (2 * math.pi) - 20) < 0.5
+    assert float(circular_rms(phase, phi)) < 0.05
+
+
+def test_transform_of_a_short_later_part_says_how_to_phase_it():
+    # the later 2 cycles of a 6-cycle recording: too short for their own Hilbert transform;
+    # the error points to transforming the whole recording and keeping their part
+    t = torch.arange(6 * SPC, dtype=DT) * STEP
+    x = torch.stack([torch.cos(t), torch.sin(t)], -1)
+    fitted = Phaser().fit(x[: 4 * SPC])
+    with pytest.raises(ValueError, match=r"transform the whole recording.*phase=\.\.\."):
+        fitted.transform(x[4 * SPC:])
+    later = fitted.transform(x)[4 * SPC:]
+    assert float(circular_rms(later, t[4 * SPC:])) < 0.05

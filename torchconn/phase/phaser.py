@@ -45,7 +45,7 @@ from torch import Tensor
 
 from .. import _checks
 from .._options import Options, option
-from ..io.preflight import CYCLE_RULES
+from ..io.preflight import CYCLE_RULES, MIN_PERIODICITY, periodicity
 from .fourier import FourierSeries, fit_fourier, fourier_design
 from .smoothing import unwrap
 
@@ -547,15 +547,26 @@ def _first_pass(x: Tensor, o, fn: str) -> Tensor:
     _check_values(x, fn)
     z = (x - x.mean(-2, keepdim=True)) / x.std(-2, keepdim=True)
     # with order="auto" the first pass uses the lowest order: it only counts cycles
-    phase = _phaser(z, 1 if o.order == "auto" else o.order, None, o.weighting)[1]
+    with warnings.catch_warnings():
+        # this pass only counts cycles: the fit's own pass warns of the channels it leaves out
+        # (the user saw each warning twice, with different ratios), and a transform was warned
+        # of them by its fit
+        warnings.simplefilter("ignore", PhaseAmbiguityWarning)
+        phase = _phaser(z, 1 if o.order == "auto" else o.order, None, o.weighting)[1]
     span = phase[..., -1] - phase[..., 0]
     cycles = span / (2 * math.pi)
     if bool((cycles < o.min_cycles).any()):
         where = torch.nonzero(cycles < o.min_cycles)[0].tolist()
+        advice = ("the phase correction needs several cycles -- record longer trials"
+                  if fn != "Phaser.transform" else
+                  "the Hilbert transform of so short a record is unreliable (RMS 0.18 rad at 2 "
+                  "cycles against 0.08 at 3: benchmarks/real_recordings.py --phase-length); to "
+                  "phase the later cycles of a recording, transform the whole recording and "
+                  "keep their part (0.09 rad at any length): transform(r)[..., start:], then "
+                  "score(later, phase=...)")
         raise ValueError(
             f"{fn}: x covers only about {float(cycles.min()):.1f} cycles (batch index "
-            f"{tuple(where)}), fewer than min_cycles={o.min_cycles}; the phase correction needs "
-            "several cycles -- record longer trials"
+            f"{tuple(where)}), fewer than min_cycles={o.min_cycles}; {advice}"
         )
     per_cycle = float((x.shape[-2] - 1) / cycles.max())
     if o.order != "auto" and 2 * o.order >= per_cycle:
@@ -648,7 +659,7 @@ def _phaser(z: Tensor, order, period: Tensor | None, weighting: str) -> tuple[di
     # a channel whose protophase winds k >= 2 times per cycle of the others carries a harmonic
     # of the oscillation (xy, x² − y² of a circle), or mostly noise: its phasor e^{ikφ} is
     # incoherent with e^{iφ} and would pull the combination, so it gets no weight
-    fundamental = _fundamental_channels(theta)  # (..., C) bool
+    fundamental = _fundamental_channels(theta, z)  # (..., C) bool
     u = torch.polar(fundamental[..., None].to(psi), psi).mT  # (..., T, C) phasors, 0 if excluded
     # u_c ≈ e^{iφ} a_c with |a_c| = 1: the coherence R = uᴴu/T ≈ conj(a) aᵀ, whose top
     # eigenvector v ∝ conj(a) aligns the channels, so u v ∝ e^{iφ}
@@ -794,25 +805,45 @@ def _log_coherence(R: Tensor, keep: Tensor) -> Tensor:
 _HARMONIC_RATIO = 1.5
 
 
-def _fundamental_channels(theta: Tensor) -> Tensor:
+def _fundamental_channels(theta: Tensor, z: Tensor) -> Tensor:
     """``(..., C)`` True for channels whose protophase ``theta (..., C, T)`` winds about as often
-    as the slowest channel (less than :data:`_HARMONIC_RATIO` times); warns when some do not
-    (the channels mix harmonics of the gait, so their combination was ambiguous)."""
+    as the slowest *periodic* channel of ``z (..., T, C)`` (less than :data:`_HARMONIC_RATIO`
+    times as often, and not that many times less); warns when some do not.
+
+    A channel is periodic where it winds at least twice and its
+    :func:`~torchconn.io.preflight.periodicity` at the period its own winding gives reaches
+    :data:`~torchconn.io.preflight.MIN_PERIODICITY` (where no channel is, all count).
+    Faster channels carry a harmonic of the gait (xy, x² − y² of a circle); slower ones are
+    dominated by drift or noise, as the head joints of a tracked zebrafish whose tail beats at
+    9 samples per cycle (wound 3-7 times while the tail beat 15-25 times, periodicity
+    −0.2-0.0 against the tail's 0.3-0.6). Either way their combination with the gait's
+    channels would be ambiguous; taking the slowest channel of all as the reference let such a
+    drifting channel define the phase and leave the gait's channels out."""
     turns = (unwrap(theta)[..., -1] - unwrap(theta)[..., 0]).abs() / (2 * math.pi)
-    slowest = turns.clamp_min(0.5).amin(-1, keepdim=True)
-    keep = turns < _HARMONIC_RATIO * slowest
-    if not bool(keep.all()):
-        ratio = (turns / slowest)[~keep]
-        warnings.warn(
-            f"Phaser: {int((~keep).sum())} channel(s) wind {float(ratio.min()):.1f}-"
-            f"{float(ratio.max()):.1f}x as often as the slowest (a harmonic of the gait, or "
-            "noise); combining them with the others would be ambiguous, so they are left out "
-            "of the phase", PhaseAmbiguityWarning, stacklevel=4)
+    # the autocorrelation at the period means little unless the record holds two of them
+    periodic = (periodicity(z.mT.unsqueeze(-1), turns) >= MIN_PERIODICITY) & (turns >= 2)
+    periodic = periodic | ~periodic.any(-1, keepdim=True)
+    reference = torch.where(periodic, turns.clamp_min(0.5), math.inf).amin(-1, keepdim=True)
+    faster = turns >= _HARMONIC_RATIO * reference
+    slower = turns * _HARMONIC_RATIO <= reference
+    keep = ~(faster | slower)
+    ratio = turns / reference
+    for mask, factor, what in (
+            (faster, ratio, "as often as the slowest periodic channel (a harmonic of the gait, "
+                            "or noise)"),
+            (slower, 1 / ratio, "less often than the slowest periodic channel (drift or noise)")):
+        if bool(mask.any()):
+            warnings.warn(
+                f"Phaser: {int(mask.sum())} channel(s) wind {float(factor[mask].min()):.1f}-"
+                f"{float(factor[mask].max()):.1f}x {what}; combining them with the others "
+                "would be ambiguous, so they are left out of the phase",
+                PhaseAmbiguityWarning, stacklevel=4)
     return keep
 
 
 class PhaseAmbiguityWarning(UserWarning):
-    """Some channels wind at a multiple of the gait's rate and were left out of the phase."""
+    """Some channels wind at a multiple of the gait's rate, or far below it, and were left out
+    of the phase."""
 
 
 def _period(phase: Tensor) -> Tensor:

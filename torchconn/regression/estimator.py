@@ -244,7 +244,7 @@ class ConnectionEstimator:
             )
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
-        regression, choice, free = self.regression, None, None
+        regression, choice, free, searched = self.regression, None, None, False
         with _cycles_in_errors(traj, regression, self.complexity):
             if self.complexity == "cv":
                 regression, choice, free = self._select(traj, cycle)
@@ -275,6 +275,7 @@ class ConnectionEstimator:
                     # presumed (as skill._choose_terms does) and it predicts the phase average
                     choice = skill.unchecked_choice(held, regression,
                                                     skill.few_cycles(traj.phase, self.pool))
+                    searched = True
                 else:
                     model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
                     regression = chosen
@@ -312,7 +313,7 @@ class ConnectionEstimator:
                                          estimator_settings(self, unshrunk or regression),
                                          forecast_model=_forecast_meta(choice, regression))
         if held is not None:
-            held.warn_if_poor(stacklevel=3, choice=choice)
+            held.warn_if_poor(stacklevel=3, choice=choice, searched=searched)
         return self
 
     def _folds(self) -> int:
@@ -360,8 +361,9 @@ class ConnectionEstimator:
     # ------------------------------------------------------------------ held-out skill
     def score(self, traj: Trajectory, phase: Tensor | None = None) -> skill.Skill:
         """Skill of ``forecast_model_`` on recordings ``traj`` the fit did not see, beside the
-        phase-averaged velocity of the training data and the template
-        (:class:`~torchconn.regression.skill.Skill`).
+        phase-averaged velocity of the training data and the template ``ĉ(φ) = Â(γ)γ̇`` of the
+        connection ``model_`` (:class:`~torchconn.regression.skill.Skill`; the forecasting
+        model's own ``ĉ`` is the phase average where a component falls back to it).
 
         The target is the observed velocity the way the regression sees it. ``traj`` is
         phased with the fitted phaser (same origin) unless ``phase`` is given.
@@ -369,7 +371,7 @@ class ConnectionEstimator:
         model = self._fitted()
         traj = self._prepare_new(traj, phase)
         view = skill.regression_view(traj, self.regression_, model, pool=self.pool)
-        return skill.skill(model, self.phase_average_, view)
+        return skill.skill(model, self.phase_average_, view, template=self.model_)
 
     def cross_validate(self, n_folds: int = 3) -> skill.Skill:
         """Held-out skill of ``forecast_model_``'s regression on the training recordings over

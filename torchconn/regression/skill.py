@@ -127,14 +127,20 @@ class Skill:
         (``R² > 0``)."""
         return (self.r2 < self.r2_phase_average) & (self.r2_phase_average > 0)
 
-    def warn_if_poor(self, stacklevel: int = 3, choice: "ComplexityChoice | None" = None
-                     ) -> None:
+    def warn_if_poor(self, stacklevel: int = 3, choice: "ComplexityChoice | None" = None,
+                     searched: bool = False) -> None:
         """Warn (:class:`PoorHeldOutSkillWarning`) where :attr:`worse_than_phase_average` or
         :attr:`unscored`; ``choice``: the complexity chosen by held-out error, if any (the
-        advice then is more cycles, not fewer bins)."""
+        advice then is more cycles, not fewer bins); ``searched``: the search by held-out
+        error ran and no candidate could be scored (the advice then is more data too)."""
         fix = ("record more cycles (the complexity was already chosen by held-out error: "
                f"{choice.n_bins} bins, Fourier order {choice.fourier_order}, ridge "
                f"{choice.ridge:g})" if choice is not None else
+               "record more cycles, or more samples per cycle (complexity='auto' already "
+               "searched the complexity by held-out error, and no candidate down to "
+               f"{COMPLEXITY_GRID[0][0]} bins, Fourier order {COMPLEXITY_GRID[0][1]} could be "
+               "fitted without one block of cycles, so the given one is kept unchecked)"
+               if searched else
                "choose the complexity by held-out error (ConnectionEstimator(complexity='cv'), "
                "torchconn-fit --complexity cv), or use fewer bins / a lower Fourier order / a "
                "ridge, or record more cycles")
@@ -368,9 +374,13 @@ def phase_average_orders(view: _View, max_order: int, pool: bool, n_folds: int =
     return torch.stack(scores).argmin(0)
 
 
-def skill(model: LocalConnectionModel, baseline, view: _View) -> Skill:
-    """:class:`Skill` of ``model`` and ``baseline`` (a phase-averaged velocity) on ``view``."""
-    return _from_sums(*_sums(model, baseline, view, None)[0][:6])
+def skill(model: LocalConnectionModel, baseline, view: _View,
+          template: LocalConnectionModel | None = None) -> Skill:
+    """:class:`Skill` of ``model`` and ``baseline`` (a phase-averaged velocity) on ``view``;
+    the template is ``ĉ`` of ``template`` (default ``model``): a forecasting model whose
+    component falls back to the phase average has that for its ``ĉ`` there, so pass the
+    connection it came from."""
+    return _from_sums(*_sums(model, baseline, view, None, template=template)[0][:6])
 
 
 def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
@@ -514,13 +524,15 @@ def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, 
         base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
                                    view.r_dot, view.xi), reg.fourier_order,
                              baseline_orders(fold_model, reg.fourier_order))
+        template = fold_model  # Â(γ)γ̇ of the fold's fit, even where it falls back
         if phase_averaged is not None or connection_only is not None:
             fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
             base = padded(base, fold_model.c.order)  # the same sums: an exact tie
         noise = None
         if noise_corrected and isinstance(reg, NoiseAwareRegression):
             noise = _noise_of(fold_model, dt, pool)
-        fold_sums, fold_gaps = _sums(fold_model, base, view, fold == f, noise, cycle, n_cycles)
+        fold_sums, fold_gaps = _sums(fold_model, base, view, fold == f, noise, cycle, n_cycles,
+                                     template=template)
         sums.append(fold_sums)
         gaps.append(fold_gaps)
     total = [sum(parts) for parts in zip(*sums, strict=True)]
@@ -1099,15 +1111,18 @@ def _cycle_index(phase: Tensor, pool: bool) -> Tensor:
 
 
 def _sums(model: LocalConnectionModel, baseline, view: _View, mask: Tensor | None,
-          noise=None, cycle: Tensor | None = None, n_cycles: int = 0):
-    """SSE of model, baseline and template over the scored samples; Σy, Σy², count; and the
+          noise=None, cycle: Tensor | None = None, n_cycles: int = 0,
+          template: LocalConnectionModel | None = None):
+    """SSE of model, baseline and template (``ĉ`` of ``template``, default ``model``) over the
+    scored samples; Σy, Σy², count; and the
     part of the model's SSE the inputs' noise adds (:func:`_input_noise_variance`; 0 without
     ``noise``, the inputs' ``(var_delta, var_rate)``). With ``cycle`` (``(..., N)`` index in
     ``[0, n_cycles)``, -1: none) also ``(..., n_cycles, 3)`` the model's squared error minus
     the baseline's and the baseline's, summed per cycle (else None)."""
     ok, phase, r, r_dot, y = _scored(view, mask)
     w = ok.to(y.dtype)[..., None]
-    preds = (model.predict(phase, r, r_dot), baseline(phase), model.c(phase))
+    preds = (model.predict(phase, r, r_dot), baseline(phase),
+             (model if template is None else template).c(phase))
     squares = [(y - p).square() * w for p in preds]
     sse = [x.sum(-2) for x in squares]
     noise_sse = torch.zeros_like(sse[0]) if noise is None else (
