@@ -46,7 +46,8 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_G
            "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
            "COMPONENTS",
            "regression_view", "cross_validate", "checked_terms", "few_cycles",
-           "phase_average_orders", "unchecked_choice",
+           "phase_average_orders", "unchecked_choice", "connection_columns",
+           "ConnectionAlone", "select_connection_alone", "connection_alone_model",
            "select_complexity", "skill", "with_phase_average", "with_intercept_orders",
            "baseline_orders", "model_intercept_orders", "nested_list"]
 
@@ -164,6 +165,23 @@ class Skill:
         if not bool(worse.any()):
             fallback = [] if choice is None else choice.phase_averaged_names()
             reduced = [] if choice is None else choice.connection_only_names()
+            if choice is not None and choice.connection_regressed:
+                predicted = (f"the connection alone ĉ + Âδ̇ predicts {', '.join(reduced)}"
+                             if reduced else "")
+                averaged = (f"the phase-averaged velocity of the training data predicts "
+                            f"{', '.join(fallback)} (the connection alone did not beat it "
+                            "held out)" if fallback else "")
+                warnings.warn(
+                    "held-out check: no model with the offset terms b̂ and ∂Â/∂r can be fitted "
+                    "when one block of whole cycles is left out (too few samples per cycle "
+                    "for their coefficients), so the connection alone (1 + d regressors per "
+                    f"bin) was fitted and checked instead, at {choice.n_bins} bins, Fourier "
+                    f"order {choice.fourier_order}: "
+                    + "; ".join(p for p in (predicted, averaged) if p)
+                    + "; model_ is that connection (b̂ and ∂Â/∂r not estimated: 0); record "
+                    "more cycles, or more samples per cycle, to estimate them",
+                    PoorHeldOutSkillWarning, stacklevel=stacklevel)
+                return
             if reduced:
                 warnings.warn(
                     f"the offset terms b̂ and ∂Â/∂r did not improve the held-out prediction of "
@@ -234,6 +252,10 @@ class ComplexityChoice:
         checked: False where no candidate could be scored held out and the complexity is
             the one given (:func:`unchecked_choice`): ``scores`` is empty and
             ``phase_averaged`` marks the short recordings the check could not score.
+        connection_regressed: True where no model with ``b̂`` and ``∂Â/∂r`` could be scored
+            held out and the connection alone was regressed and scored instead
+            (:func:`select_connection_alone`): the forecasts' ``c + Âδ̇`` come from a fit
+            with ``1 + d`` regressors per bin, not from the full model with rows set to 0.
     """
 
     n_bins: int
@@ -243,6 +265,7 @@ class ComplexityChoice:
     phase_averaged: tuple = (False, False, False)
     connection_only: tuple = (False, False, False)
     checked: bool = True
+    connection_regressed: bool = False
 
     def phase_average_mask(self, device: torch.device | str) -> Tensor:
         """:attr:`phase_averaged` as a bool tensor ``(..., 3)`` on ``device``."""
@@ -726,7 +749,8 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
 
 def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConnectionModel,
                      coef: Tensor, n_folds: int, *, pool: bool,
-                     ridges: tuple[float, ...] | None = None) -> Tensor:
+                     ridges: tuple[float, ...] | None = None, columns: Tensor | None = None,
+                     sample_fold: Tensor | None = None) -> Tensor:
     """Held-out coefficients ``coef (R, F, ..., M, P, 3)`` of a noise-aware regression that
     shrinks towards the smoothed fit (``shrink_to_smoothed``), combined as its fit combines
     them: the smoothed regression's own downdated fits ``β̂_s`` (on the smoothed samples, its
@@ -734,15 +758,20 @@ def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConne
     ``β̂_s + w (β̂_c − β̂_s)`` with the whole recording's weights ``w`` per trial and term
     (``model.meta["corrected_weight"]``, as the window and the interval are the whole
     recording's). Without this the check would score the corrected estimate alone, which is
-    far off where the fit falls back to the smoothed one. Other regressions: ``coef``."""
+    far off where the fit falls back to the smoothed one. Other regressions: ``coef``.
+    ``columns``: as :func:`held_out_coefficients`'s (``coef`` fitted with them);
+    ``sample_fold``: ``(..., T)`` block of every sample (default: ``n_folds`` blocks of whole
+    cycles, :func:`_cycle_blocks`)."""
     if not (isinstance(regression, NoiseAwareRegression) and regression.shrink_to_smoothed):
         return coef
     smoothed = TubeRegression(**{f.name: getattr(regression, f.name)
                                  for f in dataclasses.fields(TubeRegression)})
     sm = traj.smoothed
     view = _View(traj.phase, sm.r, sm.r_dot, sm.xi)
-    coef_s = held_out_coefficients(traj, smoothed, model, view, _cycle_blocks(traj.phase, n_folds),
-                                   n_folds, pool=pool, ridges=ridges)
+    if sample_fold is None:
+        sample_fold = _cycle_blocks(traj.phase, n_folds)
+    coef_s = held_out_coefficients(traj, smoothed, model, view, sample_fold, n_folds, pool=pool,
+                                   ridges=ridges, columns=columns)
     d = model.shape_dim
     term = torch.tensor([0] + [1] * d + [2] * d + [3] * d * d, device=coef.device)
     w = torch.as_tensor(model.meta["corrected_weight"], dtype=coef.dtype,
@@ -828,6 +857,129 @@ def _interval_noise(meta: dict, batch: tuple, dt: float, **kw) -> tuple[Tensor, 
     gains = torch.tensor([interval_noise_gains(int(v), dt, kernel) for v in h],
                          **kw).reshape(batch + (2,))
     return sigma2 * gains[..., :1], sigma2 * gains[..., 1:]
+
+
+def connection_columns(d: int, device: torch.device | str | None = None) -> Tensor:
+    """``(1 + d,)`` index of the columns of the design ``[1, δ, δ̇, δ̇⊗δ]`` the connection
+    alone ``c + Aδ̇`` keeps (:func:`~torchconn.regression.connection.connection_design`)."""
+    return torch.cat([torch.zeros(1, dtype=torch.long, device=device),
+                      torch.arange(1 + d, 1 + 2 * d, device=device)])
+
+
+@dataclass(frozen=True)
+class ConnectionAlone:
+    """What :func:`select_connection_alone` chose.
+
+    Attributes:
+        regression: the regression at the chosen bins and Fourier order (no ridge).
+        choice: its :class:`ComplexityChoice` (``connection_regressed``; ``connection_only``
+            where ``c + Âδ̇`` predicts a component, ``phase_averaged`` elsewhere).
+        model: the connection alone fitted to the whole recording (``LocalConnectionModel``:
+            rows of ``b`` and ``∂A/∂r`` 0; no phase average put in;
+            :func:`connection_alone_model`).
+        coef: ``(..., M, P, 3)`` its per-bin coefficients of ``[1, δ, δ̇, δ̇⊗δ]`` (those of
+            ``δ`` and ``δ̇⊗δ`` 0).
+        held_out: the held-out :class:`Skill` of the forecasts so chosen (each fold's
+            connection alone, its phase-averaged components predicted by the phase average).
+    """
+
+    regression: Regression
+    choice: ComplexityChoice
+    model: LocalConnectionModel
+    coef: Tensor
+    held_out: Skill
+
+
+def connection_alone_model(model: LocalConnectionModel, coef: Tensor, order: int
+                           ) -> LocalConnectionModel:
+    """``model`` (a fit at the bins of ``coef``) with its connection terms the connection
+    alone's: per-bin coefficients ``coef (..., M, P, 3)`` (:func:`with_coefficients`, order
+    ``order``), its per-bin estimates ``c``, ``b``, ``A``, ``∂A/∂r`` theirs too (``b`` and
+    ``∂A/∂r`` 0: not estimated) with standard errors and ``Â``'s band factors unknown (NaN,
+    None), and ``meta["connection_regressed"]`` True. Its metric, if any, is ``model``'s."""
+    out = with_coefficients(model, coef, order)
+    c, b, a, da = split_coefficients(coef.to(model.bins.A), model.shape_dim)
+    bins = dataclasses.replace(
+        model.bins, c=c, b=b, A=a, dA=da, c_se=torch.full_like(c, torch.nan),
+        b_se=torch.full_like(b, torch.nan), A_se=torch.full_like(a, torch.nan),
+        dA_se=torch.full_like(da, torch.nan), A_sampling_factor=None, A_bias_allowance=None,
+        dA_correlation=None)
+    return dataclasses.replace(out, bins=bins,
+                               meta={**(out.meta or {}), "connection_regressed": True})
+
+
+def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
+                            pool: bool, n_folds: int = 3) -> ConnectionAlone:
+    """Where no model with ``b̂`` and ``∂Â/∂r`` can be fitted without one block of cycles
+    (:func:`select_complexity` raises; e.g. 7-10 cycles at 10 samples per cycle, where a
+    quarter-cycle window holds too few samples for the ``1 + 2d + d²`` regressors of each
+    bin), the connection alone ``c + Aδ̇`` (``1 + d`` regressors per bin; ``b`` and ``∂A/∂r``
+    not estimated) is regressed at each ``(n_bins, fourier_order)`` of
+    :data:`COMPLEXITY_GRID` (no ridge) and scored on the held-out blocks of whole cycles (the
+    downdated fits, :func:`held_out_coefficients` with :func:`connection_columns`). Per
+    component it predicts where it beats the phase average clearly (:func:`_clearly_better`,
+    as on short recordings: the simpler model is presumed); the phase average elsewhere.
+    The candidate of least mean noise-corrected held-out ``SSE/SST`` (of the model so chosen
+    per component) is kept, and fitted to the whole recording the same way.
+
+    Raises:
+        ValueError: no candidate can be fitted on ``n_folds − 1`` blocks either.
+    """
+    best, failures, scores = None, [], []
+    for n_bins, order in COMPLEXITY_GRID:
+        base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", IllConditionedBinWarning)
+            try:  # the whole recording's window, interval and noise level
+                model = base.replace(on_ill_conditioned="warn").fit(traj, cycle, pool=pool)
+            except ValueError as err:
+                failures.append(f"{n_bins} bins: {err}")
+                continue
+        unflat = regression_view(traj, base, model, pool=pool, flatten=False)
+        view = regression_view(traj, base, model, pool=pool)
+        fold = _cycle_blocks(unflat.phase, n_folds)
+        flat_fold = pool_batch(fold, 0) if pool else fold
+        columns = connection_columns(model.shape_dim, traj.r.device)
+        coef = held_out_coefficients(traj, base, model, unflat, fold, n_folds, pool=pool,
+                                     columns=columns)
+        coef = blended_held_out(traj, base, model, coef, n_folds, pool=pool, columns=columns)[0]
+        models = [with_coefficients(model, coef[f], order) for f in range(n_folds)]
+        scored, gaps = _score_folds(models, view, flat_fold, base, traj.dt, pool, True,
+                                    cycle=_cycle_index(unflat.phase, pool))
+        if bool(scored.unscored.any()):
+            failures.append(f"{n_bins} bins: some bins cannot be fitted without one of the "
+                            f"{n_folds} blocks of cycles")
+            continue
+        # the simpler model presumed, as on short recordings: measured (README "Few samples
+        # per cycle"), presuming the connection alone unless the phase average beats it
+        # clearly lost to the phase average more often and by more
+        fallback = ~_clearly_better(gaps)
+        loss = float(torch.where(fallback, 1 - scored.r2_phase_average, 1 - scored.r2).mean())
+        scores.append((n_bins, order, 0.0, loss))
+        if best is None or loss < best[0]:
+            best = (loss, base, model, unflat, models, view, flat_fold, fallback, columns)
+    if best is None:
+        raise ValueError("select_connection_alone: no candidate could be fitted on "
+                         f"{n_folds - 1} of {n_folds} blocks of cycles ({failures[0]})")
+    loss, base, model, unflat, models, view, flat_fold, fallback, columns = best
+    held = _score_folds(models, view, flat_fold, base, traj.dt, pool, False,
+                        phase_averaged=fallback)[0]
+    # the whole recording, fitted as the folds were: every sample in block 1 of 2, and the
+    # fit without block 0 (empty) taken
+    whole = torch.ones_like(_cycle_blocks(unflat.phase, 1))
+    coef = held_out_coefficients(traj, base, model, unflat, whole, 2, pool=pool,
+                                 columns=columns)
+    coef = blended_held_out(traj, base, model, coef, 2, pool=pool, columns=columns,
+                            sample_fold=torch.ones_like(_cycle_blocks(traj.phase, 1)))
+    coef = coef[0, 0]
+    choice = ComplexityChoice(
+        n_bins=base.n_bins, fourier_order=base.fourier_order, ridge=0.0,
+        scores=tuple(scores), phase_averaged=_nested_tuple(fallback),
+        connection_only=_nested_tuple(~fallback), connection_regressed=True)
+    return ConnectionAlone(regression.replace(n_bins=base.n_bins,
+                                              fourier_order=base.fourier_order, ridge=0.0),
+                           choice, connection_alone_model(model, coef, base.fourier_order), coef,
+                           held)
 
 
 def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
