@@ -146,3 +146,16 @@ def test_the_connection_alone_fit_is_the_weighted_least_squares_of_c_and_a(video
         torch.testing.assert_close(got[1 + d:1 + 2 * d], torch.from_numpy(coef[1:]),
                                    rtol=1e-8, atol=1e-10)
         assert bool((got[1:1 + d] == 0).all()) and bool((got[1 + 2 * d:] == 0).all())
+
+
+def test_cross_validate_repeats_the_check_the_fit_ran(video):
+    """``cross_validate()`` after the fit regresses the connection alone in each fold, as the
+    fit's check did: the same held-out skill, and no unscored bins."""
+    est = video[2]
+    again = est.cross_validate()
+    torch.testing.assert_close(again.r2, est.held_out_skill_.r2, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(again.r2_phase_average, est.held_out_skill_.r2_phase_average,
+                               rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="connection_regressed"):
+        skill.cross_validate(est.trajectory_, est.limit_cycle_, est.regression_, pool=False,
+                             refit=True, connection_regressed=True)

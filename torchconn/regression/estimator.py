@@ -412,7 +412,8 @@ class ConnectionEstimator:
         fallback, conn = _masks(self.complexity_, model.device)
         return skill.cross_validate(
             self.trajectory_, self.limit_cycle_, self.regression_, pool=self.pool,
-            n_folds=n_folds, model=model, phase_averaged=fallback, connection_only=conn)
+            n_folds=n_folds, model=model, phase_averaged=fallback, connection_only=conn,
+            connection_regressed=getattr(self.complexity_, "connection_regressed", False))
 
     def check_held_out(self, n_folds: int = 3) -> skill.Skill:
         """:meth:`cross_validate`, warning (:class:`~torchconn.regression.skill.

@@ -410,7 +410,8 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
                    pool: bool, n_folds: int = 3, noise_corrected: bool = False,
                    model: LocalConnectionModel | None = None, refit: bool = False,
                    phase_averaged: Tensor | None = None,
-                   connection_only: Tensor | None = None) -> Skill:
+                   connection_only: Tensor | None = None,
+                   connection_regressed: bool = False) -> Skill:
     """Held-out skill over ``n_folds`` contiguous blocks of whole cycles of every trial.
 
     Each block in turn is left out of the regression and scored; the phase and the limit
@@ -432,7 +433,9 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     phase-averaged velocity of its training blocks (:func:`with_phase_average`, as
     :func:`select_complexity` chose): their skill equals the baseline's. ``connection_only``:
     ``(..., 3)`` bool, components whose rows of ``b̂`` and ``∂Â/∂r`` each fold's model sets
-    to 0 (likewise).
+    to 0 (likewise). ``connection_regressed``: each fold regresses the connection alone
+    (:func:`connection_columns`), as :func:`select_connection_alone` checked it (downdated
+    fits only).
 
     ``noise_corrected`` (noise-aware regressions): subtract from the model's squared error the
     part the joint-angle noise of the held-out *inputs* adds (:func:`_input_noise_variance`),
@@ -447,17 +450,23 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     """
     if isinstance(n_folds, bool) or not isinstance(n_folds, int) or n_folds < 2:
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
+    if connection_regressed and (refit or not downdates(regression)):
+        raise ValueError("cross_validate: connection_regressed needs the downdated fits of a "
+                         "TubeRegression or NoiseAwareRegression (refit=False)")
     return _held_out_skills(traj, cycle, regression, pool=pool, n_folds=n_folds,
                             noise_corrected=noise_corrected, model=model, refit=refit,
-                            phase_averaged=phase_averaged, connection_only=connection_only)
+                            phase_averaged=phase_averaged, connection_only=connection_only,
+                            connection_regressed=connection_regressed)
 
 
 def _held_out_skills(traj, cycle, regression, *, pool, n_folds, noise_corrected, model, refit,
-                     phase_averaged=None, connection_only=None, variants=False):
+                     phase_averaged=None, connection_only=None, variants=False,
+                     connection_regressed=False):
     """:func:`cross_validate`'s skill; with ``variants`` instead :func:`_variant_scores` of the
     fold models (noise-corrected)."""
     reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
-                                                   n_folds=n_folds, refit=refit)
+                                                   n_folds=n_folds, refit=refit,
+                                                   connection_regressed=connection_regressed)
     if variants:
         return _variant_scores(models, view, fold, reg, traj.dt, pool, cycles)
     return _score_folds(models, view, fold, reg, traj.dt, pool, noise_corrected,
@@ -494,9 +503,11 @@ def few_cycles(phase: Tensor, pool: bool) -> Tensor:
     return torch.round(span) <= FALLBACK_CYCLES
 
 
-def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
-    """The regression (metric off), its fits without each of ``n_folds`` blocks of cycles,
-    the view they are scored on, its block index and its cycle index (:func:`_cycle_index`)."""
+def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit,
+                 connection_regressed=False):
+    """The regression (metric off), its fits without each of ``n_folds`` blocks of cycles
+    (downdated ones of the connection alone where ``connection_regressed``), the view they
+    are scored on, its block index and its cycle index (:func:`_cycle_index`)."""
     reg = regression.replace(metric=False)
     if model is None:
         model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
@@ -510,8 +521,11 @@ def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
             train = traj.with_fields(phase=torch.where(sample_fold == f, torch.nan, traj.phase))
             models.append(reg.fit(train, cycle, pool=pool))
     else:
-        coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool)
-        coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool)[0]
+        columns = (connection_columns(model.shape_dim, traj.r.device)
+                   if connection_regressed else None)
+        coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool,
+                                     columns=columns)
+        coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool, columns=columns)[0]
         models = [with_coefficients(model, coef[f], reg.fourier_order) for f in range(n_folds)]
     return (reg, models, view, pool_batch(fold, 0) if pool else fold,
             _cycle_index(unflat.phase, pool))
