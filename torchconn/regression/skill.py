@@ -949,17 +949,11 @@ def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Reg
             except ValueError as err:
                 failures.append(f"{n_bins} bins: {err}")
                 continue
-        unflat = regression_view(traj, base, model, pool=pool, flatten=False)
-        view = regression_view(traj, base, model, pool=pool)
-        fold = _cycle_blocks(unflat.phase, n_folds)
-        flat_fold = pool_batch(fold, 0) if pool else fold
-        columns = connection_columns(model.shape_dim, traj.r.device)
-        coef = held_out_coefficients(traj, base, model, unflat, fold, n_folds, pool=pool,
-                                     columns=columns)
-        coef = blended_held_out(traj, base, model, coef, n_folds, pool=pool, columns=columns)[0]
-        models = [with_coefficients(model, coef[f], order) for f in range(n_folds)]
+        _, models, view, flat_fold, cycles = _fold_models(
+            traj, cycle, base, model, pool=pool, n_folds=n_folds, refit=False,
+            connection_regressed=True)
         scored, gaps = _score_folds(models, view, flat_fold, base, traj.dt, pool, True,
-                                    cycle=_cycle_index(unflat.phase, pool))
+                                    cycle=cycles)
         if bool(scored.unscored.any()):
             failures.append(f"{n_bins} bins: some bins cannot be fitted without one of the "
                             f"{n_folds} blocks of cycles")
@@ -971,15 +965,17 @@ def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Reg
         loss = float(torch.where(fallback, 1 - scored.r2_phase_average, 1 - scored.r2).mean())
         scores.append((n_bins, order, 0.0, loss))
         if best is None or loss < best[0]:
-            best = (loss, base, model, unflat, models, view, flat_fold, fallback, columns)
+            best = (loss, base, model, models, view, flat_fold, fallback)
     if best is None:
         raise ValueError("select_connection_alone: no candidate could be fitted on "
                          f"{n_folds - 1} of {n_folds} blocks of cycles ({failures[0]})")
-    loss, base, model, unflat, models, view, flat_fold, fallback, columns = best
+    loss, base, model, models, view, flat_fold, fallback = best
     held = _score_folds(models, view, flat_fold, base, traj.dt, pool, False,
                         phase_averaged=fallback)[0]
     # the whole recording, fitted as the folds were: every sample in block 1 of 2, and the
     # fit without block 0 (empty) taken
+    unflat = regression_view(traj, base, model, pool=pool, flatten=False)
+    columns = connection_columns(model.shape_dim, traj.r.device)
     whole = torch.ones_like(_cycle_blocks(unflat.phase, 1))
     coef = held_out_coefficients(traj, base, model, unflat, whole, 2, pool=pool,
                                  columns=columns)
