@@ -101,7 +101,9 @@ def evaluate(traj, train_fraction: float) -> dict:
             out[name + "_error"] = str(err)
     c, held = est.complexity_, est.held_out_skill_
     out["choice"] = _given(held) if c is None else (
-        f"{c.n_bins} bins, order {c.fourier_order}, ridge {c.ridge:g}" + "".join(
+        ("the connection alone (no full model scores held out), "
+         if getattr(c, "connection_regressed", False)
+         else "") + f"{c.n_bins} bins, order {c.fourier_order}, ridge {c.ridge:g}" + "".join(
             f"; {tag}: {', '.join(names)}" for tag, names in
             (("phase avg", c.phase_averaged_names()), ("connection only",
                                                        c.connection_only_names())) if names))

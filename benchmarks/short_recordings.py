@@ -13,6 +13,8 @@ differences of the noisy poses for ``NoiseAwareRegression``):
   each component predicted by the full model, by the connection alone (``ĉ + Âδ̇``,
   ``choice`` ends in ``/A:x,y`` for v_x and v_y) or by the phase average (``/pa:x,y``; such a
   component ties it exactly), whichever clearly wins held out (``skill._choose_terms``);
+  ``unchecked``: no candidate could be scored held out; ``alone``: no full model could, and
+  the connection alone was regressed and checked instead (``skill.select_connection_alone``);
 - ``phase avg``: the training cycles' phase-averaged velocity, ``score()``'s baseline: of the
   model's Fourier order (12 unless the complexity was re-chosen), or with
   ``--short-intercept`` per component of the order chosen on held-out blocks
@@ -50,6 +52,8 @@ Run by hand (about a minute per 20 rows on a loaded 2-core machine)::
     python benchmarks/short_recordings.py                       # seeds 10-14, 5-link, 3 gaits
     python benchmarks/short_recordings.py --links 9 3 --gaits wave0.7 --seeds 10 11
     python benchmarks/short_recordings.py --cost                # cost of the held-out check
+    python benchmarks/short_recordings.py --samples-per-cycle 10 --cycles 7 8 10 12 \
+        --test-cycles 6 --skip-fixed                            # video rates
 """
 
 from __future__ import annotations
@@ -98,11 +102,15 @@ def gait(n_links: int, kind: str) -> FourierGait:
     return FourierGait(coeffs)
 
 
-def recording(n_links: int, kind: str, n_cycles: int, seed: int, omega: float):
+def recording(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
+              samples_per_cycle: int = SAMPLES_PER_CYCLE, test_cycles: int = TEST_CYCLES):
+    """``n_cycles + test_cycles`` cycles of one trial; below 126 samples per cycle the
+    simulator's fine step stays about the 126-sample one's (more substeps per sample)."""
     seeds = np.array([seed])
+    substeps = max(8, 2 * math.ceil(4 * SAMPLES_PER_CYCLE / samples_per_cycle))
     clean = simulate(NLinkSwimmer(n_links), gait(n_links, kind), eta=0.025,
-                     n_cycles=n_cycles + TEST_CYCLES, samples_per_cycle=SAMPLES_PER_CYCLE,
-                     seeds=seeds)
+                     n_cycles=n_cycles + test_cycles, samples_per_cycle=samples_per_cycle,
+                     substeps=substeps, seeds=seeds)
     # tracked recordings carry no power channel (and the metric needs more cycles)
     return observe(clean, omega, seeds=seeds).with_fields(power=None)
 
@@ -149,9 +157,10 @@ def _held_out_order_r2(est: ConnectionEstimator, test) -> torch.Tensor:
 
 def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
             with_fixed: bool = True, short_intercept: str | None = None,
-            ridge_connection: bool = True) -> dict:
-    traj = recording(n_links, kind, n_cycles, seed, omega)
-    cut = n_cycles * SAMPLES_PER_CYCLE + 1
+            ridge_connection: bool = True, samples_per_cycle: int = SAMPLES_PER_CYCLE,
+            test_cycles: int = TEST_CYCLES) -> dict:
+    traj = recording(n_links, kind, n_cycles, seed, omega, samples_per_cycle, test_cycles)
+    cut = n_cycles * samples_per_cycle + 1
     train, test = traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
     phaser = Phaser(min_cycles=2.5)
     out = {}
@@ -184,11 +193,16 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
     orders = (est.forecast_model_.meta or {}).get("intercept_component_order")
     out["c_order"] = "-" if orders is None else ",".join(
         str(int(k)) for k in torch.as_tensor(orders).reshape(-1))
-    out["choice"] = "fixed" if c is None else f"{c.n_bins}/{c.fourier_order}/{c.ridge:g}" + "".join(
+    held = est.held_out_skill_
+    unchecked = bool(held.unscored.any()) and (c is None or not c.checked)
+    alone = getattr(c, "connection_regressed", False)  # (older versions lack it)
+    out["choice"] = ("unchecked" if unchecked and c is None else "fixed" if c is None
+                     else ("unchecked" if unchecked else "alone" if alone else "")
+                     + f"{c.n_bins}/{c.fourier_order}/{c.ridge:g}") + (
+        "" if c is None else "".join(
         f"/{tag}:" + ",".join(n.removeprefix("v_")[0] for n in names)
         for tag, names in (("pa", c.phase_averaged_names()), ("A", c.connection_only_names()))
-        if names)
-    held = est.held_out_skill_
+        if names))
     out["warned"] = bool(held.worse_than_phase_average.any() | held.unscored.any()) or bool(
         c is not None and (c.phase_averaged_names() or c.connection_only_names()))  # both warn
     return out
@@ -210,7 +224,8 @@ def _best_of_3(fn) -> float:
 
 
 def table(args) -> int:
-    print(f"train n cycles, test the next {TEST_CYCLES}; R² per component "
+    print(f"train n cycles, test the next {args.test_cycles} ({args.samples_per_cycle} samples "
+          f"per cycle); R² per component "
           f"({', '.join(COMPONENTS)}); default < phase avg (where phase avg > 0) marked *")
     print(f"{'links':>5} {'gait':>9} {'n':>2} {'seed':>4} | {'fixed':^20} | {'default':^20} | "
           f"{'phase avg':^20} | {'pa h-o':^20} | {'template':^20} | {'exact A':^20} | "
@@ -220,7 +235,7 @@ def table(args) -> int:
     o12_losses = [[] for _ in COMPONENTS]  # against the model-order phase average
     kept, n_rec, r2_sum = 0, 0, torch.zeros(3, dtype=torch.float64)
     a_sums = dict.fromkeys(("A_err", "A_scale", "A_fc_err", "A_fc_scale"), 0.0)
-    refused = 0
+    refused = unchecked = 0
     for n_links in args.links:
         for kind in args.gaits:
             if kind == "reference" and n_links not in (3, 9):
@@ -229,7 +244,8 @@ def table(args) -> int:
                 for seed in args.seeds:
                     try:
                         r = run_one(n_links, kind, n, seed, args.omega, not args.skip_fixed,
-                                    args.short_intercept, not args.no_ridge_connection)
+                                    args.short_intercept, not args.no_ridge_connection,
+                                    args.samples_per_cycle, args.test_cycles)
                     except ValueError as err:  # the default refuses the recording
                         print(f"{n_links:>5} {kind:>9} {n:>2} {seed:>4} | not fitted: "
                               f"{str(err)[:100]}", flush=True)
@@ -248,6 +264,7 @@ def table(args) -> int:
                         if r["pa12"][k] > 0 and o12 < 0:
                             o12_losses[k].append(-o12)
                     kept += r["kept"]
+                    unchecked += r["choice"].startswith("unchecked")
                     n_rec += 1
                     r2_sum += r["default"]
                     for key in a_sums:
@@ -272,7 +289,8 @@ def table(args) -> int:
     n_loss = sum(map(len, losses))
     n_all = n_loss + sum(map(len, wins)) + sum(map(len, ties))
     print(f"default worse than the phase average in {n_loss} of {n_all} components with a "
-          f"phase-average R² > 0; {refused} recording(s) refused by the default fit")
+          f"phase-average R² > 0; {refused} recording(s) refused by the default fit; "
+          f"{unchecked} of {n_rec} unchecked (no candidate could be scored held out)")
     short = [g for k in ho_losses for g in k]
     print(f"default worse than the held-out-order phase average ('pa h-o', where its R² > 0) "
           f"in {len(short)} components (v_x / v_y / ω: "
@@ -335,6 +353,10 @@ def main(argv=None) -> int:
     p.add_argument("--cycles", type=int, nargs="+", default=[3, 4, 5, 6])
     p.add_argument("--seeds", type=int, nargs="+", default=[10, 11, 12, 13, 14])
     p.add_argument("--omega", type=float, default=0.005)
+    p.add_argument("--samples-per-cycle", type=int, default=SAMPLES_PER_CYCLE,
+                   help="e.g. 10-16: video rates")
+    p.add_argument("--test-cycles", type=int, default=TEST_CYCLES,
+                   help="later cycles scored")
     p.add_argument("--cost", action="store_true", help="time the held-out check instead")
     p.add_argument("--skip-fixed", action="store_true", help="leave out the fixed column")
     p.add_argument("--short-intercept", choices=("phase_average", "model", "none"),

@@ -46,7 +46,8 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_G
            "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
            "COMPONENTS",
            "regression_view", "cross_validate", "checked_terms", "few_cycles",
-           "phase_average_orders", "unchecked_choice",
+           "phase_average_orders", "unchecked_choice", "connection_columns",
+           "ConnectionAlone", "select_connection_alone", "connection_alone_model",
            "select_complexity", "skill", "with_phase_average", "with_intercept_orders",
            "baseline_orders", "model_intercept_orders", "nested_list"]
 
@@ -164,6 +165,23 @@ class Skill:
         if not bool(worse.any()):
             fallback = [] if choice is None else choice.phase_averaged_names()
             reduced = [] if choice is None else choice.connection_only_names()
+            if choice is not None and choice.connection_regressed:
+                predicted = (f"the connection alone ĉ + Âδ̇ predicts {', '.join(reduced)}"
+                             if reduced else "")
+                averaged = (f"the phase-averaged velocity of the training data predicts "
+                            f"{', '.join(fallback)} (the connection alone did not beat it "
+                            "held out)" if fallback else "")
+                warnings.warn(
+                    "held-out check: no model with the offset terms b̂ and ∂Â/∂r can be fitted "
+                    "when one block of whole cycles is left out (too few samples per cycle "
+                    "for their coefficients), so the connection alone (1 + d regressors per "
+                    f"bin) was fitted and checked instead, at {choice.n_bins} bins, Fourier "
+                    f"order {choice.fourier_order}: "
+                    + "; ".join(p for p in (predicted, averaged) if p)
+                    + "; model_ is that connection (b̂ and ∂Â/∂r not estimated: 0); record "
+                    "more cycles, or more samples per cycle, to estimate them",
+                    PoorHeldOutSkillWarning, stacklevel=stacklevel)
+                return
             if reduced:
                 warnings.warn(
                     f"the offset terms b̂ and ∂Â/∂r did not improve the held-out prediction of "
@@ -234,6 +252,10 @@ class ComplexityChoice:
         checked: False where no candidate could be scored held out and the complexity is
             the one given (:func:`unchecked_choice`): ``scores`` is empty and
             ``phase_averaged`` marks the short recordings the check could not score.
+        connection_regressed: True where no model with ``b̂`` and ``∂Â/∂r`` could be scored
+            held out and the connection alone was regressed and scored instead
+            (:func:`select_connection_alone`): the forecasts' ``c + Âδ̇`` come from a fit
+            with ``1 + d`` regressors per bin, not from the full model with rows set to 0.
     """
 
     n_bins: int
@@ -243,6 +265,7 @@ class ComplexityChoice:
     phase_averaged: tuple = (False, False, False)
     connection_only: tuple = (False, False, False)
     checked: bool = True
+    connection_regressed: bool = False
 
     def phase_average_mask(self, device: torch.device | str) -> Tensor:
         """:attr:`phase_averaged` as a bool tensor ``(..., 3)`` on ``device``."""
@@ -387,7 +410,8 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
                    pool: bool, n_folds: int = 3, noise_corrected: bool = False,
                    model: LocalConnectionModel | None = None, refit: bool = False,
                    phase_averaged: Tensor | None = None,
-                   connection_only: Tensor | None = None) -> Skill:
+                   connection_only: Tensor | None = None,
+                   connection_regressed: bool = False) -> Skill:
     """Held-out skill over ``n_folds`` contiguous blocks of whole cycles of every trial.
 
     Each block in turn is left out of the regression and scored; the phase and the limit
@@ -409,7 +433,9 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     phase-averaged velocity of its training blocks (:func:`with_phase_average`, as
     :func:`select_complexity` chose): their skill equals the baseline's. ``connection_only``:
     ``(..., 3)`` bool, components whose rows of ``b̂`` and ``∂Â/∂r`` each fold's model sets
-    to 0 (likewise).
+    to 0 (likewise). ``connection_regressed``: each fold regresses the connection alone
+    (:func:`connection_columns`), as :func:`select_connection_alone` checked it (downdated
+    fits only).
 
     ``noise_corrected`` (noise-aware regressions): subtract from the model's squared error the
     part the joint-angle noise of the held-out *inputs* adds (:func:`_input_noise_variance`),
@@ -424,17 +450,23 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     """
     if isinstance(n_folds, bool) or not isinstance(n_folds, int) or n_folds < 2:
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
+    if connection_regressed and (refit or not downdates(regression)):
+        raise ValueError("cross_validate: connection_regressed needs the downdated fits of a "
+                         "TubeRegression or NoiseAwareRegression (refit=False)")
     return _held_out_skills(traj, cycle, regression, pool=pool, n_folds=n_folds,
                             noise_corrected=noise_corrected, model=model, refit=refit,
-                            phase_averaged=phase_averaged, connection_only=connection_only)
+                            phase_averaged=phase_averaged, connection_only=connection_only,
+                            connection_regressed=connection_regressed)
 
 
 def _held_out_skills(traj, cycle, regression, *, pool, n_folds, noise_corrected, model, refit,
-                     phase_averaged=None, connection_only=None, variants=False):
+                     phase_averaged=None, connection_only=None, variants=False,
+                     connection_regressed=False):
     """:func:`cross_validate`'s skill; with ``variants`` instead :func:`_variant_scores` of the
     fold models (noise-corrected)."""
     reg, models, view, fold, cycles = _fold_models(traj, cycle, regression, model, pool=pool,
-                                                   n_folds=n_folds, refit=refit)
+                                                   n_folds=n_folds, refit=refit,
+                                                   connection_regressed=connection_regressed)
     if variants:
         return _variant_scores(models, view, fold, reg, traj.dt, pool, cycles)
     return _score_folds(models, view, fold, reg, traj.dt, pool, noise_corrected,
@@ -471,9 +503,11 @@ def few_cycles(phase: Tensor, pool: bool) -> Tensor:
     return torch.round(span) <= FALLBACK_CYCLES
 
 
-def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
-    """The regression (metric off), its fits without each of ``n_folds`` blocks of cycles,
-    the view they are scored on, its block index and its cycle index (:func:`_cycle_index`)."""
+def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit,
+                 connection_regressed=False):
+    """The regression (metric off), its fits without each of ``n_folds`` blocks of cycles
+    (downdated ones of the connection alone where ``connection_regressed``), the view they
+    are scored on, its block index and its cycle index (:func:`_cycle_index`)."""
     reg = regression.replace(metric=False)
     if model is None:
         model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
@@ -487,8 +521,11 @@ def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit):
             train = traj.with_fields(phase=torch.where(sample_fold == f, torch.nan, traj.phase))
             models.append(reg.fit(train, cycle, pool=pool))
     else:
-        coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool)
-        coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool)[0]
+        columns = (connection_columns(model.shape_dim, traj.r.device)
+                   if connection_regressed else None)
+        coef = held_out_coefficients(traj, reg, model, unflat, fold, n_folds, pool=pool,
+                                     columns=columns)
+        coef = blended_held_out(traj, reg, model, coef, n_folds, pool=pool, columns=columns)[0]
         models = [with_coefficients(model, coef[f], reg.fourier_order) for f in range(n_folds)]
     return (reg, models, view, pool_batch(fold, 0) if pool else fold,
             _cycle_index(unflat.phase, pool))
@@ -726,7 +763,8 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
 
 def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConnectionModel,
                      coef: Tensor, n_folds: int, *, pool: bool,
-                     ridges: tuple[float, ...] | None = None) -> Tensor:
+                     ridges: tuple[float, ...] | None = None, columns: Tensor | None = None,
+                     sample_fold: Tensor | None = None) -> Tensor:
     """Held-out coefficients ``coef (R, F, ..., M, P, 3)`` of a noise-aware regression that
     shrinks towards the smoothed fit (``shrink_to_smoothed``), combined as its fit combines
     them: the smoothed regression's own downdated fits ``β̂_s`` (on the smoothed samples, its
@@ -734,15 +772,20 @@ def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConne
     ``β̂_s + w (β̂_c − β̂_s)`` with the whole recording's weights ``w`` per trial and term
     (``model.meta["corrected_weight"]``, as the window and the interval are the whole
     recording's). Without this the check would score the corrected estimate alone, which is
-    far off where the fit falls back to the smoothed one. Other regressions: ``coef``."""
+    far off where the fit falls back to the smoothed one. Other regressions: ``coef``.
+    ``columns``: as :func:`held_out_coefficients`'s (``coef`` fitted with them);
+    ``sample_fold``: ``(..., T)`` block of every sample (default: ``n_folds`` blocks of whole
+    cycles, :func:`_cycle_blocks`)."""
     if not (isinstance(regression, NoiseAwareRegression) and regression.shrink_to_smoothed):
         return coef
     smoothed = TubeRegression(**{f.name: getattr(regression, f.name)
                                  for f in dataclasses.fields(TubeRegression)})
     sm = traj.smoothed
     view = _View(traj.phase, sm.r, sm.r_dot, sm.xi)
-    coef_s = held_out_coefficients(traj, smoothed, model, view, _cycle_blocks(traj.phase, n_folds),
-                                   n_folds, pool=pool, ridges=ridges)
+    if sample_fold is None:
+        sample_fold = _cycle_blocks(traj.phase, n_folds)
+    coef_s = held_out_coefficients(traj, smoothed, model, view, sample_fold, n_folds, pool=pool,
+                                   ridges=ridges, columns=columns)
     d = model.shape_dim
     term = torch.tensor([0] + [1] * d + [2] * d + [3] * d * d, device=coef.device)
     w = torch.as_tensor(model.meta["corrected_weight"], dtype=coef.dtype,
@@ -828,6 +871,125 @@ def _interval_noise(meta: dict, batch: tuple, dt: float, **kw) -> tuple[Tensor, 
     gains = torch.tensor([interval_noise_gains(int(v), dt, kernel) for v in h],
                          **kw).reshape(batch + (2,))
     return sigma2 * gains[..., :1], sigma2 * gains[..., 1:]
+
+
+def connection_columns(d: int, device: torch.device | str | None = None) -> Tensor:
+    """``(1 + d,)`` index of the columns of the design ``[1, δ, δ̇, δ̇⊗δ]`` the connection
+    alone ``c + Aδ̇`` keeps (:func:`~torchconn.regression.connection.connection_design`)."""
+    return torch.cat([torch.zeros(1, dtype=torch.long, device=device),
+                      torch.arange(1 + d, 1 + 2 * d, device=device)])
+
+
+@dataclass(frozen=True)
+class ConnectionAlone:
+    """What :func:`select_connection_alone` chose.
+
+    Attributes:
+        regression: the regression at the chosen bins and Fourier order (no ridge).
+        choice: its :class:`ComplexityChoice` (``connection_regressed``; ``connection_only``
+            where ``c + Âδ̇`` predicts a component, ``phase_averaged`` elsewhere).
+        model: the connection alone fitted to the whole recording (``LocalConnectionModel``:
+            rows of ``b`` and ``∂A/∂r`` 0; no phase average put in;
+            :func:`connection_alone_model`).
+        coef: ``(..., M, P, 3)`` its per-bin coefficients of ``[1, δ, δ̇, δ̇⊗δ]`` (those of
+            ``δ`` and ``δ̇⊗δ`` 0).
+        held_out: the held-out :class:`Skill` of the forecasts so chosen (each fold's
+            connection alone, its phase-averaged components predicted by the phase average).
+    """
+
+    regression: Regression
+    choice: ComplexityChoice
+    model: LocalConnectionModel
+    coef: Tensor
+    held_out: Skill
+
+
+def connection_alone_model(model: LocalConnectionModel, coef: Tensor, order: int
+                           ) -> LocalConnectionModel:
+    """``model`` (a fit at the bins of ``coef``) with its connection terms the connection
+    alone's: per-bin coefficients ``coef (..., M, P, 3)`` (:func:`with_coefficients`, order
+    ``order``), its per-bin estimates ``c``, ``b``, ``A``, ``∂A/∂r`` theirs too (``b`` and
+    ``∂A/∂r`` 0: not estimated) with standard errors and ``Â``'s band factors unknown (NaN,
+    None), and ``meta["connection_regressed"]`` True. Its metric, if any, is ``model``'s."""
+    out = with_coefficients(model, coef, order)
+    c, b, a, da = split_coefficients(coef.to(model.bins.A), model.shape_dim)
+    bins = dataclasses.replace(
+        model.bins, c=c, b=b, A=a, dA=da, c_se=torch.full_like(c, torch.nan),
+        b_se=torch.full_like(b, torch.nan), A_se=torch.full_like(a, torch.nan),
+        dA_se=torch.full_like(da, torch.nan), A_sampling_factor=None, A_bias_allowance=None,
+        dA_correlation=None)
+    return dataclasses.replace(out, bins=bins,
+                               meta={**(out.meta or {}), "connection_regressed": True})
+
+
+def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
+                            pool: bool, n_folds: int = 3) -> ConnectionAlone:
+    """Where no model with ``b̂`` and ``∂Â/∂r`` can be fitted without one block of cycles
+    (:func:`select_complexity` raises; e.g. 7-10 cycles at 10 samples per cycle, where a
+    quarter-cycle window holds too few samples for the ``1 + 2d + d²`` regressors of each
+    bin), the connection alone ``c + Aδ̇`` (``1 + d`` regressors per bin; ``b`` and ``∂A/∂r``
+    not estimated) is regressed at each ``(n_bins, fourier_order)`` of
+    :data:`COMPLEXITY_GRID` (no ridge) and scored on the held-out blocks of whole cycles (the
+    downdated fits, :func:`held_out_coefficients` with :func:`connection_columns`). Per
+    component it predicts where it beats the phase average clearly (:func:`_clearly_better`,
+    as on short recordings: the simpler model is presumed); the phase average elsewhere.
+    The candidate of least mean noise-corrected held-out ``SSE/SST`` (of the model so chosen
+    per component) is kept, and fitted to the whole recording the same way.
+
+    Raises:
+        ValueError: no candidate can be fitted on ``n_folds − 1`` blocks either.
+    """
+    best, failures, scores = None, [], []
+    for n_bins, order in COMPLEXITY_GRID:
+        base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", IllConditionedBinWarning)
+            try:  # the whole recording's window, interval and noise level
+                model = base.replace(on_ill_conditioned="warn").fit(traj, cycle, pool=pool)
+            except ValueError as err:
+                failures.append(f"{n_bins} bins: {err}")
+                continue
+        _, models, view, flat_fold, cycles = _fold_models(
+            traj, cycle, base, model, pool=pool, n_folds=n_folds, refit=False,
+            connection_regressed=True)
+        scored, gaps = _score_folds(models, view, flat_fold, base, traj.dt, pool, True,
+                                    cycle=cycles)
+        if bool(scored.unscored.any()):
+            failures.append(f"{n_bins} bins: some bins cannot be fitted without one of the "
+                            f"{n_folds} blocks of cycles")
+            continue
+        # the simpler model presumed, as on short recordings: measured (README "Few samples
+        # per cycle"), presuming the connection alone unless the phase average beats it
+        # clearly lost to the phase average more often and by more
+        fallback = ~_clearly_better(gaps)
+        loss = float(torch.where(fallback, 1 - scored.r2_phase_average, 1 - scored.r2).mean())
+        scores.append((n_bins, order, 0.0, loss))
+        if best is None or loss < best[0]:
+            best = (loss, base, model, models, view, flat_fold, fallback)
+    if best is None:
+        raise ValueError("select_connection_alone: no candidate could be fitted on "
+                         f"{n_folds - 1} of {n_folds} blocks of cycles ({failures[0]})")
+    loss, base, model, models, view, flat_fold, fallback = best
+    held = _score_folds(models, view, flat_fold, base, traj.dt, pool, False,
+                        phase_averaged=fallback)[0]
+    # the whole recording, fitted as the folds were: every sample in block 1 of 2, and the
+    # fit without block 0 (empty) taken
+    unflat = regression_view(traj, base, model, pool=pool, flatten=False)
+    columns = connection_columns(model.shape_dim, traj.r.device)
+    whole = torch.ones_like(_cycle_blocks(unflat.phase, 1))
+    coef = held_out_coefficients(traj, base, model, unflat, whole, 2, pool=pool,
+                                 columns=columns)
+    coef = blended_held_out(traj, base, model, coef, 2, pool=pool, columns=columns,
+                            sample_fold=torch.ones_like(_cycle_blocks(traj.phase, 1)))
+    coef = coef[0, 0]
+    choice = ComplexityChoice(
+        n_bins=base.n_bins, fourier_order=base.fourier_order, ridge=0.0,
+        scores=tuple(scores), phase_averaged=_nested_tuple(fallback),
+        connection_only=_nested_tuple(~fallback), connection_regressed=True)
+    return ConnectionAlone(regression.replace(n_bins=base.n_bins,
+                                              fourier_order=base.fourier_order, ridge=0.0),
+                           choice, connection_alone_model(model, coef, base.fourier_order), coef,
+                           held)
 
 
 def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
