@@ -39,7 +39,7 @@ def leave_blocks_out(s: _wls.BinnedSamples, block: Tensor, n_blocks: int, *,
     Args:
         s: the bins' samples (:func:`~torchconn.regression._wls.prepare`), ``B·M`` bins.
         block: ``(B·N,)`` int64 block of every flattened sample, in ``[0, n_blocks)``, or -1
-            for a sample in no block (it stays in every fit).
+            for a sample in no block (it is in no fit: samples without a phase).
         n_blocks: ``F``.
         ridges: ridges ``λ`` to solve for (on the unit diagonal of the standardised normal
             matrix, the intercept unpenalised, and with ``ridge_connection=False`` ``Â``'s
