@@ -236,3 +236,6 @@ def test_fit_names_the_components_that_lose_to_the_phase_average(tmp_path, capsy
         shown = (f"{name} (held-out R² {held['model'][k]:.3f} vs phase average "
                  f"{held['phase_average'][k]:.3f})")
         assert (shown in warning) == (k in losing), (shown, warning)
+    # every component has skill here, so nothing is called unpredictable
+    assert held["without_skill"] == [False, False, False]
+    assert "WARNING: neither the model" not in text

@@ -643,3 +643,29 @@ def test_an_unchecked_fit_on_many_cycles_advises_more_data_not_the_search_it_ran
     assert "more samples per cycle" in poor[0] and "complexity='cv'" not in poor[0]
     with pytest.raises(ValueError, match="no candidate could be fitted"):
         ConnectionEstimator(complexity="cv").fit(traj)
+
+
+def test_components_neither_model_predicts_are_named():
+    # v_y: the model (−0.4) is worse than a phase average that has no skill either (−0.1), so
+    # worse_than_phase_average does not count it; ω: both above 0. v_x: both ≤ 0, the model
+    # better. Both are "without skill" and warned of, with the trial where the model is worst.
+    r2 = torch.tensor([[-0.05, -0.40, 0.9], [-0.20, -0.30, 0.8]], dtype=F64)
+    base = torch.tensor([[-0.10, -0.10, 0.5], [-0.30, -0.20, 0.5]], dtype=F64)
+    s = skill.Skill(r2=r2, r2_phase_average=base, r2_template=base,
+                    n_samples=torch.tensor([100.0, 100.0], dtype=F64))
+    assert not bool(s.worse_than_phase_average.any())
+    assert s.without_skill.any(0).tolist() == [True, True, False]
+    with pytest.warns(PoorHeldOutSkillWarning) as record:
+        s.warn_if_poor()
+    assert len(record) == 1
+    message = str(record[0].message)
+    assert message.startswith("neither the model nor the phase-averaged velocity")
+    assert "v_x (held-out R² -0.200, phase average -0.300 in trial 1)" in message
+    assert "v_y (held-out R² -0.400, phase average -0.100 in trial 0)" in message
+    assert "omega" not in message
+    # a model with skill, or one whose baseline has it, is not "without skill"
+    fine = skill.Skill(r2=r2.abs(), r2_phase_average=base, r2_template=base,
+                       n_samples=torch.tensor([100.0, 100.0], dtype=F64))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PoorHeldOutSkillWarning)
+        fine.warn_if_poor()

@@ -367,6 +367,12 @@ def main(argv: list[str] | None = None) -> int:
                       "by held-out error)" if est.complexity_ is not None else "try --complexity "
                       "cv, fewer --n-bins, a lower --fourier-order or a wider --window, or "
                       "record more cycles)"))
+            if bool(held_out.without_skill.any()):
+                print("WARNING: neither the model nor the phase-averaged velocity predicts "
+                      "held-out cycles better than their mean velocity for "
+                      f"{held_out.without_skill_names()}: not predictable from the gait's "
+                      "phase and shape on this recording (noise, or a motion the shape "
+                      "changes do not drive: a flow, a tether, contact)")
         print(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
         return 0
 
@@ -379,7 +385,8 @@ def _skill_summary(skill, n_folds: int) -> dict:
             "model": skill.r2.reshape(-1).tolist(),
             "phase_average": skill.r2_phase_average.reshape(-1).tolist(),
             "template": skill.r2_template.reshape(-1).tolist(),
-            "worse_than_phase_average": skill.worse_than_phase_average.reshape(-1).tolist()}
+            "worse_than_phase_average": skill.worse_than_phase_average.reshape(-1).tolist(),
+            "without_skill": skill.without_skill.reshape(-1).tolist()}
 
 
 if __name__ == "__main__":

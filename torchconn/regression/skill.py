@@ -128,12 +128,33 @@ class Skill:
         (``R² > 0``)."""
         return (self.r2 < self.r2_phase_average) & (self.r2_phase_average > 0)
 
+    @property
+    def without_skill(self) -> Tensor:
+        """``(..., 3)`` True where neither the model nor the phase-averaged baseline predicts
+        better than the held-out mean (both ``R² ≤ 0``), which
+        :attr:`worse_than_phase_average` does not count."""
+        return (self.r2 <= 0) & (self.r2_phase_average <= 0)
+
     def warn_if_poor(self, stacklevel: int = 3, choice: "ComplexityChoice | None" = None,
                      searched: bool = False) -> None:
         """Warn (:class:`PoorHeldOutSkillWarning`) where :attr:`worse_than_phase_average` or
-        :attr:`unscored`; ``choice``: the complexity chosen by held-out error, if any (the
-        advice then is more cycles, not fewer bins); ``searched``: the search by held-out
-        error ran and no candidate could be scored (the advice then is more data too)."""
+        :attr:`unscored`, and where :attr:`without_skill`; ``choice``: the complexity chosen by
+        held-out error, if any (the advice then is more cycles, not fewer bins); ``searched``:
+        the search by held-out error ran and no candidate could be scored (the advice then is
+        more data too)."""
+        self._warn_against_baseline(stacklevel + 1, choice, searched)
+        if bool(self.without_skill.any()):
+            warnings.warn(
+                "neither the model nor the phase-averaged velocity predicts held-out cycles "
+                f"better than their mean velocity for {self.without_skill_names()}: these "
+                "components are not predictable from the gait's phase and shape on this "
+                "recording (noise, or a motion the shape changes do not drive: a flow, a "
+                "tether, contact), and their rows of the model are not to be relied on",
+                PoorHeldOutSkillWarning, stacklevel=stacklevel)
+
+    def _warn_against_baseline(self, stacklevel: int, choice: "ComplexityChoice | None",
+                               searched: bool) -> None:
+        """:meth:`warn_if_poor`'s warnings against the phase-averaged baseline."""
         fix = ("record more cycles (the complexity was already chosen by held-out error: "
                f"{choice.n_bins} bins, Fourier order {choice.fourier_order}, ridge "
                f"{choice.ridge:g})" if choice is not None else
@@ -214,20 +235,32 @@ class Skill:
         the trial where it loses most (both from that trial; its index where there are
         several), e.g. ``v_x (held-out R² 0.412 vs phase average 0.455 in trial 2)``, with
         as many decimals (3 to 6) as it takes to tell the two apart."""
+        return self._named(self.worse_than_phase_average, self.r2_phase_average - self.r2,
+                           " vs")
+
+    def without_skill_names(self) -> str:
+        """Each component :attr:`without_skill` with the model's and the phase average's
+        held-out ``R²`` in the trial where the model scores lowest, e.g. ``v_y (held-out R²
+        -0.392, phase average -0.601)``."""
+        return self._named(self.without_skill, -self.r2, ",")
+
+    def _named(self, mask: Tensor, badness: Tensor, joint: str) -> str:
+        """The components where ``mask (..., 3)``, each with both ``R²`` of the trial of
+        largest ``badness (..., 3)`` (its index where there are several)."""
         model = self.r2.reshape(-1, 3)
         base = self.r2_phase_average.reshape(-1, 3)
-        worse = self.worse_than_phase_average.reshape(-1, 3)
-        shortfall = torch.where(worse, base - model, -torch.inf)
+        mask = mask.reshape(-1, 3)
+        badness = torch.where(mask, badness.reshape(-1, 3), -torch.inf)
         parts = []
         for k, name in enumerate(COMPONENTS):
-            if not bool(worse[:, k].any()):
+            if not bool(mask[:, k].any()):
                 continue
-            trial = int(shortfall[:, k].argmax())
+            trial = int(badness[:, k].argmax())
             where = (f" in trial {_trial_index(trial, self.r2.shape[:-1])}"
                      if model.shape[0] > 1 else "")
             a, b = float(model[trial, k]), float(base[trial, k])
             digits = next((n for n in range(3, 7) if f"{a:.{n}f}" != f"{b:.{n}f}"), 6)
-            parts.append(f"{name} (held-out R² {a:.{digits}f} vs phase average "
+            parts.append(f"{name} (held-out R² {a:.{digits}f}{joint} phase average "
                          f"{b:.{digits}f}{where})")
         return ", ".join(parts)
 
