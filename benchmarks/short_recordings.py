@@ -43,6 +43,10 @@ apart). The R² columns are the forecasting model's (``score()``).
 chosen ridge leaves ``Â`` unpenalised); ``--z``, ``--margin``, ``--offset-z`` and
 ``--every-cycle`` (a model with shape terms must also beat the phase average on every scored
 held-out cycle) measure other settings of the check's rules (``skill._choose_terms``).
+``--fallback-cycles N`` sets ``skill.FALLBACK_CYCLES`` (recordings of up to ``N`` cycles
+presume the simpler model, ``skill.few_cycles``), and ``--complexity cv`` fits the default
+column with ``ConnectionEstimator(complexity="cv")`` (the complexity chosen on every recording,
+not only where the given one loses held out).
 
 Only ``Phaser(min_cycles=2.5)`` differs from the defaults: a recording of exactly 3 cycles
 often phases to 2.9-3.0 and the default Phaser (3 cycles) refuses it.
@@ -158,7 +162,7 @@ def _held_out_order_r2(est: ConnectionEstimator, test) -> torch.Tensor:
 def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
             with_fixed: bool = True, short_intercept: str | None = None,
             ridge_connection: bool = True, samples_per_cycle: int = SAMPLES_PER_CYCLE,
-            test_cycles: int = TEST_CYCLES) -> dict:
+            test_cycles: int = TEST_CYCLES, complexity: str = "auto") -> dict:
     traj = recording(n_links, kind, n_cycles, seed, omega, samples_per_cycle, test_cycles)
     cut = n_cycles * samples_per_cycle + 1
     train, test = traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
@@ -174,9 +178,10 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
             except ValueError:
                 pass  # cannot be fitted: NaN
         start = time.perf_counter()
-        est = ConnectionEstimator(phaser=phaser, regression=NoiseAwareRegression(
-            short_intercept_order=short_intercept,
-            ridge_connection=ridge_connection)).fit(train)
+        est = ConnectionEstimator(
+            phaser=phaser, complexity=complexity,
+            regression=NoiseAwareRegression(short_intercept_order=short_intercept,
+                                            ridge_connection=ridge_connection)).fit(train)
         out["seconds"] = time.perf_counter() - start
         s = est.score(test)
     c = est.complexity_
@@ -245,7 +250,8 @@ def table(args) -> int:
                     try:
                         r = run_one(n_links, kind, n, seed, args.omega, not args.skip_fixed,
                                     args.short_intercept, not args.no_ridge_connection,
-                                    args.samples_per_cycle, args.test_cycles)
+                                    args.samples_per_cycle, args.test_cycles,
+                                    args.complexity)
                     except ValueError as err:  # the default refuses the recording
                         print(f"{n_links:>5} {kind:>9} {n:>2} {seed:>4} | not fitted: "
                               f"{str(err)[:100]}", flush=True)
@@ -375,6 +381,12 @@ def main(argv=None) -> int:
     p.add_argument("--every-cycle", action="store_true",
                    help="measure: a model with shape terms beats the phase average "
                    "(skill._clearly_better) only if it does on every scored held-out cycle too")
+    p.add_argument("--complexity", choices=("auto", "cv"), default="auto",
+                   help="measure: the default column's ConnectionEstimator(complexity=...); "
+                   "cv: chosen by held-out error on every recording")
+    p.add_argument("--fallback-cycles", type=int, default=None,
+                   help="measure: skill.FALLBACK_CYCLES (recordings of up to this many cycles "
+                   "presume the simpler model; default: the library's)")
     p.add_argument("--baseline-model-order", action="store_true",
                    help="measure: the phase-average candidate and score()'s baseline keep the "
                    "model's order while the intercept is truncated")
@@ -396,6 +408,8 @@ def main(argv=None) -> int:
         skill.FALLBACK_Z = args.z
     if args.offset_z is not None:
         skill.OFFSET_TERMS_Z = args.offset_z
+    if args.fallback_cycles is not None:
+        skill.FALLBACK_CYCLES = args.fallback_cycles
     return cost(args) if args.cost else table(args)
 
 
