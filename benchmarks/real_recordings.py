@@ -53,8 +53,7 @@ from torchconn.convert import load_recordings
 from torchconn.io.tracking import ConversionSettings
 from torchconn.io.trajectory_files import count_cycles
 from torchconn.regression import skill
-
-COMPONENTS = ("v_x", "v_y", "omega")
+from torchconn.regression.skill import COMPONENTS
 
 
 def later_phase(est: ConnectionEstimator, traj, cut: int) -> torch.Tensor:

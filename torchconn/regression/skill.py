@@ -30,7 +30,7 @@ from ..trajectory import Trajectory, pool_batch
 from . import _wls
 from ._wls import IllConditionedBinWarning
 from .binning import assign_bins
-from .connection import split_coefficients
+from .connection import split_coefficients, unpenalised_columns
 from .held_out import leave_blocks_out
 from .model import LocalConnectionModel
 from .noise_aware import (
@@ -908,9 +908,12 @@ def _interval_noise(meta: dict, batch: tuple, dt: float, **kw) -> tuple[Tensor, 
 
 def connection_columns(d: int, device: torch.device | str | None = None) -> Tensor:
     """``(1 + d,)`` index of the columns of the design ``[1, δ, δ̇, δ̇⊗δ]`` the connection
-    alone ``c + Aδ̇`` keeps (:func:`~torchconn.regression.connection.connection_design`)."""
-    return torch.cat([torch.zeros(1, dtype=torch.long, device=device),
-                      torch.arange(1 + d, 1 + 2 * d, device=device)])
+    alone ``c + Aδ̇`` keeps (:func:`~torchconn.regression.connection.connection_design`):
+    the intercept and ``Â``'s columns (:func:`~torchconn.regression.connection.
+    unpenalised_columns`)."""
+    keep = unpenalised_columns(d, device)
+    keep[0] = True
+    return keep.nonzero().squeeze(-1)
 
 
 @dataclass(frozen=True)
@@ -1009,11 +1012,12 @@ def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Reg
     # fit without block 0 (empty) taken
     unflat = regression_view(traj, base, model, pool=pool, flatten=False)
     columns = connection_columns(model.shape_dim, traj.r.device)
-    whole = torch.ones_like(_cycle_blocks(unflat.phase, 1))
+    whole = torch.ones(unflat.phase.shape, dtype=torch.long, device=unflat.phase.device)
     coef = held_out_coefficients(traj, base, model, unflat, whole, 2, pool=pool,
                                  columns=columns)
     coef = blended_held_out(traj, base, model, coef, 2, pool=pool, columns=columns,
-                            sample_fold=torch.ones_like(_cycle_blocks(traj.phase, 1)))
+                            sample_fold=torch.ones(traj.phase.shape, dtype=torch.long,
+                                                   device=traj.phase.device))
     coef = coef[0, 0]
     choice = ComplexityChoice(
         n_bins=base.n_bins, fourier_order=base.fourier_order, ridge=0.0,
