@@ -669,3 +669,10 @@ def test_components_neither_model_predicts_are_named():
     with warnings.catch_warnings():
         warnings.simplefilter("error", PoorHeldOutSkillWarning)
         fine.warn_if_poor()
+    # a component that fell back to the phase average ties it exactly: 3 decimals, not 6
+    tied = skill.Skill(r2=torch.tensor([-0.114239, 0.8, 0.9], dtype=F64),
+                       r2_phase_average=torch.tensor([-0.114239, 0.7, 0.8], dtype=F64),
+                       r2_template=base[0], n_samples=torch.tensor(100.0, dtype=F64))
+    with pytest.warns(PoorHeldOutSkillWarning, match=r"v_x \(held-out R² -0.114, phase "
+                      r"average -0.114\)"):
+        tied.warn_if_poor()

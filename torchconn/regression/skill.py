@@ -234,7 +234,7 @@ class Skill:
         """Each losing component with the model's and the phase average's held-out ``R²`` in
         the trial where it loses most (both from that trial; its index where there are
         several), e.g. ``v_x (held-out R² 0.412 vs phase average 0.455 in trial 2)``, with
-        as many decimals (3 to 6) as it takes to tell the two apart."""
+        as many decimals (3 to 6) as it takes to tell the two apart (3 where they are equal)."""
         return self._named(self.worse_than_phase_average, self.r2_phase_average - self.r2,
                            " vs")
 
@@ -259,7 +259,7 @@ class Skill:
             where = (f" in trial {_trial_index(trial, self.r2.shape[:-1])}"
                      if model.shape[0] > 1 else "")
             a, b = float(model[trial, k]), float(base[trial, k])
-            digits = next((n for n in range(3, 7) if f"{a:.{n}f}" != f"{b:.{n}f}"), 6)
+            digits = next((n for n in range(3, 7) if f"{a:.{n}f}" != f"{b:.{n}f}"), 3)
             parts.append(f"{name} (held-out R² {a:.{digits}f}{joint} phase average "
                          f"{b:.{digits}f}{where})")
         return ", ".join(parts)
