@@ -99,13 +99,52 @@ def test_the_check_warns_what_the_connection_alone_predicts(video):
             ConnectionEstimator(phaser=Phaser(min_cycles=2.5)).fit(train)
 
 
+def _a_error(model) -> float:
+    """Relative RMS of ``Â`` against the swimmer's exact connection along the fitted cycle."""
+    phi = torch.linspace(0, 2 * math.pi, 201, dtype=F64)[:-1].expand(1, 200)
+    true = NLinkSwimmer(5).connection(model.gamma_at(phi))
+    return float((model.connection(phi) - true).square().sum().sqrt()
+                 / true.square().sum().sqrt())
+
+
+def test_a_short_video_rate_recording_the_given_fit_refuses_is_fitted_by_the_connection_alone():
+    """5 cycles at 12 samples per cycle (seed 62): the given 48-bin fit cannot be fitted at
+    all and no candidate of the grid without a third of the cycles, so the fit used to be
+    refused. The connection alone can be scored, and is the model: checked held out, its
+    phase-averaged components tie the phase average on the next 4 cycles, and its ``Â`` is
+    within 45 % of the swimmer's (the benchmark's 12-per-cycle recordings: 21-48 %)."""
+    traj = _recording(9, seed=62, spc=12)
+    cut = 5 * 12 + 1
+    train, later = traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
+    with pytest.raises(ValueError, match="cannot be fitted"):
+        _fit(train, complexity="fixed")
+    est = _fit(train)
+    choice = est.complexity_
+    assert choice.checked and choice.connection_regressed
+    assert not bool(est.held_out_skill_.unscored.any())
+    assert est.model_.meta["connection_regressed"] is True
+    assert bool((est.model_.dA.coeffs == 0).all())
+    fallback = choice.phase_average_mask("cpu")
+    s = est.score(later)
+    assert torch.equal(s.r2[fallback], s.r2_phase_average[fallback])
+    assert _a_error(est.model_) < 0.45
+
+
+def test_a_recording_too_short_for_the_connection_alone_says_what_it_needs():
+    """5 cycles at 10 samples per cycle: neither the full model nor the connection alone can
+    be checked; the error gives the cycles each needs."""
+    with pytest.raises(ValueError, match=r"4\.9 cycles per trial at 10 samples per cycle.*"
+                       r"the connection alone \(5 regressors per bin\), tried in its place, "
+                       r"needs 4\.1, and 6\.2 to be checked"):
+        _fit(_recording(5, seed=62))
+
+
 @pytest.mark.parametrize("n_cycles, spc", [(14, 10), (6, 16), (4, 126)])
 def test_recordings_a_grid_candidate_can_score_or_of_few_cycles_are_unchanged(
         monkeypatch, n_cycles, spc):
     """Where a candidate of the grid can be scored (14 cycles at 10 per cycle, 6 at 16, 4 at
-    126), or where none can and the recording spans few cycles (the phase average presumed,
-    ``tests/test_held_out.py``), the connection alone is never regressed: the code path that
-    changed is not taken, so those fits are as they were."""
+    126), the connection alone is never regressed: the code path that changed is not taken,
+    so those fits are as they were."""
     def refused(*args, **kw):
         raise AssertionError("select_connection_alone called")
 

@@ -168,8 +168,11 @@ def test_bad_settings_and_inputs_raise():
     with pytest.raises(TypeError, match="torchconn.Trajectory"):
         ConnectionEstimator().fit({"r": 1})
     _, tr = _swimmer_truth_trajectory(4, seeds=np.arange(1))
+    # a window too narrow for the full model's regressors: refused at the complexity given
+    # (complexity="auto" regresses the connection alone there, which it can score)
     with pytest.raises(ValueError, match="samples"):
-        ConnectionEstimator(regression=TubeRegression(window=0.5, metric=False)).fit(tr)
+        ConnectionEstimator(regression=TubeRegression(window=0.5, metric=False),
+                            complexity="fixed").fit(tr)
     with pytest.raises(RuntimeError, match="not fitted"):
         ConnectionEstimator().predict(tr)
     model = ConnectionEstimator(

@@ -136,10 +136,9 @@ def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tm
     assert ("predicted by the connection alone" in text) == any(conn)
 
 
-def test_fit_says_when_no_held_out_check_can_score_a_short_recording(tmp_path, capsys):
-    """9-link reference gait, 3 cycles, ω = 0.005 (as in test_held_out): no candidate can be
-    fitted without a third of the cycles, so the printout, fit.json and the model say the
-    fit stood unchecked and which components the phase average predicts."""
+def _nine_link_three_cycles(tmp_path):
+    """9-link reference gait, 3 cycles, ω = 0.005 (as in test_held_out): no model with the
+    offset terms can be fitted without a third of the cycles."""
     seeds = np.array([11])
     spc = 126
     clean = simulate(NLinkSwimmer(9), reference_gait("9link"), eta=0.025, n_cycles=4,
@@ -147,6 +146,40 @@ def test_fit_says_when_no_held_out_check_can_score_a_short_recording(tmp_path, c
     traj = observe(clean, 0.005, seeds=seeds).with_fields(power=None)
     path = tmp_path / "short.csv"
     write_csv(traj.slice_time(0, 3 * spc + 1), path)
+    return path
+
+
+def test_fit_says_when_the_connection_alone_was_checked(tmp_path, capsys):
+    """The 3-cycle 9-link recording: the connection alone is checked in place of the full
+    model; the printout, fit.json and model.npz say so."""
+    path = _nine_link_three_cycles(tmp_path)
+    out = tmp_path / "fit"
+    assert main([str(path), "--links", "9", "--out", str(out), "--set",
+                 "phaser.min_cycles=2.5"]) == 0
+    text = capsys.readouterr().out
+    assert "the connection alone (1 + d regressors per bin) was fitted and checked" in text
+    assert "no held-out check can score it" not in text
+    chosen = json.loads((out / "fit.json").read_text())["complexity"]
+    assert chosen["checked"] is True and chosen["connection_regressed"] is True
+    model = LocalConnectionModel.load(out / "model.npz")
+    assert model.meta["connection_regressed"] is True
+    assert bool((model.dA.coeffs == 0).all()) and bool((model.A.coeffs != 0).any())
+    conn = chosen["connection_only"]
+    assert ("forecasts predict by the connection alone (it beat" in text) == any(conn)
+
+
+def test_fit_says_when_no_held_out_check_can_score_a_short_recording(tmp_path, capsys,
+                                                                      monkeypatch):
+    """Where not even the connection alone can be scored (made so here), the printout,
+    fit.json and the model say the fit stood unchecked and which components the phase
+    average predicts."""
+    from torchconn.regression import skill
+
+    def unscored(*args, **kw):
+        raise ValueError("select_connection_alone: no candidate could be fitted")
+
+    monkeypatch.setattr(skill, "select_connection_alone", unscored)
+    path = _nine_link_three_cycles(tmp_path)
     out = tmp_path / "fit"
     # 3 cycles tracked come out as 2.95 by the preflight's count: the user's own minimum for
     # the phase estimate is the fit's rule

@@ -293,6 +293,7 @@ def main(argv: list[str] | None = None) -> int:
                             "fourier_order": est.complexity_.fourier_order,
                             "ridge": est.complexity_.ridge,
                             "checked": est.complexity_.checked,
+                            "connection_regressed": est.complexity_.connection_regressed,
                             "components": list(COMPONENTS),
                             "phase_averaged": nested_list(est.complexity_.phase_averaged),
                             "connection_only": nested_list(
@@ -323,14 +324,22 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
                       f"{c.fourier_order}, ridge {c.ridge:g}")
+            if c.connection_regressed:
+                print("no model with the offset terms b and dA/dr can be checked held out on "
+                      "this recording (too few samples per bin without one block of cycles), "
+                      "so the connection alone (1 + d regressors per bin) was fitted and "
+                      "checked instead; model.npz holds it (b and dA/dr not estimated: 0)")
             if c.checked and c.phase_averaged_names():
                 print("forecasts predict by the phase-averaged velocity (the shape terms did not "
                       "beat it on held-out cycles; their rows of A, b and dA/dr are 0 in "
                       f"{FORECAST_FILE}): {', '.join(c.phase_averaged_names())}")
-            if c.connection_only_names():
+            if c.connection_only_names() and not c.connection_regressed:
                 print("forecasts predict by the connection alone (the offset terms did not add "
                       "to it on held-out cycles; their rows of b and dA/dr are 0 in "
                       f"{FORECAST_FILE}, A is kept): {', '.join(c.connection_only_names())}")
+            elif c.connection_only_names():
+                print("forecasts predict by the connection alone (it beat the phase-averaged "
+                      f"velocity on held-out cycles): {', '.join(c.connection_only_names())}")
         if forecast is not None:
             differs, own = model.meta["forecast_model"], model.meta["settings"]["regression"]
             ridge = differs["A_ridge"]

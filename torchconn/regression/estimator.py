@@ -274,23 +274,22 @@ class ConnectionEstimator:
                 try:
                     chosen, choice, free = self._select(traj, cycle)
                 except ValueError:
-                    if model is None:
-                        raise
-                    # no candidate fits 2 of 3 blocks; on few cycles, where the check cannot
-                    # score it, the simpler model is presumed (as skill._choose_terms does)
-                    # and it predicts the phase average
-                    choice = skill.unchecked_choice(held, regression,
-                                                    skill.few_cycles(traj.phase, self.pool))
-                    alone = None if choice is not None else self._connection_alone(
-                        traj, cycle, regression, held)
-                    if alone is None:  # keep the given one unchecked (the check warns)
-                        searched = True
+                    # no candidate fits 2 of 3 blocks: the connection alone (1 + d regressors
+                    # per bin), which the check can score, predicts where it clearly beats the
+                    # phase average, and is the connection (README "Few samples per cycle")
+                    alone = self._connection_alone(traj, cycle, regression, held, model)
+                    if alone is None:
+                        if model is None:
+                            raise
+                        # on few cycles, where the check cannot score the given fit, the
+                        # simpler model is presumed (as skill._choose_terms does) and it
+                        # predicts the phase average; longer recordings keep it unchecked
+                        choice = skill.unchecked_choice(
+                            held, regression, skill.few_cycles(traj.phase, self.pool))
+                        searched = True  # the check warns
                     else:
-                        # on more cycles the connection alone, which the check can score,
-                        # predicts where it beats the phase average, and is the connection
-                        # (README "Few samples per cycle")
-                        delivered = _connection_delivered(alone, model, traj, cycle,
-                                                          self.pool, cache)
+                        delivered = _connection_delivered(alone, model, regression, traj,
+                                                          cycle, self.pool, cache)
                         regression, choice, held = alone.regression, alone.choice, alone.held_out
                         model = alone.model
                 else:
@@ -356,12 +355,13 @@ class ConnectionEstimator:
         return chosen, choice, (chosen.replace(ridge_connection=False) if free[0] is None
                                 else free[0][0])
 
-    def _connection_alone(self, traj, cycle, regression, held
+    def _connection_alone(self, traj, cycle, regression, held, model
                           ) -> "skill.ConnectionAlone | None":
         """Where no model with ``b̂`` and ``∂Â/∂r`` can be scored held out, the connection
         alone scored instead (:func:`~torchconn.regression.skill.select_connection_alone`);
-        None where the check is off or it cannot be scored either."""
-        if held is None:
+        None where it cannot be scored either, or where the check is off (``held`` None) and
+        the given complexity's fit ``model`` stands."""
+        if held is None and model is not None:
             return None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
@@ -511,16 +511,23 @@ def _refit(chosen: Regression, given: Regression, model: LocalConnectionModel | 
     return _fit(chosen, traj, cycle, pool, cache)
 
 
-def _connection_delivered(alone: "skill.ConnectionAlone", given: LocalConnectionModel,
-                          traj: Trajectory, cycle: LimitCycle, pool: bool, cache: dict
-                          ) -> LocalConnectionModel:
+def _connection_delivered(alone: "skill.ConnectionAlone", given: LocalConnectionModel | None,
+                          regression: Regression, traj: Trajectory, cycle: LimitCycle,
+                          pool: bool, cache: dict) -> LocalConnectionModel:
     """The connection delivered where the connection alone was checked (``alone``, chosen
-    after the given regression fitted ``given``): ``alone.model``, with the metric where
-    ``given`` has one (a fit at the chosen bins, the metric's coefficients from ``cache``).
-    Measured (README "Few samples per cycle"): 5-link, 10-12 samples per cycle, 7-12 cycles,
-    its ``Â`` was 27-30 % off against the given 48-bin fit's 55-64 % and the chosen bins' full
-    fit's 62 %."""
-    if given.M is None:
+    after the given ``regression`` fitted ``given``, or could not: None): ``alone.model``,
+    with the metric where ``given`` has one, or where it could not be fitted and
+    ``regression`` asks for the metric of a recording with a power channel (a fit at the
+    chosen bins, the metric's coefficients from ``cache``). Measured (README "Few samples per
+    cycle"): 5-link, 10-12 samples per cycle, 7-12 cycles, its ``Â`` was 27-30 % off against
+    the given 48-bin fit's 55-64 % and the chosen bins' full fit's 62 %.
+
+    Raises:
+        ValueError: the metric asked for cannot be fitted at the chosen bins either.
+    """
+    metric = (given.M is not None if given is not None
+              else traj.power is not None and getattr(regression, "metric", None) is not False)
+    if not metric:
         return alone.model
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
@@ -593,15 +600,17 @@ def _cycles_in_errors(traj: Trajectory, regression: Regression, complexity: str)
             raise
         advice = ("; complexity='auto' or 'cv' (torchconn-fit --complexity) chooses fewer "
                   "coefficients" if complexity == "fixed" else "")
-        raise ValueError(f"{text} [{_cycles_note(traj, regression)}{advice}]") from None
+        note = _cycles_note(traj, regression, alone=complexity == "auto")
+        raise ValueError(f"{text} [{note}{advice}]") from None
 
 
-def _cycles_note(traj: Trajectory, regression: Regression) -> str:
+def _cycles_note(traj: Trajectory, regression: Regression, alone: bool = False) -> str:
     """The recording's cycles per trial against those the bins' window rule needs: a window
     holds ``samples_per_regressor`` samples per regressor and spans at most half a cycle
     (:func:`~torchconn.regression.tube._auto_window`; a tricube window of half a cycle
     carries the weight of 0.3 cycles), so ``P`` regressors per bin need
-    ``P · samples_per_regressor / 0.3`` samples per trial."""
+    ``P · samples_per_regressor / 0.3`` samples per trial; ``alone``: also those of the
+    connection alone (``1 + d`` regressors), which ``complexity="auto"`` tried in its place."""
     span = traj.phase.nan_to_num(nan=0.0).amax(-1) - traj.phase.nan_to_num(
         nan=float("inf")).amin(-1)
     cycles = float(span.min()) / (2 * math.pi)
@@ -610,10 +619,15 @@ def _cycles_note(traj: Trajectory, regression: Regression) -> str:
     p = 1 + 2 * d + d * d
     spr = getattr(regression, "samples_per_regressor", 2.5)
     need = p * spr / 0.3 / per_cycle
-    return (f"this recording has {cycles:.1f} cycles per trial at {per_cycle:.0f} samples per "
+    note = (f"this recording has {cycles:.1f} cycles per trial at {per_cycle:.0f} samples per "
             f"cycle; {p} regressors per bin (d = {d} joints) at {spr:g} samples per regressor "
             f"need at least {need:.1f} cycles per trial (1.5x that to choose the complexity "
             "on 2 of 3 blocks of cycles)")
+    if alone:
+        need = (1 + d) * spr / 0.3 / per_cycle
+        note += (f"; the connection alone ({1 + d} regressors per bin), tried in its place, "
+                 f"needs {need:.1f}, and {1.5 * need:.1f} to be checked on 2 of 3 blocks")
+    return note
 
 
 # ---------------------------------------------------------------------- settings tables
