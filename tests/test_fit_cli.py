@@ -136,9 +136,10 @@ def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tm
     assert ("predicted by the connection alone" in text) == any(conn)
 
 
-def _nine_link_three_cycles(tmp_path):
-    """9-link reference gait, 3 cycles, ω = 0.005 (as in test_held_out): no model with the
-    offset terms can be fitted without a third of the cycles."""
+def _fit_nine_link_three_cycles(tmp_path):
+    """``torchconn-fit`` of the 9-link reference gait, 3 cycles, ω = 0.005 (as in
+    test_held_out), where no model with the offset terms can be fitted without a third of the
+    cycles; its output folder."""
     seeds = np.array([11])
     spc = 126
     clean = simulate(NLinkSwimmer(9), reference_gait("9link"), eta=0.025, n_cycles=4,
@@ -146,16 +147,18 @@ def _nine_link_three_cycles(tmp_path):
     traj = observe(clean, 0.005, seeds=seeds).with_fields(power=None)
     path = tmp_path / "short.csv"
     write_csv(traj.slice_time(0, 3 * spc + 1), path)
-    return path
+    out = tmp_path / "fit"
+    # 3 cycles tracked come out as 2.95 by the preflight's count: the user's own minimum for
+    # the phase estimate is the fit's rule
+    assert main([str(path), "--links", "9", "--out", str(out), "--set",
+                 "phaser.min_cycles=2.5"]) == 0
+    return out
 
 
 def test_fit_says_when_the_connection_alone_was_checked(tmp_path, capsys):
     """The 3-cycle 9-link recording: the connection alone is checked in place of the full
     model; the printout, fit.json and model.npz say so."""
-    path = _nine_link_three_cycles(tmp_path)
-    out = tmp_path / "fit"
-    assert main([str(path), "--links", "9", "--out", str(out), "--set",
-                 "phaser.min_cycles=2.5"]) == 0
+    out = _fit_nine_link_three_cycles(tmp_path)
     text = capsys.readouterr().out
     assert "the connection alone (1 + d regressors per bin) was fitted and checked" in text
     assert "no held-out check can score it" not in text
@@ -179,12 +182,7 @@ def test_fit_says_when_no_held_out_check_can_score_a_short_recording(tmp_path, c
         raise ValueError("select_connection_alone: no candidate could be fitted")
 
     monkeypatch.setattr(skill, "select_connection_alone", unscored)
-    path = _nine_link_three_cycles(tmp_path)
-    out = tmp_path / "fit"
-    # 3 cycles tracked come out as 2.95 by the preflight's count: the user's own minimum for
-    # the phase estimate is the fit's rule
-    assert main([str(path), "--links", "9", "--out", str(out), "--set",
-                 "phaser.min_cycles=2.5"]) == 0
+    out = _fit_nine_link_three_cycles(tmp_path)
     text = capsys.readouterr().out
     assert "fit needs 2.5 cycles per trial and 2.5 in all: ok" in text
     assert "no held-out check can score it" in text
