@@ -756,7 +756,7 @@ def _prepare(traj, phase, smoother, phaser) -> tuple[Trajectory, PhaseEstimator 
     try:
         fitted = phaser.fit(traj.smoothed.r)
     except ValueError as err:
-        gap = _gap_note(traj) if "cycles" in str(err) else ""
+        gap = _gap_note(traj) if "covers only about" in str(err) else ""
         if not gap:
             raise
         raise ValueError(f"{err}; {gap}") from None
