@@ -351,8 +351,13 @@ def test_metric_with_too_few_cycles_says_how_many_are_needed():
     traj = simulate(NLinkSwimmer(5), wave, eta=0.025, n_cycles=3, samples_per_cycle=126,
                     seeds=seeds)
     with pytest.raises(ValueError, match=r"need at least 3·P = 390 \(about 3\.\d cycles at the "
-                                         r"12\d samples per cycle of this recording\)"):
+                                         r"12\d samples per cycle of this recording\).*"
+                                         r"or leave the metric out: metric=False"):
         ConnectionEstimator(phaser=Phaser(min_cycles=2.5)).fit(traj)
+    # and so it does: the connection alone fits
+    est = ConnectionEstimator(phaser=Phaser(min_cycles=2.5)).set_params(
+        regression__metric=False).fit(traj)
+    assert est.model_.M is None
 
 
 def test_fit_unwritable_out_is_found_before_fitting(recording, tmp_path, capsys, monkeypatch):
