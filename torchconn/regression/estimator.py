@@ -103,11 +103,13 @@ class ConnectionEstimator:
             ``"auto"`` (default): as given, unless on held-out blocks the fit loses to the
             phase-averaged velocity or a component's full model is not the one to keep
             (short recordings), then chosen as by ``"cv"``. Where no candidate can be
-            fitted without one block (video rates: 5-link, 7-12 cycles at 10-12 samples per
-            cycle), a recording of more than 6 cycles is checked with the connection alone
-            ``c + Âδ̇`` regressed (:func:`~torchconn.regression.skill.select_connection_alone`:
-            it predicts the components where it beats the phase average held out, and it is
-            ``model_``, ``b̂`` and ``∂Â/∂r`` 0); on fewer the phase average is presumed.
+            fitted without one block (video rates: 5-link, 3-12 cycles at 10-32 samples per
+            cycle), the recording is checked with the connection alone ``c + Âδ̇`` regressed
+            (:func:`~torchconn.regression.skill.select_connection_alone`: it predicts the
+            components where it clearly beats the phase average held out, and it is
+            ``model_``, ``b̂`` and ``∂Â/∂r`` 0); where that cannot be scored either, the
+            phase average is presumed on up to 6 cycles and the given fit kept unchecked on
+            more.
         held_out_folds: blocks of whole cycles of the held-out check every fit runs (0: no
             check). The fit warns (:class:`~torchconn.regression.skill.PoorHeldOutSkillWarning`)
             where the model predicts held-out cycles worse than their phase-averaged velocity.

@@ -598,7 +598,8 @@ def _tied_fit(
             + f", d = {d}); need at least {min_samples_per_coef:g}·P = "
               f"{math.ceil(min_samples_per_coef * p)}" + _cycles_needed(
                 ph, valid, math.ceil(min_samples_per_coef * p)) + ". Record more cycles, or "
-            "lower the orders"
+            "lower the orders; or leave the metric out: metric=False (torchconn-fit --metric "
+            "no) fits the connection alone from this recording"
         )
     zero = delta.new_zeros(())
     delta = torch.where(valid.unsqueeze(-1), delta, zero)

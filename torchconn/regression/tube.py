@@ -283,14 +283,7 @@ class TubeRegression(Regression):
         second_order = None
         if self.metric is not False and power is not None:
             if self.metric_method == "tied":
-                try:
-                    coefficients, noise = self._tied_metric(traj, cycle, pool, metric_cache)
-                except ValueError as err:
-                    if "usable power samples" not in str(err):
-                        raise
-                    raise ValueError(f"{err}; or leave the metric out: metric=False "
-                                     "(torchconn-fit --metric no) fits the connection alone "
-                                     "from this recording") from None
+                coefficients, noise = self._tied_metric(traj, cycle, pool, metric_cache)
                 metric_fit = coefficients.at(centres, gamma_dot_m)
                 second_order = coefficients.second_order
             else:
