@@ -22,6 +22,7 @@ import math
 import torch
 from torch import Tensor
 
+from .. import _linalg
 from ..phase.fourier import fit_fourier
 from ..physics.gaits import FourierGait
 from ..physics.systems.base import LocomotionSystem
@@ -63,7 +64,7 @@ def principal_cosine(J_a: Tensor, J_b: Tensor, base: Tensor | None = None) -> fl
     """Cosine of the smallest principal angle between the two column spaces (after ``base``)."""
     Qa, _ = torch.linalg.qr(_project_out(J_a, base))
     Qb, _ = torch.linalg.qr(_project_out(J_b, base))
-    return float(torch.linalg.svdvals(Qa.T @ Qb).max().clamp(max=1.0))
+    return float(_linalg.svdvals(Qa.T @ Qb, "the effects' overlap matrix").max().clamp(max=1.0))
 
 
 def data_gait(m: Measurement, order: int = 7) -> FourierGait:

@@ -32,11 +32,15 @@ import torch.autograd.forward_ad as fwAD
 from scipy import stats
 from torch import Tensor
 
+from .. import _linalg
 from .effects import Effect, get_effect
 from .forward import ForwardModel
 
 __all__ = ["CycleStats", "EffectFit", "fit_effects", "cycle_stats", "fourier_columns",
            "paired_gain", "fold_of_cycles"]
+
+#: the name of the least-squares normal matrix in error messages
+_NORMAL = "the effect fit's normal matrix"
 
 
 # ============================================================================ per-cycle sums
@@ -79,7 +83,7 @@ class CycleStats:
             G = G_all - self.G[sel].sum(0)
             g = g_all - self.g[sel].sum(0)
             reg = ridge * (torch.diagonal(G).mean() + 1e-300) * eye
-            delta = -torch.linalg.solve(G + reg, g)
+            delta = -_linalg.solve(G + reg, g, "the fold fit's normal matrix")
             steps.append(delta)
             out[sel] = (self.sse[sel] + 2 * self.g[sel] @ delta
                         + torch.einsum("i,cij,j->c", delta, self.G[sel], delta))
@@ -296,13 +300,13 @@ def fit_effects(
             H = Js.T @ Js
             g = Js.T @ rho
             damp = torch.diagonal(H).clamp_min(1e-12 * float(torch.diagonal(H).max()) + 1e-300)
-            if fresh and float(g @ torch.linalg.solve(H + mu * torch.diag(damp), g)) <= abs_tol:
+            if fresh and float(g @ _linalg.solve(H + mu * torch.diag(damp), g, _NORMAL)) <= abs_tol:
                 # converged where the exact Jacobian was just taken: the step it predicts would
                 # lower the cost by less than abs_tol and need another Jacobian at its end
                 break
             accepted = False
             for _ in range(12):
-                step = -torch.linalg.solve(H + mu * torch.diag(damp), g) * scale
+                step = -_linalg.solve(H + mu * torch.diag(damp), g, _NORMAL) * scale
                 rho_new, _ = problem.evaluate(names, p + step, jacobian=False)
                 cost_new = float(rho_new @ rho_new)
                 if cost_new <= costs[-1]:
@@ -356,7 +360,7 @@ def _sandwich(st: CycleStats) -> Tensor:
     H = st.G.sum(0)
     C = st.g.shape[0]
     meat = st.g.T @ st.g * (C / max(C - 1, 1))
-    Hinv = torch.linalg.pinv(H)
+    Hinv = _linalg.pinv(H, _NORMAL)
     return Hinv @ meat @ Hinv
 
 

@@ -11,6 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
+from .. import _linalg
 from ..physics.systems.base import LocomotionSystem  # noqa: E402
 from .loop import LoopResult  # noqa: E402
 
@@ -38,7 +39,7 @@ def plot_gaits(result: LoopResult, system: LocomotionSystem, path: str | Path,
     else:
         allr = torch.cat(loops)
         mean = allr.mean(0)
-        _, _, v = torch.linalg.svd(allr - mean, full_matrices=False)
+        _, _, v = _linalg.svd(allr - mean, "the recorded gaits' shapes")
         proj = [(r - mean) @ v[:2].T for r in loops]
         ax.set_xlabel("principal component 1 (rad)")
         ax.set_ylabel("principal component 2 (rad)")

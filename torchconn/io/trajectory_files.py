@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import _linalg
 from ..trajectory import GroundTruth, SmoothedState, Trajectory
 
 __all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles", "principal_signal"]
@@ -75,7 +76,7 @@ def principal_signal(r: Tensor) -> tuple[Tensor, Tensor]:
     mean = x.sum(-2, keepdim=True) / n_valid.clamp_min(1)[..., None, None]
     x = torch.where(valid[..., None], x - mean, torch.zeros((), dtype=r.dtype, device=r.device))
     cov = x.transpose(-1, -2) @ x
-    pc = torch.linalg.eigh(cov)[1][..., -1]  # (..., d) leading eigenvector
+    pc = _linalg.eigh(cov, "the joint angles' covariance")[1][..., -1]  # (..., d) leading eigenvector
     return (x @ pc[..., None])[..., 0], valid
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .. import _checks
+from .. import _checks, _linalg
 
 __all__ = ["FourierSeries", "fit_fourier", "fourier_design", "fourier_on_grid"]
 
@@ -293,14 +293,14 @@ def fit_fourier(
         pen = torch.full((n,), ridge, dtype=dtype, device=phi.device)
         pen[0] = 0.0
         G = G + torch.diag(pen)
-    eig = torch.linalg.eigvalsh(G)
+    eig = _linalg.eigvalsh(G, "the Fourier fit's normal matrix")
     if bool((eig[..., 0] <= _RCOND * eig[..., -1]).any()):
         raise ValueError(
             f"fit_fourier: the sample phases do not cover the circle well enough to determine "
             f"a series of order {order} (singular normal equations); lower `order`, pass "
             "`ridge`, or supply data spread over the whole cycle"
         )
-    L = torch.linalg.cholesky(G)
+    L = _linalg.cholesky(G, "the Fourier fit's normal matrix")
     coef = torch.cholesky_solve(rhs, L)  # (..., n, V)
     return FourierSeries(coef.reshape(batch + (n,) + value_shape), value_ndim)
 

@@ -43,7 +43,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .. import _checks
+from .. import _checks, _linalg
 from .._options import Options, option
 from ..io.preflight import CYCLE_RULES, MIN_PERIODICITY, periodicity
 from .fourier import FourierSeries, fit_fourier, fourier_design
@@ -270,7 +270,7 @@ def hilbert_phase_pc1(x: Tensor) -> Tensor:
     """
     _check_x(x, "hilbert_phase_pc1")
     xc = x - x.mean(-2, keepdim=True)
-    _, vec = torch.linalg.eigh(xc.mT @ xc)
+    _, vec = _linalg.eigh(xc.mT @ xc, "the shape channels' covariance")
     pc1 = (xc @ vec[..., -1:])[..., 0]
     return unwrap(torch.angle(analytic_signal(pc1, dim=-1)))
 
@@ -664,7 +664,7 @@ def _phaser(z: Tensor, order, period: Tensor | None, weighting: str) -> tuple[di
     # u_c ≈ e^{iφ} a_c with |a_c| = 1: the coherence R = uᴴu/T ≈ conj(a) aᵀ, whose top
     # eigenvector v ∝ conj(a) aligns the channels, so u v ∝ e^{iφ}
     R = u.mH @ u / T
-    _, vec = torch.linalg.eigh(R)
+    _, vec = _linalg.eigh(R, "the channels' phase coherence matrix")
     weights = vec[..., -1]
     coherence = _channel_coherence(R, fundamental)
     if weighting == "snr":
@@ -794,8 +794,8 @@ def _log_coherence(R: Tensor, keep: Tensor) -> Tensor:
     rhs = (pair * L).sum(-1)
     many = keep.sum(-1, keepdim=True) >= 3
     eye = torch.eye(C, dtype=L.dtype, device=L.device)
-    log_rho = torch.linalg.solve(torch.where(many[..., None], A, eye),
-                                 torch.where(many, rhs, 0)[..., None])[..., 0]
+    log_rho = _linalg.solve(torch.where(many[..., None], A, eye),
+                            torch.where(many, rhs, 0)[..., None], "the channels' coherence fit")[..., 0]
     # two kept channels: |R_ab| = ρ² with ρ shared; one: ρ = 1
     pair_mean = (pair * L).sum((-2, -1)) / pair.sum((-2, -1)).clamp_min(1) / 2
     return torch.where(keep & many, log_rho, torch.where(keep, pair_mean[..., None], 0.0))

@@ -30,7 +30,7 @@ from typing import Literal, get_args
 import torch
 from torch import Tensor
 
-from .. import _checks
+from .. import _checks, _linalg
 from .._options import Options
 from ..trajectory import SmoothedState, Trajectory
 from . import _scan
@@ -209,7 +209,7 @@ def _smooth_loop(F, Q, xf, Pf) -> Tensor:
     """RTS backward pass for the means, one Python step per sample (reference implementation)."""
     # the predictions and all gains at once: G_t = Pf_t Fᵀ Pp_{t+1}⁻¹, so Gᵀ = Pp⁻¹ F Pf_t
     Pp = F @ Pf[:, :-1] @ F.mT + Q[:, None]
-    G = torch.linalg.solve(Pp, F @ Pf[:, :-1]).mT
+    G = _linalg.solve(Pp, F @ Pf[:, :-1], "the smoother's predicted covariance").mT
     xp = xf[:, :-1] @ F.mT
     xs = [xf[:, -1]]
     for t in range(xf.shape[1] - 2, -1, -1):
@@ -372,7 +372,7 @@ def _unit_spectrum(F: Tensor, Q1: Tensor, N: int) -> Tensor:
     cdt = torch.complex128 if F.dtype == torch.float64 else torch.complex64
     w = 2 * math.pi * torch.arange(1, N, dtype=F.dtype, device=F.device) / N
     A = torch.exp(1j * w.to(cdt))[:, None, None] * torch.eye(n, dtype=cdt, device=F.device)
-    Ainv_e0 = torch.linalg.inv(A - F.to(cdt))[:, 0, :]  # row e0ᵀ (zI - F)^{-1}
+    Ainv_e0 = _linalg.inv(A - F.to(cdt), "the smoother's transfer matrix")[:, 0, :]  # row e0ᵀ (zI - F)^{-1}
     s = torch.einsum("fi,ij,fj->f", Ainv_e0, Q1.to(cdt), Ainv_e0.conj()).real
     return torch.cat([torch.full_like(s[:1], math.inf), s])
 

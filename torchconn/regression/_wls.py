@@ -19,7 +19,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .. import _checks
+from .. import _checks, _linalg
 from .binning import BinIndex
 
 __all__ = ["IllConditionedBinWarning"]
@@ -218,7 +218,7 @@ def _guarded_correction(gram: Tensor, corr: Tensor) -> tuple[Tensor, Tensor]:
     if check.numel():
         l_inv = _triangular_inverse(chol[check])
         rel = l_inv @ c_s[check] @ l_inv.mT
-        lam_max = torch.linalg.eigvalsh(0.5 * (rel + rel.mT))[..., -1]
+        lam_max = _linalg.eigvalsh(0.5 * (rel + rel.mT), "the regression's noise-to-signal matrix")[..., -1]
         kappa[check] = torch.where(lam_max > _MAX_CORRECTION, _MAX_CORRECTION / lam_max, 1.0)
     kappa = torch.where(info != 0, 0.0, kappa)  # already singular: left to the rank checks
     return gram - kappa[:, None, None] * corr, kappa
@@ -724,7 +724,7 @@ def _add_ridge(s, design, fix, lam, beta, se, rms, cond, delta_max, binary, max_
     scale = torch.where(dead, 1.0, diag.sqrt())
     gram_s = gram / (scale.unsqueeze(-1) * scale.unsqueeze(-2))
     gram_s.diagonal(dim1=-2, dim2=-1).add_(dead.to(gram_s))
-    eig = torch.linalg.eigvalsh(gram_s)
+    eig = _linalg.eigvalsh(gram_s, "the regression's normal matrix")
     need = (eig[:, -1] - target * eig[:, 0].clamp(min=0)) / (target - 1)
     lam = lam.clone()
     lam[fix] = torch.maximum(lam[fix], need * 1.01)

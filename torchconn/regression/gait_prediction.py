@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from .. import _linalg
 from ..phase.fourier import fit_fourier
 from ..physics.gaits.evaluate import gauss_cost, gauss_phases, magnus_displacement
 from ..physics.gaits.gait import as_gait
@@ -245,7 +246,7 @@ def _bin_noise_factor(n_bins: int, window: float, kernel: str, like: Tensor) -> 
     gram = dense @ dense.T
     norm = gram.diagonal().sqrt()
     corr = gram / (norm[:, None] * norm[None, :])
-    return torch.linalg.cholesky(corr + 1e-10 * torch.eye(n_bins, **kw)).to(like.dtype)
+    return _linalg.cholesky(corr + 1e-10 * torch.eye(n_bins, **kw), "the phase bins' overlap").to(like.dtype)
 
 
 def predict_gait(

@@ -33,6 +33,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from .. import _linalg
 from ..phase.fourier import fourier_design
 from . import _wls
 from .binning import BinIndex
@@ -679,7 +680,7 @@ def _tied_fit(
     normal = _CorrectedNormal.of(gram * scale + torch.diag_embed(dead.to(dtype)),
                                  corr_g * scale, floor)
     chol, applied, ok = normal.cholesky(), normal.applied, normal.ok
-    ev = torch.linalg.eigvalsh(chol @ chol.mT)
+    ev = _linalg.eigvalsh(chol @ chol.mT, "the metric's normal matrix")
     lo, hi = ev[..., 0], ev[..., -1]
     if p_r < p:  # the left-out columns' identity rows, as in the layout of ``order``
         lo, hi = lo.clamp(max=1.0), hi.clamp(min=1.0)
@@ -897,7 +898,7 @@ def _bin_factor(spread: Tensor, wide: Tensor, d: int) -> Tensor:
     the largest (``R ≤ min(C, W q)``)."""
     n_w, q = wide.shape[-1], d * (d + 1) // 2
     at = torch.einsum("mh,...chq->...cmq", wide, spread.unflatten(-1, (n_w, q)))
-    _, sv, vh = torch.linalg.svd(at.flatten(-2), full_matrices=False)  # (..., k), (..., k, M q)
+    _, sv, vh = _linalg.svd(at.flatten(-2), "the metric's error factor")  # (..., k), (..., k, M q)
     kept = sv > 1e-7 * sv[..., :1]
     rank = max(int(kept.sum(-1).max()), 1) if kept.numel() else 1
     factor = (sv[..., :rank, None] * vh[..., :rank, :]).unflatten(-1, at.shape[-2:])
@@ -976,7 +977,11 @@ class _CorrectedNormal:
             n = _LeadingFactors.whitened(lower, c[need])
         else:
             lower, n, info_g = factors
-        nu, u = torch.linalg.eigh((n + n.mT) / 2)
+        # an element whose G is not positive definite has no whitened matrix (its factor is
+        # partial): it is marked unusable below and gets no correction
+        good = (info_g == 0)[:, None, None]
+        nu, u = _linalg.eigh(torch.where(good, (n + n.mT) / 2, torch.zeros_like(n)),
+                             "the metric's noise-corrected normal matrix")
         top = (1 - floor[need]).unsqueeze(-1)
         share = torch.where(nu > top, top / nu, 1.0)
         applied[need] = share.amin(-1)

@@ -40,6 +40,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from .. import _linalg
 from .._options import option
 from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import phase_rate
@@ -1290,7 +1291,7 @@ def sampling_factor(influence: Tensor, se: Tensor) -> Tensor:
     scale = torch.where(ok, se / torch.where(ok, norm, 1.0), 0.0)
     factor = torch.nan_to_num(influence) * scale.unsqueeze(-1)
     flat = factor.flatten(-4, -2)  # (..., E, C)
-    u, sv, _ = torch.linalg.svd(flat, full_matrices=False)
+    u, sv, _ = _linalg.svd(flat, "the bands' error factor")
     kept = sv > 1e-7 * sv[..., :1]
     rank = max(int(kept.sum(-1).max()), 1) if kept.numel() else 1
     return (u[..., :rank] * sv[..., None, :rank]).unflatten(-2, factor.shape[-4:-1])

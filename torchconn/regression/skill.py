@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .. import _linalg
 from ..phase.fourier import FourierSeries, fit_fourier, fourier_design
 from ..phase.limit_cycle import LimitCycle
 from ..trajectory import Trajectory, pool_batch
@@ -421,8 +422,8 @@ def phase_average_orders(view: _View, max_order: int, pool: bool, n_folds: int =
         p = 2 * order + 1
         sse = 0.0
         for f in range(n_folds):  # fit without block f, scored on it
-            coef = torch.linalg.lstsq((gram - grams[f])[..., :p, :p],
-                                      (xy - rhs[f])[..., :p, :]).solution  # (..., p, 3)
+            coef = _linalg.lstsq((gram - grams[f])[..., :p, :p], (xy - rhs[f])[..., :p, :],
+                                  "the phase average's normal matrix")  # (..., p, 3)
             g = grams[f][..., :p, :p]
             sse = sse + yy[f] - 2 * (coef * rhs[f][..., :p, :]).sum(-2) + (
                 coef * (g @ coef)).sum(-2)

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ... import _linalg
 from ...trajectory import Trajectory
 from .readers import FORMATS, Keypoints, TrackingFormatError, read_tracking
 
@@ -555,10 +556,12 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
 def _order_ratio(pts: np.ndarray) -> float:
     """Median over frames ``pts (F, K, 2)`` of the chain length in the given keypoint order over
     the chain length with the points sorted along the frame's principal axis (1: in order)."""
+    c = pts - pts.mean(1, keepdims=True)
+    finite = np.isfinite(c).all((1, 2))  # coordinates so large that they overflow: no order
+    pts, c = pts[finite], c[finite]
     if pts.shape[0] == 0 or pts.shape[1] < 3:
         return 1.0
-    c = pts - pts.mean(1, keepdims=True)
-    axis = np.linalg.svd(c, full_matrices=False)[2][:, 0]  # (F, 2)
+    axis = _linalg.svd(torch.from_numpy(c), "the keypoints' positions")[2][:, 0].numpy()  # (F, 2)
     order = np.argsort((c * axis[:, None, :]).sum(-1), axis=1)
     srt = np.take_along_axis(pts, order[..., None], 1)
 
