@@ -56,7 +56,10 @@ def test_normal_path_is_torch_exactly():
     assert torch.equal(_linalg.solve(a, b, "A"), torch.linalg.solve(a, b))
     assert torch.equal(_linalg.cholesky(a, "A"), torch.linalg.cholesky(a))
     assert torch.equal(_linalg.inv(a, "A"), torch.linalg.inv(a))
-    assert torch.equal(_linalg.lstsq(a, b, "A"), torch.linalg.lstsq(a, b).solution)
+    # MKL's AVX2 least-squares kernel is not bit-reproducible from call to call (its result
+    # depends on the operands' memory alignment), so this one is compared to rounding
+    torch.testing.assert_close(_linalg.lstsq(a, b, "A"), torch.linalg.lstsq(a, b).solution,
+                               rtol=1e-13, atol=1e-13)
 
 
 @pytest.mark.parametrize("complex_", [False, True])

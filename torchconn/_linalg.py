@@ -133,26 +133,26 @@ def lstsq(a: Tensor, b: Tensor, what: str) -> Tensor:
 
 def solve(a: Tensor, b: Tensor, what: str) -> Tensor:
     """``a⁻¹ b`` for the square ``a (..., n, n)``; a singular ``a`` raises."""
-    x, info = torch.linalg.solve_ex(a, b)
-    if bool((info != 0).any()):
+    try:
+        return torch.linalg.solve(a, b)
+    except torch.linalg.LinAlgError:
         _nonfinite(a, what)
-        raise _failed(what, "the matrix is singular")
-    return x
+        raise _failed(what, "the matrix is singular") from None
 
 
 def inv(a: Tensor, what: str) -> Tensor:
     """``a⁻¹`` for the square ``a (..., n, n)``; a singular ``a`` raises."""
-    x, info = torch.linalg.inv_ex(a)
-    if bool((info != 0).any()):
+    try:
+        return torch.linalg.inv(a)
+    except torch.linalg.LinAlgError:
         _nonfinite(a, what)
-        raise _failed(what, "the matrix is singular")
-    return x
+        raise _failed(what, "the matrix is singular") from None
 
 
 def cholesky(a: Tensor, what: str) -> Tensor:
     """Lower Cholesky factor of the positive-definite ``a (..., n, n)``."""
-    chol, info = torch.linalg.cholesky_ex(a)
-    if bool((info != 0).any()):
+    try:
+        return torch.linalg.cholesky(a)
+    except torch.linalg.LinAlgError:
         _nonfinite(a, what)
-        raise _failed(what, "the matrix is not positive definite")
-    return chol
+        raise _failed(what, "the matrix is not positive definite") from None

@@ -1,0 +1,44 @@
+"""The numerics tests pass on both of MKL's code paths.
+
+On a CPU with AVX-512, MKL takes its AVX-512 kernels by default; ``MKL_ENABLE_INSTRUCTIONS=AVX2``
+selects the AVX2 ones, which round differently and converge differently on hard matrices. The
+suite itself runs on the default path; this test runs the ``numerics`` tests (marked in
+conftest.py) again on the other one, in a subprocess. By hand::
+
+    MKL_ENABLE_INSTRUCTIONS=AVX2 python -m pytest -q -m "numerics and not slow"
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+TESTS = Path(__file__).resolve().parent
+
+
+def _has_avx512() -> bool:
+    try:
+        return "avx512f" in Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not torch.backends.mkl.is_available(), reason="torch is built without MKL")
+@pytest.mark.skipif(not _has_avx512(),
+                    reason="no AVX-512 on this CPU: MKL's default path is already its AVX2 one")
+@pytest.mark.skipif(os.environ.get("MKL_ENABLE_INSTRUCTIONS", "").upper() == "AVX2",
+                    reason="this run is already on the AVX2 path")
+def test_numerics_pass_on_mkls_avx2_code_path():
+    env = {**os.environ, "MKL_ENABLE_INSTRUCTIONS": "AVX2", "OMP_NUM_THREADS": "1"}
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-m", "numerics and not slow", "-p",
+         "no:cacheprovider", str(TESTS)],
+        cwd=TESTS.parent, env=env, capture_output=True, text=True, timeout=1800)
+    tail = "\n".join((run.stdout + run.stderr).splitlines()[-30:])
+    assert run.returncode == 0, f"numerics tests fail on MKL's AVX2 path:\n{tail}"
+    assert " passed" in tail
