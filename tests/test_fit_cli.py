@@ -270,3 +270,11 @@ def test_fit_names_the_components_that_lose_to_the_phase_average(tmp_path, capsy
     # every component has skill here, so nothing is called unpredictable
     assert held["without_skill"] == [False, False, False]
     assert "WARNING: neither the model" not in text
+
+
+def test_more_bins_than_samples_is_refused_before_any_allocation(recording, tmp_path, capsys):
+    # the bins' series grow as n_bins²: 100000 bins on this recording once took all memory
+    assert main([str(recording), "--links", "3", "--out", str(tmp_path / "x"), "--n-bins",
+                 "100000", "--complexity", "fixed", "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert "n_bins = 100000 is more than the" in err and "--n-bins" in err

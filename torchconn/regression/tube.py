@@ -261,6 +261,12 @@ class TubeRegression(Regression):
                                    for x, k in ((phase, 0), (r, 1), (r_dot, 1), (xi, 1)))
             power = None if power is None else pool_batch(power, 0)
         M = self.n_bins
+        n_samples = int(torch.isfinite(phase).sum())
+        if M > n_samples:
+            raise ValueError(
+                f"{type(self).__name__}.n_bins = {M} is more than the {n_samples} samples of "
+                "the recording: every phase bin needs samples of its own; use fewer bins "
+                "(torchconn-fit --n-bins, estimator.regression.n_bins)")
         centres = torch.arange(M, dtype=r.dtype, device=r.device) * (2 * math.pi / M)
         batch = phase.shape[:-1]
         gamma_m = cycle.gamma_at(centres.expand(batch + (M,)))
