@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from accuracy import circle_gait  # beside this file
 
 from torchconn import NLinkSwimmer, simulate
 from torchconn.io.trajectory_files import write_csv
@@ -259,6 +260,42 @@ def build_cases(root: Path) -> list[Case]:
     fit("recordings with different joint counts", [good, table_csv(
         "fewer.csv", np.delete(table, rcols[-1], 1), [h for h in cols if h != f"r{len(rcols)}"])])
 
+    # video-rate recordings (12-20 samples per cycle) of different lengths and gaps
+    rates = []
+    for j, (spc, cyc) in enumerate(((12, 14), (16, 9), (20, 7))):
+        sd = np.array([10 + j])
+        tr = observe(simulate(NLinkSwimmer(5), circle_gait(5, 0.7), eta=0.025,
+                              n_cycles=cyc, samples_per_cycle=spc, seeds=sd), 0.002,
+                     dropout=0.03 * j, seeds=sd)
+        rates.append(root / f"rate{spc}.csv")
+        write_csv(tr, rates[-1])
+    fit("3 video-rate recordings, pooled", rates, must_flag=False, links="5")
+    fit("3 video-rate recordings, per trial", rates, "--set", "estimator.pool=false",
+        must_flag=False, links="5")
+    fit("2 video-rate recordings, fixed complexity", rates[:2], "--complexity", "fixed",
+        must_flag=False, links="5")
+    gap = table.copy()
+    gap[100:260, 2:] = np.nan  # a gap of 5 cycles in trial 0
+    fit("a long gap", [table_csv("gap.csv", gap)], must_flag=False)
+    lead = table.copy()
+    lead[:40, 2:] = np.nan  # the first cycle missing
+    fit("leading NaN rows", [table_csv("lead.csv", lead)], must_flag=False)
+    fit("one trial only 1 cycle long", [good, table_csv("short1.csv", table[:33])])
+
+    # --- output folders
+    foreign = root / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("my notes")
+    cases.append(Case("--out a folder of the user's files", "fit",
+                      [str(good), "--links", "3", "--out", str(foreign), "--no-figures"],
+                      True, foreign))
+    cases.append(Case("--out under a file", "fit",
+                      [str(good), "--links", "3", "--out", str(good / "sub"), "--no-figures"],
+                      True, None))
+    cases.append(Case("convert: --out a file", "convert",
+                      [str(root / "pts.npz"), "--links", "3", "--fps", "30", "--out", str(good)],
+                      True, None))
+
     # --- flags
     fit("--out is a file", [good], "--out", str(good))
     fit("--grid 1", [good], "--grid", "1")
@@ -340,6 +377,19 @@ def build_cases(root: Path) -> list[Case]:
     conv("convert: dlc csv truncated", [csv_from("dlc.csv",
                                                  "scorer,DLC,DLC\nbodyparts,head,head\n")])
 
+    conv("convert: points csv with text", [csv_from("ptstext.csv", "x0,y0,x1,y1\n1,2,a,4\n")],
+         "--fps", "30")
+    conv("convert: --links 0", [pts], "--fps", "30", "--links", "0")
+    conv("convert: --head sideways", [pts], "--fps", "30", "--head", "sideways")
+    conv("convert: --track -1", [pts], "--fps", "30", "--track", "-1")
+    conv("convert: --fps inf", [pts], "--fps", "inf")
+    conv("convert: --config missing", [pts], "--fps", "30", "--config", str(root / "no.toml"))
+    conv("convert: --config wrong type", [pts], "--fps", "30", "--config", str(csv_from(
+        "ctype.toml", "[convert]\nmax_gap = 'long'\n")))
+    conv("convert: --config unknown key", [pts], "--fps", "30", "--config", str(csv_from(
+        "cunk.toml", "[convert]\nmax_gapp = 1\n")))
+    conv("convert: same source twice", [pts, pts], "--fps", "30")
+
     # --- discrepancy
     def disc(name, files, *extra, must_flag=True):
         k[0] += 1
@@ -371,6 +421,21 @@ def build_cases(root: Path) -> list[Case]:
     disc("discrepancy: empty file", [root / "empty.csv"], "--links", "3")
     disc("discrepancy: good recording, 3 links", [good], "--links", "3", must_flag=False)
 
+    disc("discrepancy: --candidates none valid", [good], "--links", "3", "--candidates",
+         "wind")
+    disc("discrepancy: alpha nan", [good], "--links", "3", "--alpha", "nan")
+    disc("discrepancy: --frame bogus", [good], "--links", "3", "--frame", "bogus")
+    disc("discrepancy: --threads -1", [good], "--links", "3", "--threads", "-1")
+    disc("discrepancy: --device bogus", [good], "--links", "3", "--device", "tpu")
+    disc("discrepancy: same file twice", [good, good], "--links", "3")
+    disc("discrepancy: text cell", [root / "text.csv"], "--links", "3")
+    disc("discrepancy: negative power", [next(root.glob("m*.csv"))], "--links", "3",
+         must_flag=False)
+    disc("discrepancy: config not toml", [good], "--links", "3", "--config", str(csv_from(
+        "dnot.toml", "alpha: 0.1\n")))
+    disc("discrepancy: config folds float", [good], "--links", "3", "--config", str(csv_from(
+        "dfl.toml", "[discrepancy]\nfolds = 2.5\n")))
+
     # --- improve
     def imp(name, *argv, must_flag=True):
         k[0] += 1
@@ -393,6 +458,18 @@ def build_cases(root: Path) -> list[Case]:
     imp("improve: propose empty", "propose", str(root / "empty.csv"), "--links", "3")
     imp("improve: propose wrong links", "propose", str(good), "--links", "5")
     imp("improve: propose scale 0", "propose", str(good), "--links", "3", "--scale", "0")
+
+    imp("improve: omega inf", "simulate", "--omega", "inf", "--rounds", "1")
+    imp("improve: seed -1", "simulate", "--seed", "-1", "--rounds", "1")
+    imp("improve: trials -2", "simulate", "--trials", "-2", "--rounds", "1")
+    imp("improve: radius nan", "simulate", "--radius", "nan", "--rounds", "1")
+    imp("improve: radius -0.5", "simulate", "--radius", "-0.5", "--rounds", "1")
+    imp("improve: propose garbage", "propose", str(root / "garbage.csv"), "--links", "3")
+    imp("improve: propose folder", "propose", str(root), "--links", "3")
+    imp("improve: propose same twice", "propose", str(good), str(good), "--links", "3")
+    imp("improve: propose scale nan", "propose", str(good), "--links", "3", "--scale", "nan")
+    imp("improve: propose objective bogus", "propose", str(good), "--links", "3",
+        "--objective", "speed")
 
     # --- sweep
     def sweep(name, text, *extra, must_flag=True):
@@ -423,6 +500,20 @@ def build_cases(root: Path) -> list[Case]:
     sweep("sweep: --workers 0", base, "--workers", "0")
     sweep("sweep: --block 3", base, "--block", "3")
     sweep("sweep: --out a file", base, "--out", str(good))
+    sweep("sweep: unknown key", base + "bogus = 1\n")
+    sweep("sweep: levels not a list", base.replace("levels = [1.0]", "levels = 1.0"))
+    sweep("sweep: noise kind bogus", base.replace('noise_kind = "system"', 'noise_kind = "x"'))
+    sweep("sweep: seed text", base.replace("seed = 3", 'seed = "three"'))
+    sweep("sweep: seed negative", base.replace("seed = 3", "seed = -3"))
+    sweep("sweep: error_bins 0", base.replace("error_bins = 12", "error_bins = 0"))
+    sweep("sweep: n_bins 2", base.replace("n_bins = 16", "n_bins = 2"))
+    sweep("sweep: no experiment", base.split("[[experiment]]")[0])
+    sweep("sweep: --set bad", base, "--set", "simulation.n_cycles")
+    sweep("sweep: --set unknown", base, "--set", "simulation.ncycles=3")
+    sweep("sweep: --cycles 0", base, "--cycles", "0")
+    sweep("sweep: --device bogus", base, "--device", "gpu")
+    sweep("sweep: --threads 0", base, "--threads", "0")
+    sweep("sweep: BOM + CRLF", "\ufeff" + base.replace("\n", "\r\n"), must_flag=False)
     return cases
 
 
