@@ -220,7 +220,8 @@ def test_outputs_follow_the_umask(mask, file_mode, dir_mode, data, tmp_path, uma
 
 
 @pytest.mark.parametrize("kind", ["user files", "an earlier fit and a user file",
-                                  "another command's result", "a damaged record", "a file"])
+                                  "another command's result", "a damaged record", "a file",
+                                  "an older torchconn's fit"])
 def test_a_folder_that_is_not_an_earlier_fit_is_refused(kind, data, earlier_fit, tmp_path,
                                                         capsys, monkeypatch):
     out = tmp_path / "out"
@@ -229,6 +230,9 @@ def test_a_folder_that_is_not_an_earlier_fit_is_refused(kind, data, earlier_fit,
     elif kind == "an earlier fit and a user file":
         _copy(earlier_fit, out)
         (out / "notes.txt").write_text("mine")
+    elif kind == "an older torchconn's fit":
+        _copy(earlier_fit, out)
+        (out / RECORD).unlink()
     else:
         out.mkdir()
         (out / "notes.txt").write_text("mine")
@@ -245,7 +249,8 @@ def test_a_folder_that_is_not_an_earlier_fit_is_refused(kind, data, earlier_fit,
               "an earlier fit and a user file": "files it did not write (notes.txt)",
               "another command's result": "holds the result of torchconn-convert",
               "a damaged record": "holds no earlier torchconn-fit result",
-              "a file": "is a file"}[kind]
+              "a file": "is a file",
+              "an older torchconn's fit": "holds the outputs of an older torchconn"}[kind]
     _error(code, capsys.readouterr().err, f"--out {out}", expect)
     assert (_snapshot(out) if out.is_dir() else out.read_bytes()) == before
     assert _beside(out) == []

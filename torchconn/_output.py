@@ -36,7 +36,7 @@ from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ._cli import InputError
+from ._cli import InputError, _reason
 
 try:
     import fcntl
@@ -294,6 +294,19 @@ class FolderLock:
 
 
 # ============================================================================ one folder
+def _older_sidecar(folder: Path, names) -> bool:
+    """Whether ``folder`` holds a JSON sidecar of :func:`torchconn._provenance.write_sidecar`
+    (its ``source_hash`` and ``versions``)."""
+    for name in sorted(n for n in names if n.endswith(".json"))[:8]:
+        try:
+            fields = json.loads((folder / name).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if isinstance(fields, dict) and {"source_hash", "versions"} <= fields.keys():
+            return True
+    return False
+
+
 _AT_FDCWD, _RENAME_EXCHANGE = -100, 2
 
 
@@ -302,7 +315,7 @@ def _exchange(a: str, b: str) -> bool:
     OS or file system has no such call."""
     try:
         fn = ctypes.CDLL(None, use_errno=True).renameat2
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):  # no such call here
         return False
     fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
     if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
@@ -324,10 +337,6 @@ def _fsync_dir(path: Path) -> None:
         pass
     finally:
         os.close(fd)
-
-
-def _reason(err: OSError) -> str:
-    return err.strerror or type(err).__name__
 
 
 class OutputFolder:
@@ -382,6 +391,11 @@ class OutputFolder:
         if not entries:
             return
         record = self.read_record(real)
+        if record is None and _older_sidecar(real, entries):
+            raise InputError(
+                f"{self._where()}: the folder holds the outputs of an older torchconn, which "
+                f"did not mark them with {RECORD} as a result a re-run may replace; remove "
+                "them or choose another folder")
         if record is None:
             raise InputError(
                 f"{self._where()}: the folder is not empty and holds no earlier "
