@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from torchconn._output import FolderBusy, FolderLock
 from torchconn.sweep import __main__ as cli
 from torchconn.sweep.config import load_config
 from torchconn.sweep.experiment import experiment_cells
-from torchconn.sweep.lock import FolderBusy, FolderLock
 from torchconn.sweep.runner import run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -2,8 +2,8 @@
 
 Every command that writes results (``torchconn-sweep``'s ``run.json``, ``torchconn-discrepancy``'s
 ``report.json``, ``torchconn-fit``'s sidecar) writes it through :func:`write_sidecar`, so each
-carries the same ``versions`` and ``source_hash`` and is written atomically: a temporary file in
-the same folder, renamed into place, so a crash never leaves a half-written JSON behind.
+carries the same ``versions`` and ``source_hash`` and is written atomically
+(:func:`torchconn._output.write_bytes_atomic`), so a crash never leaves a half-written JSON.
 """
 
 from __future__ import annotations
@@ -12,17 +12,16 @@ import functools
 import hashlib
 import json
 import math
-import os
 import platform
-import tempfile
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["versions", "source_hash", "spawn_seeds", "jsonable", "write_bytes_atomic",
-           "write_json", "write_sidecar"]
+from ._output import write_bytes_atomic
+
+__all__ = ["versions", "source_hash", "spawn_seeds", "jsonable", "write_json", "write_sidecar"]
 
 
 def versions() -> dict[str, str]:
@@ -94,27 +93,9 @@ def jsonable(x):
     return str(x)
 
 
-def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically: a temporary file in the same folder, flushed to
-    disk, then :func:`os.replace` -- a crash never leaves a half-written file behind. Creates
-    the folder. Returns the path."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
 def write_json(path: str | Path, obj) -> Path:
-    """Write ``jsonable(obj)`` to ``path`` atomically (:func:`write_bytes_atomic`)."""
+    """Write ``jsonable(obj)`` to ``path`` atomically
+    (:func:`~torchconn._output.write_bytes_atomic`)."""
     text = json.dumps(jsonable(obj), indent=2, allow_nan=False)
     return write_bytes_atomic(path, (text + "\n").encode())
 

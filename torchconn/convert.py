@@ -3,24 +3,30 @@
 Reads SLEAP (analysis .h5/.csv), DeepLabCut (.csv/.h5), WCON (.wcon/.json/.zip) or plain point
 arrays (.csv/.npz), fits a curve through each frame's keypoints, resamples it to an N-link
 chain and writes one trajectory CSV per trial (``DIR/<file>.csv``, or
-``DIR/<file>_trial<k>.csv`` when gaps split the recording) and ``DIR/convert.json``: every
-setting as resolved (per-format defaults included), what was found in each file (missing
-keypoints, head/tail flips, gaps, body-length spread, scale) and the checks before fitting
-(:mod:`torchconn.io.preflight`) for every command. Exit codes: 0 done, 2 bad input.
+``DIR/<file>_trial<k>.csv`` when gaps split the recording; files of one name from different
+folders get their folder's name in front, ``DIR/<folder>_<file>.csv``, see
+:func:`output_names`) and ``DIR/convert.json``: which source made which files, every setting as
+resolved (per-format defaults included), what was found in each file (missing keypoints,
+head/tail flips, gaps, body-length spread, scale) and the checks before fitting
+(:mod:`torchconn.io.preflight`) for every command. The outputs replace ``DIR`` whole once all
+are written (:class:`~torchconn._output.OutputFolder`). Exit codes: 0 done, 2 bad input.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import tomllib
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
+from ._cli import InputError, add_threads, run_command, set_threads
+from ._output import OutputFolder
 from ._provenance import write_sidecar
 from .io.preflight import preflight
 from .io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
@@ -28,7 +34,7 @@ from .io.trajectory_files import read_csv, write_csv
 from .trajectory import Trajectory
 
 __all__ = ["main", "add_conversion_arguments", "conversion_settings", "load_recordings",
-           "Recordings", "config_tables"]
+           "Recordings", "config_tables", "output_names"]
 
 
 # ============================================================================ shared CLI parts
@@ -177,6 +183,46 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
 PROG = "torchconn-convert"
 
 
+def output_names(sources: list[Path], n_trials: list[int]) -> list[list[str]]:
+    """The trajectory CSV names ``convert`` writes for each source, distinct and deterministic.
+
+    ``<stem>.csv`` (the file name less its last suffix), or ``<stem>_trial<k>.csv`` for a source
+    split into several trials. A stem that several sources share (files of one name in
+    different folders, or with different suffixes) gets the source's folder name in front,
+    ``<folder>_<stem>``; a name still taken (case ignored, as on macOS and Windows) gets
+    ``-2``, ``-3``, ... in the order of the sources.
+
+    Args:
+        sources: the source files.
+        n_trials: the number of trials of each.
+    """
+    stems = [Path(s).name.rsplit(".", 1)[0] for s in sources]
+    shared = Counter(s.casefold() for s in stems)
+    stems = [f"{Path(os.path.abspath(src)).parent.name}_{stem}"
+             if shared[stem.casefold()] > 1 else stem for src, stem in zip(sources, stems,
+                                                                             strict=True)]
+    taken, names = set(), []
+    for stem, n in zip(stems, n_trials, strict=True):
+        mine = []
+        for base in [stem] if n == 1 else [f"{stem}_trial{k}" for k in range(n)]:
+            name, i = f"{base}.csv", 2
+            while name.casefold() in taken:
+                name, i = f"{base}-{i}.csv", i + 1
+            taken.add(name.casefold())
+            mine.append(name)
+        names.append(mine)
+    return names
+
+
+def _refuse_repeated(sources: list[Path]) -> None:
+    seen = {}
+    for s in sources:
+        key = os.path.realpath(s)
+        if key in seen:
+            raise InputError(f"{s} is given twice (also as {seen[key]}); give each source once")
+        seen[key] = s
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog=PROG,
@@ -205,30 +251,41 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             raise InputError(f"unknown config section(s) {unknown}; convert reads [convert]")
         settings = conversion_settings(args, args.links, tables.get("convert"))
-        out = prepare_output(args.out)
+        _refuse_repeated(args.sources)
+        with OutputFolder(args.out, command=PROG) as folder:
+            return convert_into(folder, settings)
+
+    def convert_into(folder: OutputFolder, settings) -> int:
+        """Convert the sources; write the outputs into ``folder``, whose contents replace
+        ``--out`` when this returns."""
+        out = folder.path
         rec = load_recordings(args.sources, fmt=args.format, n_links=args.links,
                               settings=settings)
         if not rec.reports:
             raise InputError("the inputs are already trajectory CSVs; nothing to convert")
         check = preflight(rec.trajectory, body_length=rec.body_length)
         print("\n".join(check.lines()))
-        files = []
-        for rep in rec.reports:
-            stem = Path(rep.source).name.rsplit(".", 1)[0]
-            mine = [tr for (path, _, tr) in rec.trials if str(path) == rep.source]
-            outs = []
-            for k, tr in enumerate(mine):
-                name = f"{stem}.csv" if len(mine) == 1 else f"{stem}_trial{k}.csv"
-                outs.append(str(write_csv(tr, out / name)))
+        trials = [[tr for (path, _, tr) in rec.trials if str(path) == rep.source]
+                  for rep in rec.reports]
+        names = output_names([Path(rep.source) for rep in rec.reports],
+                             [len(mine) for mine in trials])
+        files, lines = [], []
+        for rep, mine, mine_names in zip(rec.reports, trials, names, strict=True):
+            for tr, name in zip(mine, mine_names, strict=True):
+                write_csv(tr, out / name)
+            outs = [str(folder.final(name)) for name in mine_names]
             files.append({"source": rep.source, "outputs": outs, "report": rep.to_dict()})
             how = "given" if rep.scale_source == "given" else "median chain length"
-            print(f"{rep.source}: {rep.n_valid}/{rep.n_frames} frames, {len(outs)} trial(s), "
-                  f"{rep.scale:.4g} units per body length ({how}) -> {', '.join(outs)}")
+            lines.append(f"{rep.source}: {rep.n_valid}/{rep.n_frames} frames, {len(outs)} "
+                         f"trial(s), {rep.scale:.4g} units per body length ({how}) -> "
+                         f"{', '.join(outs)}")
         write_sidecar(out / "convert.json", {
             "command": PROG, "argv": sys.argv[1:] if argv is None else list(argv),
             "settings": dataclasses.asdict(settings), "files": files,
             "preflight": check.to_dict(),
         })
+        out = folder.commit()
+        print("\n".join(lines))
         print(f"wrote {out / 'convert.json'}")
         return 0
 

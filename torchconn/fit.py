@@ -20,14 +20,15 @@ of) goes to ``DIR/forecast_model.npz``, and the printout says which is which. ``
 summary, the checks and the versions. Every estimator setting is reachable through ``--config``
 (an ``[estimator]`` table with stage sub-tables, read by
 :func:`~torchconn.regression.estimator.estimator_from_settings`) and
-``--set estimator.<stage>.<field>=value``. Exit codes: 0 done, 2 bad input or an unusable
-output folder (one line says what to fix), 1 an internal error.
+``--set estimator.<stage>.<field>=value``. The outputs replace ``DIR`` whole once all are
+written (:class:`~torchconn._output.OutputFolder`): never half a fit, nor a mix of two. Exit
+codes: 0 done, 2 bad input or an unusable output folder (one line says what to fix), 1 an
+internal error.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import sys
 import warnings
@@ -39,11 +40,11 @@ from ._cli import (
     InputError,
     add_device,
     add_threads,
-    prepare_output,
     resolve_device,
     run_command,
     set_threads,
 )
+from ._output import OutputFolder, write_table
 from ._provenance import write_sidecar
 from .convert import add_conversion_arguments, config_tables, conversion_settings, load_recordings
 from .discrepancy.known import changes_data, parse_known, relative_to_known
@@ -91,17 +92,8 @@ def connection_table(model: LocalConnectionModel, n_points: int = 100):
 
 
 def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = 100) -> Path:
-    """Write :func:`connection_table` to ``path`` (CSV with a header row)."""
-    path = Path(path)
-    _write_table(path, *connection_table(model, n_points))
-    return path
-
-
-def _write_table(path: Path, cols, rows) -> None:
-    with path.open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(cols)
-        writer.writerows(rows)
+    """Write :func:`connection_table` to ``path`` (CSV with a header row), atomically."""
+    return write_table(path, *connection_table(model, n_points))
 
 
 #: shortcut flags -> the flat estimator settings they set (FLAT_KEYS maps them to a stage field)
@@ -235,7 +227,13 @@ def main(argv: list[str] | None = None) -> int:
                 raise InputError(f"--known {k.name}: it changes only the simulator, and fit "
                                  "estimates the model from the data without one; give it to "
                                  "torchconn-discrepancy instead")
-        out = prepare_output(args.out)
+        with OutputFolder(args.out, command=PROG) as folder:
+            return fit_into(folder, estimator, conv, known, swimmer, device)
+
+    def fit_into(folder: OutputFolder, estimator, conv, known, swimmer, device) -> int:
+        """Read, check and fit the recordings; write the outputs into ``folder``, whose
+        contents replace ``--out`` when this returns."""
+        out = folder.path
         rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
                               settings=conv, read_csv=read_csv)
         traj = relative_to_known(rec.trajectory, known, swimmer)
@@ -255,10 +253,8 @@ def main(argv: list[str] | None = None) -> int:
         model = est.model_.to("cpu")  # outputs are written from CPU copies
         # the model predict() uses, where it differs from the connection (short recordings)
         forecast = None if est.forecast_model_ is est.model_ else est.forecast_model_.to("cpu")
-        # everything is computed before the first file is written: no partial outputs
-        cols, rows = connection_table(model, args.grid)
         model.save(out / "model.npz")
-        _write_table(out / "connection.csv", cols, rows)
+        write_connection_csv(model, out / "connection.csv", args.grid)
         outputs = ["model.npz", "connection.csv"]
         if forecast is not None:
             forecast.save(out / FORECAST_FILE)
@@ -302,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
             "outputs": outputs,
             "device": str(device),
         })
+        out = folder.commit()
         print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
               f"samples (d = {traj.shape_dim})")
         if model.M is not None:

@@ -3,8 +3,10 @@
 Also runs as ``python -m torchconn.discrepancy``. Reads the recordings (the format of
 docs/conventions.md, section "Trajectory file format"), compares them with the nominal N-link swimmer,
 names the missing effect(s) and writes ``DIR/report.json``, ``DIR/augmented_model.json``,
-``DIR/residual_profile.csv`` and the figures; prints a readable summary. Exit codes: 0 done,
-2 bad input or an unusable output folder (one line says what to fix), 1 an internal error.
+``DIR/residual_profile.csv`` and the figures; prints a readable summary. The outputs replace
+``DIR`` whole once all are written (:class:`~torchconn._output.OutputFolder`). Exit codes: 0
+done, 2 bad input or an unusable output folder (one line says what to fix), 1 an internal
+error.
 Unknown columns are warned about.
 """
 
@@ -22,11 +24,11 @@ from .._cli import (
     add_device,
     add_threads,
     check_keys,
-    prepare_output,
     resolve_device,
     run_command,
     set_threads,
 )
+from .._output import OutputFolder
 from ..convert import add_conversion_arguments, conversion_settings, load_recordings
 from ..io.preflight import preflight
 from ..io.trajectory_files import read_csv
@@ -134,7 +136,12 @@ def main(argv: list[str] | None = None) -> int:
         def conv():  # conversion options matter (and are checked) for tracking files only
             return conversion_settings(args, args.links)
 
-        out = prepare_output(args.out)
+        with OutputFolder(args.out, command=PROG) as folder:
+            return diagnose_into(folder, system, settings, known, conv, device)
+
+    def diagnose_into(folder: OutputFolder, system, settings, known, conv, device) -> int:
+        """Read, check and diagnose the recordings; write the outputs into ``folder``, whose
+        contents replace ``--out`` when this returns."""
         rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
                               settings=conv, read_csv=read_csv)
         traj = relative_to_known(rec.trajectory, known, system)
@@ -154,7 +161,9 @@ def main(argv: list[str] | None = None) -> int:
         if not args.quiet:
             print(f"torchconn-discrepancy: {len(args.data)} file(s), {system}")
         report = diagnose(traj, system, settings, log=say)
-        paths = report.save(out, figures=not args.no_figures)
+        paths = report.save(folder.path, figures=not args.no_figures)
+        folder.commit()
+        paths = {k: folder.final(p) for k, p in paths.items()}
         if args.quiet:
             names = ", ".join(e.name for e in report.effects)
             print(f"verdict: {report.verdict}" + (f" ({names})" if names else ""))

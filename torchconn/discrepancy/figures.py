@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._output import save_figure
 from .residuals import COMPONENTS
 
 __all__ = ["plot_residual_profiles", "plot_terms"]
@@ -53,8 +54,7 @@ def plot_residual_profiles(report, path: str | Path) -> Path:
         ax.legend(fontsize=7, loc="best")
     fig.suptitle(f"Held-out residual vs phase (mean over cycles, 95% bootstrap band) -- "
                  f"verdict: {report.verdict}", fontsize=10)
-    path = Path(path)
-    fig.savefig(path, dpi=110)
+    path = save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -77,7 +77,6 @@ def plot_terms(terms: dict, path: str | Path) -> Path:
         ax.set_title(f"{name}: (data - simulator) / se", fontsize=9)
         ax.set_xlabel("phase (rad)")
         ax.legend(fontsize=7)
-    path = Path(path)
-    fig.savefig(path, dpi=100)
+    path = save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path

@@ -8,12 +8,12 @@ previous release were, for one release.
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from .._output import write_table
 from .._provenance import jsonable, write_sidecar
 from ..physics.systems.swimmer import NLinkSwimmer
 from .model import AugmentedModel
@@ -301,25 +301,21 @@ class DiscrepancyReport:
 
     def save(self, out: str | Path, *, figures: bool = True) -> dict[str, Path]:
         """Write ``report.json``, ``augmented_model.json``, ``residual_profile.csv`` and the
-        figures into ``out``; returns the paths."""
+        figures into ``out``, each file atomically; returns the paths."""
         out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
         paths = {}
         paths["report"] = out / "report.json"
         write_sidecar(paths["report"], self.to_dict())
         if isinstance(self.model.nominal, NLinkSwimmer):
             paths["model"] = self.model.save(out / "augmented_model.json")
-        paths["profile_csv"] = out / "residual_profile.csv"
-        with paths["profile_csv"].open("w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(["model", "component", "phase", "mean", "lo", "hi", "disagrees",
-                        "noise_floor"])
-            for label, prof in self.profiles.items():
-                for i, ph in enumerate(prof["centres"]):
-                    for k, comp in enumerate(COMPONENTS):
-                        w.writerow([label, comp, f"{ph:.6g}", f"{prof['mean'][i, k]:.6g}",
-                                    f"{prof['lo'][i, k]:.6g}", f"{prof['hi'][i, k]:.6g}",
-                                    int(prof["disagrees"][i, k]), f"{self.noise_floor[comp]:.6g}"])
+        paths["profile_csv"] = write_table(
+            out / "residual_profile.csv",
+            ["model", "component", "phase", "mean", "lo", "hi", "disagrees", "noise_floor"],
+            [[label, comp, f"{ph:.6g}", f"{prof['mean'][i, k]:.6g}", f"{prof['lo'][i, k]:.6g}",
+              f"{prof['hi'][i, k]:.6g}", int(prof["disagrees"][i, k]),
+              f"{self.noise_floor[comp]:.6g}"]
+             for label, prof in self.profiles.items()
+             for i, ph in enumerate(prof["centres"]) for k, comp in enumerate(COMPONENTS)])
         if figures:
             from .figures import plot_residual_profiles, plot_terms
 

@@ -5,7 +5,8 @@ from recordings.
     python -m torchconn.improve propose trial1.csv trial2.csv --links 3 --out next/
 
 Both take ``--device`` (cpu, cuda, cuda:N): the recordings are simulated (or read on the CPU and
-moved once) and the models fitted there; the outputs are written from CPU copies.
+moved once) and the models fitted there; the outputs are written from CPU copies. The outputs
+replace ``--out`` whole once all are written (:class:`~torchconn._output.OutputFolder`).
 """
 
 from __future__ import annotations
@@ -21,11 +22,11 @@ from .._cli import (
     InputError,
     add_device,
     add_threads,
-    prepare_output,
     resolve_device,
     run_command,
     set_threads,
 )
+from .._output import OutputFolder, write_table
 from .._provenance import write_sidecar
 from ..io.trajectory_files import read_csv
 from ..physics.systems import NLinkSwimmer
@@ -36,7 +37,7 @@ from .measure import measure_cycles
 from .propose import OBJECTIVES, TrustRegion, propose_gait
 
 
-def _simulate(args) -> int:
+def _simulate(args, folder: OutputFolder) -> int:
     system = NLinkSwimmer(args.links)
     settings = LoopSettings(
         rounds=args.rounds, trials=args.trials, cycles=args.cycles, omega=args.omega,
@@ -51,12 +52,11 @@ def _simulate(args) -> int:
               f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, "
               f"{r.predicted_high:.4f}], realised {r.realised:.4f}", flush=True)
 
-    out = prepare_output(args.out)
+    out = folder.path
     result = improve(system, start, settings, progress=report)
     rows = [r.as_row() for r in result.rounds]
     keys = list(rows[0])
-    lines = [",".join(keys)] + [",".join(str(row[k]) for k in keys) for row in rows]
-    (out / "rounds.csv").write_text("\n".join(lines) + "\n")
+    write_table(out / "rounds.csv", keys, [[row[k] for k in keys] for row in rows])
     write_sidecar(out / "run.json", {
         "command": "simulate", "links": args.links, "start_radius": args.radius,
         "settings": dataclasses.asdict(settings), "start_true": result.start_true,
@@ -67,13 +67,14 @@ def _simulate(args) -> int:
 
     plot_gaits(result, system, out / "gaits.png")
     plot_rounds(result, out / "objective.png")
+    out = folder.commit()
     print(f"start {result.start_true:.4f} -> last proposal {result.rounds[-1].realised:.4f}; "
           f"intervals covered {result.coverage:.0%}; wrote {out}")
     return 0
 
 
-def _propose(args) -> int:
-    out = prepare_output(args.out)
+def _propose(args, folder: OutputFolder) -> int:
+    out = folder.path
     traj = read_csv(args.data, n_joints=args.links - 1).to(args.device)  # moved once
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -96,6 +97,8 @@ def _propose(args) -> int:
         "command": "propose", "data": [str(p) for p in args.data], "links": args.links,
         "scale": args.scale, "device": args.device, **summary,
     })
+    folder.commit()
+    paths = {k: folder.final(p) for k, p in paths.items()}
     print(f"measured {args.objective} {meas:.4g} ± {meas_se:.2g} per cycle; the next gait is "
           f"predicted to gain {prop.gain:.3g} [{lo:.3g}, {hi:.3g}]")
     print(f"wrote {paths['csv']} (joint angles over one cycle) and {paths['json']}")
@@ -130,9 +133,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.links < 3:
             raise InputError(f"--links must be >= 3, got {args.links}")
         args.device = str(resolve_device(args.device))
-        return _simulate(args) if args.command == "simulate" else _propose(args)
+        with OutputFolder(args.out, command=f"torchconn-improve {args.command}",
+                          log=lambda msg: print(f"{prog}: {msg}", file=sys.stderr)) as folder:
+            return (_simulate if args.command == "simulate" else _propose)(args, folder)
 
-    return run_command(f"{p.prog} {args.command}", body)
+    prog = f"{p.prog} {args.command}"
+    return run_command(prog, body)
 
 
 if __name__ == "__main__":

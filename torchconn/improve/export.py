@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .._output import atomic_file, write_bytes_atomic
 from ..physics.gaits.gait import FourierGait
 
 __all__ = ["gait_table", "write_gait"]
@@ -32,12 +33,12 @@ def write_gait(gait: FourierGait, stem: str | Path, *, samples_per_cycle: int = 
     ``r_j(t) = a0_j + Σ_k a_kj cos(k ω t) + b_kj sin(k ω t)``, ``ω = 2π / period``.
     """
     stem = Path(stem)
-    stem.parent.mkdir(parents=True, exist_ok=True)
     table = gait_table(gait, samples_per_cycle, period)
     d = table.shape[1] - 1
     csv = stem.with_suffix(".csv")
-    np.savetxt(csv, table, delimiter=",", fmt="%.10g",
-               header="t," + ",".join(f"r{j + 1}" for j in range(d)), comments="")
+    with atomic_file(csv, "w") as fh:
+        np.savetxt(fh, table, delimiter=",", fmt="%.10g",
+                   header="t," + ",".join(f"r{j + 1}" for j in range(d)), comments="")
     spec = {
         "form": "r_j(t) = a0_j + sum_k a_kj cos(k w t) + b_kj sin(k w t), w = 2 pi / period",
         "period": period,
@@ -46,5 +47,5 @@ def write_gait(gait: FourierGait, stem: str | Path, *, samples_per_cycle: int = 
         "fourier_coefficients": gait.coeffs.detach().cpu().tolist(),
     } | (extra or {})
     js = stem.with_suffix(".json")
-    js.write_text(json.dumps(spec, indent=2))
+    write_bytes_atomic(js, json.dumps(spec, indent=2).encode())
     return {"csv": csv, "json": js}

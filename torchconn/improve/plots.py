@@ -11,7 +11,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-from .. import _linalg
+from .. import _linalg  # noqa: E402
+from .._output import save_figure  # noqa: E402
 from ..physics.systems.base import LocomotionSystem  # noqa: E402
 from .loop import LoopResult  # noqa: E402
 
@@ -51,9 +52,8 @@ def plot_gaits(result: LoopResult, system: LocomotionSystem, path: str | Path,
     ax.set_aspect("equal")
     ax.legend(fontsize=7, loc="upper right")
     ax.set_title("recorded gaits per round")
-    path = Path(path)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    path = save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path
 
@@ -78,8 +78,7 @@ def plot_rounds(result: LoopResult, path: str | Path, ceiling: float | None = No
     ax.set_xlabel("round")
     ax.set_ylabel(result.settings.objective + " per cycle")
     ax.legend(fontsize=7)
-    path = Path(path)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    path = save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path

@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from .. import _linalg
+from .._output import savez, write_bytes_atomic
 from ..trajectory import GroundTruth, SmoothedState, Trajectory
 
 __all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles", "principal_signal"]
@@ -383,7 +384,8 @@ def write_csv(traj: Trajectory, path: str | PathLike) -> Path:
     written when there is more than one. Values use ``%.17g`` (exact round trip), missing ones
     ``nan``, except missing ``power`` cells, which are empty (the last row of every trial: its
     interval ``[t_k, t_{k+1})`` ends after the recording). ``truth``, ``phase``, ``smoothed``,
-    ``meta`` and the batch shape are not written: use :func:`save_npz` for those.
+    ``meta`` and the batch shape are not written: use :func:`save_npz` for those. Written
+    atomically (a temporary file renamed into place).
 
     Returns:
         the path written.
@@ -415,8 +417,7 @@ def write_csv(traj: Trajectory, path: str | PathLike) -> Path:
         # power is the last column; its missing cells (at least each trial's last row, whose
         # interval ends after the recording) are written empty, as docs/conventions.md has it
         text = re.sub(r",nan$", ",", text, flags=re.MULTILINE)
-    path.write_text(text)
-    return path
+    return write_bytes_atomic(path, text.encode())
 
 
 # ============================================================================ NPZ
@@ -434,7 +435,8 @@ def _json_default(obj):
 
 
 def save_npz(traj: Trajectory, path: str | PathLike) -> Path:
-    """Save a trajectory losslessly (arrays with their dtype and batch shape, meta as JSON).
+    """Save a trajectory losslessly (arrays with their dtype and batch shape, meta as JSON),
+    atomically.
 
     Tuples in ``meta`` come back as lists, tensors and arrays inside ``meta`` as lists.
     NumPy appends ``.npz`` to a path without it; the path written is returned.
@@ -450,9 +452,7 @@ def save_npz(traj: Trajectory, path: str | PathLike) -> Path:
             v = getattr(obj, f.name)
             if isinstance(v, Tensor):
                 arrays[prefix + f.name] = v.detach().cpu().numpy()
-    path = Path(path)
-    np.savez(path, **arrays)
-    return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+    return savez(path, **arrays)
 
 
 def load_npz(path: str | PathLike) -> Trajectory:

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from .. import _checks
+from .._output import savez
 from ..phase.fourier import FourierSeries
 from .gait_prediction import GaitPrediction, predict_gait
 
@@ -291,8 +292,8 @@ class LocalConnectionModel:
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> Path:
-        """Write the model to a ``.npz`` file (lossless)."""
-        path = Path(path)
+        """Write the model to a ``.npz`` file (lossless), atomically; like ``numpy.savez``,
+        adds ``.npz`` to a name without it. Returns the path written."""
         arrays = {}
         for name in _SERIES:
             series = getattr(self, name)
@@ -305,9 +306,7 @@ class LocalConnectionModel:
                 arrays[f"bins_{f.name}"] = value.detach().cpu().numpy()
         arrays["phase_rate"] = self.phase_rate.detach().cpu().numpy()
         arrays["meta"] = np.array(json.dumps(self.meta or {}, default=str))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, **arrays)
-        return path
+        return savez(path, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> "LocalConnectionModel":

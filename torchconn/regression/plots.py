@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 from matplotlib.figure import Figure
 
+from .._output import save_figure
 from .model import LocalConnectionModel
 
 __all__ = ["plot_connection", "plot_metric", "plot_limit_cycle", "ROWS"]
@@ -112,7 +113,5 @@ def plot_limit_cycle(model: LocalConnectionModel, path: Path | str, r=None) -> P
 
 
 def _save(fig, path) -> Path:
-    path = Path(path)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    return path
+    return save_figure(fig, path, dpi=100)

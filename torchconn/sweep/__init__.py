@@ -4,9 +4,9 @@
 ``python -m torchconn.sweep``), ``NAME`` a packaged config (``quick``, ``fig4a``, ...).
 """
 
+from .._output import FolderBusy, FolderLock
 from .config import DEFAULT_TOML, Experiment, SimulationSettings, SweepConfig, load_config
 from .experiment import Cell, ExperimentResult, experiment_cells, run_cell, run_experiment
-from .lock import FolderBusy, FolderLock
 from .runner import SweepSummary, run_sweep
 from .store import ResultStore, read_table
 

@@ -14,7 +14,6 @@ from pathlib import Path
 from .._cli import (
     InputError,
     add_threads,
-    prepare_output,
     resolve_device,
     run_command,
     set_threads,
@@ -75,9 +74,9 @@ def main(argv: list[str] | None = None) -> int:
         config = load_config(args.config, overrides)
         if args.workers < 0:
             raise InputError(f"--workers must be >= 0, got {args.workers}")
-        out = prepare_output(args.out or Path("runs") / config.name)
-        summary = run_sweep(config, out, workers=args.workers, scheduler=args.scheduler,
-                            quiet=args.quiet, figures=not args.no_figures, wait=args.wait)
+        summary = run_sweep(config, args.out or Path("runs") / config.name,
+                            workers=args.workers, scheduler=args.scheduler, quiet=args.quiet,
+                            figures=not args.no_figures, wait=args.wait)
         if not args.quiet:
             print(f"results in {summary.out}")
         return 0

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from .._output import save_figure
+
 __all__ = ["make_figures", "COLORS"]
 
 COLORS = {"ground_truth": "black", "data_driven": "tab:green", "analytic": "tab:red",
@@ -118,8 +120,7 @@ def fig4b(results, experiments, path: Path) -> Path | None:
 
 def _save(fig, path: Path) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def make_figures(out_dir: Path, results, phase_errors, traces, experiments) -> list[Path]:

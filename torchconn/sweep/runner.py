@@ -3,14 +3,18 @@
 The unit of work and storage is a cell (one noise level of one experiment, ``block_trials``
 trials; see :class:`~torchconn.sweep.experiment.Cell`), so a killed run loses only the cells
 in flight and ``--workers`` spreads even a single experiment. Only one run writes a folder at
-a time (:class:`~torchconn.sweep.lock.FolderLock`); stored cells are checked on load and
+a time (:class:`~torchconn._output.FolderLock`); stored cells are checked on load and
 damaged ones recomputed (:class:`~torchconn.sweep.store.ResultStore`). Per-experiment
 summaries (claims, figures) are computed from all cells once they are loaded.
 
 Outputs in ``OUT/``: ``results.csv`` (tidy: experiment, system, noise_kind, level, trial, model,
 component, metric, value), ``phase_errors.csv`` (error per phase bin), ``traces.csv``
 (body-velocity traces for Fig. 3B), ``claims.csv`` (claim, holds, evidence), ``run.json``
-(config, seeds, versions, timings) and the figures ``fig*.png``.
+(config, seeds, versions, timings) and the figures ``fig*.png``. Each file is written
+atomically; ``run.json`` is the completion record: removed before the tables are rewritten and
+written last, so tables beside a ``run.json`` are all of the run it describes. Outputs of the
+previous run that this one does not write again (figures, with ``--no-figures``) are removed.
+A folder that is neither empty nor a sweep's (no ``cells/``) is refused.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from pathlib import Path
 import torch
 
 from .._cli import InputError, prepare_output
+from .._output import OS_LITTER, FolderLock, write_table
 from .._provenance import write_sidecar
 from .claims import check_claims
 from .config import SweepConfig
@@ -39,8 +44,7 @@ from .experiment import (
     run_cell,
 )
 from .figures import make_figures
-from .lock import FolderLock
-from .store import ResultStore, write_csv
+from .store import ResultStore
 
 __all__ = ["run_sweep", "SweepSummary", "Progress", "cell_fingerprint"]
 
@@ -49,7 +53,8 @@ __all__ = ["run_sweep", "SweepSummary", "Progress", "cell_fingerprint"]
 class SweepSummary:
     """What :func:`run_sweep` did: the output folder, the claims, the figures written, stage
     timings per experiment, the cells computed by this run, how many stored cells were reused,
-    and the damaged cells that were recomputed, with the reason."""
+    the damaged cells that were recomputed and the stale cell folders that were removed (each
+    with the reason), and the temporary files of a killed run that were removed."""
 
     out: Path
     claims: list
@@ -58,6 +63,8 @@ class SweepSummary:
     computed: tuple[str, ...]
     reused: int
     damaged: tuple[tuple[str, str], ...]
+    removed: tuple[tuple[str, str], ...] = ()
+    temporary: tuple[str, ...] = ()
 
 
 class Progress:
@@ -117,26 +124,32 @@ def run_sweep(
 
     Args:
         config: the sweep.
-        out_dir: output folder; intact cells already stored there are reused, damaged ones
-            recomputed (each reported on stderr with the reason).
+        out_dir: output folder, new, empty or an earlier sweep's; intact cells already stored
+            there are reused, damaged ones recomputed, stale ones removed (each reported on
+            stderr with the reason).
         workers: > 0 runs cells on a local Dask cluster with that many worker processes.
         scheduler: address of an existing Dask scheduler (``tcp://HOST:PORT``).
         quiet: no progress bar or log lines (damaged cells are still reported).
         figures: write the PNG figures.
         wait: when another run holds ``out_dir``, wait for it instead of raising
-            :class:`~torchconn.sweep.lock.FolderBusy`.
+            :class:`~torchconn._output.FolderBusy`.
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
         raise InputError(f"--workers must be an integer >= 0, got {workers!r}")
     if workers and scheduler:
         raise InputError("give either --workers (a local cluster) or --scheduler, not both")
     dask = _dask() if (workers or scheduler) else None
+    _check_sweep_folder(Path(out_dir))
     out = prepare_output(out_dir)
     log = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
     with FolderLock(out, wait=wait, log=log):
+        _check_sweep_folder(out)  # again: it may have changed while we waited
         store = ResultStore(out)
         plan = [(cell, cell_fingerprint(config, cell)) for exp in config.experiments
                 for cell in experiment_cells(exp, config.block_trials)]
+        # reported even when quiet: files are deleted
+        say = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
+        temporary, removed = store.clean(plan, log=say)
         done, pending, damaged = {}, [], []
         for cell, fp in plan:
             result, problem = store.load(cell, fp)
@@ -160,7 +173,23 @@ def run_sweep(
                 progress.update(cell.name)
         wall = time.perf_counter() - t0
         return _assemble(config, out, done, plan, wall, figures, log,
-                         computed=tuple(c.name for c, _ in pending), damaged=tuple(damaged))
+                         computed=tuple(c.name for c, _ in pending), damaged=tuple(damaged),
+                         removed=tuple(removed), temporary=tuple(temporary))
+
+
+def _check_sweep_folder(out: Path) -> None:
+    """Refuse an output folder that is neither missing, empty nor a sweep's (with ``cells/``):
+    the sweep would overwrite files of the same names in it."""
+    if not out.is_dir() or (out / "cells").is_dir():
+        return
+    try:
+        entries = {p.name for p in out.iterdir()} - OS_LITTER - {".lock"}
+    except OSError:
+        return  # prepare_output says why
+    if entries:
+        raise InputError(f"--out {out}: the folder is not empty and holds no sweep (no cells/ "
+                         "folder); choose a new or empty folder (its contents are never "
+                         "deleted)")
 
 
 def _run_dask(dask, config, pending, store, done, progress, workers, scheduler) -> None:
@@ -200,7 +229,10 @@ def _device_record(name: str) -> dict:
     return out
 
 
-def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged) -> SweepSummary:
+def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged, removed,
+              temporary) -> SweepSummary:
+    previous = _previous_outputs(out)
+    (out / "run.json").unlink(missing_ok=True)  # the completion record goes first, comes last
     per_experiment = {e.name: ExperimentResult() for e in config.experiments}
     for cell, _ in plan:  # plan order: experiment, level, trials -- independent of block size
         per_experiment[cell.experiment.name].extend(done[cell.name])
@@ -210,12 +242,12 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged)
         phase_errors += res.phase_errors
         traces += res.traces
         timings[name] = res.timings
-    write_csv(out / "results.csv", RESULT_COLUMNS, results)
-    write_csv(out / "phase_errors.csv", PHASE_COLUMNS, phase_errors)
-    write_csv(out / "traces.csv", TRACE_COLUMNS, traces)
+    write_table(out / "results.csv", RESULT_COLUMNS, results)
+    write_table(out / "phase_errors.csv", PHASE_COLUMNS, phase_errors)
+    write_table(out / "traces.csv", TRACE_COLUMNS, traces)
     claims = check_claims(results, phase_errors, config.experiments, RESULT_COLUMNS,
                           PHASE_COLUMNS)
-    write_csv(out / "claims.csv", ("claim", "holds", "evidence"), claims)
+    write_table(out / "claims.csv", ("claim", "holds", "evidence"), claims)
     made = []
     if figures:
         as_dicts = [
@@ -224,6 +256,10 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged)
                                (traces, TRACE_COLUMNS))
         ]
         made = make_figures(out, *as_dicts, config.experiments)
+    outputs = ["results.csv", "phase_errors.csv", "traces.csv", "claims.csv"] + [
+        Path(p).name for p in made]
+    for name in sorted(previous - set(outputs)):  # the previous run's, not written again
+        (out / name).unlink(missing_ok=True)
     sidecar = {
         "config": config.raw,
         "estimator": config.estimator,
@@ -233,6 +269,9 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged)
         "cells": {cell.name: fp for cell, fp in plan},
         "cells_computed_this_run": list(computed),
         "cells_damaged_and_recomputed": [{"cell": c, "reason": r} for c, r in damaged],
+        "cells_removed_stale": [{"cell": c, "reason": r} for c, r in removed],
+        "temporary_files_removed": list(temporary),
+        "outputs": outputs,
         "timings_s": timings,
         "wall_time_s_this_run": wall,
         "torch_threads": torch.get_num_threads(),
@@ -244,4 +283,17 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged)
             f"       {evidence}")
     log(f"wrote {out}/results.csv, claims.csv, run.json and {len(made)} figures")
     return SweepSummary(out=out, claims=claims, figures=made, timings=timings, computed=computed,
-                        reused=len(plan) - len(computed), damaged=damaged)
+                        reused=len(plan) - len(computed), damaged=damaged, removed=removed,
+                        temporary=temporary)
+
+
+def _previous_outputs(out: Path) -> set[str]:
+    """The files the previous run listed in its ``run.json`` (plain names in ``out``)."""
+    try:
+        names = json.loads((out / "run.json").read_text(encoding="utf-8")).get("outputs", [])
+    except (OSError, ValueError, AttributeError):
+        return set()
+    if not isinstance(names, list):
+        return set()
+    return {n for n in names if isinstance(n, str) and n == Path(n).name
+            and n not in ("run.json", "cells", ".lock") and (out / n).is_file()}

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from ..._output import write_bytes_atomic
 from ..systems import NLinkSwimmer
 from ..systems.base import LocomotionSystem
 from .evaluate import displacement, evaluate
@@ -174,8 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         + _toml_entry("nine_link_x_extremal",
                       "in the (a1, a2) plane: r_k = a1 sin(2 pi k / 8) + a2 cos(2 pi k / 8)", best9)
     )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
+    write_bytes_atomic(args.out, text.encode())
     for name, runs, best in (("3-link", runs3, best3), ("9-link", runs9, best9)):
         print(f"{name}: optimised x-displacement {best.x_displacement:.6f} (starts: "
               f"{[round(r.x_displacement, 6) for r in runs]})")
