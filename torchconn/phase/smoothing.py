@@ -32,7 +32,7 @@ from torch import Tensor
 
 from .. import _checks
 from .._options import Options
-from ..trajectory import SmoothedState, Trajectory
+from ..trajectory import SmoothedState, Trajectory, span_groups
 from . import _scan
 
 __all__ = [
@@ -378,6 +378,21 @@ def _unit_spectrum(F: Tensor, Q1: Tensor, N: int) -> Tensor:
 
 
 def _gcv_noise_ratio(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float) -> Tensor:
+    """Noise ratio ``q / R`` per row of ``y (B, T)`` by generalised cross-validation
+    (:func:`_gcv_rows`), each row over its own span from its first to its last finite sample:
+    missing samples before or after it (a shorter trial's padding on a shared grid) say
+    nothing about the noise, and filled in they would make a row's ratio depend on the
+    length of the others."""
+    groups = span_groups(finite)
+    if len(groups) == 1 and groups[0][1:] == (0, y.shape[-1]):
+        return _gcv_rows(y, finite, F, Q1, dt)
+    out = torch.empty(y.shape[:-1], dtype=y.dtype, device=y.device)
+    for rows, a, b in groups:
+        out[rows] = _gcv_rows(y[rows, a:b], finite[rows, a:b], F, Q1, dt)
+    return out
+
+
+def _gcv_rows(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float) -> Tensor:
     """Noise ratio ``q / R`` per row of ``y (B, T)`` by generalised cross-validation.
 
     The steady-state RTS smoother is the Wiener filter ``H = λS/(λS + 1)`` with ``S`` the
