@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch",
-           "pad_trials", "span_groups"]
+           "pad_trials", "span_bounds", "span_groups"]
 
 #: axis of time in ``(..., T, C)`` arrays, and of coordinates
 TIME_AXIS = -2
@@ -245,18 +245,24 @@ def pad_trials(trials: Sequence[Tensor], length: int | None = None) -> Tensor:
     return out
 
 
+def span_bounds(valid: Tensor) -> tuple[Tensor, Tensor]:
+    """Each row's span in ``valid (..., T)`` (bool): the index of its first True sample and one
+    past its last, ``(...)`` int64 each; a row with no True sample spans the whole row."""
+    T = valid.shape[-1]
+    idx = torch.arange(T, device=valid.device)
+    start = torch.where(valid, idx, T).amin(-1)
+    stop = torch.where(valid, idx + 1, 0).amax(-1)
+    empty = stop == 0
+    return torch.where(empty, 0, start), torch.where(empty, T, stop)
+
+
 def span_groups(valid: Tensor) -> list[tuple[Tensor, int, int]]:
     """The rows of ``valid (B, T)`` (bool) grouped by their span, from their first to their
     last True sample: ``(rows, start, stop)`` per distinct span, ``rows`` an index tensor and
     ``stop`` exclusive (a row with no True sample spans the whole row). A statistic of trials
     padded to one grid is computed over each trial's own span as ``x[rows, start:stop]``, so
     that it does not depend on how long the other trials are."""
-    T = valid.shape[-1]
-    idx = torch.arange(T, device=valid.device)
-    start = torch.where(valid, idx, T).amin(-1)
-    stop = torch.where(valid, idx + 1, 0).amax(-1)
-    empty = stop == 0
-    start, stop = torch.where(empty, 0, start), torch.where(empty, T, stop)
+    start, stop = span_bounds(valid)
     spans = torch.stack([start, stop], -1)
     return [(((start == a) & (stop == b)).nonzero()[:, 0], a, b)
             for a, b in torch.unique(spans, dim=0).tolist()]

@@ -699,24 +699,34 @@ class RTSSmoother(Smoother):
     def smooth(self, traj: Trajectory) -> Trajectory:
         """Smooth ``traj``'s poses ``(..., T, 3)`` and shapes ``(..., T, d)`` into ``smoothed``.
 
-        Trials padded with NaN rows after their end (unequal lengths on one grid) are smoothed
-        over their recorded span only: the smoother's extrapolation into the padding means
-        nothing, so it is blanked to NaN there.
+        Trials padded with NaN rows before their start or after their end (unequal lengths on
+        one grid) are smoothed over their recorded span only, each as it would be alone (the
+        filter starts at its first sample); the padding is NaN in ``smoothed``.
         """
         if not isinstance(traj, Trajectory):
             raise TypeError(f"RTSSmoother.smooth: traj must be a torchconn.Trajectory, "
                             f"got {type(traj).__name__}")
-        smoothed = smooth_trajectory(traj.pose, traj.r, traj.dt, order=self.order,
+
+        def run(pose: Tensor, r: Tensor) -> SmoothedState:
+            return smooth_trajectory(pose, r, traj.dt, order=self.order,
                                      shared_bandwidth=self.shared_bandwidth,
                                      algorithm=self.algorithm)
+
         recorded = recorded_span(traj)
-        if not bool(recorded.all()):
-            keep = recorded[..., None]
-            smoothed = SmoothedState(**{
-                f.name: torch.where(keep, getattr(smoothed, f.name), float("nan"))
-                for f in fields(smoothed)
-            })
-        return traj.with_fields(smoothed=smoothed)
+        if bool(recorded.all()):
+            return traj.with_fields(smoothed=run(traj.pose, traj.r))
+        T = traj.n_samples
+        pose, r = traj.pose.reshape(-1, T, 3), traj.r.reshape(-1, T, traj.shape_dim)
+        width = {"pose": 3, "pose_dot": 3, "xi": 3, "r": r.shape[-1], "r_dot": r.shape[-1]}
+        out = {name: pose.new_full(pose.shape[:-1] + (n,), float("nan"))
+               for name, n in width.items()}
+        for rows, a, b in span_groups(recorded.reshape(-1, T)):
+            part = run(pose[rows, a:b], r[rows, a:b])
+            for name, value in out.items():
+                value[rows, a:b] = getattr(part, name)
+        return traj.with_fields(smoothed=SmoothedState(**{
+            name: value.reshape(traj.batch_shape + value.shape[1:])
+            for name, value in out.items()}))
 
 
 def recorded_span(traj: Trajectory) -> Tensor:
