@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch",
-           "pad_trials", "span_bounds", "span_groups"]
+           "pad_trials", "span_bounds", "span_groups", "over_spans"]
 
 #: axis of time in ``(..., T, C)`` arrays, and of coordinates
 TIME_AXIS = -2
@@ -266,3 +266,43 @@ def span_groups(valid: Tensor) -> list[tuple[Tensor, int, int]]:
     spans = torch.stack([start, stop], -1)
     return [(((start == a) & (stop == b)).nonzero()[:, 0], a, b)
             for a, b in torch.unique(spans, dim=0).tolist()]
+
+
+def over_spans(valid: Tensor, fn, *, in_time: bool = False):
+    """``fn(rows, start, stop)`` for each group of rows of ``valid (B, T)`` that share a span
+    (:func:`span_groups`), put together for all ``B`` rows; None where every row spans all of
+    ``T`` (nothing to split: the caller computes the batch as it is).
+
+    ``fn`` computes the rows ``rows`` (an index tensor) over the samples ``start:stop`` and
+    returns a tensor, or a tuple or dataclass of tensors (None stays None): each
+    ``(len(rows), ...)``, one value per row, or with ``in_time`` ``(len(rows), stop - start,
+    ...)`` along the span, NaN outside it in the result ``(B, T, ...)``."""
+    T = valid.shape[-1]
+    groups = span_groups(valid)
+    if len(groups) == 1 and groups[0][1:] == (0, T):
+        return None
+    parts = [(rows, a, b, fn(rows, a, b)) for rows, a, b in groups]
+
+    def merge(items):
+        value = items[0][3]
+        if value is None:
+            return None
+        if isinstance(value, tuple):
+            return tuple(merge([(r, a, b, v[i]) for r, a, b, v in items])
+                         for i in range(len(value)))
+        if dataclasses.is_dataclass(value):
+            return type(value)(**{f.name: merge([(r, a, b, getattr(v, f.name))
+                                                 for r, a, b, v in items])
+                                  for f in dataclasses.fields(value)})
+        if in_time:
+            out = value.new_full((valid.shape[0], T) + value.shape[2:], float("nan"))
+        else:
+            out = value.new_empty((valid.shape[0],) + value.shape[1:])
+        for rows, a, b, v in items:
+            if in_time:
+                out[rows, a:b] = v
+            else:
+                out[rows] = v
+        return out
+
+    return merge(parts)

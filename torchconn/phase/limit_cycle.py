@@ -21,7 +21,7 @@ from torch import Tensor
 
 from .. import _checks
 from .._options import Options, option
-from ..trajectory import Trajectory, pool_batch, span_groups
+from ..trajectory import Trajectory, over_spans, pool_batch
 from .fourier import FourierSeries, fit_fourier
 
 __all__ = ["CycleEstimator", "SelfConsistentCycle", "LimitCycle", "fit_limit_cycle", "phase_rate"]
@@ -190,15 +190,11 @@ def _residual_spectrum(
     """
     res = y - series(phase)
     batch, (T, d) = res.shape[:-2], res.shape[-2:]
-    flat = res.reshape(-1, T, d)
-    groups = span_groups(torch.isfinite(flat).any(-1))
-    if len(groups) == 1 and groups[0][1:] == (0, T):
-        return _band_power(res, rate, dt, order)
-    rate = rate.expand(batch).reshape(-1)
-    out = flat.new_empty(flat.shape[0], order, d)
-    for rows, a, b in groups:
-        out[rows] = _band_power(flat[rows, a:b], rate[rows], dt, order)
-    return out.reshape(batch + (order, d))
+    flat, rates = res.reshape(-1, T, d), rate.expand(batch).reshape(-1)
+    split = over_spans(torch.isfinite(flat).any(-1), lambda rows, a, b: _band_power(
+        flat[rows, a:b], rates[rows], dt, order))
+    return _band_power(res, rate, dt, order) if split is None else split.reshape(
+        batch + (order, d))
 
 
 def _band_power(res: Tensor, rate: Tensor, dt: float, order: int) -> Tensor:

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import abc
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal, get_args
 
 import torch
@@ -32,7 +32,7 @@ from torch import Tensor
 
 from .. import _checks
 from .._options import Options
-from ..trajectory import SmoothedState, Trajectory, span_groups
+from ..trajectory import SmoothedState, Trajectory, over_spans
 from . import _scan
 
 __all__ = [
@@ -383,13 +383,9 @@ def _gcv_noise_ratio(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float
     missing samples before or after it (a shorter trial's padding on a shared grid) say
     nothing about the noise, and filled in they would make a row's ratio depend on the
     length of the others."""
-    groups = span_groups(finite)
-    if len(groups) == 1 and groups[0][1:] == (0, y.shape[-1]):
-        return _gcv_rows(y, finite, F, Q1, dt)
-    out = torch.empty(y.shape[:-1], dtype=y.dtype, device=y.device)
-    for rows, a, b in groups:
-        out[rows] = _gcv_rows(y[rows, a:b], finite[rows, a:b], F, Q1, dt)
-    return out
+    split = over_spans(finite, lambda rows, a, b: _gcv_rows(y[rows, a:b], finite[rows, a:b],
+                                                            F, Q1, dt))
+    return _gcv_rows(y, finite, F, Q1, dt) if split is None else split
 
 
 def _gcv_rows(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float) -> Tensor:
@@ -712,21 +708,15 @@ class RTSSmoother(Smoother):
                                      shared_bandwidth=self.shared_bandwidth,
                                      algorithm=self.algorithm)
 
-        recorded = recorded_span(traj)
-        if bool(recorded.all()):
-            return traj.with_fields(smoothed=run(traj.pose, traj.r))
         T = traj.n_samples
         pose, r = traj.pose.reshape(-1, T, 3), traj.r.reshape(-1, T, traj.shape_dim)
-        width = {"pose": 3, "pose_dot": 3, "xi": 3, "r": r.shape[-1], "r_dot": r.shape[-1]}
-        out = {name: pose.new_full(pose.shape[:-1] + (n,), float("nan"))
-               for name, n in width.items()}
-        for rows, a, b in span_groups(recorded.reshape(-1, T)):
-            part = run(pose[rows, a:b], r[rows, a:b])
-            for name, value in out.items():
-                value[rows, a:b] = getattr(part, name)
+        split = over_spans(recorded_span(traj).reshape(-1, T),
+                           lambda rows, a, b: run(pose[rows, a:b], r[rows, a:b]), in_time=True)
+        if split is None:
+            return traj.with_fields(smoothed=run(traj.pose, traj.r))
         return traj.with_fields(smoothed=SmoothedState(**{
-            name: value.reshape(traj.batch_shape + value.shape[1:])
-            for name, value in out.items()}))
+            f.name: getattr(split, f.name).reshape(traj.batch_shape + (T, -1))
+            for f in fields(SmoothedState)}))
 
 
 def recorded_span(traj: Trajectory) -> Tensor:

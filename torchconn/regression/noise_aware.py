@@ -45,7 +45,7 @@ from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import phase_rate
 from ..phase.smoothing import unwrap
 from ..physics import se2
-from ..trajectory import Trajectory, pool_batch, span_bounds, span_groups
+from ..trajectory import Trajectory, over_spans, pool_batch, span_bounds
 from . import _wls
 from ._wls import IllConditionedBinWarning
 from .binning import BinIndex, assign_bins
@@ -237,40 +237,30 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
     if not isinstance(x, Tensor) or not x.is_floating_point() or x.ndim < 2:
         raise TypeError("estimate_noise: x must be a floating-point tensor (..., T, C)")
     options = dict(band=band, angular=angular, floor=floor)
-    T, C = x.shape[-2:]
-    groups = span_groups(torch.isfinite(x).any(-1).reshape(-1, T))
-    if len(groups) == 1 and groups[0][1:] == (0, T):
-        return _estimate_noise(x, cycle=cycle, samples_per_cycle=samples_per_cycle,
-                               phase=phase, **options)
-    batch = x.shape[:-2]
+    batch, (T, C) = x.shape[:-2], x.shape[-2:]
     flat = x.reshape(-1, T, C)
-    if cycle is not None:
-        coeffs = cycle.coeffs.expand(batch + cycle.coeffs.shape[-2:])
-        cycle = FourierSeries(coeffs.reshape((-1,) + coeffs.shape[-2:]), 1)
-    if isinstance(samples_per_cycle, Tensor) and samples_per_cycle.ndim:
-        samples_per_cycle = samples_per_cycle.expand(batch).reshape(-1)
-    if isinstance(phase, Tensor):
-        phase = phase.reshape(-1, T)
-    parts = []
-    for rows, a, b in groups:
+
+    def rows_of(v: Tensor, rows: Tensor, trailing: int) -> Tensor:  # v's batch dims broadcast
+        v = v.expand(batch + v.shape[v.ndim - trailing:])
+        return v.reshape((-1,) + v.shape[len(batch):])[rows]
+
+    def part(rows: Tensor, a: int, b: int) -> NoiseEstimate:
         spc = samples_per_cycle
         if isinstance(spc, Tensor) and spc.ndim:
-            spc = spc[rows]
-        parts.append((rows, _estimate_noise(
-            flat[rows, a:b], cycle=None if cycle is None else FourierSeries(cycle.coeffs[rows], 1),
-            samples_per_cycle=spc, phase=None if phase is None else phase[rows, a:b],
-            **options)))
-    merged = {}
-    for field in dataclasses.fields(NoiseEstimate):
-        values = [(rows, getattr(part, field.name)) for rows, part in parts]
-        if values[0][1] is None:
-            merged[field.name] = None
-            continue
-        out = values[0][1].new_empty((flat.shape[0],) + values[0][1].shape[1:])
-        for rows, value in values:
-            out[rows] = value
-        merged[field.name] = out.reshape(batch + out.shape[1:])
-    return NoiseEstimate(**merged)
+            spc = rows_of(spc, rows, 0)
+        return _estimate_noise(
+            flat[rows, a:b],
+            cycle=None if cycle is None else FourierSeries(rows_of(cycle.coeffs, rows, 2), 1),
+            samples_per_cycle=spc,
+            phase=None if phase is None else rows_of(phase, rows, 1)[:, a:b], **options)
+
+    split = over_spans(torch.isfinite(flat).any(-1), part)
+    if split is None:
+        return _estimate_noise(x, cycle=cycle, samples_per_cycle=samples_per_cycle,
+                               phase=phase, **options)
+    return NoiseEstimate(**{f.name: None if getattr(split, f.name) is None else
+                            getattr(split, f.name).reshape(batch + getattr(split, f.name).shape[1:])
+                            for f in dataclasses.fields(NoiseEstimate)})
 
 
 def _estimate_noise(x: Tensor, *, band, angular, cycle, samples_per_cycle, floor, phase

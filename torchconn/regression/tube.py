@@ -26,7 +26,7 @@ from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import LimitCycle
 from ..phase.phaser import held_out_order, whole_cycle_weights
 from ..phase.smoothing import recorded_span
-from ..trajectory import Trajectory, pool_batch, span_bounds, span_groups
+from ..trajectory import Trajectory, over_spans, pool_batch, span_bounds
 from .binning import assign_bins
 from .connection import connection_regression
 from .metric import (
@@ -529,17 +529,13 @@ def _per_span(fn, residual: Tensor, m_v: Tensor, recorded: Tensor | None
     over its recorded span (``recorded (..., T)``, :func:`~torchconn.phase.smoothing.
     recorded_span`; the samples' rows are the trial's), as it would be alone; None: over the
     whole of each row."""
-    T = residual.shape[-1]
-    groups = None if recorded is None else span_groups(recorded.reshape(-1, T))
-    if groups is None or (len(groups) == 1 and groups[0][1:] == (0, T)):
-        return fn(residual, m_v)
-    batch, d = residual.shape[:-1], m_v.shape[-1]
+    batch, (T, d) = residual.shape[:-1], m_v.shape[-2:]
     res, mv = residual.reshape(-1, T), m_v.reshape(-1, T, d)
-    out = [res.new_empty(res.shape[0], d) for _ in range(2)]
-    for rows, a, b in groups:
-        for o, value in zip(out, fn(res[rows, a:b], mv[rows, a:b]), strict=True):
-            o[rows] = value
-    return tuple(o.reshape(batch + (d,)) for o in out)
+    split = None if recorded is None else over_spans(
+        recorded.reshape(-1, T), lambda rows, a, b: fn(res[rows, a:b], mv[rows, a:b]))
+    if split is None:
+        return fn(residual, m_v)
+    return tuple(o.reshape(batch + (d,)) for o in split)
 
 
 def _unwrapped(phase: Tensor) -> Tensor:
