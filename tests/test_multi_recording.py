@@ -91,7 +91,7 @@ def test_pooled_fit_of_unequal_recordings_is_close_to_the_swimmer(files):
     assert model.batch_shape == ()
     for field in ("A", "b", "dA", "c", "M"):
         assert torch.isfinite(getattr(model, field).coeffs).all(), field
-    # measured over seeds 0-9 of these recordings (_files(dir, 10 s)): 0.15-0.25, median
+    # measured over seeds 0-9 of these recordings (_files(dir, 10 * s)): 0.15-0.25, median
     # 0.17 (0.17 here); the same trials cut to 9 cycles each (equal lengths, no power) pooled
     # 0.12-0.28: the error of 12 samples per cycle, not of the unequal lengths
     assert float(_a_error(model)) < 0.35
