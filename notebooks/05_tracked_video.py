@@ -51,6 +51,7 @@ from torchconn.io.tracking import read_tracking
 from torchconn.physics.gaits import reference_gait
 from torchconn.regression.model import LocalConnectionModel
 from torchconn.testing.tracking import render_keypoints, write_sleap_csv
+from torchconn.trajectory import pad_trials
 
 torch.set_num_threads(1)
 nb = Notebook("05_tracked_video")
@@ -110,11 +111,12 @@ print(f"scale {rep['scale']:.1f} px per body length; body length p10-p90 "
 
 csvs = sorted(conv_dir.glob("fish*.csv"))
 converted = read_csv(csvs, n_joints=2)
-# a converted trial starts at its first complete frame: line the simulation up with it
-start = [f["report"]["trials"][0]["first_frame"] for f in sidecar["files"]]
-n = converted.n_samples
-sim_r = torch.stack([truth.r[b, s0:s0 + n] for b, s0 in enumerate(start)])
-err = converted.r[:, : sim_r.shape[1]] - sim_r
+# a converted trial runs from its first to its last complete frame, so the trials differ in
+# length (read_csv pads the shorter ones with NaN): line the simulation up with each of them
+spans = [f["report"]["trials"][0] for f in sidecar["files"]]
+sim_r = pad_trials([truth.r[b, s["first_frame"]:s["first_frame"] + s["n_samples"]]
+                    for b, s in enumerate(spans)], converted.n_samples)
+err = converted.r - sim_r
 print(f"joint angles against the simulation: mean error {float(err.nanmean()):.1e} rad, RMS "
       f"{float(err.pow(2).nanmean().sqrt()):.3f} rad (pixel noise, and the spline rounding the "
       "link chain's corners)")

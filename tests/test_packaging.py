@@ -57,7 +57,7 @@ def test_dependencies_are_ranges_and_the_constraints_pin_the_tested_torch():
     assert set(PYPROJECT["project"]["scripts"]) == {
         "torchconn-sweep", "torchconn-fit", "torchconn-discrepancy", "torchconn-convert",
         "torchconn-improve"}
-    assert {"jupytext", "ipykernel"} <= {re.split("[<>=]", d)[0]
+    assert {"jupytext", "ipykernel", "nbconvert"} <= {re.split("[<>=]", d)[0]
                                          for d in PYPROJECT["project"]["optional-dependencies"]["notebooks"]}
 
 

@@ -31,7 +31,7 @@ from ._provenance import write_sidecar
 from .io.preflight import preflight
 from .io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
 from .io.trajectory_files import read_csv, write_csv
-from .trajectory import Trajectory
+from .trajectory import Trajectory, pad_trials
 
 __all__ = ["main", "add_conversion_arguments", "conversion_settings", "load_recordings",
            "Recordings", "config_tables", "output_names"]
@@ -159,17 +159,11 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
                              f"{convs[0].report.source} every {dt:g} s; files fitted together "
                              "must share one frame rate")
     n_max = max(c.trajectory.n_samples for c in convs)
-
-    def pad(x: torch.Tensor) -> torch.Tensor:
-        out = torch.full((x.shape[0], n_max) + tuple(x.shape[2:]), float("nan"), dtype=x.dtype)
-        out[:, : x.shape[1]] = x
-        return out
-
     t0 = convs[0].trajectory.t[0]
     traj = Trajectory(
         t=t0 + torch.arange(n_max, dtype=torch.float64) * dt,
-        pose=torch.cat([pad(c.trajectory.pose) for c in convs]),
-        r=torch.cat([pad(c.trajectory.r) for c in convs]),
+        pose=pad_trials([x for c in convs for x in c.trajectory.pose]),
+        r=pad_trials([x for c in convs for x in c.trajectory.r]),
         meta={"source": [str(p) for p in paths], "dt": dt,
               "trials": [tr for c in convs for tr in c.report.trials]},
     )

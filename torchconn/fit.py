@@ -135,9 +135,14 @@ def build_estimator(args, table: dict | None) -> ConnectionEstimator:
             table.pop(key, None)
             table[stage] = {**table.get(stage, {}), field: v}
     try:
-        return estimator_from_settings(table)
+        estimator = estimator_from_settings(table)
     except ValueError as err:
         raise InputError(f"estimator options: {err}") from None
+    if not estimator.pool:
+        raise InputError("estimator.pool = false: torchconn-fit writes one model for all the "
+                         "trials it reads (pooled); for one model per trial run it on each "
+                         "file, or use ConnectionEstimator(pool=False) in Python")
+    return estimator
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,13 +13,15 @@ at the end, on a shared sampling grid.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from torch import Tensor
 
-__all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch"]
+__all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch",
+           "pad_trials", "span_bounds", "span_groups", "over_spans"]
 
 #: axis of time in ``(..., T, C)`` arrays, and of coordinates
 TIME_AXIS = -2
@@ -215,3 +217,92 @@ def pool_batch(x: Tensor, trailing: int) -> Tensor:
     """Flatten all batch dims into the sample axis: ``(..., T, *c) -> (N·T, *c)``, where
     ``trailing`` counts the dims after ``T`` (pooling trials into one recording)."""
     return x.reshape((-1,) + tuple(x.shape[x.ndim - trailing:]))
+
+
+def pad_trials(trials: Sequence[Tensor], length: int | None = None) -> Tensor:
+    """Stack trials of different lengths on one time grid: ``(T_k, *c)`` each ->
+    ``(n_trials, T, *c)``, each trial at the start of the grid and NaN after its end (the
+    layout of :class:`Trajectory`), ``T`` the longest trial or ``length`` (at least that).
+    Arrays are converted with ``torch.as_tensor``; dtype and device are the first trial's."""
+    trials = [torch.as_tensor(x) for x in trials]
+    if not trials:
+        raise ValueError("pad_trials: no trials given")
+    first = trials[0]
+    for k, x in enumerate(trials):
+        if x.ndim < 1 or x.shape[1:] != first.shape[1:]:
+            raise ValueError(f"pad_trials: trial {k} has shape {tuple(x.shape)}; every trial must "
+                             f"be (T_k, {', '.join(map(str, first.shape[1:]))}) like trial 0")
+    longest = max(x.shape[0] for x in trials)
+    if length is None:
+        length = longest
+    elif length < longest:
+        raise ValueError(f"pad_trials: length={length} is shorter than the longest trial "
+                         f"({longest} samples)")
+    out = torch.full((len(trials), length) + tuple(first.shape[1:]), float("nan"),
+                     dtype=first.dtype, device=first.device)
+    for k, x in enumerate(trials):
+        out[k, : x.shape[0]] = x
+    return out
+
+
+def span_bounds(valid: Tensor) -> tuple[Tensor, Tensor]:
+    """Each row's span in ``valid (..., T)`` (bool): the index of its first True sample and one
+    past its last, ``(...)`` int64 each; a row with no True sample spans the whole row."""
+    T = valid.shape[-1]
+    idx = torch.arange(T, device=valid.device)
+    start = torch.where(valid, idx, T).amin(-1)
+    stop = torch.where(valid, idx + 1, 0).amax(-1)
+    empty = stop == 0
+    return torch.where(empty, 0, start), torch.where(empty, T, stop)
+
+
+def span_groups(valid: Tensor) -> list[tuple[Tensor, int, int]]:
+    """The rows of ``valid (B, T)`` (bool) grouped by their span, from their first to their
+    last True sample: ``(rows, start, stop)`` per distinct span, ``rows`` an index tensor and
+    ``stop`` exclusive (a row with no True sample spans the whole row). A statistic of trials
+    padded to one grid is computed over each trial's own span as ``x[rows, start:stop]``, so
+    that it does not depend on how long the other trials are."""
+    start, stop = span_bounds(valid)
+    spans = torch.stack([start, stop], -1)
+    return [(((start == a) & (stop == b)).nonzero()[:, 0], a, b)
+            for a, b in torch.unique(spans, dim=0).tolist()]
+
+
+def over_spans(valid: Tensor, fn, *, in_time: bool = False):
+    """``fn(rows, start, stop)`` for each group of rows of ``valid (B, T)`` that share a span
+    (:func:`span_groups`), put together for all ``B`` rows; None where every row spans all of
+    ``T`` (nothing to split: the caller computes the batch as it is).
+
+    ``fn`` computes the rows ``rows`` (an index tensor) over the samples ``start:stop`` and
+    returns a tensor, or a tuple or dataclass of tensors (None stays None): each
+    ``(len(rows), ...)``, one value per row, or with ``in_time`` ``(len(rows), stop - start,
+    ...)`` along the span, NaN outside it in the result ``(B, T, ...)``."""
+    T = valid.shape[-1]
+    groups = span_groups(valid)
+    if len(groups) == 1 and groups[0][1:] == (0, T):
+        return None
+    parts = [(rows, a, b, fn(rows, a, b)) for rows, a, b in groups]
+
+    def merge(items):
+        value = items[0][3]
+        if value is None:
+            return None
+        if isinstance(value, tuple):
+            return tuple(merge([(r, a, b, v[i]) for r, a, b, v in items])
+                         for i in range(len(value)))
+        if dataclasses.is_dataclass(value):
+            return type(value)(**{f.name: merge([(r, a, b, getattr(v, f.name))
+                                                 for r, a, b, v in items])
+                                  for f in dataclasses.fields(value)})
+        if in_time:
+            out = value.new_full((valid.shape[0], T) + value.shape[2:], float("nan"))
+        else:
+            out = value.new_empty((valid.shape[0],) + value.shape[1:])
+        for rows, a, b, v in items:
+            if in_time:
+                out[rows, a:b] = v
+            else:
+                out[rows] = v
+        return out
+
+    return merge(parts)

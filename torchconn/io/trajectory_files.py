@@ -33,7 +33,7 @@ from torch import Tensor
 
 from .. import _linalg
 from .._output import savez, write_bytes_atomic
-from ..trajectory import GroundTruth, SmoothedState, Trajectory
+from ..trajectory import GroundTruth, SmoothedState, Trajectory, pad_trials
 
 __all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles", "principal_signal"]
 
@@ -340,22 +340,16 @@ def read_csv(
         # rounded time stamps, or trials starting at different times: one exact uniform grid
         t = t0s[0] + torch.arange(n_max, dtype=torch.float64) * dt
 
-    def pad(a: np.ndarray) -> np.ndarray:
-        width = [(0, n_max - a.shape[0])] + [(0, 0)] * (a.ndim - 1)
-        return np.pad(a, width, constant_values=np.nan)
-
-    pose = torch.as_tensor(np.stack([pad(tr.pose) for tr in trials]))
-    r = torch.as_tensor(np.stack([pad(tr.r) for tr in trials]))
+    pose = pad_trials([tr.pose for tr in trials])
+    r = pad_trials([tr.r for tr in trials])
     power = None
     if any(tr.power is not None for tr in trials):
         lacking = sorted({tr.file for tr in trials if tr.power is None})
         if lacking:
             warnings.warn(f"no 'power' column in {', '.join(lacking)}; their power is NaN",
                           stacklevel=2)
-        power = torch.as_tensor(np.stack([
-            pad(tr.power if tr.power is not None else np.full(len(tr.t), np.nan))
-            for tr in trials
-        ]))
+        power = pad_trials([tr.power if tr.power is not None else np.full(len(tr.t), np.nan)
+                            for tr in trials])
 
     if min_cycles is not None:
         cycles = count_cycles(r)

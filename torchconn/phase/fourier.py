@@ -129,6 +129,17 @@ class FourierSeries:
         order = torch.as_tensor(order, device=self.coeffs.device)
         return self.truncated_values(order.reshape(order.shape + (1,) * self.value_ndim))
 
+    def padded(self, order: int) -> FourierSeries:
+        """This series with zero harmonics up to ``order`` (at least its own): the same function
+        with ``coeffs (..., 2·order+1, *value_shape)``, so that series of different orders can be
+        stacked. (Evaluated, it can differ from the unpadded series in the last bit.)"""
+        c = self.coeffs
+        extra = 2 * (order - self.order)
+        if extra <= 0:
+            return self
+        pad = c.new_zeros(c.shape[:self._axis] + (extra,) + tuple(self.value_shape))
+        return FourierSeries(torch.cat([c, pad], dim=self._axis), self.value_ndim)
+
     def truncated_values(self, order: Tensor) -> FourierSeries:
         """This series with the harmonics above ``order`` set to zero per value: ``order``
         ``(..., *value_shape)`` integers broadcasting against :attr:`batch_shape` and the value

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from .. import _checks
 from .._options import Options, option
-from ..trajectory import Trajectory, pool_batch
+from ..trajectory import Trajectory, over_spans, pool_batch
 from .fourier import FourierSeries, fit_fourier
 
 __all__ = ["CycleEstimator", "SelfConsistentCycle", "LimitCycle", "fit_limit_cycle", "phase_rate"]
@@ -184,9 +184,22 @@ def _residual_spectrum(
     """Residual power spectral density ``(..., K, d)`` near each harmonic's frequency.
 
     The periodogram of the residual time series (NaNs as zeros, rescaled by the count kept)
-    is averaged over a band of ±0.3 harmonic spacings around ``k φ̇ / 2π`` cycles per time unit.
+    is averaged over a band of ±0.3 harmonic spacings around ``k φ̇ / 2π`` cycles per time unit,
+    each batch element over its own span (a shorter trial's padding on a shared grid would
+    refine its periodogram's frequency grid).
     """
     res = y - series(phase)
+    batch, (T, d) = res.shape[:-2], res.shape[-2:]
+    flat, rates = res.reshape(-1, T, d), rate.expand(batch).reshape(-1)
+    split = over_spans(torch.isfinite(flat).any(-1), lambda rows, a, b: _band_power(
+        flat[rows, a:b], rates[rows], dt, order))
+    return _band_power(res, rate, dt, order) if split is None else split.reshape(
+        batch + (order, d))
+
+
+def _band_power(res: Tensor, rate: Tensor, dt: float, order: int) -> Tensor:
+    """:func:`_residual_spectrum` of residuals ``res (..., T, d)`` (NaN where missing) at the
+    phase rates ``rate (...)``."""
     ok = torch.isfinite(res)
     res = torch.where(ok, res, torch.zeros_like(res))
     T = res.shape[-2]

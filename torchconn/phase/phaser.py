@@ -58,6 +58,7 @@ __all__ = [
     "correction_series",
     "correction_order",
     "held_out_order",
+    "highest_order",
     "whole_cycle_weights",
     "estimate_phase",
     "hilbert_phase_pc1",
@@ -368,8 +369,9 @@ class Phaser(PhaseEstimator):
         order: harmonics in each series correction: ``"auto"`` chooses them per channel and
             trial by cross-validation over blocks of whole cycles (:func:`correction_order`,
             at most ``max_order``); an integer fixes them (2-4 robust; high orders fit the noise).
-        max_order: the largest order ``"auto"`` considers (also capped below half the samples
-            per cycle).
+        max_order: the largest order ``"auto"`` considers (also capped at
+            :func:`highest_order` of the samples per cycle, above which an explicit order is
+            refused).
         weighting: how the channels' corrected phases are weighted when they are combined:
             ``"snr"`` by their phase signal-to-noise ratio (inverse phase-noise variance
             ``1 / (−2 log ρ_c)``, with each channel's coherence ``ρ_c`` from the rank-one fit
@@ -456,9 +458,11 @@ class Phaser(PhaseEstimator):
 
 
 def _stack(values: list, batch: torch.Size):
-    """Stack per-trial (unbatched) tensors or series into batch ``batch``."""
+    """Stack per-trial (unbatched) tensors or series into batch ``batch``; series of different
+    orders (each trial's own) are zero-padded to the highest."""
     if isinstance(values[0], FourierSeries):
-        c = torch.stack([v.coeffs for v in values])
+        order = max(v.order for v in values)
+        c = torch.stack([v.padded(order).coeffs for v in values])
         return FourierSeries(c.reshape(batch + c.shape[1:]), values[0].value_ndim)
     t = torch.stack(values)
     return t.reshape(batch + t.shape[1:])
@@ -536,9 +540,20 @@ def estimate_phase(
     return _fit(x, options, "estimate_phase")[1]
 
 
-def _first_pass(x: Tensor, o, fn: str) -> Tensor:
-    """Pass 1 on the plainly centred record: its phase ``(..., T)`` counts the cycles (checked
-    against ``min_cycles`` and the order) and measures the period."""
+def highest_order(samples_per_cycle: Tensor | float) -> Tensor:
+    """The highest correction order a record sampled ``samples_per_cycle`` times per cycle
+    resolves: the largest ``K`` whose ``2K + 1`` harmonic coefficients fit in one cycle's
+    samples (``2K + 1 <= samples_per_cycle``; ``(...)`` int64, 0 below 3 samples per cycle).
+    An explicit ``order`` above it is refused and ``"auto"`` considers none above it, both on
+    the samples per cycle of the lowest-order pass (:func:`_first_pass`)."""
+    per_cycle = torch.as_tensor(samples_per_cycle)
+    return torch.floor((per_cycle - 1) / 2).clamp_min(0).long()
+
+
+def _first_pass(x: Tensor, o, fn: str) -> tuple[Tensor, Tensor]:
+    """Pass 1 on the plainly centred record: the phase ``(..., T)`` at ``o.order`` (the lowest,
+    1, for ``"auto"``) that measures the period, and the samples per cycle ``(...)`` counted
+    at order 1 (checked against ``min_cycles`` and the order, :func:`highest_order`)."""
     C = x.shape[-1]
     if not -C <= o.section_channel < C:
         raise ValueError(
@@ -546,14 +561,16 @@ def _first_pass(x: Tensor, o, fn: str) -> Tensor:
         )
     _check_values(x, fn)
     z = (x - x.mean(-2, keepdim=True)) / x.std(-2, keepdim=True)
-    # with order="auto" the first pass uses the lowest order: it only counts cycles
     with warnings.catch_warnings():
         # this pass only counts cycles: the fit's own pass warns of the channels it leaves out
         # (the user saw each warning twice, with different ratios), and a transform was warned
         # of them by its fit
         warnings.simplefilter("ignore", PhaseAmbiguityWarning)
-        phase = _phaser(z, 1 if o.order == "auto" else o.order, None, o.weighting)[1]
-    span = phase[..., -1] - phase[..., 0]
+        # the cycles are counted at the lowest order, whatever the order asked for: the count
+        # that decides whether an order is too high is not made with that order
+        counted = _phaser(z, 1, None, o.weighting)[1]
+        phase = counted if o.order in ("auto", 1) else _phaser(z, o.order, None, o.weighting)[1]
+    span = counted[..., -1] - counted[..., 0]
     cycles = span / (2 * math.pi)
     if bool((cycles < o.min_cycles).any()):
         where = torch.nonzero(cycles < o.min_cycles)[0].tolist()
@@ -568,37 +585,45 @@ def _first_pass(x: Tensor, o, fn: str) -> Tensor:
             f"{fn}: x covers only about {float(cycles.min()):.1f} cycles (batch index "
             f"{tuple(where)}), fewer than min_cycles={o.min_cycles}; {advice}"
         )
-    per_cycle = float((x.shape[-2] - 1) / cycles.max())
-    if o.order != "auto" and 2 * o.order >= per_cycle:
+    per_cycle = (x.shape[-2] - 1) / cycles
+    lowest = 1 if o.order == "auto" else o.order
+    if bool((highest_order(per_cycle) < lowest).any()):
+        fewest = float(per_cycle.min())
+        if o.order == "auto":
+            raise ValueError(
+                f"{fn}: x has only ~{fewest:.1f} samples per cycle; the phase needs at least 3 "
+                "(the correction's lowest order, 1, has 3 coefficients per cycle): record at a "
+                "higher frame rate"
+            )
         raise ValueError(
-            f"{fn}: order={o.order} is too high for ~{per_cycle:.0f} samples per cycle "
-            "(harmonics alias above half of it); use a small order such as 3"
+            f"{fn}: order={o.order} is too high for ~{fewest:.0f} samples per cycle (order K "
+            f"has 2K + 1 coefficients per cycle and needs as many samples; at most order "
+            f"{int(highest_order(per_cycle).min())} here); use a small order such as 3, or "
+            "order='auto'"
         )
-    return phase
+    return phase, per_cycle
 
 
-def _order(o, phase: Tensor):
+def _order(o, per_cycle: Tensor):
     """The order argument of :func:`_phaser`: ``o.order``, or for ``"auto"`` the largest order
-    considered in each batch element (``(...)``):
-    ``o.max_order`` capped so that ``2 K`` stays below the element's samples per cycle."""
+    considered in each batch element (``(...)``): ``o.max_order`` capped at the
+    :func:`highest_order` of the element's samples per cycle ``per_cycle (...)``."""
     if o.order != "auto":
         return o.order
-    per_cycle = (phase.shape[-1] - 1) / ((phase[..., -1] - phase[..., 0]) / (2 * math.pi))
-    cap = (torch.ceil(per_cycle / 2) - 1).clamp(1, o.max_order).long()
-    return ("auto", cap)
+    return ("auto", highest_order(per_cycle).clamp(max=o.max_order))
 
 
 def _fit(x: Tensor, o, fn: str) -> tuple[PhaseModel, Tensor]:
     """The whole algorithm on ``x (..., T, C)`` (no NaN): the model and the phase ``(..., T)``."""
     # pass 1 counts cycles and finds the period; pass 2 re-centres each channel on a whole
     # number of cycles (a partial cycle biases the mean by O(1/cycles)) and pads periodically
-    phase = _first_pass(x, o, fn)
+    phase, per_cycle = _first_pass(x, o, fn)
     w = whole_cycle_weights(phase)[..., None]
     mean = (w * x).sum(-2) / w.sum(-2)
     scale = x.std(-2)
     z = (x - mean[..., None, :]) / scale[..., None, :]
     period = _period(phase) if o.periodic_padding else None
-    fitted, phase = _phaser(z, _order(o, phase), period, o.weighting)
+    fitted, phase = _phaser(z, _order(o, per_cycle), period, o.weighting)
 
     # Poincaré section: rotate so the section channel's fundamental is A sin(φ), A > 0
     fund = fit_fourier(phase, z[..., o.section_channel], 1).coeffs  # (..., 3): a0, a1, b1
@@ -619,7 +644,7 @@ def _transform(model: PhaseModel, x: Tensor, o, fn: str) -> Tensor:
     if model.mean.shape[-1] != x.shape[-1]:
         raise ValueError(f"{fn}: the phase model was fitted to {model.mean.shape[-1]} channels, "
                          f"x has {x.shape[-1]}")
-    first = _first_pass(x, o, fn)
+    first = _first_pass(x, o, fn)[0]
     period = _period(first) if o.periodic_padding else None
     z = (x - model.mean[..., None, :]) / model.scale[..., None, :]
     theta = _protophases(z, period)

@@ -32,7 +32,7 @@ from torch import Tensor
 
 from .. import _checks, _linalg
 from .._options import Options
-from ..trajectory import SmoothedState, Trajectory
+from ..trajectory import SmoothedState, Trajectory, over_spans
 from . import _scan
 
 __all__ = [
@@ -378,6 +378,17 @@ def _unit_spectrum(F: Tensor, Q1: Tensor, N: int) -> Tensor:
 
 
 def _gcv_noise_ratio(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float) -> Tensor:
+    """Noise ratio ``q / R`` per row of ``y (B, T)`` by generalised cross-validation
+    (:func:`_gcv_rows`), each row over its own span from its first to its last finite sample:
+    missing samples before or after it (a shorter trial's padding on a shared grid) say
+    nothing about the noise, and filled in they would make a row's ratio depend on the
+    length of the others."""
+    split = over_spans(finite, lambda rows, a, b: _gcv_rows(y[rows, a:b], finite[rows, a:b],
+                                                            F, Q1, dt))
+    return _gcv_rows(y, finite, F, Q1, dt) if split is None else split
+
+
+def _gcv_rows(y: Tensor, finite: Tensor, F: Tensor, Q1: Tensor, dt: float) -> Tensor:
     """Noise ratio ``q / R`` per row of ``y (B, T)`` by generalised cross-validation.
 
     The steady-state RTS smoother is the Wiener filter ``H = λS/(λS + 1)`` with ``S`` the
@@ -684,24 +695,28 @@ class RTSSmoother(Smoother):
     def smooth(self, traj: Trajectory) -> Trajectory:
         """Smooth ``traj``'s poses ``(..., T, 3)`` and shapes ``(..., T, d)`` into ``smoothed``.
 
-        Trials padded with NaN rows after their end (unequal lengths on one grid) are smoothed
-        over their recorded span only: the smoother's extrapolation into the padding means
-        nothing, so it is blanked to NaN there.
+        Trials padded with NaN rows before their start or after their end (unequal lengths on
+        one grid) are smoothed over their recorded span only, each as it would be alone (the
+        filter starts at its first sample); the padding is NaN in ``smoothed``.
         """
         if not isinstance(traj, Trajectory):
             raise TypeError(f"RTSSmoother.smooth: traj must be a torchconn.Trajectory, "
                             f"got {type(traj).__name__}")
-        smoothed = smooth_trajectory(traj.pose, traj.r, traj.dt, order=self.order,
+
+        def run(pose: Tensor, r: Tensor) -> SmoothedState:
+            return smooth_trajectory(pose, r, traj.dt, order=self.order,
                                      shared_bandwidth=self.shared_bandwidth,
                                      algorithm=self.algorithm)
-        recorded = recorded_span(traj)
-        if not bool(recorded.all()):
-            keep = recorded[..., None]
-            smoothed = SmoothedState(**{
-                f.name: torch.where(keep, getattr(smoothed, f.name), float("nan"))
-                for f in fields(smoothed)
-            })
-        return traj.with_fields(smoothed=smoothed)
+
+        T = traj.n_samples
+        pose, r = traj.pose.reshape(-1, T, 3), traj.r.reshape(-1, T, traj.shape_dim)
+        split = over_spans(recorded_span(traj).reshape(-1, T),
+                           lambda rows, a, b: run(pose[rows, a:b], r[rows, a:b]), in_time=True)
+        if split is None:
+            return traj.with_fields(smoothed=run(traj.pose, traj.r))
+        return traj.with_fields(smoothed=SmoothedState(**{
+            f.name: getattr(split, f.name).reshape(traj.batch_shape + (T, -1))
+            for f in fields(SmoothedState)}))
 
 
 def recorded_span(traj: Trajectory) -> Tensor:

@@ -312,7 +312,7 @@ class ConnectionEstimator:
             forecast = skill.with_phase_average(model, self.phase_average_,
                                                 *_masks(choice, model.device))
             # one order for both, so that score() finds them tied exactly
-            self.phase_average_ = skill.padded(self.phase_average_, forecast.c.order)
+            self.phase_average_ = self.phase_average_.padded(forecast.c.order)
         # the connection: every row as estimated, and where the complexity was chosen among
         # ridges that penalise Â, chosen in the same search with Â unpenalised (README "The
         # connection delivered, the forecasts kept")

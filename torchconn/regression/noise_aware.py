@@ -46,7 +46,7 @@ from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import phase_rate
 from ..phase.smoothing import unwrap
 from ..physics import se2
-from ..trajectory import Trajectory, pool_batch
+from ..trajectory import Trajectory, over_spans, pool_batch, span_bounds
 from . import _wls
 from ._wls import IllConditionedBinWarning
 from .binning import BinIndex, assign_bins
@@ -230,9 +230,43 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
 
     Returns:
         :class:`NoiseEstimate` with ``(..., C)`` standard deviations (clamped at 0).
+
+    Each batch element is estimated over its own span, from its first to its last sample with
+    any finite channel (trials of different lengths on one NaN-padded grid), as it would be
+    alone.
     """
     if not isinstance(x, Tensor) or not x.is_floating_point() or x.ndim < 2:
         raise TypeError("estimate_noise: x must be a floating-point tensor (..., T, C)")
+    options = dict(band=band, angular=angular, floor=floor)
+    batch, (T, C) = x.shape[:-2], x.shape[-2:]
+    flat = x.reshape(-1, T, C)
+
+    def rows_of(v: Tensor, rows: Tensor, trailing: int) -> Tensor:  # v's batch dims broadcast
+        v = v.expand(batch + v.shape[v.ndim - trailing:])
+        return v.reshape((-1,) + v.shape[len(batch):])[rows]
+
+    def part(rows: Tensor, a: int, b: int) -> NoiseEstimate:
+        spc = samples_per_cycle
+        if isinstance(spc, Tensor) and spc.ndim:
+            spc = rows_of(spc, rows, 0)
+        return _estimate_noise(
+            flat[rows, a:b],
+            cycle=None if cycle is None else FourierSeries(rows_of(cycle.coeffs, rows, 2), 1),
+            samples_per_cycle=spc,
+            phase=None if phase is None else rows_of(phase, rows, 1)[:, a:b], **options)
+
+    split = over_spans(torch.isfinite(flat).any(-1), part)
+    if split is None:
+        return _estimate_noise(x, cycle=cycle, samples_per_cycle=samples_per_cycle,
+                               phase=phase, **options)
+    return NoiseEstimate(**{f.name: None if getattr(split, f.name) is None else
+                            getattr(split, f.name).reshape(batch + getattr(split, f.name).shape[1:])
+                            for f in dataclasses.fields(NoiseEstimate)})
+
+
+def _estimate_noise(x: Tensor, *, band, angular, cycle, samples_per_cycle, floor, phase
+                    ) -> NoiseEstimate:
+    """:func:`estimate_noise` of ``x (..., T, C)`` over the whole of ``T``."""
     if band is not None:
         lo, hi = band
         if not 0 < lo < hi <= 0.5:
@@ -1262,11 +1296,12 @@ def _second_order_blocks(delta: Tensor, delta_dot: Tensor, row_scale: Tensor) ->
 def interval_cycles(phase: Tensor, h: int, *, pool: bool = False) -> Tensor:
     """The whole cycle of each interval sample ``(..., T − h)`` (int64) of a recording of
     ``phase (..., T)`` (unwrapped, or wrapped: it is unwrapped here): that of the interval's
-    first sample, ``⌊(φ_k − φ_0) / 2π⌋``, numbered from 0 per batch element, or with ``pool``
-    through the elements in turn (the trials of a pooled fit: ``(N·(T − h),)``, in the order of
-    :func:`~torchconn.trajectory.pool_batch`)."""
+    first sample, ``⌊(φ_k − φ_0) / 2π⌋`` (``φ_0`` the element's first finite phase), numbered
+    from 0 per batch element, or with ``pool`` through the elements in turn (the trials of a
+    pooled fit: ``(N·(T − h),)``, in the order of :func:`~torchconn.trajectory.pool_batch`)."""
     ph = unwrap(phase)
-    cyc = torch.floor((ph[..., :-h] - ph[..., :1]) / (2 * math.pi))
+    first = ph.gather(-1, span_bounds(torch.isfinite(ph))[0].unsqueeze(-1))
+    cyc = torch.floor((ph[..., :-h] - first) / (2 * math.pi))
     cyc = torch.nan_to_num(cyc, nan=0.0).clamp_min(0).to(torch.int64)
     if not pool:
         return cyc

@@ -384,7 +384,7 @@ def phase_average(view: _View, order: int, orders: Tensor | None = None) -> Four
     for k in orders.unique().tolist():
         if k == order:
             continue
-        own = padded(fit_fourier(view.phase, view.xi, k, value_ndim=1), order).coeffs
+        own = fit_fourier(view.phase, view.xi, k, value_ndim=1).padded(order).coeffs
         coeffs = torch.where((orders == k).unsqueeze(-2), own, coeffs)
     return FourierSeries(coeffs, 1)
 
@@ -598,7 +598,7 @@ def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, 
         template = fold_model  # Â(γ)γ̇ of the fold's fit, even where it falls back
         if phase_averaged is not None or connection_only is not None:
             fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
-            base = padded(base, fold_model.c.order)  # the same sums: an exact tie
+            base = base.padded(fold_model.c.order)  # the same sums: an exact tie
         noise = None
         if noise_corrected and isinstance(reg, NoiseAwareRegression):
             noise = _noise_of(fold_model, dt, pool)
@@ -646,7 +646,7 @@ def with_phase_average(model: LocalConnectionModel, baseline: FourierSeries,
     c = model.c
     if bool(mask.any()):
         order = max(model.c.order, baseline.order)
-        coeffs, base = padded(model.c, order).coeffs, padded(baseline, order).coeffs
+        coeffs, base = model.c.padded(order).coeffs, baseline.padded(order).coeffs
         c = FourierSeries(torch.where(mask.unsqueeze(-2), base.to(coeffs), coeffs), 1)
 
     def zeroed(series: FourierSeries, m: Tensor) -> FourierSeries:
@@ -708,18 +708,6 @@ def baseline_orders(model: LocalConnectionModel, order: int) -> Tensor | None:
     if orders is None:
         return None
     return torch.as_tensor(orders, device=model.device).clamp(max=order)
-
-
-def padded(series: FourierSeries, order: int) -> FourierSeries:
-    """``series`` with zero harmonics up to ``order`` (at least its own). Evaluating a
-    fallen-back component and its baseline through series of one order gives bit-equal
-    values (series of different orders differ in the last bit)."""
-    c = series.coeffs
-    extra = 2 * (order - series.order)
-    if extra <= 0:
-        return series
-    pad = c.new_zeros(c.shape[:series._axis] + (extra,) + tuple(series.value_shape))
-    return FourierSeries(torch.cat([c, pad], dim=series._axis), series.value_ndim)
 
 
 def downdates(regression: Regression) -> bool:

@@ -25,7 +25,8 @@ from .._options import Options, option
 from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import LimitCycle
 from ..phase.phaser import held_out_order, whole_cycle_weights
-from ..trajectory import Trajectory, pool_batch
+from ..phase.smoothing import recorded_span
+from ..trajectory import Trajectory, over_spans, pool_batch, span_bounds
 from .binning import assign_bins
 from .connection import connection_regression
 from .metric import (
@@ -441,8 +442,10 @@ class TubeRegression(Regression):
                                  device=phase.device)
             phase = phase + (2 * math.pi * math.ceil(span / (2 * math.pi)) * trial).reshape(
                 phase.shape[:-1] + (1,))
-            phase, offset, v, power = (pool_batch(x, k) for x, k in
-                                       ((phase, 0), (offset, 1), (v, 1), (power, 0)))
+            # each trial's recorded rows only: a shorter trial's padding would move the rows
+            # after it in the pooled sequence (and so the blocks of the noise's standard error)
+            recorded = recorded_span(traj)
+            phase, offset, v, power = (x[recorded] for x in (phase, offset, v, power))
         derivative = self.metric_derivative_order
         usable = (torch.isfinite(power) & torch.isfinite(v).all(-1)).sum(-1).min()
         d = v.shape[-1]
@@ -512,7 +515,9 @@ class TubeRegression(Regression):
         first = tied_metric_coefficients(offset, v, power, phase, **orders,
                                          min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         predicted, m_v = tied_metric_predict(first.coef, offset, v, phase, **orders)
-        residual = power_noise_variance(power - predicted, m_v, traj.dt, with_se=True)
+        residual = _per_span(lambda res, mv: power_noise_variance(res, mv, traj.dt,
+                                                                  with_se=True),
+                             power - predicted, m_v, None if pool else recorded_span(traj))
         if self.metric_noise_level == "residuals":
             return residual[0]
         estimates.append(residual)
@@ -524,11 +529,33 @@ class TubeRegression(Regression):
         return torch.where(mean > 2 * total.rsqrt(), mean, torch.zeros_like(mean))
 
 
+def _per_span(fn, residual: Tensor, m_v: Tensor, recorded: Tensor | None
+              ) -> tuple[Tensor, Tensor]:
+    """``fn(residual, m_v)`` (two ``(..., d)`` results) of the interval samples of each trial
+    over its recorded span (``recorded (..., T)``, :func:`~torchconn.phase.smoothing.
+    recorded_span`; the samples' rows are the trial's), as it would be alone; None: over the
+    whole of each row."""
+    batch, (T, d) = residual.shape[:-1], m_v.shape[-2:]
+    res, mv = residual.reshape(-1, T), m_v.reshape(-1, T, d)
+    split = None if recorded is None else over_spans(
+        recorded.reshape(-1, T), lambda rows, a, b: fn(res[rows, a:b], mv[rows, a:b]))
+    if split is None:
+        return fn(residual, m_v)
+    return tuple(o.reshape(batch + (d,)) for o in split)
+
+
 def _unwrapped(phase: Tensor) -> Tensor:
-    """``(..., T)`` phase made continuous (NaN gaps bridged), starting at its first value."""
-    step = torch.remainder(phase.diff(dim=-1) + math.pi, 2 * math.pi) - math.pi
-    first = torch.nan_to_num(phase[..., :1])
-    out = first + torch.cat([torch.zeros_like(first), torch.nan_to_num(step).cumsum(-1)], -1)
+    """``(..., T)`` phase made continuous (each step from the last finite value wrapped into
+    ``[-π, π)``, so NaN gaps are bridged), starting at its first finite value (a trial whose
+    first samples are missing, or that starts later on a shared grid, keeps its phase)."""
+    finite = torch.isfinite(phase)
+    first = span_bounds(finite)[0].unsqueeze(-1)
+    idx = torch.arange(phase.shape[-1], device=phase.device)
+    # forward-filled: the last finite value at or before each sample (the first before it)
+    filled = phase.gather(-1, torch.cummax(torch.where(finite, idx, first), -1).values)
+    step = torch.remainder(filled.diff(dim=-1) + math.pi, 2 * math.pi) - math.pi
+    cum = torch.cat([torch.zeros_like(phase[..., :1]), torch.nan_to_num(step).cumsum(-1)], -1)
+    out = (filled.gather(-1, first) - cum.gather(-1, first)) + cum
     return torch.where(torch.isnan(phase), torch.nan, out)
 
 

@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from ... import _linalg
-from ...trajectory import Trajectory
+from ...trajectory import Trajectory, pad_trials
 from .readers import FORMATS, Keypoints, TrackingFormatError, read_tracking
 
 __all__ = ["ConversionSettings", "ConversionReport", "Conversion", "convert", "convert_file",
@@ -521,14 +521,8 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
         t_off = float(kp.times[0])
     n_max = max(b - a for a, b in trials)
     d = s.n_links - 1
-
-    def pad(x: Tensor, a: int, b: int) -> Tensor:
-        out = torch.full((n_max,) + tuple(x.shape[1:]), float("nan"), dtype=dtype)
-        out[: b - a] = x[a:b]
-        return out
-
-    traj_pose = torch.stack([pad(pose, a, b) for a, b in trials])
-    traj_r = torch.stack([pad(r, a, b) for a, b in trials]).reshape(len(trials), n_max, d)
+    traj_pose = pad_trials([pose[a:b] for a, b in trials])
+    traj_r = pad_trials([r[a:b] for a, b in trials]).reshape(len(trials), n_max, d)
     times = tuple(t_off + torch.arange(a, b, dtype=torch.float64) * dt for a, b in trials)
     t = times[0][0] + torch.arange(n_max, dtype=torch.float64) * dt
     trial_info = tuple({"source": src, "trial": k, "first_frame": int(kp.frames[0]) + a,
