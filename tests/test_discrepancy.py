@@ -590,3 +590,17 @@ def test_augmented_model_changes_the_swimmer(tmp_path):
     np.testing.assert_allclose(v.numpy(), [[0.01, 0, 0], [0, -0.01, 0]], atol=1e-12)
     with pytest.raises(ValueError, match="not an augmented model"):
         load_augmented((tmp_path / "x.json", (tmp_path / "x.json").write_text("{}"))[0])
+
+
+def test_trials_of_different_lengths_are_diagnosed_like_equal_ones():
+    # one grid, trial 1 ending early and trial 2 starting late (NaN outside what was recorded):
+    # each trial is smoothed and phased over its own span, and the effect is still named
+    name, values = "ambient_flow", CASES["ambient_flow"][1]
+    full = recording(key(name, values))
+    T = full.n_samples
+    pose, r = full.pose.clone(), full.r.clone()
+    pose[1, int(0.6 * T):], r[1, int(0.6 * T):] = float("nan"), float("nan")
+    pose[2, : int(0.3 * T)], r[2, : int(0.3 * T)] = float("nan"), float("nan")
+    report = diagnose(Trajectory(t=full.t, pose=pose, r=r), SWIMMER, SETTINGS)
+    print(report.summary())
+    check_named(report, name, values)

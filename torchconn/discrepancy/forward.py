@@ -36,18 +36,24 @@ is how :mod:`torchconn.discrepancy.fitting` gets its Jacobians (forward-mode aut
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import torch
 from torch import Tensor
 
 from ..io.preflight import CYCLE_RULES
-from ..phase.phaser import estimate_phase
-from ..phase.smoothing import noise_parameters, rts_smooth, smooth_trajectory, unwrap
+from ..phase.phaser import Phaser, estimate_phase
+from ..phase.smoothing import (
+    RTSSmoother,
+    noise_parameters,
+    rts_smooth,
+    smooth_trajectory,
+    unwrap,
+)
 from ..physics import se2
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
-from ..trajectory import Trajectory
+from ..trajectory import Trajectory, span_bounds
 from .effects import Effect, get_effect
 
 __all__ = [
@@ -266,14 +272,21 @@ def prepare_measurement(
         raise ValueError(f"trial {b} has only {int(n_finite[b])} complete samples; the "
                          "discrepancy workflow needs whole gait cycles of data per trial")
 
-    sm = smooth_trajectory(pose, r, dt)
+    # trials of different lengths on one grid: each is smoothed and phased over its own span,
+    # the time outside it (never recorded) filled with the span's edge values
+    start, stop = span_bounds(finite)
+    padded = bool(((start > 0) | (stop < T)).any())
+    sm = (_smooth_spans(pose, r, dt, start, stop) if padded
+          else smooth_trajectory(pose, r, dt))
     pose_f = torch.where(torch.isfinite(pose), pose, sm.pose)
     r_f = torch.where(torch.isfinite(r), r, sm.r)
     if phase is None and traj.phase is not None:
         phase = traj.phase
     if phase is None:
         try:
-            phase = estimate_phase(sm.r, min_cycles=MIN_CYCLES_PER_TRIAL)
+            phase = (_edge_filled(Phaser(min_cycles=MIN_CYCLES_PER_TRIAL).fit(
+                _outside_nan(sm.r, start, stop)).phase_.unsqueeze(-1), start, stop)[..., 0]
+                if padded else estimate_phase(sm.r, min_cycles=MIN_CYCLES_PER_TRIAL))
         except ValueError as err:
             if "cycles" in str(err):
                 raise ValueError(
@@ -338,6 +351,30 @@ def prepare_measurement(
         xi=torch.zeros_like(pose_f), batch_shape=batch_shape,
     )
     return _with_xi(m)
+
+
+def _outside_nan(x: Tensor, start: Tensor, stop: Tensor) -> Tensor:
+    """``x (B, T, C)`` with NaN outside each row's span ``start:stop``."""
+    idx = torch.arange(x.shape[-2], device=x.device)
+    inside = (idx >= start[:, None]) & (idx < stop[:, None])
+    return torch.where(inside[..., None], x, float("nan"))
+
+
+def _edge_filled(x: Tensor, start: Tensor, stop: Tensor) -> Tensor:
+    """``x (B, T, C)`` with each row's values outside its span ``start:stop`` replaced by the
+    span's first and last values."""
+    idx = torch.arange(x.shape[-2], device=x.device)
+    take = torch.minimum(torch.maximum(idx, start[:, None]), stop[:, None] - 1)  # (B, T)
+    return torch.gather(x, -2, take[..., None].expand(x.shape))
+
+
+def _smooth_spans(pose: Tensor, r: Tensor, dt: float, start: Tensor, stop: Tensor):
+    """:func:`smooth_trajectory` of each trial ``(B, T, ·)`` over its own span, edge-filled."""
+    traj = Trajectory(t=torch.arange(pose.shape[-2], dtype=pose.dtype, device=pose.device) * dt,
+                      pose=_outside_nan(pose, start, stop), r=_outside_nan(r, start, stop))
+    sm = RTSSmoother().smooth(traj).smoothed
+    return type(sm)(**{f.name: _edge_filled(getattr(sm, f.name), start, stop)
+                       for f in fields(sm)})
 
 
 def measurement_from_clean(t: Tensor, pose: Tensor, r: Tensor, phase: Tensor, kernel: Tensor,
