@@ -14,13 +14,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
+from ._files import check_distinct, check_file, read_toml
 from ._provenance import write_sidecar
 from .io.preflight import preflight
 from .io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
@@ -66,15 +66,7 @@ def config_tables(path: Path | None, overrides: list[str]) -> dict:
     overrides applied (the sweep's parser)."""
     from .sweep.config import apply_overrides
 
-    raw = {}
-    if path is not None:
-        if not Path(path).exists():
-            raise InputError(f"config file {path} not found")
-        try:
-            with Path(path).open("rb") as fh:
-                raw = tomllib.load(fh)
-        except tomllib.TOMLDecodeError as err:
-            raise ValueError(f"{path}: not valid TOML ({err})") from None
+    raw = read_toml(path, "--config") if path is not None else {}
     for item in overrides:
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise ValueError(f"--set {item!r} must look like section.key=value, e.g. "
@@ -127,8 +119,7 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
     """
     kinds = {}
     for p in paths:
-        if not Path(p).exists():
-            raise FileNotFoundError(f"input file {p} not found")
+        check_file(p, "a trajectory CSV or tracking file")
         kinds[p] = detect_format(p) if fmt == "auto" else fmt
     if all(k == "torchconn" for k in kinds.values()):
         try:
@@ -143,6 +134,7 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
         csvs = [str(p) for p, k in kinds.items() if k == "torchconn"]
         raise ValueError(f"trajectory CSVs ({', '.join(csvs)}) mixed with tracking files; "
                          "convert the tracking files first or pass one kind")
+    check_distinct(paths)  # read_csv checks the trajectory CSVs
     settings = settings() if callable(settings) else settings
     settings = settings or ConversionSettings(n_links=n_links)
     convs = [convert_file(p, settings, format=kinds[p]) for p in paths]

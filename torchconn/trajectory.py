@@ -13,13 +13,15 @@ at the end, on a shared sampling grid.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from torch import Tensor
 
-__all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch"]
+__all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch",
+           "in_float64"]
 
 #: axis of time in ``(..., T, C)`` arrays, and of coordinates
 TIME_AXIS = -2
@@ -141,6 +143,20 @@ class Trajectory:
         return _map_arrays(self, lambda x, k: x.to(*args, **kwargs))
 
 
+def in_float64(traj: Trajectory, where: str) -> Trajectory:
+    """``traj`` with every array in float64: lower precisions (float32) converted with a
+    warning naming ``where`` (the estimator's normal equations need float64's digits)."""
+    if not isinstance(traj, Trajectory):
+        raise TypeError(f"{where}: traj must be a torchconn.Trajectory, got {type(traj).__name__}")
+    if traj.r.dtype == torch.float64 and traj.pose.dtype == torch.float64 and (
+            traj.power is None or traj.power.dtype == torch.float64):
+        return traj
+    found = sorted({str(x.dtype) for x in (traj.pose, traj.r, traj.power) if x is not None})
+    warnings.warn(f"{where}: the trajectory holds {', '.join(found)} arrays; converted to "
+                  "float64 (estimation needs its digits)", stacklevel=3)
+    return traj.to(torch.float64)
+
+
 # arrays and how many trailing (non-batch) dims each has
 _TRAILING = {"pose": 2, "r": 2, "power": 1, "phase": 1, "xi": 2, "r_dot": 2, "pose_dot": 2, "delta": 2}
 
@@ -162,16 +178,49 @@ def _map_arrays(traj: Trajectory, fn, t: Tensor | None = None) -> Trajectory:
     return apply(traj)
 
 
+def _dtypes(tr: Trajectory) -> None:
+    """Complex arrays refused; integer, boolean and float16 ones (and a ``t`` that is not
+    float64) converted to float64 with a warning naming them."""
+    converted = []
+
+    def fix(obj, prefix: str = "") -> None:
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if isinstance(v, (GroundTruth, SmoothedState)):
+                fix(v, f"{f.name}.")
+            if not isinstance(v, Tensor):
+                continue
+            name = prefix + f.name
+            if v.is_complex():
+                raise TypeError(f"Trajectory: {name} is a complex tensor ({v.dtype}); times, "
+                                "poses, joint angles and power are real numbers")
+            if (name == "t" and v.dtype != torch.float64) or not v.is_floating_point() or \
+                    v.dtype in (torch.float16, torch.bfloat16):
+                converted.append(f"{name} ({v.dtype})")
+                object.__setattr__(obj, f.name, v.to(torch.float64))
+
+    fix(tr)
+    if converted:
+        warnings.warn(f"Trajectory: converted {', '.join(converted)} to float64 (torchconn "
+                      "computes in floating point, with NaN for missing samples; half "
+                      "precision holds too few digits; t is kept in float64)", stacklevel=5)
+
+
 def _validate(tr: Trajectory) -> None:
     if not isinstance(tr.t, Tensor) or tr.t.ndim != 1:
         raise ValueError(f"t must be a 1-D tensor of sample times (T,), got {_describe(tr.t)}")
+    # the rounding of t as given (before a conversion to float64)
+    t_eps = torch.finfo(tr.t.dtype).eps if tr.t.is_floating_point() else 0.0
+    _dtypes(tr)
     T = tr.t.shape[0]
     if T < 2:
         raise ValueError(f"a trajectory needs at least 2 samples, got T={T}")
     steps = torch.diff(tr.t)
     if not torch.isfinite(tr.t).all() or (steps <= 0).any():
         raise ValueError("t must be finite and strictly increasing")
-    if (steps - steps.mean()).abs().max() > 1e-6 * steps.mean().abs() + 1e-12:
+    # relative jitter of 1e-6, or the rounding of t's magnitude (large time stamps)
+    rounding = 4 * t_eps * float(tr.t.abs().max())
+    if (steps - steps.mean()).abs().max() > 1e-6 * steps.mean().abs() + 1e-12 + rounding:
         raise ValueError(
             "t must be uniformly sampled; resample the recording onto a uniform grid first "
             f"(spacing ranges from {float(steps.min()):g} to {float(steps.max()):g})"

@@ -13,12 +13,12 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import tomllib
 from dataclasses import replace
 from pathlib import Path
 
 from .._cli import (
     InputError,
+    did_you_mean,
     add_device,
     add_threads,
     check_keys,
@@ -27,6 +27,8 @@ from .._cli import (
     run_command,
     set_threads,
 )
+from .._files import read_toml
+from .._options import check_field
 from ..convert import add_conversion_arguments, conversion_settings, load_recordings
 from ..io.preflight import preflight
 from ..io.trajectory_files import read_csv
@@ -78,38 +80,42 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _settings(args) -> DiscrepancySettings:
-    values = {}
+    """:class:`DiscrepancySettings` from ``--config``'s ``[discrepancy]`` table, then the flags;
+    every value checked (type, range) with the key or flag it came from."""
+    values, origin = {}, {}
     if args.config is not None:
         path = args.config
-        if path.is_dir():
-            raise InputError(f"--config {path} is a folder; expected a TOML file")
-        try:
-            table = tomllib.loads(path.read_bytes().decode("utf-8"))
-        except FileNotFoundError:
-            raise InputError(f"--config {path}: file not found") from None
-        except UnicodeDecodeError:
-            raise InputError(f"--config {path}: not UTF-8 text; TOML files must be UTF-8") \
-                from None
-        except tomllib.TOMLDecodeError as err:
-            raise InputError(f"--config {path}: invalid TOML: {err}") from None
+        table = read_toml(path, "--config")
         section = table.get("discrepancy", table)
+        where = f"--config {path}: [discrepancy]"
         if not isinstance(section, dict):
-            raise InputError(f"--config {path}: [discrepancy] must be a table of settings")
+            raise InputError(f"{where} must be a table of settings, got {section!r}")
+        check_keys(section, DiscrepancySettings.__dataclass_fields__, where)
         values.update(section)
-        if "candidates" in values and values["candidates"] is not None:
-            if not isinstance(values["candidates"], list):
-                raise InputError(f"--config {path}: candidates must be a list of effect names, "
-                                 f"got {values['candidates']!r}")
-            values["candidates"] = tuple(values["candidates"])
-    if args.candidates is not None:
-        values["candidates"] = tuple(args.candidates)
-    if args.alpha is not None:
-        values["alpha"] = args.alpha
-    if args.folds is not None:
-        values["n_folds"] = args.folds
-    if args.no_terms:
-        values["compare_terms"] = False
-    check_keys(values, DiscrepancySettings.__dataclass_fields__, "[discrepancy] settings")
+        origin.update({k: f"{where} {k}" for k in section})
+        if values.get("candidates") is not None:
+            c = values["candidates"]
+            if not isinstance(c, list) or not all(isinstance(x, str) for x in c):
+                raise InputError(f"{where} candidates must be a list of effect names "
+                                 f"({', '.join(REGISTRY)}), got {c!r}")
+            unknown = [x for x in c if x not in REGISTRY]
+            if unknown:
+                raise InputError(f"{where} candidates: unknown effect {unknown[0]!r}"
+                                 f"{did_you_mean(unknown[0], REGISTRY)}; registered: "
+                                 f"{', '.join(REGISTRY)}")
+            values["candidates"] = tuple(c)
+    for flag, key, value in (("--candidates", "candidates", args.candidates),
+                             ("--alpha", "alpha", args.alpha), ("--folds", "n_folds", args.folds),
+                             ("--no-terms", "compare_terms", False if args.no_terms else None)):
+        if value is not None:
+            values[key] = tuple(value) if key == "candidates" else value
+            origin[key] = flag
+    for key, value in values.items():
+        if key != "candidates":
+            try:
+                check_field(DiscrepancySettings, key, value, origin[key])
+            except ValueError as err:
+                raise InputError(str(err)) from None
     try:
         return DiscrepancySettings(**values)
     except (TypeError, ValueError) as err:

@@ -43,7 +43,7 @@ from ..io.preflight import MAX_GAP_CYCLES, preflight
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
-from ..trajectory import Trajectory
+from ..trajectory import Trajectory, in_float64
 from . import skill
 from ._wls import IllConditionedBinWarning
 from .model import LocalConnectionModel
@@ -241,8 +241,7 @@ class ConnectionEstimator:
                 :func:`torchconn.io.trajectory_files.read_csv`).
             phase: optional ``(..., T)`` phase to use instead of the phaser's estimate.
         """
-        if not isinstance(traj, Trajectory):
-            raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
+        traj = in_float64(traj, "ConnectionEstimator.fit")
         if getattr(self.regression, "metric", None) is True and traj.power is None:
             raise ValueError(
                 "the regression asks for the metric (metric=True) but the data have no power "
@@ -450,6 +449,7 @@ class ConnectionEstimator:
 
     def prepare(self, traj: Trajectory, phase: Tensor | None = None) -> Trajectory:
         """:func:`prepare` with this estimator's smoother and phaser (smoothing, phase)."""
+        traj = in_float64(traj, "ConnectionEstimator.prepare")
         return _prepare(traj, phase, self.smoother, self.phaser)[0]
 
     def predict(self, traj: Trajectory) -> Tensor:
@@ -467,6 +467,7 @@ class ConnectionEstimator:
 
     def _prepare_new(self, traj: Trajectory, phase: Tensor | None) -> Trajectory:
         """New recordings smoothed and phased with the fitted phase model when there is one."""
+        traj = in_float64(traj, "ConnectionEstimator")
         fitted = getattr(self, "phaser_", None)
         # one fitted phase model per training trial: it applies to recordings of the same
         # batch shape (the same trials, later); other batches are phased afresh (Phaser's
