@@ -14,13 +14,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from ._cli import InputError, add_threads, prepare_output, run_command, set_threads
+from ._cli import InputError, add_threads, check_keys, prepare_output, run_command, set_threads
 from ._files import check_distinct, check_file, read_toml
+from ._options import check_field
 from ._provenance import write_sidecar
 from .io.preflight import preflight
 from .io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
@@ -28,7 +30,8 @@ from .io.trajectory_files import read_csv, write_csv
 from .trajectory import Trajectory
 
 __all__ = ["main", "add_conversion_arguments", "conversion_settings", "load_recordings",
-           "Recordings", "config_tables"]
+           "Recordings", "config_tables", "check_conversion_table", "conversion_flags",
+           "warn_unused_conversion"]
 
 
 # ============================================================================ shared CLI parts
@@ -61,6 +64,35 @@ _FLAG_FIELDS = ("fps", "frame", "curve", "head", "flip_y", "scale", "min_score",
                 "keypoints", "track")
 
 
+def conversion_flags(args) -> list[str]:
+    """The tracking-conversion flags given (``["--fps", ...]``), each value's range checked
+    before any work (:class:`InputError` naming the flag)."""
+    given = []
+    for name in _FLAG_FIELDS:
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        flag = "--" + name.replace("_", "-")
+        given.append(flag)
+        if name in ("fps", "scale", "min_score", "max_gap"):
+            try:
+                check_field(ConversionSettings, name, value, flag)
+            except ValueError as err:
+                raise InputError(str(err)) from None
+    if args.keypoints is not None and len([k for k in args.keypoints.split(",") if k.strip()]) < 2:
+        raise InputError(f"--keypoints must name at least 2 points along the body, head to tail, "
+                         f"separated by commas, got {args.keypoints!r}")
+    return given
+
+
+def warn_unused_conversion(rec: Recordings, given: list[str]) -> None:
+    """Warn that conversion flags were given for trajectory CSVs, which have no use for them."""
+    if given and not rec.reports:
+        warnings.warn(f"{', '.join(given)} ignored: conversion options apply to tracking files, "
+                      "and the inputs are trajectory CSVs (t, x, y, theta, r1, ...) already",
+                      stacklevel=2)
+
+
 def config_tables(path: Path | None, overrides: list[str]) -> dict:
     """A TOML config (``[estimator]``, ``[convert]``, ...) with ``--set section.key=value``
     overrides applied (the sweep's parser)."""
@@ -74,13 +106,29 @@ def config_tables(path: Path | None, overrides: list[str]) -> dict:
     return apply_overrides(raw, list(overrides))
 
 
+def check_conversion_table(table) -> dict:
+    """A ``[convert]`` table's keys and every value's type and range (what
+    :class:`ConversionSettings` checks field by field), before any work and whatever the input;
+    :class:`InputError` naming the key."""
+    if table is None:
+        return {}
+    if not isinstance(table, dict):
+        raise InputError(f"[convert] must be a table of conversion settings, got {table!r}")
+    check_keys(table, [f.name for f in dataclasses.fields(ConversionSettings)
+                       if f.name != "n_links"], "[convert]")
+    for key, value in table.items():
+        if key == "keypoints" and isinstance(value, list):
+            value = tuple(value)
+        try:
+            check_field(ConversionSettings, key, value, f"[convert] {key}")
+        except ValueError as err:
+            raise InputError(str(err)) from None
+    return table
+
+
 def conversion_settings(args, n_links: int, table: dict | None = None) -> ConversionSettings:
     """:class:`ConversionSettings` from a ``[convert]`` table, then the command-line flags."""
-    values = dict(table or {})
-    known = {f.name for f in dataclasses.fields(ConversionSettings)} - {"n_links"}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise ValueError(f"unknown [convert] setting(s) {unknown}; known: {sorted(known)}")
+    values = dict(check_conversion_table(table))
     for name in _FLAG_FIELDS:
         v = getattr(args, name, None)
         if v is not None:
@@ -89,6 +137,10 @@ def conversion_settings(args, n_links: int, table: dict | None = None) -> Conver
         values["keypoints"] = tuple(k.strip() for k in values["keypoints"].split(",") if k.strip())
     if values.get("keypoints") is not None:
         values["keypoints"] = tuple(values["keypoints"])
+    if values.get("frame", "center") == "center" and n_links % 2 == 0:
+        raise InputError(f"--links {n_links}: the center body frame (the middle link) needs an "
+                         "odd number of links; pass --frame com-mean (or frame = \"com-mean\" "
+                         "in [convert])")
     return ConversionSettings(n_links=n_links, **values)
 
 
@@ -196,6 +248,9 @@ def main(argv: list[str] | None = None) -> int:
         unknown = sorted(set(tables) - {"convert"})
         if unknown:
             raise InputError(f"unknown config section(s) {unknown}; convert reads [convert]")
+        if args.links < 2:
+            raise InputError(f"--links must be >= 2, got {args.links}")
+        conversion_flags(args)
         settings = conversion_settings(args, args.links, tables.get("convert"))
         out = prepare_output(args.out)
         rec = load_recordings(args.sources, fmt=args.format, n_links=args.links,

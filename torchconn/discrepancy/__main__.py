@@ -11,6 +11,7 @@ Unknown columns are warned about.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from dataclasses import replace
@@ -29,7 +30,13 @@ from .._cli import (
 )
 from .._files import read_toml
 from .._options import check_field
-from ..convert import add_conversion_arguments, conversion_settings, load_recordings
+from ..convert import (
+    add_conversion_arguments,
+    conversion_flags,
+    conversion_settings,
+    load_recordings,
+    warn_unused_conversion,
+)
 from ..io.preflight import preflight
 from ..io.trajectory_files import read_csv
 from ..physics.systems.swimmer import NLinkSwimmer
@@ -86,8 +93,13 @@ def _settings(args) -> DiscrepancySettings:
     if args.config is not None:
         path = args.config
         table = read_toml(path, "--config")
-        section = table.get("discrepancy", table)
         where = f"--config {path}: [discrepancy]"
+        others = sorted(k for k in table if k != "discrepancy" and isinstance(table[k], dict))
+        if others:
+            raise InputError(f"--config {path}: unknown section(s) "
+                             f"{', '.join(f'[{k}]' for k in others)}; discrepancy reads a "
+                             "[discrepancy] table of settings")
+        section = table.get("discrepancy", table)
         if not isinstance(section, dict):
             raise InputError(f"{where} must be a table of settings, got {section!r}")
         check_keys(section, DiscrepancySettings.__dataclass_fields__, where)
@@ -132,10 +144,18 @@ def main(argv: list[str] | None = None) -> int:
         device = resolve_device(args.device)
         if args.links < 2:
             raise InputError(f"--links must be at least 2, got {args.links}")
+        if not (math.isfinite(args.drag_ratio) and args.drag_ratio > 0):
+            raise InputError(f"--drag-ratio must be a positive number, got {args.drag_ratio}")
+        if args.link_lengths is not None and (
+                len(args.link_lengths) != args.links
+                or not all(math.isfinite(x) and x > 0 for x in args.link_lengths)):
+            raise InputError(f"--link-lengths must give {args.links} positive numbers (one per "
+                             f"link, --links {args.links}), got {args.link_lengths}")
         frame = args.frame or "center"
         system = NLinkSwimmer(args.links, drag_ratio=args.drag_ratio, frame=frame,
                               link_lengths=args.link_lengths)
         settings = _settings(args)
+        given = conversion_flags(args)
         known = [parse_known(k, system) for k in args.known]
         def conv():  # conversion options matter (and are checked) for tracking files only
             return conversion_settings(args, args.links)
@@ -143,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         out = prepare_output(args.out)
         rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
                               settings=conv, read_csv=read_csv)
+        warn_unused_conversion(rec, given)
         traj = relative_to_known(rec.trajectory, known, system)
         system = known_system(system, known)
         if known:

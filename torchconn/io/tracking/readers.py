@@ -674,10 +674,18 @@ def _resample_polyline(x: np.ndarray, y: np.ndarray, K: int) -> tuple[np.ndarray
 
 # ============================================================================ plain points
 def _read_points_npz(path: Path) -> Keypoints:
+    with path.open("rb") as fh:
+        start = fh.read(8)
+    if not start.startswith(b"PK"):  # an NPZ is a ZIP archive of .npy arrays
+        kind = file_kind(start) or "not a ZIP archive of .npy arrays"
+        raise TrackingFormatError(f"{path}: not an NPZ file ({kind}); write one with "
+                                  "numpy.savez(path, points=..., t=...)")
     try:
         z = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as err:
         raise TrackingFormatError(f"{path}: not a readable NPZ file ({err})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise TrackingFormatError(f"{path}: a single .npy array, not an NPZ archive")
     with z:
         if "points" not in z.files:
             raise TrackingFormatError(f"{path}: no array 'points'; expected points (frames, "
