@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import warnings
 from dataclasses import dataclass
@@ -74,11 +75,10 @@ def conversion_flags(args) -> list[str]:
             continue
         flag = "--" + name.replace("_", "-")
         given.append(flag)
-        if name in ("fps", "scale", "min_score", "max_gap"):
-            try:
-                check_field(ConversionSettings, name, value, flag)
-            except ValueError as err:
-                raise InputError(str(err)) from None
+        if name in ("fps", "scale", "max_gap") and not (math.isfinite(value) and value > 0):
+            raise InputError(f"{flag} must be a positive number, got {value}")
+        if name == "min_score" and not math.isfinite(value):
+            raise InputError(f"{flag} must be a finite number, got {value}")
     if args.keypoints is not None and len([k for k in args.keypoints.split(",") if k.strip()]) < 2:
         raise InputError(f"--keypoints must name at least 2 points along the body, head to tail, "
                          f"separated by commas, got {args.keypoints!r}")
@@ -252,6 +252,15 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--links must be >= 2, got {args.links}")
         conversion_flags(args)
         settings = conversion_settings(args, args.links, tables.get("convert"))
+        stems = {}
+        for src in args.sources:  # each source's CSVs are named after it
+            stem = src.name.rsplit(".", 1)[0]
+            # one file named twice is load_recordings' error
+            if stem in stems and stems[stem].resolve() != src.resolve():
+                raise InputError(f"{stems[stem]} and {src} would both be written as "
+                                 f"{args.out / stem}.csv; rename one, or convert them into "
+                                 "separate --out folders")
+            stems[stem] = src
         out = prepare_output(args.out)
         rec = load_recordings(args.sources, fmt=args.format, n_links=args.links,
                               settings=settings)
@@ -261,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(check.lines()))
         files = []
         for rep in rec.reports:
-            stem = Path(rep.source).name.rsplit(".", 1)[0]
+            stem = Path(rep.source).name.rsplit(".", 1)[0]  # distinct (checked above)
             mine = [tr for (path, _, tr) in rec.trials if str(path) == rep.source]
             outs = []
             for k, tr in enumerate(mine):

@@ -220,9 +220,11 @@ def main(argv: list[str] | None = None) -> int:
         device = resolve_device(args.device)
         if args.links < 2:
             raise InputError(f"--links must be >= 2, got {args.links}")
-        if not 2 <= args.grid <= _MAX_GRID:
-            raise InputError(f"--grid must be between 2 and {_MAX_GRID} (rows of "
-                             f"connection.csv), got {args.grid}")
+        if args.grid < 2:
+            raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
+        if args.grid > _MAX_GRID:
+            raise InputError(f"--grid must be <= {_MAX_GRID} (rows of connection.csv), got "
+                             f"{args.grid}")
         if args.folds is not None and (args.folds < 0 or args.folds == 1):
             raise InputError(f"--folds must be 0 (no held-out check) or >= 2, got {args.folds}")
         if args.window is not None and not (math.isfinite(args.window) and args.window > 0):

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch",
-           "in_float64"]
+           "in_float64", "power_problem"]
 
 #: axis of time in ``(..., T, C)`` arrays, and of coordinates
 TIME_AXIS = -2
@@ -141,6 +141,28 @@ class Trajectory:
     def to(self, *args, **kwargs) -> "Trajectory":
         """Move/cast every array (``torch.Tensor.to`` semantics; ``t`` keeps float64)."""
         return _map_arrays(self, lambda x, k: x.to(*args, **kwargs))
+
+
+def power_problem(power: Tensor, negative_at: str = "") -> str | None:
+    """Why ``power (T,)`` (one trial; NaN missing) cannot be a dissipated power, or None.
+
+    Dissipated power is >= 0 up to noise: a column of zeros, one whose median is <= 0, or one
+    whose mean is 0 (its mean removed) is not one. ``negative_at`` says where the negative
+    values are (e.g. ``"lines 3, 5"``), for the message.
+    """
+    p = power[torch.isfinite(power)]
+    if p.numel() == 0:
+        return None
+    if not bool(p.any()):
+        return ("every value is 0; the dissipated power is positive while the body moves (a "
+                "placeholder?)")
+    mean, median = float(p.mean()), float(p.median())
+    if median <= 0 or mean <= 1e-6 * float(p.abs().mean()):
+        at = f"{negative_at}; " if negative_at else ""
+        return (f"{100 * float((p < 0).double().mean()):.0f}% of the values are negative ({at}"
+                f"mean {mean:.3g}, median {median:.3g}); power is the dissipated power, >= 0 up "
+                "to noise: its sign flipped, or its mean removed?")
+    return None
 
 
 def in_float64(traj: Trajectory, where: str) -> Trajectory:

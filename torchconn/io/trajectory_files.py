@@ -32,7 +32,7 @@ from torch import Tensor
 
 from .. import _checks
 from .._files import check_distinct
-from ..trajectory import GroundTruth, SmoothedState, Trajectory
+from ..trajectory import GroundTruth, SmoothedState, Trajectory, power_problem
 from ._table import read_table
 
 __all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles", "principal_signal"]
@@ -167,9 +167,15 @@ def _read_file(path: Path, n_joints: int | None) -> list[_Trial]:
     header, rows, lines = _read_rows(path)
     seen = set()
     for name in header:
-        if name in seen:
+        if name in seen and name:
             raise ValueError(f"{file}: column {name!r} appears more than once in the header")
         seen.add(name)
+    unnamed = [j for j, name in enumerate(header) if not name]
+    if unnamed:
+        filled = [j + 1 for j in unnamed if any(r[j].strip() for r in rows)]
+        if filled:  # an empty one is a trailing separator
+            warnings.warn(f"{file}: ignoring column(s) {', '.join(map(str, filled))} (counted "
+                          "from 1): values under an empty header cell", stacklevel=3)
     joints = sorted(int(m.group(1)) for n in header if (m := _JOINT.match(n)))
     d = max(joints, default=0)
     expected = list(_POSE_COLUMNS) + [f"r{i}" for i in range(1, max(d, 1) + 1)]
@@ -183,7 +189,7 @@ def _read_file(path: Path, n_joints: int | None) -> list[_Trial]:
     if n_joints is not None and d != n_joints:
         raise ValueError(f"{file}: has {d} joint column(s) r1..r{d}, expected n_joints={n_joints}")
     known = set(expected) | {"power", "trial"}
-    unknown = [c for c in header if c not in known]
+    unknown = [c for c in header if c not in known and c]
     if unknown:
         warnings.warn(f"{file}: ignoring unknown column(s) {', '.join(repr(c) for c in unknown)}",
                       stacklevel=3)
@@ -291,6 +297,9 @@ def _check_joint_range(col: np.ndarray, name: str, label: str) -> None:
 #: 0.02-0.09 per radian); positions beyond these limits are not in body lengths
 _MAX_BL_PER_CYCLE = 3.0
 _MAX_BL_PER_RAD = 2.0
+#: joint motion per cycle (rad, norm over the joints) below which no gait is there to fit: a
+#: tracker's own joint-angle noise is about 0.01 rad
+_MIN_BEND = 1e-3
 #: largest plausible range of the heading within one gait cycle (rad): the simulated swimmers
 #: swing by 0.36-2.35 (3- and 9-link reference and optimised gaits, both frames, η = 0.1)
 _MAX_SWING = 2 * math.pi
@@ -323,7 +332,13 @@ def _check_pose(pose: np.ndarray, r: np.ndarray, label: str) -> None:
     moved = np.hypot(*_per_cycle(pose[:, :2], n).T)
     bent = np.linalg.norm(_per_cycle(r, n), axis=-1)
     ok = np.isfinite(moved) & np.isfinite(bent) & (bent > 0)
-    if ok.any():
+    if ok.any() and np.median(bent[ok]) < _MIN_BEND:
+        warnings.warn(
+            f"{label}, columns 'r1'..'r{r.shape[1]}': the joint angles change by only "
+            f"{np.median(bent[ok]):.3g} rad within a gait cycle (median over {int(ok.sum())} "
+            "cycles), too little shape change to drive or to estimate a motion from: joint "
+            "angles in another unit, or scaled?", stacklevel=4)
+    elif ok.any():
         per_cycle = float(np.median(moved[ok]))
         per_rad = float(np.median(moved[ok] / bent[ok]))
         if per_cycle > _MAX_BL_PER_CYCLE or per_rad > _MAX_BL_PER_RAD:
@@ -348,24 +363,14 @@ def _check_pose(pose: np.ndarray, r: np.ndarray, label: str) -> None:
 
 
 def _check_power(power: np.ndarray, lines: np.ndarray, label: str) -> None:
-    """Refuse a ``power`` column that cannot be a dissipated power: all zero, mostly negative,
-    or with a mean of zero (its mean removed)."""
-    valid = np.isfinite(power)
-    p = power[valid]
-    if not p.size:
-        return
-    where = f"{label}, column 'power'"
-    if not p.any():
-        raise ValueError(f"{where}: every value is 0; the dissipated power is positive while "
-                         "the body moves (a placeholder column? remove it to fit the "
-                         "connection alone)")
-    negative = p < 0
-    if np.median(p) <= 0 or p.mean() <= 1e-6 * np.abs(p).mean():
-        raise ValueError(
-            f"{where}: {100 * negative.mean():.0f}% of the values are negative "
-            f"({_lines_text(lines[valid][negative])}; mean {p.mean():.3g}, median "
-            f"{np.median(p):.3g}); power is the dissipated power, >= 0 up to noise: its sign "
-            "flipped, or its mean removed?")
+    """Refuse a ``power`` column that cannot be a dissipated power (:func:`power_problem`),
+    naming the lines of its negative values."""
+    negative = np.flatnonzero(power < 0)
+    problem = power_problem(torch.as_tensor(power),
+                            _lines_text(lines[negative]) if negative.size else "")
+    if problem is not None:
+        raise ValueError(f"{label}, column 'power': {problem} Remove the column to fit the "
+                         "connection alone")
 
 
 def _check_time(t: np.ndarray, lines: np.ndarray, label: str) -> None:

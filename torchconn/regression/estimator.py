@@ -43,7 +43,7 @@ from ..io.preflight import MAX_GAP_CYCLES, preflight
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
-from ..trajectory import Trajectory, in_float64
+from ..trajectory import Trajectory, in_float64, power_problem
 from . import skill
 from ._wls import IllConditionedBinWarning
 from .model import LocalConnectionModel
@@ -242,6 +242,13 @@ class ConnectionEstimator:
             phase: optional ``(..., T)`` phase to use instead of the phaser's estimate.
         """
         traj = in_float64(traj, "ConnectionEstimator.fit")
+        if getattr(self.regression, "metric", None) is not False and traj.power is not None:
+            for k, p in enumerate(traj.power.reshape(-1, traj.n_samples)):
+                problem = power_problem(p)
+                if problem is not None:
+                    raise ValueError(f"ConnectionEstimator.fit: power of trial {k} (flattened "
+                                     f"batch): {problem}; or fit the connection alone "
+                                     "(regression__metric=False)")
         if getattr(self.regression, "metric", None) is True and traj.power is None:
             raise ValueError(
                 "the regression asks for the metric (metric=True) but the data have no power "

@@ -81,7 +81,8 @@ class SimulationSettings:
     substeps: int = 8
 
     def __post_init__(self) -> None:
-        _in_range("alpha", self.alpha, float, 0.0)
+        # > 0: the rollouts start from the stationary law N(0, η²/(2α))
+        check_value("alpha", self.alpha, float, {"gt": 0.0})
         _in_range("eta", self.eta, float, 0.0)
         _in_range("n_cycles", self.n_cycles, int, 2, 100_000)
         _in_range("samples_per_cycle", self.samples_per_cycle, int, 8, 100_000)
@@ -371,7 +372,7 @@ def load_config(config: str | Path | None = None, overrides: list[str] = ()) -> 
     raw = apply_overrides(raw, list(overrides))
     try:
         return _parse(raw)
-    except InputError as err:
+    except ValueError as err:  # InputError, and the type checks of _check_type
         sets = [o for o in overrides if "=" in o]
         hint = f" (after --set {', '.join(sets)})" if sets else ""
         raise InputError(f"{source}: {err}{hint}") from None

@@ -385,8 +385,15 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
         raise TrackingFormatError(f"{src}: only {len(sel)} keypoint ({', '.join(names)}); a midline "
                                   "needs at least 2 points along the body (better: 2 or more per link)")
     used = [names[i] for i in sel]
+    if len(sel) < s.n_links + 1:
+        note(f"{len(sel)} keypoints for {s.n_links} links: the curve through them bends at "
+             f"{max(len(sel) - 2, 0)} of them at most, so the {s.n_links - 1} joint angles are "
+             f"interpolated, not measured (track at least {s.n_links + 1} keypoints, or use "
+             "fewer links)")
     pts = kp.points[:, sel].copy()
     scores = None if kp.scores is None else kp.scores[:, sel]
+    if s.min_score is not None and scores is None:
+        note(f"min_score {s.min_score:g} has no effect: the file holds no confidence scores")
     F_read = pts.shape[0]
     if F_read == 0:
         raise TrackingFormatError(f"{src}: no tracked frames")
