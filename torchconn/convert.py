@@ -25,6 +25,7 @@ from ._cli import InputError, add_threads, check_keys, prepare_output, run_comma
 from ._files import check_distinct, check_file, read_toml
 from ._options import check_field
 from ._provenance import write_sidecar
+from .io._table import headerless
 from .io.preflight import preflight
 from .io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
 from .io.trajectory_files import read_csv, write_csv
@@ -187,6 +188,11 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
         raise ValueError(f"trajectory CSVs ({', '.join(csvs)}) mixed with tracking files; "
                          "convert the tracking files first or pass one kind")
     check_distinct(paths)  # read_csv checks the trajectory CSVs
+    for p, kind in kinds.items():
+        if kind == "points" and Path(p).suffix.lower() != ".npz" and headerless(p, "a CSV file"):
+            warnings.warn(f"{p} has no header row: read as tracked points (x, y pairs per "
+                          "frame); a trajectory CSV starts with the header 't, x, y, theta, "
+                          "r1, ..., rd[, power]'", stacklevel=2)
     settings = settings() if callable(settings) else settings
     settings = settings or ConversionSettings(n_links=n_links)
     convs = [convert_file(p, settings, format=kinds[p]) for p in paths]

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from .._files import read_text
 
-__all__ = ["read_table", "first_rows", "DELIMITERS"]
+__all__ = ["read_table", "first_rows", "headerless", "DELIMITERS"]
 
 #: separators tried, in this order of preference at equal field counts (" ": runs of blanks)
 DELIMITERS = (",", "\t", ";", "|", " ")
@@ -114,6 +114,12 @@ def first_rows(path: str | PathLike, what: str, n: int) -> list[list[str]]:
     path = Path(path)
     content, delimiter = _layout(path, what, None)
     return [cells for _, cells in _parse(path, content[:n], delimiter, ValueError)]
+
+
+def headerless(path: str | PathLike, what: str) -> bool:
+    """True when the first row of a delimited text file holds only numbers (no header)."""
+    first = first_rows(path, what, 1)
+    return bool(first) and all(map(_is_number, first[0]))
 
 
 def read_table(

@@ -323,8 +323,9 @@ def _check_pose(pose: np.ndarray, r: np.ndarray, label: str) -> None:
     for name, col in zip(names, np.concatenate([pose, r], 1).T, strict=True):
         v = col[np.isfinite(col)]
         if v.size > 1 and (v == v[0]).all():
-            warnings.warn(f"{label}, column {name!r}: the same value ({v[0]:g}) in every row; a "
-                          "recording moves in every column (a placeholder?)", stacklevel=4)
+            warnings.warn(f"{label}, column {name!r}: the same value ({v[0] + 0.0:g}) in every "
+                          "row; a recording moves in every column (a placeholder?)",
+                          stacklevel=4)
     cycles = float(count_cycles(torch.as_tensor(r)))
     n = int(round(len(r) / cycles)) if cycles >= 1.5 else 0
     if n < 2:
