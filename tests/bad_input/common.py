@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -72,3 +74,12 @@ def run_module(*argv: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     return subprocess.run([sys.executable, "-m", *argv], env=env, capture_output=True,
                           text=True, timeout=300)
+
+
+def noise_csv(tmp_path: Path, n: int, seed: int) -> Path:
+    """A trajectory CSV of white noise (no gait): ``n`` rows, 2 joints."""
+    rng = np.random.default_rng(seed)
+    table = np.column_stack([np.arange(n) * 0.1, rng.normal(size=(n, 5)) * 0.1])
+    path = tmp_path / "noise.csv"
+    np.savetxt(path, table, delimiter=",", header="t,x,y,theta,r1,r2", comments="")
+    return path

@@ -4,7 +4,6 @@ message naming the file and key or the flag."""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from torchconn.discrepancy import DiscrepancySettings
@@ -14,6 +13,7 @@ from .common import (
     assert_clean_failure,
     lines,
     must_not_run,
+    noise_csv,
     run_module,
     variant,
     write,
@@ -32,11 +32,7 @@ def _reached(*args, **kwargs):
 
 def test_discrepancy_pure_noise_is_not_a_gait(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(DIAGNOSE, must_not_run)
-    rng = np.random.default_rng(1)
-    n = 600
-    table = np.column_stack([np.arange(n) * 0.1, rng.normal(size=(n, 5)) * 0.1])
-    path = tmp_path / "noise.csv"
-    np.savetxt(path, table, delimiter=",", header="t,x,y,theta,r1,r2", comments="")
+    path = noise_csv(tmp_path, 600, seed=1)
     code = discrepancy_cli.main([str(path), "--links", "3", "--out", str(tmp_path / "o")])
     assert_clean_failure(code, capsys.readouterr().err, ["no periodic gait found"],
                          tmp_path / "o")

@@ -28,6 +28,7 @@ from .common import (
     assert_warned,
     lines,
     must_not_run,
+    noise_csv,
     run_module,
     variant,
     write,
@@ -209,11 +210,7 @@ def test_fit_wrong_joint_count(recording, tmp_path, capsys):
 
 
 def test_fit_pure_noise_is_not_a_gait(tmp_path, capsys):
-    rng = np.random.default_rng(0)
-    n = 400
-    table = np.column_stack([np.arange(n) * 0.1, rng.normal(size=(n, 5)) * 0.1])
-    path = tmp_path / "noise.csv"
-    np.savetxt(path, table, delimiter=",", header="t,x,y,theta,r1,r2", comments="")
+    path = noise_csv(tmp_path, 400, seed=0)
     code = fit.main([str(path), "--links", "3", "--out", str(tmp_path / "o")])
     assert_clean_failure(code, capsys.readouterr().err, ["no periodic gait found"],
                          tmp_path / "o")

@@ -19,10 +19,10 @@ from pathlib import Path
 
 from .._cli import (
     InputError,
-    did_you_mean,
     add_device,
     add_threads,
     check_keys,
+    did_you_mean,
     prepare_output,
     resolve_device,
     run_command,

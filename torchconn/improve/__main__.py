@@ -17,6 +17,7 @@ import sys
 import warnings
 from pathlib import Path
 
+from .._checks import check_value
 from .._cli import (
     InputError,
     add_device,
@@ -26,7 +27,6 @@ from .._cli import (
     run_command,
     set_threads,
 )
-from .._checks import check_value
 from .._provenance import write_sidecar
 from ..convert import load_recordings
 from ..io.trajectory_files import read_csv

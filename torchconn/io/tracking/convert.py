@@ -28,9 +28,9 @@ import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
-from typing import Literal
 from os import PathLike
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch

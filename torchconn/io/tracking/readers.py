@@ -36,7 +36,6 @@ HDF5 needs h5py (``pip install 'torchconn[tracking]'``).
 
 from __future__ import annotations
 
-import csv
 import io
 import json
 import math
