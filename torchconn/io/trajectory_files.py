@@ -196,6 +196,11 @@ def _read_file(path: Path, n_joints: int | None) -> list[_Trial]:
     if len(rows) == 0:
         raise ValueError(f"{file}: no data rows; a trial needs at least {MIN_SAMPLES} samples")
 
+    for row, line in zip(rows, lines, strict=True):
+        if [c.strip().strip('"').lower() for c in row] == header:
+            raise ValueError(f"{file}, line {line}: the header row again (files joined into "
+                             "one?); give each recording its own file, or one file with a "
+                             "'trial' column")
     cols = list(zip(*rows, strict=True))
     data = {
         name: _parse_column(list(cols[header.index(name)]), name, lines, file)

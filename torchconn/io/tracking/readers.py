@@ -367,7 +367,10 @@ def _csv_rows(path: Path, header_rows: int | None = 1):
     if header_rows and len(heads) < header_rows:
         raise TrackingFormatError(f"{path}: the file is empty or its header is incomplete")
     if not rows:
-        raise TrackingFormatError(f"{path}: no data rows")
+        first = ",".join(heads[0]) if heads else ""
+        raise TrackingFormatError(f"{path}: no data rows after the first line "
+                                  f"{first[:60]!r}; expected a trajectory CSV (header t, x, y, "
+                                  "theta, r1, ..., rd) or a tracking file")
     if header_rows is None:
         return (heads[0] if heads else None), rows, lines
     return (heads[0] if header_rows == 1 else heads), rows, lines
@@ -726,9 +729,11 @@ def _read_points_csv(path: Path) -> Keypoints:
         tcol = next((i for i, h in enumerate(low) if h in ("t", "time", "time_s")), None)
         fcol = next((i for i, h in enumerate(low) if h in ("frame", "frame_idx")), None)
         rest = [i for i in range(width) if i not in (tcol, fcol)]
-        if len(rest) % 2:
-            raise TrackingFormatError(f"{path}: {len(rest)} coordinate columns; expected x, y "
-                                      "pairs (one pair per point along the body)")
+        if len(rest) % 2 or not rest:
+            raise TrackingFormatError(f"{path}: {len(rest)} coordinate columns (header "
+                                      f"{', '.join(header)}); expected x, y pairs (one pair per "
+                                      "point along the body), or a trajectory CSV 't, x, y, "
+                                      "theta, r1, ..., rd'")
         for a, b in zip(rest[::2], rest[1::2], strict=True):
             ma, mb = _PAIR.match(header[a]), _PAIR.match(header[b])
             if (ma and mb and ma.group(2).lower() == "x" and mb.group(2).lower() == "y"
