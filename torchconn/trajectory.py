@@ -20,8 +20,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ._checks import describe
+
 __all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch",
-           "in_float64", "power_problem"]
+           "for_estimation", "power_problem"]
 
 #: axis of time in ``(..., T, C)`` arrays, and of coordinates
 TIME_AXIS = -2
@@ -165,18 +167,52 @@ def power_problem(power: Tensor, negative_at: str = "") -> str | None:
     return None
 
 
-def in_float64(traj: Trajectory, where: str) -> Trajectory:
-    """``traj`` with every array in float64: lower precisions (float32) converted with a
-    warning naming ``where`` (the estimator's normal equations need float64's digits)."""
+def for_estimation(traj: Trajectory, where: str, phase: Tensor | None = None) -> Trajectory:
+    """``traj`` checked and in float64, for an estimator.
+
+    Lower precisions (float32) are converted with a warning naming ``where`` (the normal
+    equations need float64's digits). Refused, naming the array, column and trial: ±inf in
+    ``pose``, ``r`` or ``power``; a coordinate with no finite sample in a trial; a
+    ``phase (..., T)`` of another shape or dtype, with ±inf, or all NaN in a trial
+    (``ValueError`` / ``TypeError``).
+    """
     if not isinstance(traj, Trajectory):
         raise TypeError(f"{where}: traj must be a torchconn.Trajectory, got {type(traj).__name__}")
-    if traj.r.dtype == torch.float64 and traj.pose.dtype == torch.float64 and (
-            traj.power is None or traj.power.dtype == torch.float64):
-        return traj
-    found = sorted({str(x.dtype) for x in (traj.pose, traj.r, traj.power) if x is not None})
-    warnings.warn(f"{where}: the trajectory holds {', '.join(found)} arrays; converted to "
-                  "float64 (estimation needs its digits)", stacklevel=3)
-    return traj.to(torch.float64)
+    if not (traj.r.dtype == torch.float64 and traj.pose.dtype == torch.float64 and (
+            traj.power is None or traj.power.dtype == torch.float64)):
+        found = sorted({str(x.dtype) for x in (traj.pose, traj.r, traj.power) if x is not None})
+        warnings.warn(f"{where}: the trajectory holds {', '.join(found)} arrays; converted to "
+                      "float64 (estimation needs its digits)", stacklevel=3)
+        traj = traj.to(torch.float64)
+    T = traj.n_samples
+    for name, x, columns in (("pose", traj.pose, ("x", "y", "theta")),
+                             ("r", traj.r, tuple(f"r{i + 1}" for i in range(traj.shape_dim))),
+                             ("power", None if traj.power is None else traj.power[..., None],
+                              ("power",))):
+        if x is None:
+            continue
+        x = x.reshape(-1, T, len(columns))
+        inf = torch.isinf(x)
+        empty = torch.isnan(x).all(-2)  # (trials, columns)
+        if bool(inf.any() | (empty.any() if name != "power" else False)):
+            if bool(inf.any()):
+                k, i, j = (int(v) for v in torch.nonzero(inf)[0])
+                raise ValueError(f"{where}: traj.{name} holds ±inf ({columns[j]} of trial {k} "
+                                 f"of the flattened batch, sample {i}); missing samples are NaN")
+            k, j = (int(v) for v in torch.nonzero(empty)[0])
+            raise ValueError(f"{where}: {columns[j]} (traj.{name}) of trial {k} of the flattened "
+                             "batch has no finite sample; drop the trial or record the column")
+    if phase is not None:
+        shape = tuple(traj.batch_shape) + (T,)
+        if not isinstance(phase, Tensor) or not phase.is_floating_point() or \
+                tuple(phase.shape) != shape:
+            raise TypeError(f"{where}: phase must be a floating-point tensor of shape {shape} "
+                            f"(the trajectory's batch and samples), got {describe(phase)}")
+        if bool(torch.isinf(phase).any() | torch.isnan(phase).reshape(-1, T).all(-1).any()):
+            raise ValueError(f"{where}: phase holds ±inf, or a trial without one finite value; "
+                             "give the phase in rad (NaN only where samples are missing), or "
+                             "phase=None to estimate it")
+    return traj
 
 
 # arrays and how many trailing (non-batch) dims each has

@@ -444,6 +444,25 @@ def test_estimator_converts_float32_and_refuses_negative_power(recording):
     assert est.model_.connection(torch.zeros(1, dtype=torch.float64)).dtype == torch.float64
 
 
+@pytest.mark.parametrize("change,error,match", [
+    (lambda tr: dict(pose=tr.pose.index_fill(1, torch.tensor([5]), math.inf)), ValueError,
+     r"traj\.pose holds ±inf \(x of trial 0 of the flattened batch, sample 5\)"),
+    (lambda tr: dict(r=tr.r * math.nan), ValueError,
+     r"r1 \(traj\.r\) of trial 0 of the flattened batch has no finite sample"),
+    (lambda tr: dict(phase=torch.zeros(tr.r.shape[:-1], dtype=torch.int64)), TypeError,
+     r"phase must be a floating-point tensor of shape \(1, 192\)"),
+    (lambda tr: dict(phase=torch.full(tr.r.shape[:-1], math.nan, dtype=torch.float64)),
+     ValueError, r"phase holds ±inf, or a trial without one finite value"),
+], ids=["pose-inf", "r-all-nan", "phase-integer", "phase-nan"])
+def test_estimator_checks_its_input_before_work(change, error, match, recording, monkeypatch):
+    good = read_csv(recording)
+    monkeypatch.setattr("torchconn.regression.estimator._prepare", must_not_run)
+    kwargs = change(good)
+    phase = kwargs.pop("phase", None)
+    with pytest.raises(error, match=match):
+        ConnectionEstimator().fit(good.with_fields(**kwargs), phase)
+
+
 def test_stage_options_refuse_nan():
     with pytest.raises(ValueError, match=r"Phaser\.min_cycles must be a finite number"):
         Phaser(min_cycles=math.nan)

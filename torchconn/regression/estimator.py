@@ -43,7 +43,7 @@ from ..io.preflight import MAX_GAP_CYCLES, preflight
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
-from ..trajectory import Trajectory, in_float64, power_problem
+from ..trajectory import Trajectory, for_estimation, power_problem
 from . import skill
 from ._wls import IllConditionedBinWarning
 from .model import LocalConnectionModel
@@ -241,7 +241,7 @@ class ConnectionEstimator:
                 :func:`torchconn.io.trajectory_files.read_csv`).
             phase: optional ``(..., T)`` phase to use instead of the phaser's estimate.
         """
-        traj = in_float64(traj, "ConnectionEstimator.fit")
+        traj = for_estimation(traj, "ConnectionEstimator.fit", phase)
         if getattr(self.regression, "metric", None) is not False and traj.power is not None:
             for k, p in enumerate(traj.power.reshape(-1, traj.n_samples)):
                 problem = power_problem(p)
@@ -456,7 +456,7 @@ class ConnectionEstimator:
 
     def prepare(self, traj: Trajectory, phase: Tensor | None = None) -> Trajectory:
         """:func:`prepare` with this estimator's smoother and phaser (smoothing, phase)."""
-        traj = in_float64(traj, "ConnectionEstimator.prepare")
+        traj = for_estimation(traj, "ConnectionEstimator.prepare", phase)
         return _prepare(traj, phase, self.smoother, self.phaser)[0]
 
     def predict(self, traj: Trajectory) -> Tensor:
@@ -474,7 +474,7 @@ class ConnectionEstimator:
 
     def _prepare_new(self, traj: Trajectory, phase: Tensor | None) -> Trajectory:
         """New recordings smoothed and phased with the fitted phase model when there is one."""
-        traj = in_float64(traj, "ConnectionEstimator")
+        traj = for_estimation(traj, "ConnectionEstimator", phase)
         fitted = getattr(self, "phaser_", None)
         # one fitted phase model per training trial: it applies to recordings of the same
         # batch shape (the same trials, later); other batches are phased afresh (Phaser's
