@@ -72,48 +72,60 @@ def _choose_delimiter(header: str, rows: list[str]) -> str:
 
 
 def _layout(path: Path, what: str, header_rows: int | None):
-    """Content lines ``[(number, text)]`` (a ``numpy.savetxt`` comment header put back) and
-    the separator."""
+    """Line numbers and texts of the content lines (blank and ``#`` comment lines left out, a
+    ``numpy.savetxt`` comment header put back), and the separator."""
     text = read_text(path, what)
-    content, comments = [], {}
-    for number, line in enumerate(re.split(r"\r\n|\r|\n", text), 1):
+    if "\r" in text:
+        text = text.replace("\r\n", "\n").replace("\r", "\n")
+    numbers, texts, comments = [], [], {}
+    for number, line in enumerate(text.split("\n"), 1):
         stripped = line.strip()
         if not stripped:
             continue
-        if stripped.startswith("#"):
+        if stripped[0] == "#":
             comments[number] = stripped.lstrip("#").strip()
             continue
-        content.append((number, line))
-    if not content:
-        return content, ","
-    number = content[0][0]
-    sample = [line for _, line in content[1:_SNIFF_ROWS + 1]]
-    delimiter = _choose_delimiter(content[0][1], sample)
-    first = _split(content[0][1], delimiter)
+        numbers.append(number)
+        texts.append(line)
+    if not texts:
+        return numbers, texts, ","
+    delimiter = _choose_delimiter(texts[0], texts[1:_SNIFF_ROWS + 1])
+    first = _split(texts[0], delimiter)
     # numpy.savetxt's header is a comment line right before the first row
-    if header_rows in (None, 1) and comments.get(number - 1) and all(map(_is_number, first)):
-        cells = _split(comments[number - 1], delimiter)
+    above = comments.get(numbers[0] - 1)
+    if header_rows in (None, 1) and above and all(map(_is_number, first)):
+        cells = _split(above, delimiter)
         if len(cells) == len(first) and not all(map(_is_number, cells)):
-            content.insert(0, (number - 1, comments[number - 1]))
-    return content, delimiter
+            numbers.insert(0, numbers[0] - 1)
+            texts.insert(0, above)
+    return numbers, texts, delimiter
 
 
-def _parse(path: Path, content, delimiter: str, error) -> list[tuple[int, list[str]]]:
-    parsed = []
-    for number, line in content:
+def _parse(path: Path, numbers: list[int], texts: list[str], delimiter: str,
+           error) -> list[list[str]]:
+    """The cells of every line in ``texts``."""
+    if delimiter != " ":  # one reader for all lines, unless a quoted cell spans lines
         try:
-            parsed.append((number, _split(line, delimiter)))
+            rows = list(csv.reader(texts, delimiter=delimiter, skipinitialspace=True))
+        except csv.Error:
+            rows = None
+        if rows is not None and len(rows) == len(texts):
+            return rows
+    rows = []
+    for number, line in zip(numbers, texts, strict=True):
+        try:
+            rows.append(_split(line, delimiter))
         except csv.Error as err:
             raise error(f"{path}, line {number}: not valid CSV ({err})") from None
-    return parsed
+    return rows
 
 
 def first_rows(path: str | PathLike, what: str, n: int) -> list[list[str]]:
     """The cells of the first ``n`` rows of a delimited text file (layout as
     :func:`read_table` finds it, blank and comment lines skipped, nothing checked)."""
     path = Path(path)
-    content, delimiter = _layout(path, what, None)
-    return [cells for _, cells in _parse(path, content[:n], delimiter, ValueError)]
+    numbers, texts, delimiter = _layout(path, what, None)
+    return _parse(path, numbers[:n], texts[:n], delimiter, ValueError)
 
 
 def headerless(path: str | PathLike, what: str) -> bool:
@@ -148,13 +160,13 @@ def read_table(
         FileNotFoundError, OSError, ValueError: from :func:`torchconn._files.read_text`.
     """
     path = Path(path)
-    content, delimiter = _layout(path, what, header_rows)
-    parsed = _parse(path, content, delimiter, error)
+    numbers, texts, delimiter = _layout(path, what, header_rows)
+    parsed = _parse(path, numbers, texts, delimiter, error)
     if header_rows is None:
-        header_rows = int(bool(parsed) and not all(map(_is_number, parsed[0][1])))
-    heads = [[c.strip() for c in cells] for _, cells in parsed[:header_rows]]
-    rows = [cells for _, cells in parsed[header_rows:]]
-    lines = [number for number, _ in parsed[header_rows:]]
+        header_rows = int(bool(parsed) and not all(map(_is_number, parsed[0])))
+    heads = [[c.strip() for c in cells] for cells in parsed[:header_rows]]
+    rows = parsed[header_rows:]
+    lines = numbers[header_rows:]
     if delimiter != "," and any(_DECIMAL_COMMA.match(c.strip()) for r in rows[:_SNIFF_ROWS]
                                 for c in r):
         rows = [[c.replace(",", ".") if _DECIMAL_COMMA.match(c.strip()) else c for c in r]
@@ -164,7 +176,7 @@ def read_table(
         rows = [r + [""] * (width - len(r)) if len(r) < width else r for r in rows]
     for cells, number in zip(rows, lines, strict=True):
         if len(cells) != width:
-            raw = dict(content)[number]
+            raw = texts[numbers.index(number)]
             hint = ""
             if delimiter == "," and len(cells) > width and "." not in raw and re.search(
                     r"\d,\d", raw):

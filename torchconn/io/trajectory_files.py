@@ -197,7 +197,8 @@ def _read_file(path: Path, n_joints: int | None) -> list[_Trial]:
         raise ValueError(f"{file}: no data rows; a trial needs at least {MIN_SAMPLES} samples")
 
     for row, line in zip(rows, lines, strict=True):
-        if [c.strip().strip('"').lower() for c in row] == header:
+        if row[0].strip().strip('"').lower() == header[0] and \
+                [c.strip().strip('"').lower() for c in row] == header:
             raise ValueError(f"{file}, line {line}: the header row again (files joined into "
                              "one?); give each recording its own file, or one file with a "
                              "'trial' column")
