@@ -5,7 +5,10 @@ uniform grid, columns ``t, x, y, theta, r1, …, rd`` and optionally ``power``; 
 share a file with an integer ``trial`` column. Empty cells and ``nan`` are missing samples.
 ``power`` at row ``k`` is the mean power over ``[t_k, t_{k+1})``, so each trial's last ``power``
 cell is empty. Column names are matched case-insensitively after stripping blanks; any other
-column is ignored with a warning.
+column is ignored with a warning. The layout (separator, quoting, ``#`` comments, a decimal
+comma) is found from the file (:func:`torchconn.io._table.read_table`), and the values are
+checked for plausibility (units, wrapping, a power that cannot be dissipated) by
+:func:`read_csv`.
 
 :func:`read_csv` returns one :class:`~torchconn.trajectory.Trajectory` with batch shape
 ``(n_trials,)`` (trials ordered by file, then trial id); trials of different lengths are padded
@@ -324,7 +327,8 @@ def _per_cycle(x: np.ndarray, n: int) -> np.ndarray:
 def _check_pose(pose: np.ndarray, r: np.ndarray, label: str) -> None:
     """Warn about columns that do not move, positions that move further per gait cycle or per
     radian of joint motion than a body measured in body lengths can (millimetres or pixels?),
-    and a heading that swings by more than π within a cycle (degrees?)."""
+    joints that barely move, and a heading that swings by more than a turn within a cycle
+    (degrees?)."""
     names = ["x", "y", "theta"] + [f"r{i + 1}" for i in range(r.shape[1])]
     for name, col in zip(names, np.concatenate([pose, r], 1).T, strict=True):
         v = col[np.isfinite(col)]
