@@ -185,9 +185,10 @@ def check_value(where: str, value: Any, tp: Any, bounds: dict | None = None) -> 
         raise ValueError(f"{where} must be {_annotation_text(tp)}, got {value!r}")
     if bounds and isinstance(value, (int, float)) and not isinstance(value, bool):
         for key, limit in bounds.items():
-            ok = {"ge": value >= limit, "gt": value > limit, "le": value <= limit}[key]
+            ok = {"ge": value >= limit, "gt": value > limit, "le": value <= limit,
+                  "lt": value < limit}[key]
             if not ok:
-                rel = {"ge": ">=", "gt": ">", "le": "<="}[key]
+                rel = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<"}[key]
                 raise ValueError(f"{where} must be {rel} {limit}, got {value!r}")
 
 

@@ -16,16 +16,25 @@ from typing import Any
 
 from ._checks import check_value, unknown_keys_message
 
-__all__ = ["Options", "option", "check_value", "unknown_keys_message"]
+__all__ = ["Options", "option", "check_field", "check_value", "unknown_keys_message"]
 
 _MISSING = dataclasses.MISSING
 
 
 def option(default: Any = _MISSING, *, ge: float | None = None, gt: float | None = None,
-           le: float | None = None) -> Any:
-    """A dataclass field with bounds ``ge <= value``, ``gt < value``, ``value <= le`` (numbers)."""
-    bounds = {k: v for k, v in (("ge", ge), ("gt", gt), ("le", le)) if v is not None}
+           le: float | None = None, lt: float | None = None) -> Any:
+    """A dataclass field with bounds ``ge <= value``, ``gt < value``, ``value <= le``,
+    ``value < lt`` (numbers)."""
+    bounds = {k: v for k, v in (("ge", ge), ("gt", gt), ("le", le), ("lt", lt)) if v is not None}
     return dataclasses.field(default=default, metadata={"bounds": bounds})
+
+
+def check_field(cls: type, name: str, value: Any, where: str) -> None:
+    """Raise ``ValueError`` naming ``where`` unless ``value`` fits the field ``name`` of the
+    option class ``cls`` (its annotation and bounds); what ``cls(name=value)`` checks, worded
+    for where the value came from (a config key, a flag)."""
+    field = {f.name: f for f in dataclasses.fields(cls)}[name]
+    check_value(where, value, typing.get_type_hints(cls)[name], field.metadata.get("bounds"))
 
 
 class Options:

@@ -16,25 +16,30 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import sys
-import tomllib
+import warnings
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from ._cli import InputError, add_threads, run_command, set_threads
+from ._cli import InputError, add_threads, check_keys, run_command, set_threads
+from ._files import check_distinct, check_file, read_toml
+from ._options import check_field
 from ._output import OutputFolder
 from ._provenance import write_sidecar
+from .io._table import headerless
 from .io.preflight import preflight
 from .io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
 from .io.trajectory_files import read_csv, write_csv
 from .trajectory import Trajectory, pad_trials
 
 __all__ = ["main", "add_conversion_arguments", "conversion_settings", "load_recordings",
-           "Recordings", "config_tables", "output_names"]
+           "Recordings", "config_tables", "output_names", "check_conversion_table",
+           "conversion_flags", "warn_unused_conversion"]
 
 
 # ============================================================================ shared CLI parts
@@ -67,20 +72,40 @@ _FLAG_FIELDS = ("fps", "frame", "curve", "head", "flip_y", "scale", "min_score",
                 "keypoints", "track")
 
 
+def conversion_flags(args) -> list[str]:
+    """The tracking-conversion flags given (``["--fps", ...]``), each value's range checked
+    before any work (:class:`InputError` naming the flag)."""
+    given = []
+    for name in _FLAG_FIELDS:
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        flag = "--" + name.replace("_", "-")
+        given.append(flag)
+        if name in ("fps", "scale", "max_gap") and not (math.isfinite(value) and value > 0):
+            raise InputError(f"{flag} must be a positive number, got {value}")
+        if name == "min_score" and not math.isfinite(value):
+            raise InputError(f"{flag} must be a finite number, got {value}")
+    if args.keypoints is not None and len([k for k in args.keypoints.split(",") if k.strip()]) < 2:
+        raise InputError(f"--keypoints must name at least 2 points along the body, head to tail, "
+                         f"separated by commas, got {args.keypoints!r}")
+    return given
+
+
+def warn_unused_conversion(rec: Recordings, given: list[str]) -> None:
+    """Warn that conversion flags were given for trajectory CSVs, which have no use for them."""
+    if given and not rec.reports:
+        warnings.warn(f"{', '.join(given)} ignored: conversion options apply to tracking files, "
+                      "and the inputs are trajectory CSVs (t, x, y, theta, r1, ...) already",
+                      stacklevel=2)
+
+
 def config_tables(path: Path | None, overrides: list[str]) -> dict:
     """A TOML config (``[estimator]``, ``[convert]``, ...) with ``--set section.key=value``
     overrides applied (the sweep's parser)."""
     from .sweep.config import apply_overrides
 
-    raw = {}
-    if path is not None:
-        if not Path(path).exists():
-            raise InputError(f"config file {path} not found")
-        try:
-            with Path(path).open("rb") as fh:
-                raw = tomllib.load(fh)
-        except tomllib.TOMLDecodeError as err:
-            raise ValueError(f"{path}: not valid TOML ({err})") from None
+    raw = read_toml(path, "--config") if path is not None else {}
     for item in overrides:
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise ValueError(f"--set {item!r} must look like section.key=value, e.g. "
@@ -88,13 +113,29 @@ def config_tables(path: Path | None, overrides: list[str]) -> dict:
     return apply_overrides(raw, list(overrides))
 
 
+def check_conversion_table(table) -> dict:
+    """A ``[convert]`` table's keys and every value's type and range (what
+    :class:`ConversionSettings` checks field by field), before any work and whatever the input;
+    :class:`InputError` naming the key."""
+    if table is None:
+        return {}
+    if not isinstance(table, dict):
+        raise InputError(f"[convert] must be a table of conversion settings, got {table!r}")
+    check_keys(table, [f.name for f in dataclasses.fields(ConversionSettings)
+                       if f.name != "n_links"], "[convert]")
+    for key, value in table.items():
+        if key == "keypoints" and isinstance(value, list):
+            value = tuple(value)
+        try:
+            check_field(ConversionSettings, key, value, f"[convert] {key}")
+        except ValueError as err:
+            raise InputError(str(err)) from None
+    return table
+
+
 def conversion_settings(args, n_links: int, table: dict | None = None) -> ConversionSettings:
     """:class:`ConversionSettings` from a ``[convert]`` table, then the command-line flags."""
-    values = dict(table or {})
-    known = {f.name for f in dataclasses.fields(ConversionSettings)} - {"n_links"}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise ValueError(f"unknown [convert] setting(s) {unknown}; known: {sorted(known)}")
+    values = dict(check_conversion_table(table))
     for name in _FLAG_FIELDS:
         v = getattr(args, name, None)
         if v is not None:
@@ -103,6 +144,10 @@ def conversion_settings(args, n_links: int, table: dict | None = None) -> Conver
         values["keypoints"] = tuple(k.strip() for k in values["keypoints"].split(",") if k.strip())
     if values.get("keypoints") is not None:
         values["keypoints"] = tuple(values["keypoints"])
+    if values.get("frame", "center") == "center" and n_links % 2 == 0:
+        raise InputError(f"--links {n_links}: the center body frame (the middle link) needs an "
+                         "odd number of links; pass --frame com-mean (or frame = \"com-mean\" "
+                         "in [convert])")
     return ConversionSettings(n_links=n_links, **values)
 
 
@@ -133,8 +178,7 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
     """
     kinds = {}
     for p in paths:
-        if not Path(p).exists():
-            raise FileNotFoundError(f"input file {p} not found")
+        check_file(p, "a trajectory CSV or tracking file")
         kinds[p] = detect_format(p) if fmt == "auto" else fmt
     if all(k == "torchconn" for k in kinds.values()):
         try:
@@ -149,6 +193,12 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
         csvs = [str(p) for p, k in kinds.items() if k == "torchconn"]
         raise ValueError(f"trajectory CSVs ({', '.join(csvs)}) mixed with tracking files; "
                          "convert the tracking files first or pass one kind")
+    check_distinct(paths)  # read_csv checks the trajectory CSVs
+    for p, kind in kinds.items():
+        if kind == "points" and Path(p).suffix.lower() != ".npz" and headerless(p, "a CSV file"):
+            warnings.warn(f"{p} has no header row: read as tracked points (x, y pairs per "
+                          "frame); a trajectory CSV starts with the header 't, x, y, theta, "
+                          "r1, ..., rd[, power]'", stacklevel=2)
     settings = settings() if callable(settings) else settings
     settings = settings or ConversionSettings(n_links=n_links)
     convs = [convert_file(p, settings, format=kinds[p]) for p in paths]
@@ -244,6 +294,9 @@ def main(argv: list[str] | None = None) -> int:
         unknown = sorted(set(tables) - {"convert"})
         if unknown:
             raise InputError(f"unknown config section(s) {unknown}; convert reads [convert]")
+        if args.links < 2:
+            raise InputError(f"--links must be >= 2, got {args.links}")
+        conversion_flags(args)
         settings = conversion_settings(args, args.links, tables.get("convert"))
         _refuse_repeated(args.sources)
         with OutputFolder(args.out, command=PROG) as folder:

@@ -46,7 +46,15 @@ from ._cli import (
 )
 from ._output import OutputFolder, write_table
 from ._provenance import write_sidecar
-from .convert import add_conversion_arguments, config_tables, conversion_settings, load_recordings
+from .convert import (
+    add_conversion_arguments,
+    check_conversion_table,
+    config_tables,
+    conversion_flags,
+    conversion_settings,
+    load_recordings,
+    warn_unused_conversion,
+)
 from .discrepancy.known import changes_data, parse_known, relative_to_known
 from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
@@ -95,6 +103,9 @@ def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points
     """Write :func:`connection_table` to ``path`` (CSV with a header row), atomically."""
     return write_table(path, *connection_table(model, n_points))
 
+
+#: most rows of connection.csv (``--grid``): a phase step of 6e-5 rad, far finer than any fit
+_MAX_GRID = 100_000
 
 #: shortcut flags -> the flat estimator settings they set (FLAT_KEYS maps them to a stage field)
 _FLAGS = {"n_bins": "n_bins", "fourier_order": "fourier_order", "window": "window",
@@ -208,6 +219,9 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--links must be >= 2, got {args.links}")
         if args.grid < 2:
             raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
+        if args.grid > _MAX_GRID:
+            raise InputError(f"--grid must be <= {_MAX_GRID} (rows of connection.csv), got "
+                             f"{args.grid}")
         if args.folds is not None and (args.folds < 0 or args.folds == 1):
             raise InputError(f"--folds must be 0 (no held-out check) or >= 2, got {args.folds}")
         if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
@@ -219,6 +233,11 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             raise InputError(f"unknown config section(s) {unknown}; fit reads [estimator] and "
                              "[convert]")
+        if not isinstance(tables.get("estimator", {}), dict):
+            raise InputError(f"[estimator] must be a table of estimator settings, got "
+                             f"{tables['estimator']!r}")
+        check_conversion_table(tables.get("convert"))  # checked even where no file needs it
+        given = conversion_flags(args)
         estimator = build_estimator(args, tables.get("estimator"))
         def conv():  # conversion options matter (and are checked) for tracking files only
             return conversion_settings(args, args.links, tables.get("convert"))
@@ -233,14 +252,15 @@ def main(argv: list[str] | None = None) -> int:
                                  "estimates the model from the data without one; give it to "
                                  "torchconn-discrepancy instead")
         with OutputFolder(args.out, command=PROG) as folder:
-            return fit_into(folder, estimator, conv, known, swimmer, device)
+            return fit_into(folder, estimator, conv, known, swimmer, device, given)
 
-    def fit_into(folder: OutputFolder, estimator, conv, known, swimmer, device) -> int:
+    def fit_into(folder: OutputFolder, estimator, conv, known, swimmer, device, given) -> int:
         """Read, check and fit the recordings; write the outputs into ``folder``, whose
         contents replace ``--out`` when this returns."""
         out = folder.path
         rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
                               settings=conv, read_csv=read_csv)
+        warn_unused_conversion(rec, given)
         traj = relative_to_known(rec.trajectory, known, swimmer)
         # the phase estimator's own minimum (``--set phaser.min_cycles=...``) is the fit's rule
         need = getattr(estimator.phaser, "min_cycles", CYCLE_RULES["fit"].per_trial)

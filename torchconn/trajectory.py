@@ -13,6 +13,7 @@ at the end, on a shared sampling grid.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -20,8 +21,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ._checks import describe
+
 __all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXIS", "pool_batch",
-           "pad_trials", "span_bounds", "span_groups", "over_spans"]
+           "pad_trials", "span_bounds", "span_groups", "over_spans", "for_estimation",
+           "power_problem"]
 
 #: axis of time in ``(..., T, C)`` arrays, and of coordinates
 TIME_AXIS = -2
@@ -143,6 +147,76 @@ class Trajectory:
         return _map_arrays(self, lambda x, k: x.to(*args, **kwargs))
 
 
+def power_problem(power: Tensor, negative_at: str = "") -> str | None:
+    """Why ``power (T,)`` (one trial; NaN missing) cannot be a dissipated power, or None.
+
+    Dissipated power is >= 0 up to noise: a column of zeros, one whose median is <= 0, or one
+    whose mean is 0 (its mean removed) is not one. ``negative_at`` says where the negative
+    values are (e.g. ``"lines 3, 5"``), for the message.
+    """
+    p = power[torch.isfinite(power)]
+    if p.numel() == 0:
+        return None
+    if not bool(p.any()):
+        return ("every value is 0; the dissipated power is positive while the body moves (a "
+                "placeholder?)")
+    mean, median = float(p.mean()), float(p.median())
+    if median <= 0 or mean <= 1e-6 * float(p.abs().mean()):
+        at = f"{negative_at}; " if negative_at else ""
+        return (f"{100 * float((p < 0).double().mean()):.0f}% of the values are negative ({at}"
+                f"mean {mean:.3g}, median {median:.3g}); power is the dissipated power, >= 0 up "
+                "to noise: its sign flipped, or its mean removed?")
+    return None
+
+
+def for_estimation(traj: Trajectory, where: str, phase: Tensor | None = None) -> Trajectory:
+    """``traj`` checked and in float64, for an estimator.
+
+    Lower precisions (float32) are converted with a warning naming ``where`` (the normal
+    equations need float64's digits). Refused, naming the array, column and trial: ±inf in
+    ``pose``, ``r`` or ``power``; a coordinate with no finite sample in a trial; a
+    ``phase (..., T)`` of another shape or dtype, with ±inf, or all NaN in a trial
+    (``ValueError`` / ``TypeError``).
+    """
+    if not isinstance(traj, Trajectory):
+        raise TypeError(f"{where}: traj must be a torchconn.Trajectory, got {type(traj).__name__}")
+    if not (traj.r.dtype == torch.float64 and traj.pose.dtype == torch.float64 and (
+            traj.power is None or traj.power.dtype == torch.float64)):
+        found = sorted({str(x.dtype) for x in (traj.pose, traj.r, traj.power) if x is not None})
+        warnings.warn(f"{where}: the trajectory holds {', '.join(found)} arrays; converted to "
+                      "float64 (estimation needs its digits)", stacklevel=3)
+        traj = traj.to(torch.float64)
+    T = traj.n_samples
+    for name, x, columns in (("pose", traj.pose, ("x", "y", "theta")),
+                             ("r", traj.r, tuple(f"r{i + 1}" for i in range(traj.shape_dim))),
+                             ("power", None if traj.power is None else traj.power[..., None],
+                              ("power",))):
+        if x is None:
+            continue
+        x = x.reshape(-1, T, len(columns))
+        inf = torch.isinf(x)
+        empty = torch.isnan(x).all(-2)  # (trials, columns)
+        if bool(inf.any() | (empty.any() if name != "power" else False)):
+            if bool(inf.any()):
+                k, i, j = (int(v) for v in torch.nonzero(inf)[0])
+                raise ValueError(f"{where}: traj.{name} holds ±inf ({columns[j]} of trial {k} "
+                                 f"of the flattened batch, sample {i}); missing samples are NaN")
+            k, j = (int(v) for v in torch.nonzero(empty)[0])
+            raise ValueError(f"{where}: {columns[j]} (traj.{name}) of trial {k} of the flattened "
+                             "batch has no finite sample; drop the trial or record the column")
+    if phase is not None:
+        shape = tuple(traj.batch_shape) + (T,)
+        if not isinstance(phase, Tensor) or not phase.is_floating_point() or \
+                tuple(phase.shape) != shape:
+            raise TypeError(f"{where}: phase must be a floating-point tensor of shape {shape} "
+                            f"(the trajectory's batch and samples), got {describe(phase)}")
+        if bool(torch.isinf(phase).any() | torch.isnan(phase).reshape(-1, T).all(-1).any()):
+            raise ValueError(f"{where}: phase holds ±inf, or a trial without one finite value; "
+                             "give the phase in rad (NaN only where samples are missing), or "
+                             "phase=None to estimate it")
+    return traj
+
+
 # arrays and how many trailing (non-batch) dims each has
 _TRAILING = {"pose": 2, "r": 2, "power": 1, "phase": 1, "xi": 2, "r_dot": 2, "pose_dot": 2, "delta": 2}
 
@@ -164,16 +238,49 @@ def _map_arrays(traj: Trajectory, fn, t: Tensor | None = None) -> Trajectory:
     return apply(traj)
 
 
+def _dtypes(tr: Trajectory) -> None:
+    """Complex arrays refused; integer, boolean and float16 ones (and a ``t`` that is not
+    float64) converted to float64 with a warning naming them."""
+    converted = []
+
+    def fix(obj, prefix: str = "") -> None:
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if isinstance(v, (GroundTruth, SmoothedState)):
+                fix(v, f"{f.name}.")
+            if not isinstance(v, Tensor):
+                continue
+            name = prefix + f.name
+            if v.is_complex():
+                raise TypeError(f"Trajectory: {name} is a complex tensor ({v.dtype}); times, "
+                                "poses, joint angles and power are real numbers")
+            if (name == "t" and v.dtype != torch.float64) or not v.is_floating_point() or \
+                    v.dtype in (torch.float16, torch.bfloat16):
+                converted.append(f"{name} ({v.dtype})")
+                object.__setattr__(obj, f.name, v.to(torch.float64))
+
+    fix(tr)
+    if converted:
+        warnings.warn(f"Trajectory: converted {', '.join(converted)} to float64 (torchconn "
+                      "computes in floating point, with NaN for missing samples; half "
+                      "precision holds too few digits; t is kept in float64)", stacklevel=5)
+
+
 def _validate(tr: Trajectory) -> None:
     if not isinstance(tr.t, Tensor) or tr.t.ndim != 1:
         raise ValueError(f"t must be a 1-D tensor of sample times (T,), got {_describe(tr.t)}")
+    # the rounding of t as given (before a conversion to float64)
+    t_eps = torch.finfo(tr.t.dtype).eps if tr.t.is_floating_point() else 0.0
+    _dtypes(tr)
     T = tr.t.shape[0]
     if T < 2:
         raise ValueError(f"a trajectory needs at least 2 samples, got T={T}")
     steps = torch.diff(tr.t)
     if not torch.isfinite(tr.t).all() or (steps <= 0).any():
         raise ValueError("t must be finite and strictly increasing")
-    if (steps - steps.mean()).abs().max() > 1e-6 * steps.mean().abs() + 1e-12:
+    # relative jitter of 1e-6, or the rounding of t's magnitude (large time stamps)
+    rounding = 4 * t_eps * float(tr.t.abs().max())
+    if (steps - steps.mean()).abs().max() > 1e-6 * steps.mean().abs() + 1e-12 + rounding:
         raise ValueError(
             "t must be uniformly sampled; resample the recording onto a uniform grid first "
             f"(spacing ranges from {float(steps.min()):g} to {float(steps.max()):g})"

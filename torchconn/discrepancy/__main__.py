@@ -13,9 +13,9 @@ Unknown columns are warned about.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
-import tomllib
 from dataclasses import replace
 from pathlib import Path
 
@@ -24,12 +24,21 @@ from .._cli import (
     add_device,
     add_threads,
     check_keys,
+    did_you_mean,
     resolve_device,
     run_command,
     set_threads,
 )
+from .._files import read_toml
+from .._options import check_field
 from .._output import OutputFolder
-from ..convert import add_conversion_arguments, conversion_settings, load_recordings
+from ..convert import (
+    add_conversion_arguments,
+    conversion_flags,
+    conversion_settings,
+    load_recordings,
+    warn_unused_conversion,
+)
 from ..io.preflight import preflight
 from ..io.trajectory_files import read_csv
 from ..physics.systems.swimmer import NLinkSwimmer
@@ -80,38 +89,47 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _settings(args) -> DiscrepancySettings:
-    values = {}
+    """:class:`DiscrepancySettings` from ``--config``'s ``[discrepancy]`` table, then the flags;
+    every value checked (type, range) with the key or flag it came from."""
+    values, origin = {}, {}
     if args.config is not None:
         path = args.config
-        if path.is_dir():
-            raise InputError(f"--config {path} is a folder; expected a TOML file")
-        try:
-            table = tomllib.loads(path.read_bytes().decode("utf-8"))
-        except FileNotFoundError:
-            raise InputError(f"--config {path}: file not found") from None
-        except UnicodeDecodeError:
-            raise InputError(f"--config {path}: not UTF-8 text; TOML files must be UTF-8") \
-                from None
-        except tomllib.TOMLDecodeError as err:
-            raise InputError(f"--config {path}: invalid TOML: {err}") from None
+        table = read_toml(path, "--config")
+        where = f"--config {path}: [discrepancy]"
+        others = sorted(k for k in table if k != "discrepancy" and isinstance(table[k], dict))
+        if others:
+            raise InputError(f"--config {path}: unknown section(s) "
+                             f"{', '.join(f'[{k}]' for k in others)}; discrepancy reads a "
+                             "[discrepancy] table of settings")
         section = table.get("discrepancy", table)
         if not isinstance(section, dict):
-            raise InputError(f"--config {path}: [discrepancy] must be a table of settings")
+            raise InputError(f"{where} must be a table of settings, got {section!r}")
+        check_keys(section, DiscrepancySettings.__dataclass_fields__, where)
         values.update(section)
-        if "candidates" in values and values["candidates"] is not None:
-            if not isinstance(values["candidates"], list):
-                raise InputError(f"--config {path}: candidates must be a list of effect names, "
-                                 f"got {values['candidates']!r}")
-            values["candidates"] = tuple(values["candidates"])
-    if args.candidates is not None:
-        values["candidates"] = tuple(args.candidates)
-    if args.alpha is not None:
-        values["alpha"] = args.alpha
-    if args.folds is not None:
-        values["n_folds"] = args.folds
-    if args.no_terms:
-        values["compare_terms"] = False
-    check_keys(values, DiscrepancySettings.__dataclass_fields__, "[discrepancy] settings")
+        origin.update({k: f"{where} {k}" for k in section})
+        if values.get("candidates") is not None:
+            c = values["candidates"]
+            if not isinstance(c, list) or not all(isinstance(x, str) for x in c):
+                raise InputError(f"{where} candidates must be a list of effect names "
+                                 f"({', '.join(REGISTRY)}), got {c!r}")
+            unknown = [x for x in c if x not in REGISTRY]
+            if unknown:
+                raise InputError(f"{where} candidates: unknown effect {unknown[0]!r}"
+                                 f"{did_you_mean(unknown[0], REGISTRY)}; registered: "
+                                 f"{', '.join(REGISTRY)}")
+            values["candidates"] = tuple(c)
+    for flag, key, value in (("--candidates", "candidates", args.candidates),
+                             ("--alpha", "alpha", args.alpha), ("--folds", "n_folds", args.folds),
+                             ("--no-terms", "compare_terms", False if args.no_terms else None)):
+        if value is not None:
+            values[key] = tuple(value) if key == "candidates" else value
+            origin[key] = flag
+    for key, value in values.items():
+        if key != "candidates":
+            try:
+                check_field(DiscrepancySettings, key, value, origin[key])
+            except ValueError as err:
+                raise InputError(str(err)) from None
     try:
         return DiscrepancySettings(**values)
     except (TypeError, ValueError) as err:
@@ -128,22 +146,32 @@ def main(argv: list[str] | None = None) -> int:
         device = resolve_device(args.device)
         if args.links < 2:
             raise InputError(f"--links must be at least 2, got {args.links}")
+        if not (math.isfinite(args.drag_ratio) and args.drag_ratio > 0):
+            raise InputError(f"--drag-ratio must be a positive number, got {args.drag_ratio}")
+        if args.link_lengths is not None and (
+                len(args.link_lengths) != args.links
+                or not all(math.isfinite(x) and x > 0 for x in args.link_lengths)):
+            raise InputError(f"--link-lengths must give {args.links} positive numbers (one per "
+                             f"link, --links {args.links}), got {args.link_lengths}")
         frame = args.frame or "center"
         system = NLinkSwimmer(args.links, drag_ratio=args.drag_ratio, frame=frame,
                               link_lengths=args.link_lengths)
         settings = _settings(args)
+        given = conversion_flags(args)
         known = [parse_known(k, system) for k in args.known]
         def conv():  # conversion options matter (and are checked) for tracking files only
             return conversion_settings(args, args.links)
 
         with OutputFolder(args.out, command=PROG) as folder:
-            return diagnose_into(folder, system, settings, known, conv, device)
+            return diagnose_into(folder, system, settings, known, conv, device, given)
 
-    def diagnose_into(folder: OutputFolder, system, settings, known, conv, device) -> int:
+    def diagnose_into(folder: OutputFolder, system, settings, known, conv, device,
+                      given) -> int:
         """Read, check and diagnose the recordings; write the outputs into ``folder``, whose
         contents replace ``--out`` when this returns."""
         rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
                               settings=conv, read_csv=read_csv)
+        warn_unused_conversion(rec, given)
         traj = relative_to_known(rec.trajectory, known, system)
         system = known_system(system, known)
         if known:

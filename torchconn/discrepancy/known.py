@@ -20,6 +20,7 @@ effects, so ``fit`` and ``discrepancy`` model it relative to the water. Any regi
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -88,6 +89,8 @@ def parse_known(spec: str, system: NLinkSwimmer) -> KnownEffect:
             values[key] = float(text)
         except ValueError:
             raise ValueError(f"--known {spec!r}: {key}={text!r} is not a number") from None
+        if not math.isfinite(values[key]):
+            raise ValueError(f"--known {spec!r}: {key}={text!r} must be a finite number")
     return KnownEffect(name=name, params=tuple(values.items()))
 
 

@@ -50,6 +50,7 @@ import torch
 from scipy import stats
 from torch import Tensor
 
+from .._options import Options, option
 from ..phase.smoothing import smooth_trajectory, unwrap
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
@@ -90,7 +91,7 @@ TWIN_PAIRS = 1
 
 
 @dataclass(frozen=True, kw_only=True)
-class DiscrepancySettings:
+class DiscrepancySettings(Options):
     """Every knob of :func:`diagnose`.
 
     Attributes:
@@ -133,41 +134,38 @@ class DiscrepancySettings:
     """
 
     candidates: tuple[str, ...] | None = None
-    n_folds: int = 5
-    alpha: float = 0.01
-    min_gain: float = 0.02
-    excess_fraction: float = 0.15
-    unexplained_min_gain: float = 0.05
-    component_min_gain: float = 0.05
-    max_unexplained_excess: float = 1.0
-    flex_order: int = 6
-    confound_collinearity: float = 0.9
-    confound_alpha: float = 0.01
-    ci_level: float = 0.95
+    n_folds: int = option(5, ge=2)
+    alpha: float = option(0.01, gt=0, lt=1)
+    min_gain: float = option(0.02, ge=0)
+    excess_fraction: float = option(0.15, ge=0, le=1)
+    unexplained_min_gain: float = option(0.05, ge=0)
+    component_min_gain: float = option(0.05, ge=0)
+    max_unexplained_excess: float = option(1.0, ge=0)
+    flex_order: int = option(6, ge=1)
+    confound_collinearity: float = option(0.9, ge=0, le=1)
+    confound_alpha: float = option(0.01, gt=0, lt=1)
+    ci_level: float = option(0.95, gt=0, lt=1)
     twin_intervals: bool = True
-    max_effects: int = 3
-    max_iter: int = 10
-    n_bins: int = 16
-    n_boot: int = 300
-    upsample: int | None = None
-    min_relative_floor: float = 1e-3
+    max_effects: int = option(3, ge=1)
+    max_iter: int = option(10, ge=1)
+    n_bins: int = option(16, ge=2)
+    n_boot: int = option(300, ge=1)
+    upsample: int | None = option(None, ge=1)
+    min_relative_floor: float = option(1e-3, ge=0)
     compare_terms: bool = True
     experiments: bool = True
-    min_cycles: float = MIN_CYCLES
-    seed: int = 0
+    min_cycles: float = option(MIN_CYCLES, ge=0)
+    seed: int = option(0, ge=0)
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # every field's type and range
         if self.candidates is not None:
+            if not isinstance(self.candidates, (tuple, list)) or not all(
+                    isinstance(c, (str, Effect)) for c in self.candidates):
+                raise ValueError("DiscrepancySettings.candidates must be a list of effect names "
+                                 f"({', '.join(REGISTRY)}) or None, got {self.candidates!r}")
             for c in self.candidates:
                 get_effect(c)
-        if not 0 < self.alpha < 1 or not 0 < self.ci_level < 1:
-            raise ValueError("alpha and ci_level must be in (0, 1)")
-        if self.n_folds < 2:
-            raise ValueError(f"n_folds must be >= 2, got {self.n_folds}")
-        if self.upsample is not None and (not isinstance(self.upsample, int)
-                                          or self.upsample < 1):
-            raise ValueError(f"upsample must be None or a positive integer, got "
-                             f"{self.upsample!r}")
 
 
 # ============================================================================ diagnose

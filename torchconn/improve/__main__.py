@@ -18,6 +18,7 @@ import sys
 import warnings
 from pathlib import Path
 
+from .._checks import check_value
 from .._cli import (
     InputError,
     add_device,
@@ -28,6 +29,7 @@ from .._cli import (
 )
 from .._output import OutputFolder, write_table
 from .._provenance import write_sidecar
+from ..convert import load_recordings
 from ..io.trajectory_files import read_csv
 from ..physics.systems import NLinkSwimmer
 from ..regression.estimator import estimator_from_settings
@@ -75,7 +77,9 @@ def _simulate(args, folder: OutputFolder) -> int:
 
 def _propose(args, folder: OutputFolder) -> int:
     out = folder.path
-    traj = read_csv(args.data, n_joints=args.links - 1).to(args.device)  # moved once
+    # trajectory CSVs only; --links checked against their joint columns
+    traj = load_recordings(args.data, fmt="torchconn", n_links=args.links,
+                           read_csv=read_csv).trajectory.to(args.device)  # moved once
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         # the loop's estimator (pooled, noise-aware regression)
@@ -105,6 +109,38 @@ def _propose(args, folder: OutputFolder) -> int:
     return 0
 
 
+#: the trust radius (tube radii) the loop may adapt within (LoopSettings.min_scale, max_scale)
+_SCALES = (LoopSettings.min_scale, LoopSettings.max_scale)
+#: recorded cycles per trial: more than the loop's phase estimator needs (its min_cycles)
+_MIN_CYCLES = math.floor(estimator_from_settings(LoopSettings().estimator).phaser.min_cycles) + 1
+
+
+def _check_flags(args) -> None:
+    """Every flag's type and range, before any work (:class:`InputError` naming the flag)."""
+    checks = [("--links", args.links, int, {"ge": 3}), ("--scale", args.scale, float, {"gt": 0})]
+    if args.command == "simulate":
+        checks += [("--rounds", args.rounds, int, {"ge": 1}),
+                   ("--trials", args.trials, int, {"ge": 1}),
+                   ("--cycles", args.cycles, int, {"ge": _MIN_CYCLES}),
+                   ("--radius", args.radius, float, {"gt": 0}),
+                   ("--omega", args.omega, float, {"ge": 0}),
+                   ("--seed", args.seed, int, {"ge": 0})]
+    for flag, value, tp, bounds in checks:
+        try:
+            check_value(flag, value, tp, bounds)
+        except ValueError as err:
+            raise InputError(str(err)) from None
+    if args.command == "simulate":
+        if args.radius >= math.pi:
+            raise InputError(f"--radius must be < π (3.1416), got {args.radius:g}: the start "
+                             "circle's radius is the joints' amplitude in rad, and beyond ±π "
+                             "the links would cross")
+        if not _SCALES[0] <= args.scale <= _SCALES[1]:
+            raise InputError(f"--scale must lie in [{_SCALES[0]:g}, {_SCALES[1]:g}] (the "
+                             f"trust radius the loop adapts within, in tube radii), got "
+                             f"{args.scale:g}")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m torchconn.improve",
                                 description=__doc__.split("\n")[0])
@@ -130,8 +166,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def body() -> int:
         set_threads(args.threads)
-        if args.links < 3:
-            raise InputError(f"--links must be >= 3, got {args.links}")
+        _check_flags(args)
         args.device = str(resolve_device(args.device))
         with OutputFolder(args.out, command=f"torchconn-improve {args.command}",
                           log=lambda msg: print(f"{prog}: {msg}", file=sys.stderr)) as folder:

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .._checks import check_value
 from .._cli import resolve_device
 from ..physics.gaits.evaluate import evaluate
 from ..physics.gaits.gait import FourierGait, as_gait
@@ -32,7 +33,7 @@ from ..regression.estimator import estimator_from_settings
 from ..regression.gait_prediction import normal_quantile
 from ..simulation import observe, simulate
 from .measure import measure_cycles
-from .propose import TrustRegion, objective_value, propose_gait
+from .propose import OBJECTIVES, TrustRegion, objective_value, propose_gait
 
 __all__ = ["LoopSettings", "Round", "LoopResult", "improve", "circle_gait", "true_objective"]
 
@@ -132,6 +133,24 @@ class LoopSettings:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"LoopSettings.{name} must be a positive integer, got {value!r}")
+        for name, bounds in (("eta", {"ge": 0}), ("alpha", {"gt": 0}), ("omega", {"ge": 0}),
+                             ("grow", {"ge": 1}), ("shrink", {"gt": 0, "le": 1}),
+                             ("good_ratio", {}), ("poor_ratio", {}), ("max_scale", {"gt": 0}),
+                             ("min_scale", {"gt": 0}), ("truncation", {"ge": 0}),
+                             ("truncation_spread", {"ge": 0}), ("level", {"gt": 0})):
+            check_value(f"LoopSettings.{name}", getattr(self, name), float, bounds)
+        if not self.level < 1:
+            raise ValueError(f"LoopSettings.level must be < 1, got {self.level!r}")
+        if not self.poor_ratio <= self.good_ratio:
+            raise ValueError(f"LoopSettings.poor_ratio ({self.poor_ratio}) must be <= good_ratio "
+                             f"({self.good_ratio})")
+        check_value("LoopSettings.seed", self.seed, int, {"ge": 0})
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"LoopSettings.objective must be one of {', '.join(OBJECTIVES)}, "
+                             f"got {self.objective!r}")
+        if not isinstance(self.trust_region, TrustRegion):
+            raise TypeError(f"LoopSettings.trust_region must be a TrustRegion, got "
+                            f"{type(self.trust_region).__name__}")
         if not estimator_from_settings(self.estimator, where="LoopSettings.estimator").pool:
             raise ValueError("LoopSettings.estimator must pool the trials (pool=True): a "
                              "proposal needs one model")

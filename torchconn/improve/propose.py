@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._checks import check_value
 from ..phase.fourier import FourierSeries
 from ..physics.gaits.evaluate import gauss_phases
 from ..physics.gaits.gait import FourierGait
@@ -62,15 +63,12 @@ class TrustRegion:
     lr: float = 0.02
 
     def __post_init__(self) -> None:
-        if self.radius is not None and not self.radius > 0:
-            raise ValueError(f"TrustRegion.radius must be positive or None, got {self.radius!r}")
-        if not self.scale > 0:
-            raise ValueError(f"TrustRegion.scale must be positive, got {self.scale!r}")
-        if not isinstance(self.order, int) or self.order < 0:
-            raise ValueError(f"TrustRegion.order must be an integer >= 0, got {self.order!r}")
-        if self.shape_bound is not None and not self.shape_bound > 0:
-            raise ValueError(f"TrustRegion.shape_bound must be positive or None, got "
-                             f"{self.shape_bound!r}")
+        for name, tp, bounds in (("radius", float | None, {"gt": 0}), ("scale", float, {"gt": 0}),
+                                 ("order", int, {"ge": 0}), ("shape_bound", float | None,
+                                                             {"gt": 0}),
+                                 ("max_turn", float | None, {"ge": 0}), ("steps", int, {"ge": 1}),
+                                 ("lr", float, {"gt": 0})):
+            check_value(f"TrustRegion.{name}", getattr(self, name), tp, bounds)
 
     def radius_for(self, model: LocalConnectionModel) -> float:
         """The trust radius (rad) for ``model``."""

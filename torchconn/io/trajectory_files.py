@@ -5,7 +5,10 @@ uniform grid, columns ``t, x, y, theta, r1, …, rd`` and optionally ``power``; 
 share a file with an integer ``trial`` column. Empty cells and ``nan`` are missing samples.
 ``power`` at row ``k`` is the mean power over ``[t_k, t_{k+1})``, so each trial's last ``power``
 cell is empty. Column names are matched case-insensitively after stripping blanks; any other
-column is ignored with a warning.
+column is ignored with a warning. The layout (separator, quoting, ``#`` comments, a decimal
+comma) is found from the file (:func:`torchconn.io._table.read_table`), and the values are
+checked for plausibility (units, wrapping, a power that cannot be dissipated) by
+:func:`read_csv`.
 
 :func:`read_csv` returns one :class:`~torchconn.trajectory.Trajectory` with batch shape
 ``(n_trials,)`` (trials ordered by file, then trial id); trials of different lengths are padded
@@ -16,7 +19,6 @@ everything -- batch shape, dtype, ``truth``, ``phase``, ``smoothed`` and ``meta`
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import io
 import json
@@ -31,9 +33,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .. import _linalg
+from .. import _checks, _linalg
+from .._files import check_distinct
 from .._output import savez, write_bytes_atomic
-from ..trajectory import GroundTruth, SmoothedState, Trajectory, pad_trials
+from ..trajectory import GroundTruth, SmoothedState, Trajectory, pad_trials, power_problem
+from ._table import read_table
 
 __all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles", "principal_signal"]
 
@@ -155,43 +159,11 @@ def _parse_column(values: list[str], name: str, lines: list[int], file: str) -> 
 
 
 def _read_rows(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
-    if path.is_dir():
-        raise ValueError(f"{path} is a folder; expected a trajectory CSV file")
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        raise FileNotFoundError(f"cannot open trajectory file {path}: {err.strerror}") from None
-    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
-        raise ValueError(f"{path}: the file is UTF-16 text; save it as UTF-8 (or ASCII) CSV")
-    if b"\0" in data[:4096]:
-        raise ValueError(f"{path}: the file holds binary data (NUL bytes), not CSV text")
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        line = data[:err.start].count(b"\n") + 1
-        raise ValueError(f"{path}, line {line}: not UTF-8 text (byte 0x{data[err.start]:02x}); "
-                         "save the file as UTF-8 (or ASCII) CSV") from None
-    reader = csv.reader(io.StringIO(text, newline=""))
-    header, rows, lines = None, [], []
-    try:
-        for row in reader:
-            if not row or all(not c.strip() for c in row):
-                continue  # blank line
-            if header is None:
-                header = [c.strip().lower() for c in row]
-                continue
-            rows.append(row)
-            lines.append(reader.line_num)
-    except csv.Error as err:
-        raise ValueError(f"{path}, line {reader.line_num}: not valid CSV ({err})") from None
-    if header is None:
+    heads, rows, lines, _ = read_table(path, "a trajectory CSV file (t, x, y, theta, r1, ..., rd)")
+    if not heads:
         raise ValueError(f"{path}: the file is empty; expected a header row "
                          "'t, x, y, theta, r1, ..., rd[, power]' and one row per sample")
-    for row, line in zip(rows, lines, strict=True):
-        if len(row) != len(header):
-            raise ValueError(f"{path}, line {line}: {len(row)} fields, but the header has "
-                             f"{len(header)} ({', '.join(header)})")
-    return header, rows, lines
+    return [c.strip().strip('"').lower() for c in heads[0]], rows, lines
 
 
 def _read_file(path: Path, n_joints: int | None) -> list[_Trial]:
@@ -199,9 +171,15 @@ def _read_file(path: Path, n_joints: int | None) -> list[_Trial]:
     header, rows, lines = _read_rows(path)
     seen = set()
     for name in header:
-        if name in seen:
+        if name in seen and name:
             raise ValueError(f"{file}: column {name!r} appears more than once in the header")
         seen.add(name)
+    unnamed = [j for j, name in enumerate(header) if not name]
+    if unnamed:
+        filled = [j + 1 for j in unnamed if any(r[j].strip() for r in rows)]
+        if filled:  # an empty one is a trailing separator
+            warnings.warn(f"{file}: ignoring column(s) {', '.join(map(str, filled))} (counted "
+                          "from 1): values under an empty header cell", stacklevel=3)
     joints = sorted(int(m.group(1)) for n in header if (m := _JOINT.match(n)))
     d = max(joints, default=0)
     expected = list(_POSE_COLUMNS) + [f"r{i}" for i in range(1, max(d, 1) + 1)]
@@ -215,13 +193,19 @@ def _read_file(path: Path, n_joints: int | None) -> list[_Trial]:
     if n_joints is not None and d != n_joints:
         raise ValueError(f"{file}: has {d} joint column(s) r1..r{d}, expected n_joints={n_joints}")
     known = set(expected) | {"power", "trial"}
-    unknown = [c for c in header if c not in known]
+    unknown = [c for c in header if c not in known and c]
     if unknown:
         warnings.warn(f"{file}: ignoring unknown column(s) {', '.join(repr(c) for c in unknown)}",
                       stacklevel=3)
     if len(rows) == 0:
         raise ValueError(f"{file}: no data rows; a trial needs at least {MIN_SAMPLES} samples")
 
+    for row, line in zip(rows, lines, strict=True):
+        if row[0].strip().strip('"').lower() == header[0] and \
+                [c.strip().strip('"').lower() for c in row] == header:
+            raise ValueError(f"{file}, line {line}: the header row again (files joined into "
+                             "one?); give each recording its own file, or one file with a "
+                             "'trial' column")
     cols = list(zip(*rows, strict=True))
     data = {
         name: _parse_column(list(cols[header.index(name)]), name, lines, file)
@@ -249,13 +233,156 @@ def _read_file(path: Path, n_joints: int | None) -> list[_Trial]:
                 raise ValueError(f"{label}: column {name!r} has no values (all empty or NaN)")
         t = data["t"][idx]
         _check_time(t, lines_arr[idx], label)
-        trials.append(_Trial(
-            file=file, trial=trial_id, t=t,
-            pose=np.stack([data[c][idx] for c in ("x", "y", "theta")], -1),
-            r=np.stack([data[f"r{i}"][idx] for i in range(1, d + 1)], -1),
-            power=data["power"][idx] if "power" in data else None,
-        ))
+        r = np.stack([_unwrapped(data[f"r{i}"][idx], f"r{i}", lines_arr[idx], label)
+                      for i in range(1, d + 1)], -1)
+        pose = np.stack([data[c][idx] for c in ("x", "y", "theta")], -1)
+        power = data["power"][idx] if "power" in data else None
+        for i in range(d):
+            _check_joint_range(r[:, i], f"r{i + 1}", label)
+        _check_pose(pose, r, label)
+        if power is not None:
+            _check_power(power, lines_arr[idx], label)
+        trials.append(_Trial(file=file, trial=trial_id, t=t, pose=pose, r=r, power=power))
     return trials
+
+
+def _lines_text(lines: np.ndarray, most: int = 5) -> str:
+    """``"lines 3, 5, 8 (and 12 more)"``."""
+    shown = ", ".join(str(int(x)) for x in lines[:most])
+    more = f" (and {len(lines) - most} more)" if len(lines) > most else ""
+    return f"line{'s' if len(lines) > 1 else ''} {shown}{more}"
+
+
+def _unwrapped(col: np.ndarray, name: str, lines: np.ndarray, label: str) -> np.ndarray:
+    """A joint column with jumps of about 2π between neighbouring samples undone (angles
+    wrapped to (−π, π]), with a warning naming them; the column itself when there are none."""
+    valid = np.flatnonzero(np.isfinite(col))
+    steps = np.diff(col[valid])
+    jumps = np.abs(steps) > math.pi
+    if not jumps.any():
+        return col
+    at = lines[valid[1:][jumps]]
+    if (np.abs(np.abs(steps[jumps]) - 2 * math.pi) > math.pi / 2).any():
+        warnings.warn(
+            f"{label}, column {name!r}: the joint angle jumps by more than π between neighbouring "
+            f"samples at {_lines_text(at)}, and not by a whole turn (a joint turns by much less "
+            "between samples): tracking glitches, or a frame rate too low for the gait?",
+            stacklevel=4)
+        return col
+    out = col.copy()
+    out[valid] = np.unwrap(col[valid])
+    # whole turns so that the median angle lies in (−π, π]
+    out[valid] -= 2 * math.pi * np.round(np.median(out[valid]) / (2 * math.pi))
+    warnings.warn(
+        f"{label}, column {name!r}: {int(jumps.sum())} jump(s) of about 2π between neighbouring "
+        f"samples ({_lines_text(at)}): joint angles wrapped to (−π, π]; unwrapped (a joint "
+        "turns by much less than π between samples)", stacklevel=4)
+    return out
+
+
+#: fraction of a joint column's samples beyond ±π that is evidence of degrees (or an offset):
+#: simulated gaits stay within ±3.0 (the optimised 3-link gait, η = 0.1), and a sine of
+#: amplitude 3.3 (degrees) lies beyond π 20 % of the time
+_BEYOND_PI = 0.05
+
+
+def _check_joint_range(col: np.ndarray, name: str, label: str) -> None:
+    """Warn when more than :data:`_BEYOND_PI` of a joint angle's samples lie beyond ±π: a
+    joint angle is the bend between neighbouring links (0 when straight), and beyond ±π the
+    links would cross."""
+    v = col[np.isfinite(col)]
+    beyond = np.abs(v) > math.pi
+    if v.size and beyond.mean() > _BEYOND_PI:
+        warnings.warn(
+            f"{label}, column {name!r}: {100 * beyond.mean():.0f}% of the joint angles lie beyond "
+            f"±π (they range from {v.min():.3g} to {v.max():.3g}, median {np.median(v):.3g}); a "
+            "joint angle is the bend between neighbouring links in radians, 0 for a straight "
+            "body, and beyond ±π the links would cross: degrees? (radians = degrees · π/180), "
+            "or an offset (the straight body not at 0)?", stacklevel=4)
+
+
+#: a body travels at most about a body length per gait cycle, and its origin moves by less than
+#: about 0.1 body length per radian of joint motion (measured on the simulated 3- and 9-link
+#: swimmers, both frames, η up to 0.1, ω up to 0.05: 0.1-0.54 body lengths per cycle and
+#: 0.02-0.09 per radian); positions beyond these limits are not in body lengths
+_MAX_BL_PER_CYCLE = 3.0
+_MAX_BL_PER_RAD = 2.0
+#: joint motion per cycle (rad, norm over the joints) below which no gait is there to fit: a
+#: tracker's own joint-angle noise is about 0.01 rad
+_MIN_BEND = 1e-3
+#: largest plausible range of the heading within one gait cycle (rad): the simulated swimmers
+#: swing by 0.36-2.35 (3- and 9-link reference and optimised gaits, both frames, η = 0.1)
+_MAX_SWING = 2 * math.pi
+
+
+def _per_cycle(x: np.ndarray, n: int) -> np.ndarray:
+    """``(k, C)`` range (max − min) of ``x (T, C)`` in each of ``k = T // n`` windows of ``n``
+    samples (NaN for a window without values)."""
+    k = len(x) // n
+    w = x[: k * n].reshape(k, n, x.shape[1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+        return np.nanmax(w, 1) - np.nanmin(w, 1)
+
+
+def _check_pose(pose: np.ndarray, r: np.ndarray, label: str) -> None:
+    """Warn about columns that do not move, positions that move further per gait cycle or per
+    radian of joint motion than a body measured in body lengths can (millimetres or pixels?),
+    joints that barely move, and a heading that swings by more than a turn within a cycle
+    (degrees?)."""
+    names = ["x", "y", "theta"] + [f"r{i + 1}" for i in range(r.shape[1])]
+    for name, col in zip(names, np.concatenate([pose, r], 1).T, strict=True):
+        v = col[np.isfinite(col)]
+        if v.size > 1 and (v == v[0]).all():
+            warnings.warn(f"{label}, column {name!r}: the same value ({v[0] + 0.0:g}) in every "
+                          "row; a recording moves in every column (a placeholder?)",
+                          stacklevel=4)
+    cycles = float(count_cycles(torch.as_tensor(r)))
+    n = int(round(len(r) / cycles)) if cycles >= 1.5 else 0
+    if n < 2:
+        return
+    moved = np.hypot(*_per_cycle(pose[:, :2], n).T)
+    bent = np.linalg.norm(_per_cycle(r, n), axis=-1)
+    ok = np.isfinite(moved) & np.isfinite(bent) & (bent > 0)
+    if ok.any() and np.median(bent[ok]) < _MIN_BEND:
+        warnings.warn(
+            f"{label}, columns 'r1'..'r{r.shape[1]}': the joint angles change by only "
+            f"{np.median(bent[ok]):.3g} rad within a gait cycle (median over {int(ok.sum())} "
+            "cycles), too little shape change to drive or to estimate a motion from: joint "
+            "angles in another unit, or scaled?", stacklevel=4)
+    elif ok.any():
+        per_cycle = float(np.median(moved[ok]))
+        per_rad = float(np.median(moved[ok] / bent[ok]))
+        if per_cycle > _MAX_BL_PER_CYCLE or per_rad > _MAX_BL_PER_RAD:
+            warnings.warn(
+                f"{label}, columns 'x', 'y': the body moves {per_cycle:.3g} per gait cycle and "
+                f"{per_rad:.3g} per radian of joint motion (medians over {int(ok.sum())} "
+                "cycles), but measured in body lengths a swimmer moves at most about 1 per "
+                "cycle and well under 1 per radian (warned above "
+                f"{_MAX_BL_PER_CYCLE:g} and {_MAX_BL_PER_RAD:g}): positions in millimetres or "
+                "pixels? x and y are in body lengths (divide them by the body length in the "
+                "file's units); the connection's A_x, A_y scale with them", stacklevel=4)
+    theta = pose[:, 2].copy()
+    valid = np.isfinite(theta)
+    theta[valid] = np.unwrap(theta[valid])
+    swing = _per_cycle(theta[:, None], n)[:, 0]
+    swing = swing[np.isfinite(swing)]
+    if swing.size and np.median(swing) > _MAX_SWING:
+        warnings.warn(
+            f"{label}, column 'theta': the heading swings by {np.median(swing):.3g} within a "
+            "gait cycle (median), more than a full turn: degrees? (theta is in radians)",
+            stacklevel=4)
+
+
+def _check_power(power: np.ndarray, lines: np.ndarray, label: str) -> None:
+    """Refuse a ``power`` column that cannot be a dissipated power (:func:`power_problem`),
+    naming the lines of its negative values."""
+    negative = np.flatnonzero(power < 0)
+    problem = power_problem(torch.as_tensor(power),
+                            _lines_text(lines[negative]) if negative.size else "")
+    if problem is not None:
+        raise ValueError(f"{label}, column 'power': {problem} Remove the column to fit the "
+                         "connection alone")
 
 
 def _check_time(t: np.ndarray, lines: np.ndarray, label: str) -> None:
@@ -297,20 +424,40 @@ def read_csv(
         A :class:`~torchconn.trajectory.Trajectory` (float64, CPU) with ``pose (n_trials, T, 3)``,
         ``r (n_trials, T, d)``, ``power (n_trials, T)`` when any file has a power column (NaN
         for files without one), ``T`` the longest trial (shorter ones NaN-padded at the end),
-        and ``meta["trials"]`` listing each trial's file, id, length and start time.
+        and ``meta["trials"]`` listing each trial's file, id, length and start time. Times
+        too large for float64 to keep ``dt`` to about 1e-9 (Unix time stamps) are taken relative
+        to the first trial's start, stored in ``meta["t_offset"]``.
+
+    Joint angles wrapped to (−π, π] (jumps of about 2π between neighbouring samples) are
+    unwrapped, with a warning naming column and lines. Warnings also name joint angles beyond
+    ±π (degrees?) and positions that move further than a body measured in body lengths can
+    (millimetres or pixels?); a file given twice is refused, two files with identical contents
+    are warned about.
 
     Raises:
         ValueError: naming the file (and line / column) for missing columns, non-numeric
             values, non-increasing or non-uniform ``t``, a wrong number of joints, all-empty
-            columns, too few samples, different sampling intervals or too few cycles.
+            columns, too few samples, different sampling intervals, too few cycles, a power
+            column that cannot be a dissipated power (all zero, mostly negative, zero mean),
+            or a file named twice; also for a folder, a binary or compressed file, or text that
+            is not UTF-8.
+        FileNotFoundError: a file that does not exist.
+        TypeError: ``paths`` not a path or a sequence of paths.
     """
     if isinstance(paths, (str, PathLike)):
         paths = [paths]
+    elif not isinstance(paths, Sequence) or not all(isinstance(p, (str, PathLike))
+                                                    for p in paths):
+        raise TypeError("read_csv: paths must be a file path (str or os.PathLike) or a sequence "
+                        f"of them, got {paths!r}")
     paths = [Path(p) for p in paths]
     if not paths:
-        raise ValueError("paths is empty; pass a CSV file or a list of them")
-    if n_joints is not None and (not isinstance(n_joints, int) or n_joints < 1):
-        raise ValueError(f"n_joints must be a positive integer, got {n_joints!r}")
+        raise ValueError("read_csv: paths is empty; pass a CSV file or a list of them")
+    if n_joints is not None:
+        _checks.integer(n_joints, "n_joints", minimum=1, fn="read_csv")
+    if min_cycles is not None:
+        _checks.check_value("read_csv: min_cycles", min_cycles, float, {"ge": 0})
+    check_distinct(paths)
 
     trials: list[_Trial] = []
     for p in paths:
@@ -334,6 +481,14 @@ def read_csv(
     longest = max(trials, key=lambda tr: len(tr.t))
     t0s = [float(tr.t[0]) for tr in trials]
     t = torch.as_tensor(longest.t)
+    # times so large that their rounding is felt in dt (Unix time stamps): relative to the
+    # first trial's start, so that the grid stays uniform to the last digits
+    offset = 0.0
+    if np.finfo(np.float64).eps * max(max(abs(tr.t[0]), abs(tr.t[-1])) for tr in trials) \
+            > 1e-9 * dt:
+        offset = t0s[0]
+        t0s = [t0 - offset for t0 in t0s]
+        t = t - offset
     steps = torch.diff(t)
     same_start = all(abs(t0 - t0s[0]) <= 1e-9 * max(1.0, abs(t0s[0])) for t0 in t0s)
     if not same_start or (steps - steps.mean()).abs().max() > 1e-6 * steps.mean().abs():
@@ -366,6 +521,8 @@ def read_csv(
                     "t0": float(tr.t[0])} for tr in trials],
         "dt": float(dt),
     }
+    if offset:
+        meta["t_offset"] = offset
     return Trajectory(t=t, pose=pose, r=r, power=power, meta=meta)
 
 

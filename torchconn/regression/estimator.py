@@ -43,7 +43,7 @@ from ..io.preflight import MAX_GAP_CYCLES, preflight
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
-from ..trajectory import Trajectory
+from ..trajectory import Trajectory, for_estimation, power_problem
 from . import skill
 from ._wls import IllConditionedBinWarning
 from .model import LocalConnectionModel
@@ -241,8 +241,14 @@ class ConnectionEstimator:
                 :func:`torchconn.io.trajectory_files.read_csv`).
             phase: optional ``(..., T)`` phase to use instead of the phaser's estimate.
         """
-        if not isinstance(traj, Trajectory):
-            raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
+        traj = for_estimation(traj, "ConnectionEstimator.fit", phase)
+        if getattr(self.regression, "metric", None) is not False and traj.power is not None:
+            for k, p in enumerate(traj.power.reshape(-1, traj.n_samples)):
+                problem = power_problem(p)
+                if problem is not None:
+                    raise ValueError(f"ConnectionEstimator.fit: power of trial {k} (flattened "
+                                     f"batch): {problem}; or fit the connection alone "
+                                     "(regression__metric=False)")
         if getattr(self.regression, "metric", None) is True and traj.power is None:
             raise ValueError(
                 "the regression asks for the metric (metric=True) but the data have no power "
@@ -450,6 +456,7 @@ class ConnectionEstimator:
 
     def prepare(self, traj: Trajectory, phase: Tensor | None = None) -> Trajectory:
         """:func:`prepare` with this estimator's smoother and phaser (smoothing, phase)."""
+        traj = for_estimation(traj, "ConnectionEstimator.prepare", phase)
         return _prepare(traj, phase, self.smoother, self.phaser)[0]
 
     def predict(self, traj: Trajectory) -> Tensor:
@@ -467,6 +474,7 @@ class ConnectionEstimator:
 
     def _prepare_new(self, traj: Trajectory, phase: Tensor | None) -> Trajectory:
         """New recordings smoothed and phased with the fitted phase model when there is one."""
+        traj = for_estimation(traj, "ConnectionEstimator", phase)
         fitted = getattr(self, "phaser_", None)
         # one fitted phase model per training trial: it applies to recordings of the same
         # batch shape (the same trials, later); other batches are phased afresh (Phaser's

@@ -31,6 +31,7 @@ from typing import Any
 
 from .. import __version__
 from .._cli import InputError, check_keys, did_you_mean, resolve_device
+from .._files import read_text
 from .._options import check_value
 from .._provenance import source_hash
 from .._resources import config_names, configs, read_config
@@ -80,7 +81,8 @@ class SimulationSettings:
     substeps: int = 8
 
     def __post_init__(self) -> None:
-        _in_range("alpha", self.alpha, float, 0.0)
+        # > 0: the rollouts start from the stationary law N(0, η²/(2α))
+        check_value("alpha", self.alpha, float, {"gt": 0.0})
         _in_range("eta", self.eta, float, 0.0)
         _in_range("n_cycles", self.n_cycles, int, 2, 100_000)
         _in_range("samples_per_cycle", self.samples_per_cycle, int, 8, 100_000)
@@ -333,16 +335,13 @@ def resolve_config(config: str | Path) -> tuple[str, str]:
     """
     path = Path(config)
     if path.is_dir():
-        raise InputError(f"config {path} is a folder; expected a TOML file or the name of a "
+        raise InputError(f"config {path} is a folder, expected a TOML file or the name of a "
                          f"packaged config ({', '.join(sweep_config_names())})")
     if path.is_file():
         try:
-            return path.read_bytes().decode("utf-8"), str(path)
-        except UnicodeDecodeError:
-            raise InputError(f"config {path}: not UTF-8 text; TOML files must be UTF-8") \
-                from None
-        except OSError as err:
-            raise InputError(f"config {path}: cannot read it ({err.strerror})") from None
+            return read_text(path, "a TOML file", "config"), str(path)
+        except (ValueError, OSError) as err:
+            raise InputError(str(err)) from None
     name = str(config)
     stem = name[:-5] if name.endswith(".toml") else name
     if stem not in sweep_config_names():
@@ -373,7 +372,7 @@ def load_config(config: str | Path | None = None, overrides: list[str] = ()) -> 
     raw = apply_overrides(raw, list(overrides))
     try:
         return _parse(raw)
-    except InputError as err:
+    except ValueError as err:  # InputError, and the type checks of _check_type
         sets = [o for o in overrides if "=" in o]
         hint = f" (after --set {', '.join(sets)})" if sets else ""
         raise InputError(f"{source}: {err}{hint}") from None

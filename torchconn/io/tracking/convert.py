@@ -30,12 +30,14 @@ import warnings
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ... import _linalg
+from ..._options import Options, option
 from ...trajectory import Trajectory, pad_trials
 from .readers import FORMATS, Keypoints, TrackingFormatError, read_tracking
 
@@ -58,7 +60,7 @@ _SCRAMBLED = 1.5
 
 
 @dataclass(frozen=True, kw_only=True)
-class ConversionSettings:
+class ConversionSettings(Options):
     """How tracked points become a swimmer's trajectory (every field lands in the sidecar).
 
     Attributes:
@@ -88,46 +90,35 @@ class ConversionSettings:
         time_origin: ``"first"`` (t = 0 at the first frame read) or ``"frame0"`` (t = frame / fps).
     """
 
-    n_links: int
-    frame: str = "center"
-    curve: str = "spline"
-    head: str | None = None
+    n_links: int = option(ge=2)
+    frame: Literal["center", "com-mean"] = "center"
+    curve: Literal["spline", "polyline"] = "spline"
+    head: Literal["first", "last"] | None = None
     flip_y: bool | None = None
-    scale: float | None = None
-    fps: float | None = None
+    scale: float | None = option(None, gt=0)
+    fps: float | None = option(None, gt=0)
     min_score: float | None = None
-    max_gap: float | None = None
+    max_gap: float | None = option(None, gt=0)
     keypoints: tuple[str, ...] | None = None
     track: str | int | None = None
     fix_flips: bool = True
     fill_interior: bool = False
-    time_origin: str = "first"
+    time_origin: Literal["first", "frame0"] = "first"
 
     def __post_init__(self) -> None:
-        if isinstance(self.n_links, bool) or not isinstance(self.n_links, int) or self.n_links < 2:
-            raise ValueError(f"n_links must be an integer >= 2, got {self.n_links!r}")
-        if self.frame not in ("center", "com-mean"):
-            raise ValueError(f"frame must be 'center' or 'com-mean', got {self.frame!r}")
+        super().__post_init__()  # every field's type and range
         if self.frame == "center" and self.n_links % 2 == 0:
             raise ValueError(f"the 'center' body frame needs an odd number of links (the middle "
                              f"link), got n_links={self.n_links}; use frame='com-mean'")
-        if self.curve not in ("spline", "polyline"):
-            raise ValueError(f"curve must be 'spline' or 'polyline', got {self.curve!r}")
-        if self.head not in (None, "first", "last"):
-            raise ValueError(f"head must be 'first' or 'last', got {self.head!r}")
-        for name in ("scale", "fps"):
-            v = getattr(self, name)
-            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number, got {v!r}")
-        if self.max_gap is not None and not self.max_gap > 0:
-            raise ValueError(f"max_gap must be a positive number of seconds, got {self.max_gap!r}")
         if self.keypoints is not None:
+            if not isinstance(self.keypoints, (list, tuple)) or not all(
+                    isinstance(k, str) for k in self.keypoints):
+                raise ValueError(f"ConversionSettings.keypoints must be a list of keypoint names, "
+                                 f"got {self.keypoints!r}")
             object.__setattr__(self, "keypoints", tuple(self.keypoints))
             if len(self.keypoints) < 2:
                 raise ValueError(f"keypoints must name at least 2 points along the body, got "
                                  f"{list(self.keypoints)}")
-        if self.time_origin not in ("first", "frame0"):
-            raise ValueError(f"time_origin must be 'first' or 'frame0', got {self.time_origin!r}")
 
 
 @dataclass(frozen=True)
@@ -395,8 +386,15 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
         raise TrackingFormatError(f"{src}: only {len(sel)} keypoint ({', '.join(names)}); a midline "
                                   "needs at least 2 points along the body (better: 2 or more per link)")
     used = [names[i] for i in sel]
+    if len(sel) < s.n_links + 1:
+        note(f"{len(sel)} keypoints for {s.n_links} links: the curve through them bends at "
+             f"{max(len(sel) - 2, 0)} of them at most, so the {s.n_links - 1} joint angles are "
+             f"interpolated, not measured (track at least {s.n_links + 1} keypoints, or use "
+             "fewer links)")
     pts = kp.points[:, sel].copy()
     scores = None if kp.scores is None else kp.scores[:, sel]
+    if s.min_score is not None and scores is None:
+        note(f"min_score {s.min_score:g} has no effect: the file holds no confidence scores")
     F_read = pts.shape[0]
     if F_read == 0:
         raise TrackingFormatError(f"{src}: no tracked frames")

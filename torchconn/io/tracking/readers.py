@@ -36,7 +36,6 @@ HDF5 needs h5py (``pip install 'torchconn[tracking]'``).
 
 from __future__ import annotations
 
-import csv
 import io
 import json
 import math
@@ -49,6 +48,9 @@ from os import PathLike
 from pathlib import Path
 
 import numpy as np
+
+from ..._files import check_file, file_kind
+from .._table import first_rows, read_table
 
 __all__ = ["Keypoints", "FORMATS", "read_tracking", "detect_format", "TrackingFormatError",
            "MissingDependencyError"]
@@ -128,9 +130,16 @@ _SUFFIX_FORMAT = {".wcon": "wcon", ".json": "wcon", ".zip": "wcon", ".npz": "poi
 
 def detect_format(path: str | PathLike) -> str:
     """The format of a tracking file, from its suffix and first lines; ``"torchconn"`` for a
-    trajectory CSV (docs/conventions.md: a ``theta`` or ``r<i>`` column), and for a text file
-    that is not UTF-8 (the trajectory reader names the encoding problem)."""
-    path = Path(path)
+    trajectory CSV (docs/conventions.md: a ``theta`` or ``r<i>`` column), also under another
+    suffix.
+
+    Raises:
+        TrackingFormatError: an unknown kind of file, named with what it seems to be (a folder,
+            a compressed or binary file).
+        FileNotFoundError, OSError: see :func:`torchconn._files.check_file`.
+    """
+    what = "a trajectory CSV or tracking file"
+    path = check_file(path, what)
     suffix = path.suffix.lower()
     if suffix in _SUFFIX_FORMAT:
         return _SUFFIX_FORMAT[suffix]
@@ -146,34 +155,31 @@ def detect_format(path: str | PathLike) -> str:
             "'node_names') nor a DeepLabCut pandas store (key 'df_with_missing'); "
             "pass --format to say what it is"
         )
-    if suffix in (".csv", ".txt", ".tsv"):
-        try:
-            with path.open("rb") as fh:
-                start = fh.read(4096)
-        except OSError as err:
-            raise FileNotFoundError(f"cannot open {path}: {err}") from err
-        try:
-            start.decode("utf-8")
-            ok = b"\0" not in start
-        except UnicodeDecodeError as err:
-            ok = err.start > len(start) - 4  # a character cut at the end of the block
-        if not ok:
-            return "torchconn"
-        head = _first_lines(path, 4)
-        cells = [[c.strip().lower() for c in line.split(",")] for line in head]
-        if cells and cells[0] and cells[0][0] == "scorer":
-            return "dlc"
-        header = cells[0] if cells else []
-        if "frame_idx" in header and any(c.endswith(".x") for c in header):
-            return "sleap"
-        if "theta" in header or any(re.fullmatch(r"r\d+", c) for c in header):
-            return "torchconn"  # a trajectory CSV (read_csv names any missing column)
-        return "points"
-    raise TrackingFormatError(
-        f"{path}: unknown tracking file type {suffix or '(no suffix)'!r}; known: SLEAP "
-        "(.h5, .csv), DeepLabCut (.h5, .csv), WCON (.wcon, .json, .zip), points (.csv, .npz); "
-        f"pass --format {'|'.join(FORMATS)}"
-    )
+    known = (f"expected a trajectory CSV (.csv) or a tracking file: SLEAP (.h5, .csv), "
+             "DeepLabCut (.h5, .csv), WCON (.wcon, .json, .zip), points (.csv, .npz); pass "
+             f"--format {'|'.join(FORMATS)} for another suffix")
+    if suffix not in (".csv", ".txt", ".tsv"):
+        with path.open("rb") as fh:
+            kind = file_kind(fh.read(4096))
+        if kind is not None:
+            raise TrackingFormatError(f"{path}: the file is {kind}; {known}")
+    try:
+        cells = [[c.strip().lower() for c in row] for row in first_rows(path, what, 4)]
+    except ValueError:
+        if suffix in (".csv", ".txt", ".tsv"):
+            raise
+        cells = None
+    header = cells[0] if cells else []
+    if "theta" in header or any(re.fullmatch(r"r\d+", c) for c in header):
+        return "torchconn"  # a trajectory CSV (read_csv names any missing column)
+    if suffix not in (".csv", ".txt", ".tsv"):
+        raise TrackingFormatError(
+            f"{path}: unknown tracking file type {suffix or '(no suffix)'!r}; {known}")
+    if cells and cells[0] and cells[0][0] == "scorer":
+        return "dlc"
+    if "frame_idx" in header and any(c.endswith(".x") for c in header):
+        return "sleap"
+    return "points"
 
 
 def read_tracking(path: str | PathLike, format: str | None = None, *,
@@ -192,9 +198,7 @@ def read_tracking(path: str | PathLike, format: str | None = None, *,
         FileNotFoundError: the file does not exist.
         ImportError: HDF5 without h5py.
     """
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"tracking file {path} not found")
+    path = check_file(path, "a tracking file")
     if format is None:
         format = detect_format(path)
         if format == "torchconn":
@@ -215,14 +219,6 @@ def read_tracking(path: str | PathLike, format: str | None = None, *,
 
 
 # ============================================================================ helpers
-def _first_lines(path: Path, n: int) -> list[str]:
-    try:
-        with path.open(encoding="utf-8-sig", errors="replace") as fh:
-            return [line.rstrip("\r\n") for _, line in zip(range(n), fh, strict=False)]
-    except OSError as err:
-        raise FileNotFoundError(f"cannot open {path}: {err}") from err
-
-
 def _h5py(path: Path):
     try:
         import h5py
@@ -360,33 +356,23 @@ def _read_sleap_csv(path: Path, track) -> Keypoints:
                      format="sleap", info={"track": tnames[k]})
 
 
-def _csv_rows(path: Path, header_rows: int = 1):
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as err:
-        raise TrackingFormatError(f"{path}: not UTF-8 text ({err}); save the CSV as UTF-8") from None
-    except OSError as err:
-        raise FileNotFoundError(f"cannot open {path}: {err}") from err
-    reader = csv.reader(io.StringIO(text))
-    heads, rows, lines = [], [], []
-    for row in reader:
-        if not row or all(not c.strip() for c in row):
-            continue
-        if len(heads) < header_rows:
-            heads.append([c.strip() for c in row])
-            continue
-        rows.append(row)
-        lines.append(reader.line_num)
-    if len(heads) < header_rows:
+def _csv_rows(path: Path, header_rows: int | None = 1):
+    """Header, rows and line numbers of a tracking CSV (:func:`~torchconn.io._table.read_table`:
+    separator, quoting, comments and decimal commas found from the file); ``header_rows=None``:
+    one header row when the first row holds a non-number (then ``None`` when there is none)."""
+    heads, rows, lines, _ = read_table(path, "a tracking CSV file", header_rows=header_rows,
+                                       error=TrackingFormatError)
+    if not heads and not rows:
+        raise TrackingFormatError(f"{path}: the file is empty")
+    if header_rows and len(heads) < header_rows:
         raise TrackingFormatError(f"{path}: the file is empty or its header is incomplete")
     if not rows:
-        raise TrackingFormatError(f"{path}: no data rows")
-    width = len(heads[0]) if heads else len(rows[0])
-    for row, line in zip(rows, lines, strict=True):
-        if len(row) != width:
-            raise TrackingFormatError(f"{path}, line {line}: {len(row)} fields, but "
-                                      f"{'the header has' if heads else 'the first row has'} "
-                                      f"{width}")
+        first = ",".join(heads[0]) if heads else ""
+        raise TrackingFormatError(f"{path}: no data rows after the first line "
+                                  f"{first[:60]!r}; expected a trajectory CSV (header t, x, y, "
+                                  "theta, r1, ..., rd) or a tracking file")
+    if header_rows is None:
+        return (heads[0] if heads else None), rows, lines
     return (heads[0] if header_rows == 1 else heads), rows, lines
 
 
@@ -482,11 +468,10 @@ def _frame_numbers(labels: list[str], path: Path, lines: list[int] | None = None
 
 
 def _read_dlc_csv(path: Path, track) -> Keypoints:
-    lines_head = _first_lines(path, 5)
+    _, rows, lines = _csv_rows(path, header_rows=0)
     n_head = 0
-    for line in lines_head:
-        first = line.split(",")[0].strip().lower()
-        if first in ("scorer", "individuals", "bodyparts", "coords"):
+    for row in rows[:5]:
+        if row[0].strip().lower() in ("scorer", "individuals", "bodyparts", "coords"):
             n_head += 1
         else:
             break
@@ -494,7 +479,10 @@ def _read_dlc_csv(path: Path, track) -> Keypoints:
         raise TrackingFormatError(f"{path}: a DeepLabCut CSV starts with header rows 'scorer', "
                                   "('individuals',) 'bodyparts', 'coords'; found "
                                   f"{n_head} of them")
-    heads, rows, lines = _csv_rows(path, header_rows=n_head)
+    heads = [[c.strip() for c in row] for row in rows[:n_head]]
+    rows, lines = rows[n_head:], lines[n_head:]
+    if not rows:
+        raise TrackingFormatError(f"{path}: no data rows")
     levels = [h[0].lower() for h in heads]
     # a labelled-data CSV has up to three index columns (labeled-data, video, image)
     n_idx = next(j for j in range(len(heads[-1])) if heads[-1][j].lower() in ("x", "y",
@@ -688,10 +676,18 @@ def _resample_polyline(x: np.ndarray, y: np.ndarray, K: int) -> tuple[np.ndarray
 
 # ============================================================================ plain points
 def _read_points_npz(path: Path) -> Keypoints:
+    with path.open("rb") as fh:
+        start = fh.read(8)
+    if not start.startswith(b"PK"):  # an NPZ is a ZIP archive of .npy arrays
+        kind = file_kind(start) or "not a ZIP archive of .npy arrays"
+        raise TrackingFormatError(f"{path}: not an NPZ file ({kind}); write one with "
+                                  "numpy.savez(path, points=..., t=...)")
     try:
         z = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as err:
         raise TrackingFormatError(f"{path}: not a readable NPZ file ({err})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise TrackingFormatError(f"{path}: a single .npy array, not an NPZ archive")
     with z:
         if "points" not in z.files:
             raise TrackingFormatError(f"{path}: no array 'points'; expected points (frames, "
@@ -723,16 +719,7 @@ _PAIR = re.compile(r"^(.*?)[._ ]?([xy])$", re.IGNORECASE)
 
 
 def _read_points_csv(path: Path) -> Keypoints:
-    first = _first_lines(path, 1)
-    if not first:
-        raise TrackingFormatError(f"{path}: the file is empty")
-    cells = [c.strip() for c in first[0].split(",")]
-    has_header = any(c and not _is_number(c) for c in cells)
-    if has_header:
-        header, rows, lines = _csv_rows(path)
-    else:
-        _, rows, lines = _csv_rows(path, header_rows=0)
-        header = None
+    header, rows, lines = _csv_rows(path, header_rows=None)
     width = len(rows[0])
     tcol = fcol = None
     names: list[str] = []
@@ -742,9 +729,11 @@ def _read_points_csv(path: Path) -> Keypoints:
         tcol = next((i for i, h in enumerate(low) if h in ("t", "time", "time_s")), None)
         fcol = next((i for i, h in enumerate(low) if h in ("frame", "frame_idx")), None)
         rest = [i for i in range(width) if i not in (tcol, fcol)]
-        if len(rest) % 2:
-            raise TrackingFormatError(f"{path}: {len(rest)} coordinate columns; expected x, y "
-                                      "pairs (one pair per point along the body)")
+        if len(rest) % 2 or not rest:
+            raise TrackingFormatError(f"{path}: {len(rest)} coordinate columns (header "
+                                      f"{', '.join(header)}); expected x, y pairs (one pair per "
+                                      "point along the body), or a trajectory CSV 't, x, y, "
+                                      "theta, r1, ..., rd'")
         for a, b in zip(rest[::2], rest[1::2], strict=True):
             ma, mb = _PAIR.match(header[a]), _PAIR.match(header[b])
             if (ma and mb and ma.group(2).lower() == "x" and mb.group(2).lower() == "y"

@@ -8,11 +8,11 @@ one written by ``python -m torchconn.physics.gaits.optimize --out FILE.toml``.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 
 import torch
 
+from ..._files import read_toml
 from ..._resources import read_config
 from .gait import FourierGait, ModalGait, PolarGait
 
@@ -67,8 +67,7 @@ def load_gaits(path: Path | str | None = None) -> dict:
             "`python -m torchconn.physics.gaits.optimize --out FILE.toml`, or pass path=None "
             "for the gaits that ship with torchconn"
         )
-    with path.open("rb") as fh:
-        return tomllib.load(fh)
+    return read_toml(path, "gaits file")
 
 
 def optimised_gait(name: str, path: Path | str | None = None) -> PolarGait:
