@@ -275,6 +275,10 @@ def build_cases(root: Path) -> list[Case]:
     fit("2 video-rate recordings, fixed complexity", rates[:2], "--complexity", "fixed",
         must_flag=False, links="5")
     fit("recordings at different frame rates", rates[2:], must_flag=False, links="5")
+    fit("3 video-rate recordings, pooled, no metric", rates[:3], "--metric", "no",
+        must_flag=False, links="5")
+    fit("2 video-rate recordings, fixed, no metric", rates[:2], "--complexity", "fixed",
+        "--metric", "no", must_flag=False, links="5")
     gap = table.copy()
     gap[100:260, 2:] = np.nan  # a gap of 5 cycles in trial 0
     fit("a long gap", [table_csv("gap.csv", gap)], must_flag=False)
@@ -329,8 +333,9 @@ def build_cases(root: Path) -> list[Case]:
         "unk.toml", "[estimator]\npoool = true\n")))
     fit("--known bad", [good], "--known", "ambient_flow:u_x=abc")
     fit("--known unknown effect", [good], "--known", "wind:u=1")
-    fit("--metric yes without power", [csv_from("nopower.csv", "\n".join(
-        ",".join(r.split(",")[: len(rcols) + 4]) for r in lines) + "\n")], "--metric", "yes")
+    keep = [j for j, h in enumerate(cols) if h != "power"]
+    fit("--metric yes without power", [table_csv("nopower.csv", table[:, keep],
+                                                 [cols[j] for j in keep])], "--metric", "yes")
 
     # --- convert
     def conv(name, sources, *extra, must_flag=True):
@@ -498,7 +503,7 @@ def build_cases(root: Path) -> list[Case]:
     sweep("sweep: config missing", None, "--config", str(root / "missing.toml"))
     sweep("sweep: config folder", None, "--config", str(root))
     sweep("sweep: --trials -1", base, "--trials", "-1")
-    sweep("sweep: --workers 0", base, "--workers", "0")
+    sweep("sweep: --workers 0 (in-process)", base, "--workers", "0", must_flag=False)
     sweep("sweep: --block 3", base, "--block", "3")
     sweep("sweep: --out a file", base, "--out", str(good))
     sweep("sweep: unknown key", base + "bogus = 1\n")

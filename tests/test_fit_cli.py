@@ -274,7 +274,8 @@ def test_fit_names_the_components_that_lose_to_the_phase_average(tmp_path, capsy
 
 def test_more_bins_than_samples_is_refused_before_any_allocation(recording, tmp_path, capsys):
     # the bins' series grow as n_bins²: 100000 bins on this recording once took all memory
-    assert main([str(recording), "--links", "3", "--out", str(tmp_path / "x"), "--n-bins",
-                 "100000", "--complexity", "fixed", "--no-figures"]) == 2
-    err = capsys.readouterr().err
-    assert "n_bins = 100000 is more than the" in err and "--n-bins" in err
+    for complexity in ("fixed", "auto"):
+        assert main([str(recording), "--links", "3", "--out", str(tmp_path / "x"), "--n-bins",
+                     "100000", "--complexity", complexity, "--no-figures"]) == 2
+        err = capsys.readouterr().err
+        assert "n_bins = 100000 is more than the" in err and "--n-bins" in err

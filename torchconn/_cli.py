@@ -27,7 +27,7 @@ from pathlib import Path
 
 from ._checks import did_you_mean, unknown_keys_message
 
-__all__ = ["InputError", "add_threads", "set_threads", "add_device", "resolve_device",
+__all__ = ["InputError", "check_center_frame", "add_threads", "set_threads", "add_device", "resolve_device",
            "prepare_output", "run_command", "check_keys", "did_you_mean"]
 
 #: set to 1 to see the traceback of an unexpected error
@@ -45,6 +45,15 @@ def check_keys(table: dict, known: Iterable[str], where: str) -> None:
     unknown = [k for k in table if k not in known]
     if unknown:
         raise InputError(unknown_keys_message(where, unknown, known))
+
+
+def check_center_frame(n_links: int, frame: str | None, hint: str = "pass --frame com-mean"
+                       ) -> None:
+    """Raise :class:`InputError` where the center body frame (the middle link, the default)
+    meets an even ``--links``; ``hint`` says what to do instead, in the command's words."""
+    if (frame or "center") == "center" and n_links % 2 == 0:
+        raise InputError(f"--links {n_links}: the center body frame (the middle link) needs an "
+                         f"odd number of links; {hint}")
 
 
 def add_threads(parser: argparse.ArgumentParser) -> None:
@@ -147,6 +156,10 @@ def run_command(prog: str, body: Callable[[], int]) -> int:
 
     with warnings.catch_warnings():
         warnings.showwarning = show
+        # other libraries' deprecations (torch.func's own use of torch.jit, ...) are for
+        # developers, not for the user of a command; torchconn's own are shown
+        for category in (DeprecationWarning, PendingDeprecationWarning, FutureWarning):
+            warnings.filterwarnings("ignore", category=category, module=r"(?!torchconn)")
         try:
             return body()
         except KeyboardInterrupt:

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from ._cli import InputError, add_threads, check_keys, run_command, set_threads
+from ._cli import InputError, add_threads, check_center_frame, check_keys, run_command, set_threads
 from ._files import check_distinct, check_file, read_toml
 from ._options import check_field
 from ._output import OutputFolder
@@ -144,10 +144,8 @@ def conversion_settings(args, n_links: int, table: dict | None = None) -> Conver
         values["keypoints"] = tuple(k.strip() for k in values["keypoints"].split(",") if k.strip())
     if values.get("keypoints") is not None:
         values["keypoints"] = tuple(values["keypoints"])
-    if values.get("frame", "center") == "center" and n_links % 2 == 0:
-        raise InputError(f"--links {n_links}: the center body frame (the middle link) needs an "
-                         "odd number of links; pass --frame com-mean (or frame = \"com-mean\" "
-                         "in [convert])")
+    check_center_frame(n_links, values.get("frame"),
+                       'pass --frame com-mean (or frame = "com-mean" in [convert])')
     return ConversionSettings(n_links=n_links, **values)
 
 

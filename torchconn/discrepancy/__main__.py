@@ -23,6 +23,7 @@ from .._cli import (
     InputError,
     add_device,
     add_threads,
+    check_center_frame,
     check_keys,
     did_you_mean,
     resolve_device,
@@ -154,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--link-lengths must give {args.links} positive numbers (one per "
                              f"link, --links {args.links}), got {args.link_lengths}")
         frame = args.frame or "center"
+        check_center_frame(args.links, frame)
         system = NLinkSwimmer(args.links, drag_ratio=args.drag_ratio, frame=frame,
                               link_lengths=args.link_lengths)
         settings = _settings(args)

@@ -23,6 +23,7 @@ from .._cli import (
     InputError,
     add_device,
     add_threads,
+    check_center_frame,
     resolve_device,
     run_command,
     set_threads,
@@ -167,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     def body() -> int:
         set_threads(args.threads)
         _check_flags(args)
+        check_center_frame(args.links, "center", "the loop's swimmer is in the center frame: "
+                           "use an odd --links")
         args.device = str(resolve_device(args.device))
         with OutputFolder(args.out, command=f"torchconn-improve {args.command}",
                           log=lambda msg: print(f"{prog}: {msg}", file=sys.stderr)) as folder:

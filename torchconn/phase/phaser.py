@@ -949,6 +949,8 @@ def _check_values(x: Tensor, fn: str) -> None:
     if bool(flat.any()):
         where = _checks.first_index(flat)
         raise ValueError(
-            f"{fn}: channel {where[-1]} of x (batch index {where[:-1]}) is "
-            "constant and carries no phase; drop it"
+            f"{fn}: channel {where[-1]} of x (batch index {where[:-1]}; joint angle "
+            f"r{where[-1] + 1} when x holds a recording's shapes) is constant and carries no "
+            "phase: every channel must oscillate with the gait; drop it, or check the "
+            "recording's column (a placeholder, or a joint that was not tracked)"
         )

@@ -256,6 +256,12 @@ class ConnectionEstimator:
                 "to estimate the metric, or use metric=None (fit it when power is present) / "
                 "False to fit the connection alone (torchconn-fit: --metric auto / no)"
             )
+        n_bins, n_samples = self.regression.n_bins, int(torch.isfinite(traj.r).all(-1).sum())
+        if n_bins > n_samples:
+            raise ValueError(
+                f"ConnectionEstimator.fit: regression n_bins = {n_bins} is more than the "
+                f"{n_samples} samples of the recording: every phase bin needs samples of its "
+                "own; use fewer bins (regression__n_bins; torchconn-fit --n-bins)")
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
         regression, choice, free, searched = self.regression, None, None, False
