@@ -131,28 +131,26 @@ def lstsq(a: Tensor, b: Tensor, what: str) -> Tensor:
         return pinv(a, what) @ b
 
 
-def solve(a: Tensor, b: Tensor, what: str) -> Tensor:
-    """``a⁻¹ b`` for the square ``a (..., n, n)``; a singular ``a`` raises."""
+def _or_fail(call, a: Tensor, what: str, kind: str) -> Tensor:
+    """``call()``, or a :class:`FactorisationError` naming ``what`` where LAPACK fails."""
     try:
-        return torch.linalg.solve(a, b)
+        return call()
     except torch.linalg.LinAlgError:
         _nonfinite(a, what)
-        raise _failed(what, "the matrix is singular") from None
+        raise _failed(what, kind) from None
+
+
+def solve(a: Tensor, b: Tensor, what: str) -> Tensor:
+    """``a⁻¹ b`` for the square ``a (..., n, n)``; a singular ``a`` raises."""
+    return _or_fail(lambda: torch.linalg.solve(a, b), a, what, "the matrix is singular")
 
 
 def inv(a: Tensor, what: str) -> Tensor:
     """``a⁻¹`` for the square ``a (..., n, n)``; a singular ``a`` raises."""
-    try:
-        return torch.linalg.inv(a)
-    except torch.linalg.LinAlgError:
-        _nonfinite(a, what)
-        raise _failed(what, "the matrix is singular") from None
+    return _or_fail(lambda: torch.linalg.inv(a), a, what, "the matrix is singular")
 
 
 def cholesky(a: Tensor, what: str) -> Tensor:
     """Lower Cholesky factor of the positive-definite ``a (..., n, n)``."""
-    try:
-        return torch.linalg.cholesky(a)
-    except torch.linalg.LinAlgError:
-        _nonfinite(a, what)
-        raise _failed(what, "the matrix is not positive definite") from None
+    return _or_fail(lambda: torch.linalg.cholesky(a), a, what,
+                    "the matrix is not positive definite")
