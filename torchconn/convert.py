@@ -256,15 +256,6 @@ def output_names(sources: list[Path], n_trials: list[int]) -> list[list[str]]:
     return names
 
 
-def _refuse_repeated(sources: list[Path]) -> None:
-    seen = {}
-    for s in sources:
-        key = os.path.realpath(s)
-        if key in seen:
-            raise InputError(f"{s} is given twice (also as {seen[key]}); give each source once")
-        seen[key] = s
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog=PROG,
@@ -296,7 +287,6 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--links must be >= 2, got {args.links}")
         conversion_flags(args)
         settings = conversion_settings(args, args.links, tables.get("convert"))
-        _refuse_repeated(args.sources)
         with OutputFolder(args.out, command=PROG) as folder:
             return convert_into(folder, settings)
 

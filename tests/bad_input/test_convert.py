@@ -137,17 +137,6 @@ def test_convert_bad_files(case, tracked, tmp_path, capsys):
     assert_clean_failure(code, capsys.readouterr().err, fragments, out)
 
 
-def test_convert_refuses_one_output_name_for_two_sources(tracked, tmp_path, capsys):
-    (tmp_path / "a").mkdir()
-    (tmp_path / "b").mkdir()
-    one = write(tmp_path / "a", "fish.csv", tracked[0].read_text())
-    two = write(tmp_path / "b", "fish.csv", tracked[0].read_text())
-    code, out = _run([one, two, "--fps", "5"], tmp_path)
-    assert_clean_failure(code, capsys.readouterr().err,
-                         [str(one), str(two), "would both be written as", "fish.csv"], out)
-    assert not out.exists()
-
-
 def test_convert_same_file_twice_and_trajectory_csvs(tracked, recording, tmp_path, capsys):
     code, out = _run([tracked[0], tracked[0], "--fps", "5"], tmp_path)
     assert_clean_failure(code, capsys.readouterr().err, ["inputs 1 and 2 name the same file"],
