@@ -285,6 +285,11 @@ def _validate(tr: Trajectory) -> None:
             "t must be uniformly sampled; resample the recording onto a uniform grid first "
             f"(spacing ranges from {float(steps.min()):g} to {float(steps.max()):g})"
         )
+    if rounding > 1e-6 * float(steps.mean().abs()) + 1e-12:
+        # t given in a lower precision: its uniform grid in float64, so that the rounding of
+        # the lower precision is not taken for jitter once t is float64
+        grid = torch.arange(T, dtype=tr.t.dtype, device=tr.t.device)
+        object.__setattr__(tr, "t", tr.t[0] + (tr.t[-1] - tr.t[0]) / (T - 1) * grid)
     if not isinstance(tr.r, Tensor) or tr.r.ndim < 2 or tr.r.shape[-2] != T or tr.r.shape[-1] < 1:
         raise ValueError(f"r must have shape (..., T={T}, d), got {_describe(tr.r)}")
     batch, d = tr.r.shape[:-2], tr.r.shape[-1]

@@ -425,6 +425,18 @@ def test_trajectory_refuses_complex_and_converts_integers(recording):
     assert tr.t.dtype == torch.float64
 
 
+def test_a_recording_held_wholly_in_float32_is_fitted(recording):
+    # t in float32 too: its rounding is not jitter once t is float64
+    good = read_csv(recording)
+    with pytest.warns(UserWarning, match=r"converted t \(torch\.float32\)"):
+        tr = Trajectory(t=good.t.float(), pose=good.pose.float(), r=good.r.float())
+    torch.testing.assert_close(tr.t, good.t, rtol=0, atol=1e-5)
+    with pytest.warns(UserWarning, match=r"torch\.float32 arrays; converted to float64"):
+        est = ConnectionEstimator(held_out_folds=0).set_params(
+            regression__metric=False).fit(tr)
+    assert bool(torch.isfinite(est.model_.connection(torch.zeros(1, dtype=torch.float64))).all())
+
+
 def test_trajectory_accepts_unix_time_stamps():
     t = 1.7e9 + torch.arange(200, dtype=torch.float64) / 30  # spacing uniform up to rounding
     tr = Trajectory(t=t, pose=torch.zeros(200, 3, dtype=torch.float64),
