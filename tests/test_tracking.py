@@ -14,10 +14,10 @@ import torch
 
 from torchconn import NLinkSwimmer, simulate
 from torchconn.convert import main as convert_main
-from torchconn.discrepancy.known import parse_known, relative_to_known
 from torchconn.fit import main as fit_main
 from torchconn.io.preflight import CYCLE_RULES, CycleRule, preflight
 from torchconn.io.tracking import ConversionSettings, TrackingFormatError, convert, read_tracking
+from torchconn.known import parse_known, relative_to_known
 from torchconn.physics.gaits import reference_gait
 from torchconn.simulation.observe import observe
 from torchconn.testing.tracking import render_keypoints

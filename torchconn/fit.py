@@ -36,28 +36,21 @@ from pathlib import Path
 
 import torch
 
-from ._cli import (
-    InputError,
-    add_device,
-    add_threads,
-    resolve_device,
-    run_command,
-    set_threads,
-)
+from ._cli import InputError, resolve_device, run_command, set_threads
 from ._output import OutputFolder, write_table
 from ._provenance import write_sidecar
-from .convert import (
+from .cli.common import add_common, add_config, config_tables, informer
+from .cli.conversion import (
     add_conversion_arguments,
     check_conversion_table,
-    config_tables,
     conversion_flags,
     conversion_settings,
     load_recordings,
     warn_unused_conversion,
 )
-from .discrepancy.known import changes_data, parse_known, relative_to_known
 from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
+from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
 from .regression.estimator import (
     FLAT_KEYS,
@@ -171,13 +164,11 @@ def main(argv: list[str] | None = None) -> int:
                    "(SLEAP, DeepLabCut, WCON, points: docs/tracking.md)")
     p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    p.add_argument("--config", type=Path,
-                   help="TOML file with an [estimator] table (stage sub-tables [estimator.phaser], "
-                   "[estimator.regression], ...) and a [convert] table")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a setting, e.g. --set estimator.regression.ridge=1e-6 or, "
-                   "for a stage, the short form --set regression.kernel=box (stages: smoother, "
-                   "phaser, cycle, regression; repeatable)")
+    add_config(p, "TOML file with an [estimator] table (stage sub-tables [estimator.phaser], "
+               "[estimator.regression], ...) and a [convert] table",
+               "override a setting, e.g. --set estimator.regression.ridge=1e-6 or, for a "
+               "stage, the short form --set regression.kernel=box (stages: smoother, phaser, "
+               "cycle, regression; repeatable)")
     p.add_argument("--n-bins", type=int, help="phase bins (estimator.regression.n_bins, default 48)")
     p.add_argument("--fourier-order", type=int,
                    help="Fourier order in phase (estimator.regression.fourier_order, default 12)")
@@ -206,11 +197,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="a known condition, e.g. ambient_flow:u_x=0.01,u_y=0 (repeatable): the "
                    "recording is modelled relative to it")
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
-    p.add_argument("--no-figures", action="store_true", help="do not write PNG plots")
     add_conversion_arguments(p)
-    add_threads(p)
-    add_device(p)
+    add_common(p)
     args = p.parse_args(argv)
+    say = informer(args.quiet)
 
     def body() -> int:
         set_threads(args.threads)
@@ -266,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         need = getattr(estimator.phaser, "min_cycles", CYCLE_RULES["fit"].per_trial)
         check = preflight(traj, body_length=rec.body_length,
                           rules={"fit": CycleRule(per_trial=need, total=need)})
-        print("\n".join(check.lines("fit")))
+        say("\n".join(check.lines("fit")))
         if not check.ready["fit"]:
             raise InputError("the recording is not ready to fit: "
                              + "; ".join(check.problems["fit"]))
@@ -324,68 +314,68 @@ def main(argv: list[str] | None = None) -> int:
             "device": str(device),
         })
         out = folder.commit()
-        print(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
-              f"samples (d = {traj.shape_dim})")
+        say(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
+            f"samples (d = {traj.shape_dim})")
         if model.M is not None:
             noise = (model.meta or {}).get("metric_noise_std")
             if noise is not None:
-                print("shape noise estimated for the metric (rad): "
-                      + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
-            print("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; "
-                  "the full M only as far as the data leave the cycle (see the bands in "
-                  "metric.png)")
+                say("shape noise estimated for the metric (rad): "
+                    + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
+            say("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; "
+                "the full M only as far as the data leave the cycle (see the bands in "
+                "metric.png)")
         if est.complexity_ is not None:
             c = est.complexity_
             if not c.checked:
-                print(f"complexity as given ({c.n_bins} bins, Fourier order "
-                      f"{c.fourier_order}, ridge {c.ridge:g}): no held-out check can score it "
-                      "or a simpler one on this short recording, so "
-                      f"{', '.join(c.phase_averaged_names())} are predicted by the "
-                      f"phase-averaged velocity (rows of A, b and dA/dr 0 in {FORECAST_FILE}; "
-                      "model.npz holds the given complexity's estimates, unchecked)")
+                say(f"complexity as given ({c.n_bins} bins, Fourier order "
+                    f"{c.fourier_order}, ridge {c.ridge:g}): no held-out check can score it "
+                    "or a simpler one on this short recording, so "
+                    f"{', '.join(c.phase_averaged_names())} are predicted by the "
+                    f"phase-averaged velocity (rows of A, b and dA/dr 0 in {FORECAST_FILE}; "
+                    "model.npz holds the given complexity's estimates, unchecked)")
             else:
-                print(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
-                      f"{c.fourier_order}, ridge {c.ridge:g}")
+                say(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
+                    f"{c.fourier_order}, ridge {c.ridge:g}")
             if c.connection_regressed:
-                print("no model with the offset terms b and dA/dr can be checked held out on "
-                      "this recording (too few samples per bin without one block of cycles), "
-                      "so the connection alone (1 + d regressors per bin) was fitted and "
-                      "checked instead; model.npz holds it (b and dA/dr not estimated: 0)")
+                say("no model with the offset terms b and dA/dr can be checked held out on "
+                    "this recording (too few samples per bin without one block of cycles), "
+                    "so the connection alone (1 + d regressors per bin) was fitted and "
+                    "checked instead; model.npz holds it (b and dA/dr not estimated: 0)")
             if c.checked and c.phase_averaged_names():
-                print("forecasts predict by the phase-averaged velocity (the shape terms did not "
-                      "beat it on held-out cycles; their rows of A, b and dA/dr are 0 in "
-                      f"{FORECAST_FILE}): {', '.join(c.phase_averaged_names())}")
+                say("forecasts predict by the phase-averaged velocity (the shape terms did not "
+                    "beat it on held-out cycles; their rows of A, b and dA/dr are 0 in "
+                    f"{FORECAST_FILE}): {', '.join(c.phase_averaged_names())}")
             if c.connection_only_names() and not c.connection_regressed:
-                print("forecasts predict by the connection alone (the offset terms did not add "
-                      "to it on held-out cycles; their rows of b and dA/dr are 0 in "
-                      f"{FORECAST_FILE}, A is kept): {', '.join(c.connection_only_names())}")
+                say("forecasts predict by the connection alone (the offset terms did not add "
+                    "to it on held-out cycles; their rows of b and dA/dr are 0 in "
+                    f"{FORECAST_FILE}, A is kept): {', '.join(c.connection_only_names())}")
             elif c.connection_only_names():
-                print("forecasts predict by the connection alone (it beat the phase-averaged "
-                      f"velocity on held-out cycles): {', '.join(c.connection_only_names())}")
+                say("forecasts predict by the connection alone (it beat the phase-averaged "
+                    f"velocity on held-out cycles): {', '.join(c.connection_only_names())}")
         if forecast is not None:
             differs, own = model.meta["forecast_model"], model.meta["settings"]["regression"]
             ridge = differs["A_ridge"]
             # the connection's own setting, not the forecasts' ridge: its complexity may have
             # been chosen with A unpenalised where the forecasts' ridge is 0
             free = own.get("ridge_connection", True) is False
-            print("model.npz, connection.csv and the plots: the connection, every row estimated "
-                  f"({own['n_bins']} bins, Fourier order {own['fourier_order']}, ridge "
-                  f"{own['ridge']:g}" + (" on b and dA/dr only, A unpenalised: the complexity "
-                                         "chosen held out with A unpenalised)"
-                                         if free else ")"))
+            say("model.npz, connection.csv and the plots: the connection, every row estimated "
+                f"({own['n_bins']} bins, Fourier order {own['fourier_order']}, ridge "
+                f"{own['ridge']:g}" + (" on b and dA/dr only, A unpenalised: the complexity "
+                                       "chosen held out with A unpenalised)"
+                                       if free else ")"))
             how = [f"{differs['n_bins']} bins, Fourier order {differs['fourier_order']}"] + (
                 [f"A shrunk by the ridge {ridge:g}"] if ridge else []) + (
                 ["rows 0 where named above"]
                 if differs["phase_averaged"] or differs["connection_only"] else [])
-            print(f"{FORECAST_FILE}: the forecasting model (what ConnectionEstimator.predict "
-                  "uses, and the held-out R² below): " + ", ".join(how))
+            say(f"{FORECAST_FILE}: the forecasting model (what ConnectionEstimator.predict "
+                "uses, and the held-out R² below): " + ", ".join(how))
         if held_out is not None:
-            print(f"held-out R² (v_x, v_y, omega) of the forecasting model, each of {folds} "
-                  "blocks of whole cycles left out in turn:")
+            say(f"held-out R² (v_x, v_y, omega) of the forecasting model, each of {folds} "
+                "blocks of whole cycles left out in turn:")
             for name, r2 in (("model", held_out.r2),
                              ("phase-averaged velocity", held_out.r2_phase_average),
                              ("template", held_out.r2_template)):
-                print(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
+                say(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
             if bool(held_out.unscored.any()):
                 print("WARNING: some phase bins cannot be fitted when a block of cycles is "
                       "left out: the model has too many coefficients for this recording "
@@ -404,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"{held_out.without_skill_names()}: not predictable from the gait's "
                       "phase and shape on this recording (noise, or a motion the shape "
                       "changes do not drive: a flow, a tether, contact)")
-        print(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
+        say(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
         return 0
 
     return run_command(PROG, body)

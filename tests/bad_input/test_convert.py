@@ -56,7 +56,7 @@ def _run(argv, tmp_path):
         "links-even", "threads", "set-value", "set-typo", "set-section"])
 def test_convert_flags_checked_before_work(argv, fragments, tracked, tmp_path, capsys,
                                            monkeypatch):
-    monkeypatch.setattr("torchconn.convert.convert_file", must_not_run)
+    monkeypatch.setattr("torchconn.cli.conversion.convert_file", must_not_run)
     out = tmp_path / "out"
     links = [] if "--links" in argv else ["--links", "3"]
     code = convert_main([str(tracked[0]), *links, "--out", str(out), "--fps", "5", *argv]
@@ -73,7 +73,7 @@ def test_convert_flags_checked_before_work(argv, fragments, tracked, tmp_path, c
     ("syntax", "[convert\n", ["invalid TOML", "line 1"]),
 ], ids=["folder", "wrong-type", "not-a-table", "syntax"])
 def test_convert_config(kind, text, fragments, tracked, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("torchconn.convert.convert_file", must_not_run)
+    monkeypatch.setattr("torchconn.cli.conversion.convert_file", must_not_run)
     path = tmp_path / "c.toml"
     if text is None:
         path.mkdir()

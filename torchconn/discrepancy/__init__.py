@@ -11,7 +11,8 @@ shows the gap shrink::
 
 or from the shell: ``torchconn-discrepancy DATA.csv --links 3 --out out/``.
 
-Modules, one per step: :mod:`.effects` (the registry of named physical effects),
+Modules, one per step: :mod:`torchconn.physics.effects` (the registry of named physical
+effects, shared with the known conditions of :mod:`torchconn.known`),
 :mod:`.simulate` (rollouts with effects on), :mod:`.forward` (the differentiable forward model
 and the measurement it compares with), :mod:`.residuals` (residual profiles, the term-by-term
 comparison), :mod:`.fitting` (autograd fits, cross-validation over cycles),
@@ -20,8 +21,7 @@ its named stages), :mod:`.report` (the stages' typed results and the report),
 :mod:`.model` (the augmented model), :mod:`.figures`.
 """
 
-from .confounding import principal_cosine, separating_experiments, signature_collinearity
-from .effects import (
+from ..physics.effects import (
     REGISTRY,
     AmbientFlow,
     BodyDrift,
@@ -35,6 +35,7 @@ from .effects import (
     get_effect,
     register,
 )
+from .confounding import principal_cosine, separating_experiments, signature_collinearity
 from .forward import ForwardModel, Measurement, prepare_measurement
 from .model import AugmentedModel, load_augmented
 from .report import VERDICTS, DiscrepancyReport

@@ -21,8 +21,6 @@ from pathlib import Path
 
 from .._cli import (
     InputError,
-    add_device,
-    add_threads,
     check_center_frame,
     check_keys,
     did_you_mean,
@@ -33,7 +31,8 @@ from .._cli import (
 from .._files import read_toml
 from .._options import check_field
 from .._output import OutputFolder
-from ..convert import (
+from ..cli.common import add_common
+from ..cli.conversion import (
     add_conversion_arguments,
     conversion_flags,
     conversion_settings,
@@ -42,9 +41,9 @@ from ..convert import (
 )
 from ..io.preflight import preflight
 from ..io.trajectory_files import read_csv
+from ..known import known_system, parse_known, relative_to_known
+from ..physics.effects import REGISTRY
 from ..physics.systems.swimmer import NLinkSwimmer
-from .effects import REGISTRY
-from .known import known_system, parse_known, relative_to_known
 from .workflow import DiscrepancySettings, diagnose
 
 PROG = "torchconn-discrepancy"
@@ -78,14 +77,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--folds", type=int, default=None, help="cross-validation folds (default 5)")
     p.add_argument("--no-terms", action="store_true",
                    help="skip the term-by-term comparison with the Stage 4 local model")
-    p.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
     p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
                    help="a condition with known parameters, e.g. ambient_flow:u_x=0.01,u_y=0 "
                    "(repeatable): the recording is modelled with it and it is not screened")
     add_conversion_arguments(p, frame=False)
-    p.add_argument("--quiet", action="store_true", help="print only the verdict line")
-    add_threads(p)
-    add_device(p)
+    add_common(p, quiet_help="print only the verdict line")
     return p
 
 

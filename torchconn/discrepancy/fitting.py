@@ -33,7 +33,7 @@ from scipy import stats
 from torch import Tensor
 
 from .. import _linalg
-from .effects import Effect, get_effect
+from ..physics.effects import Effect, get_effect
 from .forward import ForwardModel
 
 __all__ = ["CycleStats", "EffectFit", "fit_effects", "cycle_stats", "fourier_columns",

@@ -18,9 +18,9 @@ from pathlib import Path
 from torch import Tensor
 
 from .._provenance import write_json
+from ..physics.effects import get_effect
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
-from .effects import get_effect
 from .simulate import EffectDrift, augmented_system, effect_parameters, simulate_with_effects
 
 __all__ = ["AugmentedModel", "load_augmented", "FORMAT"]

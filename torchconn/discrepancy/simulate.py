@@ -17,13 +17,12 @@ import torch
 from torch import Tensor
 
 from ..physics import se2
+from ..physics.effects import Effect, _swimmer_kwargs, cubic_interp, get_effect
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..simulation.observe import observe
 from ..simulation.rollout import interval_power, simulate
 from ..trajectory import GroundTruth, Trajectory
-from .effects import Effect, get_effect
-from .forward import _swimmer_kwargs, cubic_interp
 
 __all__ = ["simulate_with_effects", "effect_parameters", "EffectDrift", "LateralSlipSwimmer",
            "simulate_inertial_relaxation"]

@@ -5,9 +5,10 @@
 
 1. **Where** (:mod:`.forward`): the measured body velocity minus the nominal simulator's, driven
    by the measured shapes and passed through the same smoother as the measurement.
-2. **Screen** (:mod:`.effects`, :mod:`.fitting`): every registered effect not yet in the model
-   is fitted jointly with the accepted ones by differentiating the augmented simulator, and
-   scored by its held-out gain (cross-validation over blocks of whole cycles).
+2. **Screen** (:mod:`~torchconn.physics.effects`, :mod:`.fitting`): every registered effect
+   not yet in the model is fitted jointly with the accepted ones by differentiating the
+   augmented simulator, and scored by its held-out gain (cross-validation over blocks of whole
+   cycles).
 3. **Select**: the best candidate is accepted when its gain clears a statistical bar (one-sided
    paired t-test over held-out cycles, ``p < alpha`` Bonferroni-corrected over the candidates
    left) *and* a practical one (at least ``min_gain`` of the noise variance, and
@@ -52,12 +53,12 @@ from torch import Tensor
 
 from .._options import Options, option
 from ..phase.smoothing import smooth_trajectory, unwrap
+from ..physics.effects import REGISTRY, Effect, get_effect
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..regression.noise_aware import estimate_noise
 from ..trajectory import Trajectory
 from .confounding import principal_cosine, separating_experiments, signature_collinearity
-from .effects import REGISTRY, Effect, get_effect
 from .fitting import EffectFit, Problem, cycle_stats, fit_effects, fourier_columns, paired_gain
 from .forward import (
     MIN_CYCLES,

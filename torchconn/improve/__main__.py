@@ -19,18 +19,11 @@ import warnings
 from pathlib import Path
 
 from .._checks import check_value
-from .._cli import (
-    InputError,
-    add_device,
-    add_threads,
-    check_center_frame,
-    resolve_device,
-    run_command,
-    set_threads,
-)
+from .._cli import InputError, check_center_frame, resolve_device, run_command, set_threads
 from .._output import OutputFolder, write_table
 from .._provenance import write_sidecar
-from ..convert import load_recordings
+from ..cli.common import add_common, add_version, informer
+from ..cli.conversion import load_recordings
 from ..io.trajectory_files import read_csv
 from ..physics.systems import NLinkSwimmer
 from ..regression.estimator import estimator_from_settings
@@ -49,11 +42,13 @@ def _simulate(args, folder: OutputFolder) -> int:
     )
     start = circle_gait(args.links - 1, args.radius)
 
+    say = informer(args.quiet)
+
     def report(r):
-        print(f"round {r.index}: {r.cycles_used} cycles, measured {r.measured:.4f} ± "
-              f"{r.measured_se:.4f} (true {r.true:.4f}){'' if r.accepted else ' rejected'}; "
-              f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, "
-              f"{r.predicted_high:.4f}], realised {r.realised:.4f}", flush=True)
+        say(f"round {r.index}: {r.cycles_used} cycles, measured {r.measured:.4f} ± "
+            f"{r.measured_se:.4f} (true {r.true:.4f}){'' if r.accepted else ' rejected'}; "
+            f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, "
+            f"{r.predicted_high:.4f}], realised {r.realised:.4f}", flush=True)
 
     out = folder.path
     result = improve(system, start, settings, progress=report)
@@ -66,13 +61,14 @@ def _simulate(args, folder: OutputFolder) -> int:
         "coverage": result.coverage, "rounds": rows,
     })
     write_gait(result.rounds[-1].proposal, out / "next_gait")
-    from .plots import plot_gaits, plot_rounds
+    if not args.no_figures:
+        from .plots import plot_gaits, plot_rounds
 
-    plot_gaits(result, system, out / "gaits.png")
-    plot_rounds(result, out / "objective.png")
+        plot_gaits(result, system, out / "gaits.png")
+        plot_rounds(result, out / "objective.png")
     out = folder.commit()
-    print(f"start {result.start_true:.4f} -> last proposal {result.rounds[-1].realised:.4f}; "
-          f"intervals covered {result.coverage:.0%}; wrote {out}")
+    say(f"start {result.start_true:.4f} -> last proposal {result.rounds[-1].realised:.4f}; "
+        f"intervals covered {result.coverage:.0%}; wrote {out}")
     return 0
 
 
@@ -104,9 +100,10 @@ def _propose(args, folder: OutputFolder) -> int:
     })
     folder.commit()
     paths = {k: folder.final(p) for k, p in paths.items()}
-    print(f"measured {args.objective} {meas:.4g} ± {meas_se:.2g} per cycle; the next gait is "
-          f"predicted to gain {prop.gain:.3g} [{lo:.3g}, {hi:.3g}]")
-    print(f"wrote {paths['csv']} (joint angles over one cycle) and {paths['json']}")
+    say = informer(args.quiet)
+    say(f"measured {args.objective} {meas:.4g} ± {meas_se:.2g} per cycle; the next gait is "
+        f"predicted to gain {prop.gain:.3g} [{lo:.3g}, {hi:.3g}]")
+    say(f"wrote {paths['csv']} (joint angles over one cycle) and {paths['json']}")
     return 0
 
 
@@ -145,6 +142,7 @@ def _check_flags(args) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m torchconn.improve",
                                 description=__doc__.split("\n")[0])
+    add_version(p)
     sub = p.add_subparsers(dest="command", required=True)
     sim = sub.add_parser("simulate", help="run the loop on the N-link swimmer simulator")
     sim.add_argument("--links", type=int, default=3)
@@ -161,8 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--objective", choices=OBJECTIVES, default="displacement")
         q.add_argument("--scale", type=float, default=3.0, help="trust radius in tube radii")
         q.add_argument("--out", type=Path, required=True)
-        add_device(q)
-        add_threads(q)
+        add_common(q, version=False, figures=q is sim)  # propose writes no figures
     args = p.parse_args(argv)
 
     def body() -> int:

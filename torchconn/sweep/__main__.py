@@ -11,13 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from .._cli import (
-    InputError,
-    add_threads,
-    resolve_device,
-    run_command,
-    set_threads,
-)
+from .._cli import InputError, resolve_device, run_command, set_threads
+from ..cli.common import add_common
 from .config import load_config, sweep_config_names
 from .runner import run_sweep
 
@@ -52,9 +47,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", help="address of an existing Dask scheduler, tcp://HOST:PORT")
     p.add_argument("--wait", action="store_true",
                    help="if another run is writing --out, wait for it instead of exiting")
-    add_threads(p)
-    p.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
-    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    add_common(p, device=False, quiet_help="no progress bar or log lines")  # --device above
     return p
 
 

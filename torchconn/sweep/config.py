@@ -35,6 +35,7 @@ from .._files import read_text
 from .._options import check_value
 from .._provenance import source_hash
 from .._resources import config_names, configs, read_config
+from ..cli.common import apply_overrides
 from ..regression.estimator import ConnectionEstimator, estimator_from_settings, estimator_settings
 
 __all__ = [
@@ -272,54 +273,6 @@ def _parse(raw: dict[str, Any]) -> SweepConfig:
         raise
     except ValueError as err:  # from the estimator's own validation
         raise InputError(str(err)) from None
-
-
-def apply_overrides(raw: dict, overrides: list[str]) -> dict:
-    """Apply ``key.path=value`` overrides (value parsed as TOML, else a string).
-
-    ``experiment.trials=2`` sets a key in every experiment; ``experiment.1.trials=2`` in one.
-    A path through a missing index or a non-table is an :class:`InputError`.
-    """
-    raw = copy.deepcopy(raw)
-    for item in overrides:
-        where = f"--set {item}"
-        if "=" not in item:
-            raise InputError(f"{where}: expected section.key=value, e.g. "
-                             "--set simulation.n_cycles=10")
-        path, text = item.split("=", 1)
-        try:
-            value = tomllib.loads(f"v = {text}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = text
-        keys = path.strip().split(".")
-        if not all(keys):
-            raise InputError(f"{where}: empty key in {path!r}")
-        targets = [raw]
-        for depth, key in enumerate(keys[:-1]):
-            nxt = []
-            for t in targets:
-                if isinstance(t, list):
-                    if key.lstrip("-").isdigit():
-                        k = int(key)
-                        if not 0 <= k < len(t):
-                            raise InputError(
-                                f"{where}: index {k} is out of range; the config has {len(t)} "
-                                f"[[{keys[depth - 1]}]] table(s), indices 0-{len(t) - 1}")
-                        nxt.append(t[k])
-                    else:
-                        nxt.extend(x.setdefault(key, {}) if isinstance(x, dict) else x
-                                   for x in t)
-                elif isinstance(t, dict):
-                    nxt.append(t.setdefault(key, {}))
-                else:
-                    raise InputError(f"{where}: {'.'.join(keys[:depth])} is a value, not a table")
-            targets = nxt
-        for t in targets:
-            for tt in (t if isinstance(t, list) else [t]):
-                if not isinstance(tt, dict):
-                    raise InputError(f"{where}: {'.'.join(keys[:-1])} is a value, not a table")
-                tt[keys[-1]] = value
-    return raw
 
 
 def sweep_config_names() -> list[str]:

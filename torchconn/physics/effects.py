@@ -48,7 +48,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .systems.swimmer import NLinkSwimmer
+
 __all__ = [
+    "cubic_interp",
     "Param",
     "Effect",
     "AmbientFlow",
@@ -337,3 +340,36 @@ def get_effect(name: str | Effect) -> Effect:
 for _effect in (AmbientFlow(), DragRatio(), MarkerOffset(), JointBias(), TimeLag(), LinkLength(),
                 BodyDrift()):
     register(_effect)
+
+
+# ============================================================================ helpers of the hooks
+def cubic_interp(x: Tensor, s: Tensor) -> Tensor:
+    """Catmull–Rom cubic interpolation of uniform samples.
+
+    Args:
+        x: ``(B, T, C)`` samples at integer positions ``0 … T−1``.
+        s: ``(N,)`` or ``(B, N)`` fractional sample positions (clamped to the record).
+
+    Returns:
+        ``(B, N, C)``; differentiable in ``x`` and in ``s``.
+    """
+    B, T, C = x.shape
+    s = s.clamp(0, T - 1)
+    i = torch.floor(s.detach()).clamp(0, T - 2).long()
+    f = (s - i.to(s.dtype))[..., None]
+    if s.ndim == 1:
+        def take(k):
+            return x[:, (i + k).clamp(0, T - 1), :]
+    else:
+        def take(k):
+            idx = (i + k).clamp(0, T - 1)
+            return x.gather(1, idx[..., None].expand(B, idx.shape[1], C))
+    p0, p1, p2, p3 = take(-1), take(0), take(1), take(2)
+    return p1 + 0.5 * f * (
+        (p2 - p0) + f * ((2 * p0 - 5 * p1 + 4 * p2 - p3) + f * (-p0 + 3 * p1 - 3 * p2 + p3))
+    )
+
+
+def _swimmer_kwargs(system: NLinkSwimmer) -> dict:
+    return dict(n_links=system.n_links, drag_ratio=system.drag_ratio, frame=system.frame,
+                link_lengths=system.link_lengths, drag_coefficient=system.drag_coefficient)

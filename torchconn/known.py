@@ -4,7 +4,7 @@ A flow-tank recording is filmed in the tank's frame while the water moves; the s
 physics holds relative to the water. ``--known ambient_flow:u_x=0.01,u_y=0`` states that,
 and :func:`relative_to_known` rewrites the recording as it would look without the known
 effects, so ``fit`` and ``discrepancy`` model it relative to the water. Any registered effect
-(:mod:`.effects`) can be given, through its hooks:
+(:mod:`torchconn.physics.effects`) can be given, through its hooks:
 
 ``body_velocity`` (ambient flow, body drift)
     the effect's world-frame velocity ``R(θ)·v`` is integrated over time (trapezoids) and
@@ -28,10 +28,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..physics.systems.swimmer import NLinkSwimmer
-from ..trajectory import Trajectory
-from .effects import Effect, get_effect
-from .forward import _swimmer_kwargs, cubic_interp
+from .physics.effects import Effect, _swimmer_kwargs, cubic_interp, get_effect
+from .physics.systems.swimmer import NLinkSwimmer
+from .trajectory import Trajectory
 
 __all__ = ["KnownEffect", "parse_known", "relative_to_known", "known_system", "changes_data"]
 
