@@ -185,3 +185,15 @@ def test_convert_reads_other_layouts_to_the_same_trajectory(name, tracked, tmp_p
                          "--fps", "5"]) == 0
     assert str(path) not in capsys.readouterr().err
     assert lines(tmp_path / "other" / "fish.csv") == lines(tmp_path / "plain" / "fish.csv")
+
+
+@pytest.mark.parametrize("track", ["-1", "fish"])
+def test_convert_refuses_a_track_for_a_point_array(track, tracked, tmp_path, capsys):
+    code, out = _run([tracked[1], "--fps", "5", "--track", track], tmp_path)
+    assert_clean_failure(code, capsys.readouterr().err,
+                         [str(tracked[1]), "holds one animal", f"track '{track}' (--track)"], out)
+
+
+def test_convert_refuses_an_unknown_track(tracked, tmp_path, capsys):
+    code, out = _run([tracked[0], "--fps", "5", "--track", "shark"], tmp_path)
+    assert_clean_failure(code, capsys.readouterr().err, [str(tracked[0]), "'shark'"], out)

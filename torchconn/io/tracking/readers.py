@@ -215,6 +215,10 @@ def read_tracking(path: str | PathLike, format: str | None = None, *,
         return _read_dlc_h5(path, track) if is_h5 else _read_dlc_csv(path, track)
     if format == "wcon":
         return _read_wcon(path, track)
+    if track is not None:
+        raise TrackingFormatError(f"{path}: a point-array file holds one animal and no track "
+                                  f"names, so track {track!r} (--track) selects nothing; "
+                                  "leave it out")
     return _read_points_npz(path) if suffix == ".npz" else _read_points_csv(path)
 
 
