@@ -229,7 +229,8 @@ def test_errors_are_clear():
         estimate_phase(x[: int(2.5 * SPC)])
     flat = x.clone()
     flat[:, 1] = 3.0
-    with pytest.raises(ValueError, match=r"channel 1 of x \(batch index \(\)\) is constant"):
+    with pytest.raises(ValueError, match=r"channel 1 of x \(batch index \(\); joint angle r2 "
+                       r"when x holds a recording.s shapes\) is constant"):
         estimate_phase(flat)
     gone = x.clone()
     gone[:, 2] = float("nan")
