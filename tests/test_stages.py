@@ -99,17 +99,6 @@ def test_default_stages_reproduce_the_previous_defaults(recording):
     assert float((model.bins.A - A_true).norm() / A_true.norm()) < 0.3
 
 
-def test_flat_settings_of_0_1_still_work_with_a_warning(recording):
-    # the flat keys set the fields of the default regression stage (NoiseAwareRegression)
-    with pytest.warns(DeprecationWarning, match="regression=NoiseAwareRegression"):
-        old = ConnectionEstimator(n_bins=24, fourier_order=6, phase_order=4, cycle_order=5)
-    new = ConnectionEstimator(phaser=Phaser(order=4), cycle=SelfConsistentCycle(order=5),
-                              regression=NoiseAwareRegression(n_bins=24, fourier_order=6))
-    assert old.get_params() == new.get_params()
-    with pytest.raises(TypeError, match=r"'n_bin' \(did you mean 'n_bins'\?\)"):
-        ConnectionEstimator(n_bin=24)
-
-
 def test_stage_options_validate_themselves():
     cases = [
         (lambda: TubeRegression(kernel="gauss"),
@@ -189,9 +178,8 @@ def test_settings_tables_build_the_estimator_and_name_bad_keys():
         "pool": True, "phaser": {"order": 4},
         "regression": {"n_bins": 24, "fourier_order": 6, "kernel": "box"},
     })
-    flat = estimator_from_settings({"pool": True, "phase_order": 4, "n_bins": 24,
-                                    "fourier_order": 6, "kernel": "box"})
-    assert nested.get_params() == flat.get_params()
+    assert nested.pool and nested.phaser == Phaser(order=4)
+    assert nested.regression == NoiseAwareRegression(n_bins=24, fourier_order=6, kernel="box")
     assert estimator_from_settings(estimator_settings(nested)).get_params() == nested.get_params()
     assert estimator_settings(ConnectionEstimator())["regression"]["method"] == "noise_aware"
     # today's method is the default; torchconn 0.1's stays selectable by name
@@ -209,7 +197,8 @@ def test_settings_tables_build_the_estimator_and_name_bad_keys():
         ({"smoother": {"method": "kalman"}}, r"estimator.smoother.method: unknown key 'kalman'"),
         ({"phaser": 3}, "estimator.phaser must be a table"),
         ({"pool": "yes"}, "estimator.pool must be true or false"),
-        ({"phase_order": -2}, "Phaser.order must be >= 0, got -2"),
+        ({"phaser": {"order": -2}}, "Phaser.order must be >= 0, got -2"),
+        ({"n_bins": 24}, r"estimator: unknown key 'n_bins'"),
     ]
     for settings, message in bad:
         with pytest.raises(ValueError, match=message):
