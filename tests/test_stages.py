@@ -22,7 +22,6 @@ from torchconn.regression.estimator import (
     estimator_from_settings,
     estimator_settings,
 )
-from torchconn.regression.metric import metric_n_coef, metric_regression
 from torchconn.regression.noise_aware import NoiseAwareRegression
 from torchconn.regression.tube import TubeRegression
 from torchconn.sweep.config import load_config
@@ -42,7 +41,7 @@ def recording():
 def _previous_defaults(traj):
     """torchconn 0.1's default fit spelled out with its lower-level functions and its explicit
     default numbers: RTS order 2, Phaser order 3 (>= 3 cycles), cycle order 8, 48 bins, tricube
-    windows sized to 2.5 samples per regressor, Fourier order 12, metric without ∂M/∂r."""
+    windows sized to 2.5 samples per regressor, Fourier order 12."""
     sm = smooth_trajectory(traj.pose, traj.r, traj.dt, order=2)
     phase = estimate_phase(sm.r, order=3, min_cycles=3.0)
     cycle = fit_limit_cycle(phase, traj.r, sm.r_dot, order=8, dt=traj.dt)
@@ -60,20 +59,19 @@ def _previous_defaults(traj):
     opts = dict(delta_max=None, ridge=0.0, on_ill_conditioned="raise")
     fit = connection_regression(sm.r, sm.r_dot, sm.xi, bins(1 + 2 * d + d * d), gamma_m,
                                 gamma_dot_m, **opts)
-    metric = metric_regression(sm.r, sm.r_dot, traj.power, bins(metric_n_coef(d, False)),
-                               gamma_m, gamma_dot_m, with_metric_derivative=False, **opts)
     coeffs = {name: fit_fourier(centres, value, K, value_ndim=nd).coeffs
               for name, value, nd in (("c", fit.c, 1), ("b", fit.b, 2), ("A", fit.A, 2),
-                                      ("dA", fit.dA, 3), ("M", metric.M, 2))}
+                                      ("dA", fit.dA, 3))}
     return phase, cycle.gamma.coeffs, coeffs, fit.se_A
 
 
 def test_default_stages_reproduce_the_previous_defaults(recording):
     # 0.1's fixed complexity (the default "auto" keeps it unless it loses to the phase-averaged
     # velocity on held-out cycles, which it does here by 0.002 in v_x of one trial), 0.1's
-    # phase (the default is now order "auto" with SNR weights) and 0.1's regression on the
-    # smoothed velocities (the default is now NoiseAwareRegression): all named options
-    old_phaser = Phaser(order=3, weighting="coherence")
+    # phase order (the default is now "auto"; with two channels the SNR weights are the
+    # coherence weights 0.1 used) and 0.1's regression on the smoothed velocities (the default
+    # is now NoiseAwareRegression): all named options. The metric is the tied model.
+    old_phaser = Phaser(order=3)
     est = ConnectionEstimator(phaser=old_phaser, regression=TubeRegression(),
                               complexity="fixed").fit(recording)
     phase, gamma, coeffs, se_A = _previous_defaults(recording)
@@ -81,19 +79,14 @@ def test_default_stages_reproduce_the_previous_defaults(recording):
     torch.testing.assert_close(est.trajectory_.phase, phase, rtol=0, atol=1e-12)
     torch.testing.assert_close(model.gamma.coeffs, gamma, rtol=0, atol=1e-12)
     for name, expected in coeffs.items():
-        if name != "M":
-            got = getattr(model, name).coeffs
-            if name == "c":  # the intercept's order is chosen from the data (12 here), and its
-                # series is kept at the bins' highest order with the harmonics above 12 zero
-                assert set(model.meta["intercept_order"]) == {12}
-                assert not bool(got[..., expected.shape[-2]:, :].any())
-                got = got[..., :expected.shape[-2], :]
-            torch.testing.assert_close(got, expected, rtol=0, atol=1e-12)
+        got = getattr(model, name).coeffs
+        if name == "c":  # the intercept's order is chosen from the data (12 here), and its
+            # series is kept at the bins' highest order with the harmonics above 12 zero
+            assert set(model.meta["intercept_order"]) == {12}
+            assert not bool(got[..., expected.shape[-2]:, :].any())
+            got = got[..., :expected.shape[-2], :]
+        torch.testing.assert_close(got, expected, rtol=0, atol=1e-12)
     torch.testing.assert_close(model.bins.A_se, se_A, rtol=0, atol=1e-12)
-    # except the metric, whose default is now the tied model: the old one is a named option
-    paper = ConnectionEstimator(phaser=old_phaser, regression=TubeRegression(metric_method="paper"),
-                                complexity="fixed").fit(recording)
-    torch.testing.assert_close(paper.model_.M.coeffs, coeffs["M"], rtol=0, atol=1e-12)
     # and the estimates are real ones: A within a few per cent of the swimmer's exact A
     A_true = NLinkSwimmer(3).connection(model.bins.gamma)
     assert float((model.bins.A - A_true).norm() / A_true.norm()) < 0.3

@@ -787,8 +787,8 @@ def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConne
                      coef: Tensor, n_folds: int, *, pool: bool,
                      ridges: tuple[float, ...] | None = None, columns: Tensor | None = None,
                      sample_fold: Tensor | None = None) -> Tensor:
-    """Held-out coefficients ``coef (R, F, ..., M, P, 3)`` of a noise-aware regression that
-    shrinks towards the smoothed fit (``shrink_to_smoothed``), combined as its fit combines
+    """Held-out coefficients ``coef (R, F, ..., M, P, 3)`` of a noise-aware regression, which
+    shrinks towards the smoothed fit, combined as its fit combines
     them: the smoothed regression's own downdated fits ``β̂_s`` (on the smoothed samples, its
     own window rule, same blocks of whole cycles) and the corrected ones ``β̂_c`` give
     ``β̂_s + w (β̂_c − β̂_s)`` with the whole recording's weights ``w`` per trial and term
@@ -798,7 +798,7 @@ def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConne
     ``columns``: as :func:`held_out_coefficients`'s (``coef`` fitted with them);
     ``sample_fold``: ``(..., T)`` block of every sample (default: ``n_folds`` blocks of whole
     cycles, :func:`_cycle_blocks`)."""
-    if not (isinstance(regression, NoiseAwareRegression) and regression.shrink_to_smoothed):
+    if not isinstance(regression, NoiseAwareRegression):
         return coef
     smoothed = TubeRegression(**{f.name: getattr(regression, f.name)
                                  for f in dataclasses.fields(TubeRegression)})
