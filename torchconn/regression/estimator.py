@@ -280,10 +280,8 @@ class ConnectionEstimator:
                     regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
         view = skill.regression_view(traj, regression, model, pool=self.pool)
-        # the phase average of the intercept's orders (short recordings) or the model's
-        self.phase_average_ = skill.phase_average(
-            view, regression.fourier_order,
-            skill.baseline_orders(model, regression.fourier_order))
+        # the phase average of the model's order
+        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
         forecast = model
         if choice is not None and (choice.phase_averaged_names()
                                    or choice.connection_only_names()):

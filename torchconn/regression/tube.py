@@ -77,23 +77,6 @@ class TubeRegression(Regression):
             (M−1)/2, per batch element; ``model.meta["intercept_order"]``); an integer fixes
             it; None: ``fourier_order``. Measured on the 9-link reference gait at 0.25η: the
             intercept truncated at order 12 doubled the model's error (README, "Accuracy").
-        short_intercept_order: on short recordings (at most
-            :data:`~torchconn.regression.skill.FALLBACK_CYCLES` cycles,
-            :func:`~torchconn.regression.skill.few_cycles`) each component of ``c(φ)`` keeps
-            only the harmonics up to an order (at most ``fourier_order``) chosen on the blocks
-            of whole cycles the held-out check uses (``model.meta
-            ["intercept_component_order"]``, ``(..., 3)``): ``"phase_average"``: the order of
-            least held-out error of the phase-averaged velocity
-            (:func:`~torchconn.regression.skill.phase_average_orders`); ``"model"``: of the
-            full model's intercept, shape terms present
-            (:func:`~torchconn.regression.skill.model_intercept_orders`). The phase average
-            the model competes with held out and falls back to gets the orders of the first
-            (``meta["phase_average_order"]``). None (default): the intercept of
-            ``intercept_order`` everywhere. An order-12 series through 3-6 cycles overfits as
-            the phase average of that order does, but measured (README, "Short recordings")
-            the stronger phase average the truncated model competes with takes over more
-            components and the later cycles' mean R² falls, so it is off by default. Longer
-            recordings are unchanged.
         window: half-width of a bin's phase window in units of the bin spacing (0.5: each
             sample in exactly one bin; larger: overlapping windows, more samples per bin).
             None (default) sizes it from the data: wide enough that a window holds about
@@ -151,7 +134,6 @@ class TubeRegression(Regression):
     n_bins: int = option(48, ge=3)
     fourier_order: int = option(12, ge=0)
     intercept_order: int | Literal["auto"] | None = option("auto", ge=0)
-    short_intercept_order: Literal["phase_average", "model"] | None = None
     window: float | None = option(None, gt=0)
     samples_per_regressor: float = option(2.5, gt=0)
     kernel: Literal["box", "tricube", "epanechnikov"] = "tricube"
@@ -279,28 +261,7 @@ class TubeRegression(Regression):
                   **connection_meta,
                   "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
-        return self._short_intercept(traj, cycle, model, pool)
-
-    def _short_intercept(self, traj: Trajectory, cycle: LimitCycle,
-                         model: LocalConnectionModel, pool: bool) -> LocalConnectionModel:
-        """``model`` with its intercept truncated per component on short recordings
-        (:attr:`short_intercept_order`); unchanged where none is short."""
-        if self.short_intercept_order is None:
-            return model
-        from . import skill  # skill builds on this module
-
-        short = skill.few_cycles(traj.phase, pool)
-        if not bool(short.any()):
-            return model
-        unflat = skill.regression_view(traj, self, model, pool=pool, flatten=False)
-        base = skill.phase_average_orders(unflat, self.fourier_order, pool)  # (..., 3)
-        # (a regression that does not downdate would refit, and truncate, without each block)
-        orders = base if self.short_intercept_order == "phase_average" or not (
-            skill.downdates(self)) else (
-            skill.model_intercept_orders(traj, cycle, self, model, pool=pool))
-        long = ~short.unsqueeze(-1)  # their intercept and phase average stay as they were
-        return skill.with_intercept_orders(model, orders.masked_fill(long, model.c.order),
-                                           base.masked_fill(long, self.fourier_order))
+        return model
 
     def _a_series(self, centres: Tensor, fit, window, pool: bool):
         """The Fourier series of ``Â`` (order ``fourier_order``), the fit whose per-bin ``ĉ``
