@@ -1853,7 +1853,7 @@ _BIAS_HARMONIC_Z = 4.0
 #: ω = 0.01 10.1 % either way (none: 11.8 %)
 _BIAS_HARMONIC_SCALE = 2.0
 #: a pooled fit's series of ``Â`` shrinks harmonic ``k`` by ``max(0, 1 − c · noise_k /
-#: power_k)`` with this ``c`` (``NoiseAwareRegression.resolved_harmonics``; ``noise_k`` the bins'
+#: power_k)`` with this ``c`` (``NoiseAwareRegression._a_series``; ``noise_k`` the bins'
 #: noise expectation, :func:`_harmonic_noise`). Under noise the bins' errors are mostly
 #: variance, and a harmonic near its noise adds more of it than of the connection; ``c = 1`` is
 #: the estimated Wiener factor. Set on seeds 5-8 (3-/5-link circle and 0.7-circle or reference
