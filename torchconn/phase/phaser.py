@@ -526,9 +526,12 @@ def estimate_phase(
     if weighting not in ("snr", "coherence"):
         raise ValueError(f"estimate_phase: weighting must be 'snr' or 'coherence', got "
                          f"{weighting!r}")
+    if not isinstance(periodic_padding, bool):
+        raise TypeError(f"estimate_phase: periodic_padding must be True or False, got "
+                        f"{periodic_padding!r}")
     options = Phaser(order=order, max_order=max_order, min_cycles=min_cycles,
                      section_channel=section_channel)
-    return _fit(x, options, "estimate_phase", padding=bool(periodic_padding),
+    return _fit(x, options, "estimate_phase", padding=periodic_padding,
                 weighting=weighting)[1]
 
 
