@@ -14,20 +14,11 @@ towards 0).
 Methods: ``tube`` = ``TubeRegression()`` (the default: Kalman-smoothed velocities);
 ``noise_aware`` = ``NoiseAwareRegression()`` (the noise-corrected estimate shrunk towards the
 smoothed one where the data cannot support the correction);
-``corrected`` = ``NoiseAwareRegression(shrink_to_smoothed=False)`` (the correction alone);
-``noise_aware_gait`` = ``NoiseAwareRegression(noise_floor="gait")`` (the noise fit's floor
-shaped by the gait);
+``noise_aware_low_rate`` = ``NoiseAwareRegression(noise_floor="low_rate")`` (the noise fit's
+floor shaped by the gait where it has few samples per cycle);
 ``noise_aware_normal`` = ``NoiseAwareRegression(noise_floor="normal")`` (the noise fitted on the
 joint increments projected out of the cycle's first derivatives; 5- and 9-link only, the
 3-link's is the default's bit for bit);
-``uncorrected_bias`` = ``NoiseAwareRegression(bias_correction=False)`` (the bins' bias left in);
-``untied`` = ``NoiseAwareRegression(tie_derivative=False)`` (``∂Â/∂r`` the direct estimate);
-``no_bias_allowance`` = ``NoiseAwareRegression(derivative_bias_allowance=False)`` (under noise
-the tie takes its sources' standard errors as they are);
-``independent`` = ``NoiseAwareRegression(joint_covariance=None)`` (the tie's bands take ``b̂``
-and the direct ``∂Â/∂r`` as independent); ``robust_joint`` = their joint covariance from the
-rows' scores (``joint_covariance="robust"``); ``joint_weights`` = the tie also weighs them by
-it (``joint_weights=True``);
 ``noise_aware_cv`` = the default with ``ConnectionEstimator.select_complexity``.
 
 Run by hand (minutes on 2 cores)::
@@ -157,15 +148,8 @@ def run_one(n_links: int, gait: str, omega: float, method: str, *, n_cycles: int
 METHODS = {
     "tube": TubeRegression(),
     "noise_aware": NoiseAwareRegression(),
-    "corrected": NoiseAwareRegression(shrink_to_smoothed=False),
-    "noise_aware_gait": NoiseAwareRegression(noise_floor="gait"),
+    "noise_aware_low_rate": NoiseAwareRegression(noise_floor="low_rate"),
     "noise_aware_normal": NoiseAwareRegression(noise_floor="normal"),
-    "uncorrected_bias": NoiseAwareRegression(bias_correction=False),
-    "untied": NoiseAwareRegression(tie_derivative=False),
-    "no_bias_allowance": NoiseAwareRegression(derivative_bias_allowance=False),
-    "independent": NoiseAwareRegression(joint_covariance=None),
-    "robust_joint": NoiseAwareRegression(joint_covariance="robust"),
-    "joint_weights": NoiseAwareRegression(joint_weights=True),
     "noise_aware_cv": NoiseAwareRegression(),  # bins, order, ridge by select_complexity
 }
 
@@ -187,7 +171,7 @@ def main(argv=None) -> int:
     p.add_argument("--omega", type=float, nargs="+",
                    default=[0.0, 0.002, 0.005, 0.01, 0.02, 0.04])
     p.add_argument("--gaits", nargs="+", default=["circle", "reference"])
-    p.add_argument("--methods", nargs="+", default=["tube", "noise_aware", "corrected"],
+    p.add_argument("--methods", nargs="+", default=["tube", "noise_aware"],
                    choices=list(METHODS))
     p.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
     p.add_argument("--cycles", type=int, default=30)

@@ -487,7 +487,7 @@ def build_cases(root: Path) -> list[Case]:
         cases.append(Case(name, "sweep", argv, must_flag, out))
 
     base = ('name = "b"\nseed = 3\nerror_bins = 12\n[simulation]\nn_cycles = 5\n'
-            'samples_per_cycle = 32\n[estimator]\nn_bins = 16\nfourier_order = 4\n'
+            'samples_per_cycle = 32\n[estimator.regression]\nn_bins = 16\nfourier_order = 4\n'
             '[[experiment]]\nsystem = "3link"\nnoise_kind = "system"\nlevels = [1.0]\n'
             'trials = 2\n')
     sweep("sweep: BOM config", "\ufeff" + base, must_flag=False)

@@ -61,7 +61,7 @@ def main() -> None:
     p.add_argument("--spc", type=int, nargs="+", default=[8, 10, 12, 16, 20, 24, 32, 64],
                    help="samples per cycle")
     p.add_argument("--seeds", type=int, nargs="+", default=[101, 202])
-    p.add_argument("--noise-floor", default="flat", choices=["flat", "gait", "low_rate"],
+    p.add_argument("--noise-floor", default="flat", choices=["flat", "low_rate", "normal"],
                    help="NoiseAwareRegression's noise_floor")
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args()

@@ -22,9 +22,6 @@ trials scatter less than independent ones).
 
     python benchmarks/displacement_se.py --links 3 --omega 0 0.002 --seeds 11000 12000 13000
     python benchmarks/displacement_se.py --regression tube   # the smoothed regression
-    python benchmarks/displacement_se.py --regression previous   # Â drawn entry by entry
-    python benchmarks/displacement_se.py --cost --links 3 9 --omega 0 0.005 --seeds 1000
-        # fit and evaluate_gait times, default against previous (alternating), model file size
 """
 
 from __future__ import annotations
@@ -43,19 +40,13 @@ from torchconn.physics.gaits import reference_gait
 from torchconn.physics.gaits.evaluate import evaluate
 from torchconn.physics.gaits.gait import as_gait
 from torchconn.regression.gait_prediction import predict_gait, sample_models
-from torchconn.regression.noise_aware import NoiseAwareRegression
 from torchconn.regression.tube import TubeRegression
 
 HELD_OUT = [11000, 12000, 13000, 14000, 15000, 16000, 17000, 18000]
-#: ``--regression``: the default; the smoothed regression; the default with ``Â`` drawn entry
-#: by entry (no sampling factor); without the bias allowances; with neither (the previous
-#: version)
+#: ``--regression``: the default; the smoothed regression
 REGRESSIONS = {
     "default": lambda: None,
     "tube": TubeRegression,
-    "entrywise": lambda: NoiseAwareRegression(sampling_factor=False),
-    "no-allowance": lambda: NoiseAwareRegression(bias_allowance=False),
-    "previous": lambda: NoiseAwareRegression(sampling_factor=False, bias_allowance=False),
 }
 
 
@@ -98,39 +89,6 @@ def one_set(system, gait, exact, seed: int, omega: float, regression, draws: int
     return out
 
 
-def cost(system, gait, seed: int, omega: float, repeats: int = 3) -> str:
-    """Same-run times of the pooled fit and of ``evaluate_gait`` (64 draws), the default
-    against ``previous`` in alternation (medians), and the model files' sizes."""
-    import tempfile
-    import time
-    from pathlib import Path
-
-    seeds = np.arange(seed, seed + 4)
-    traj = observe(simulate(system, gait, eta=0.025, alpha=0.05, n_cycles=30,
-                            samples_per_cycle=64, seeds=seeds), omega, seeds=seeds)
-    times = {"default": ([], [], 0), "previous": ([], [], 0)}
-    for _ in range(repeats):
-        for name in times:
-            kw = {} if name == "default" else {"regression": REGRESSIONS[name]()}
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                t0 = time.perf_counter()
-                model = ConnectionEstimator(pool=True, **kw).fit(traj).model_
-                t1 = time.perf_counter()
-                model.evaluate_gait(gait)
-                t2 = time.perf_counter()
-            with tempfile.TemporaryDirectory() as tmp:
-                size = Path(model.save(Path(tmp) / "m.npz")).stat().st_size
-            times[name][0].append(t1 - t0)
-            times[name][1].append(t2 - t1)
-            times[name] = (times[name][0], times[name][1], size)
-    (fn, gn, sn), (fo, go, so) = times["default"], times["previous"]
-    med = np.median
-    return (f"fit {med(fo):.2f} -> {med(fn):.2f} s (x{med(fn) / med(fo):.2f}), evaluate_gait "
-            f"{med(go):.3f} -> {med(gn):.3f} s (x{med(gn) / med(go):.2f}), model file "
-            f"{so / 1e6:.2f} -> {sn / 1e6:.2f} MB")
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--links", type=int, nargs="+", default=[3, 5])
@@ -139,8 +97,6 @@ def main(argv=None) -> int:
     p.add_argument("--regression", choices=list(REGRESSIONS), default="default")
     p.add_argument("--draws", type=int, default=256)
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--cost", action="store_true",
-                   help="time the fit and evaluate_gait, default against previous, instead")
     a = p.parse_args(argv)
     starts = sorted(a.seeds)
     if any(b - s < 4 for s, b in zip(starts, starts[1:], strict=False)):
@@ -155,10 +111,6 @@ def main(argv=None) -> int:
         system, gait = NLinkSwimmer(links), as_gait(gait)
         exact = evaluate(system, gait, n_steps=256).displacement
         for omega in a.omega:
-            if a.cost:
-                print(f"{links}-link ω={omega:g} seed {a.seeds[0]}: "
-                      + cost(system, gait, a.seeds[0], omega), flush=True)
-                continue
             rows = [one_set(system, gait, exact, s, omega, regression, a.draws) for s in a.seeds]
             e = np.array([r["e"] for r in rows])
             z2 = (e / np.array([r["se"] for r in rows])) ** 2

@@ -14,9 +14,9 @@ joint angles of every trial (``mean [min-max]``):
   joint the root of its unclamped ``variance`` averaged over the trials;
 - ``new ω̂/ω``: the same with the floor shaped by the gait (:func:`phase_noise_floor`, from
   each trial's cycle and phase rate as ``ConnectionEstimator`` estimates them: what
-  ``NoiseAwareRegression(noise_floor="gait")`` uses);
+  ``NoiseAwareRegression(noise_floor="low_rate")`` uses at 32 or fewer samples per cycle);
 - ``rig ω̂/ω``: the new estimate's ``pooled_variance`` over the trials and joints (what
-  ``NoiseAwareRegression(noise_floor="gait")`` corrects for when pooling: zeroed where not 2
+  ``NoiseAwareRegression(noise_floor="low_rate")`` corrects for when pooling: zeroed where not 2
   standard errors above 0, the joints' estimates correlated by their shared phase noise);
 - ``z sd``: the spread of the new ``(σ̂² − ω²) / variance_se`` over joints and trials (1 =
   honest standard errors);

@@ -16,9 +16,7 @@ differences of the noisy poses for ``NoiseAwareRegression``):
   ``unchecked``: no candidate could be scored held out; ``alone``: no full model could, and
   the connection alone was regressed and checked instead (``skill.select_connection_alone``);
 - ``phase avg``: the training cycles' phase-averaged velocity, ``score()``'s baseline: of the
-  model's Fourier order (12 unless the complexity was re-chosen), or with
-  ``--short-intercept`` per component of the order chosen on held-out blocks
-  (``skill.phase_average_orders``, at most the model's order);
+  model's Fourier order (12 unless the complexity was re-chosen);
 - ``pa h-o``: a stronger phase average, each component of the order (up to 12) with the least
   error on held-out blocks of the training cycles (``skill.phase_average_orders``): a series
   of the model's order overfits 3-6 cycles;
@@ -27,10 +25,6 @@ differences of the noisy poses for ``NoiseAwareRegression``):
   velocities the regression sees -- what a perfect estimate of ``A`` would score against this
   target.
 
-``--short-intercept phase_average|model`` fits with
-``NoiseAwareRegression(short_intercept_order=...)`` (the intercept truncated per component on
-short recordings; ``c`` at the end of a row gives its orders), and ``--baseline-model-order``
-then keeps the check's phase average at the model's order (the intercept alone truncated).
 The summary also counts losses against the model-order phase average, the components whose
 shape terms are kept, the mean R² per component, and ``Â`` against the swimmer's (relative
 RMS on the fitted cycle and the best scale factor, ``accuracy.connection_errors``) as
@@ -135,7 +129,7 @@ def _exact_r2(est: ConnectionEstimator, test, n_links: int) -> torch.Tensor:
 def _order12_r2(est: ConnectionEstimator, test) -> torch.Tensor:
     """R² on the test recording of the training cycles' phase average of the model's Fourier
     order (12 unless the complexity was re-chosen) for every component: ``score()``'s
-    baseline with ``short_intercept_order=False``."""
+    baseline."""
     reg, model = est.regression_, est.forecast_model_
     base = skill.phase_average(skill.regression_view(est.trajectory_, reg, model, pool=False),
                                reg.fourier_order)
@@ -160,9 +154,9 @@ def _held_out_order_r2(est: ConnectionEstimator, test) -> torch.Tensor:
 
 
 def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
-            with_fixed: bool = True, short_intercept: str | None = None,
-            ridge_connection: bool = True, samples_per_cycle: int = SAMPLES_PER_CYCLE,
-            test_cycles: int = TEST_CYCLES, complexity: str = "auto") -> dict:
+            with_fixed: bool = True, ridge_connection: bool = True,
+            samples_per_cycle: int = SAMPLES_PER_CYCLE, test_cycles: int = TEST_CYCLES,
+            complexity: str = "auto") -> dict:
     traj = recording(n_links, kind, n_cycles, seed, omega, samples_per_cycle, test_cycles)
     cut = n_cycles * samples_per_cycle + 1
     train, test = traj.slice_time(0, cut), traj.slice_time(cut, traj.n_samples)
@@ -180,8 +174,7 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
         start = time.perf_counter()
         est = ConnectionEstimator(
             phaser=phaser, complexity=complexity,
-            regression=NoiseAwareRegression(short_intercept_order=short_intercept,
-                                            ridge_connection=ridge_connection)).fit(train)
+            regression=NoiseAwareRegression(ridge_connection=ridge_connection)).fit(train)
         out["seconds"] = time.perf_counter() - start
         s = est.score(test)
     c = est.complexity_
@@ -195,9 +188,6 @@ def run_one(n_links: int, kind: str, n_cycles: int, seed: int, omega: float,
         err = connection_errors(model, n_links)
         out[key + "_err"], out[key + "_scale"] = float(err["A"].mean()), float(err["scale"].mean())
     out["kept"] = 3 if c is None else int(3 - torch.as_tensor(c.phase_averaged).sum())
-    orders = (est.forecast_model_.meta or {}).get("intercept_component_order")
-    out["c_order"] = "-" if orders is None else ",".join(
-        str(int(k)) for k in torch.as_tensor(orders).reshape(-1))
     held = est.held_out_skill_
     unchecked = bool(held.unscored.any()) and (c is None or not c.checked)
     alone = getattr(c, "connection_regressed", False)  # (older versions lack it)
@@ -249,7 +239,7 @@ def table(args) -> int:
                 for seed in args.seeds:
                     try:
                         r = run_one(n_links, kind, n, seed, args.omega, not args.skip_fixed,
-                                    args.short_intercept, not args.no_ridge_connection,
+                                    not args.no_ridge_connection,
                                     args.samples_per_cycle, args.test_cycles,
                                     args.complexity)
                     except ValueError as err:  # the default refuses the recording
@@ -280,7 +270,7 @@ def table(args) -> int:
                           f"{_fmt(r['default'], bad)}| {_fmt(pa)}| {_fmt(r['pa_ho'])}| "
                           f"{_fmt(r['template'])}| "
                           f"{_fmt(r['exact'])}| {r['choice']:10s} {'yes' if r['warned'] else 'no':4s}"
-                          f" {r['seconds']:5.2f} c {r['c_order']} A {r['A_err']:.1%} "
+                          f" {r['seconds']:5.2f} A {r['A_err']:.1%} "
                           f"x{r['A_scale']:.2f} forecast {r['A_fc_err']:.1%} "
                           f"x{r['A_fc_scale']:.2f}", flush=True)
     print("default against the phase average, where its R² > 0 (tie: the component is "
@@ -365,10 +355,6 @@ def main(argv=None) -> int:
                    help="later cycles scored")
     p.add_argument("--cost", action="store_true", help="time the held-out check instead")
     p.add_argument("--skip-fixed", action="store_true", help="leave out the fixed column")
-    p.add_argument("--short-intercept", choices=("phase_average", "model", "none"),
-                   default="none",
-                   help="NoiseAwareRegression(short_intercept_order=...); none: the intercept "
-                   "of the model's order on short recordings too (the previous default)")
     p.add_argument("--margin", type=float, default=None,
                    help="skill.FALLBACK_MARGIN to measure (default: the library's)")
     p.add_argument("--z", type=float, default=None,
@@ -387,13 +373,7 @@ def main(argv=None) -> int:
     p.add_argument("--fallback-cycles", type=int, default=None,
                    help="measure: skill.FALLBACK_CYCLES (recordings of up to this many cycles "
                    "presume the simpler model; default: the library's)")
-    p.add_argument("--baseline-model-order", action="store_true",
-                   help="measure: the phase-average candidate and score()'s baseline keep the "
-                   "model's order while the intercept is truncated")
     args = p.parse_args(argv)
-    args.short_intercept = None if args.short_intercept == "none" else args.short_intercept
-    if args.baseline_model_order:
-        skill.baseline_orders = lambda model, order: None
     torch.set_num_threads(1)
     if args.every_cycle:
         clearly = skill._clearly_better

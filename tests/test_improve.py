@@ -129,7 +129,7 @@ def test_redrawn_models_spread_like_the_standard_errors(fitted_3link):
 
 
 def test_jacobian_draws_take_the_ties_correlation_within_each_bin(fitted_3link):
-    # bins.dA_correlation (NoiseAwareRegression(derivative_correlation=True)) correlates the
+    # bins.dA_correlation (tie_connection_derivative(correlation=True)) correlates the
     # entries of each bin's draw and leaves each entry's spread: with one correlation R and
     # one standard error per entry in every bin (the series' refit across bins then scales
     # every entry's covariance alike), the draws' correlation at a bin centre is R; without

@@ -22,7 +22,6 @@ from torchconn.regression.estimator import (
     estimator_from_settings,
     estimator_settings,
 )
-from torchconn.regression.metric import metric_n_coef, metric_regression
 from torchconn.regression.noise_aware import NoiseAwareRegression
 from torchconn.regression.tube import TubeRegression
 from torchconn.sweep.config import load_config
@@ -42,7 +41,7 @@ def recording():
 def _previous_defaults(traj):
     """torchconn 0.1's default fit spelled out with its lower-level functions and its explicit
     default numbers: RTS order 2, Phaser order 3 (>= 3 cycles), cycle order 8, 48 bins, tricube
-    windows sized to 2.5 samples per regressor, Fourier order 12, metric without ∂M/∂r."""
+    windows sized to 2.5 samples per regressor, Fourier order 12."""
     sm = smooth_trajectory(traj.pose, traj.r, traj.dt, order=2)
     phase = estimate_phase(sm.r, order=3, min_cycles=3.0)
     cycle = fit_limit_cycle(phase, traj.r, sm.r_dot, order=8, dt=traj.dt)
@@ -60,20 +59,19 @@ def _previous_defaults(traj):
     opts = dict(delta_max=None, ridge=0.0, on_ill_conditioned="raise")
     fit = connection_regression(sm.r, sm.r_dot, sm.xi, bins(1 + 2 * d + d * d), gamma_m,
                                 gamma_dot_m, **opts)
-    metric = metric_regression(sm.r, sm.r_dot, traj.power, bins(metric_n_coef(d, False)),
-                               gamma_m, gamma_dot_m, with_metric_derivative=False, **opts)
     coeffs = {name: fit_fourier(centres, value, K, value_ndim=nd).coeffs
               for name, value, nd in (("c", fit.c, 1), ("b", fit.b, 2), ("A", fit.A, 2),
-                                      ("dA", fit.dA, 3), ("M", metric.M, 2))}
+                                      ("dA", fit.dA, 3))}
     return phase, cycle.gamma.coeffs, coeffs, fit.se_A
 
 
 def test_default_stages_reproduce_the_previous_defaults(recording):
     # 0.1's fixed complexity (the default "auto" keeps it unless it loses to the phase-averaged
     # velocity on held-out cycles, which it does here by 0.002 in v_x of one trial), 0.1's
-    # phase (the default is now order "auto" with SNR weights) and 0.1's regression on the
-    # smoothed velocities (the default is now NoiseAwareRegression): all named options
-    old_phaser = Phaser(order=3, weighting="coherence")
+    # phase order (the default is now "auto"; with two channels the SNR weights are the
+    # coherence weights 0.1 used) and 0.1's regression on the smoothed velocities (the default
+    # is now NoiseAwareRegression): all named options. The metric is the tied model.
+    old_phaser = Phaser(order=3)
     est = ConnectionEstimator(phaser=old_phaser, regression=TubeRegression(),
                               complexity="fixed").fit(recording)
     phase, gamma, coeffs, se_A = _previous_defaults(recording)
@@ -81,33 +79,17 @@ def test_default_stages_reproduce_the_previous_defaults(recording):
     torch.testing.assert_close(est.trajectory_.phase, phase, rtol=0, atol=1e-12)
     torch.testing.assert_close(model.gamma.coeffs, gamma, rtol=0, atol=1e-12)
     for name, expected in coeffs.items():
-        if name != "M":
-            got = getattr(model, name).coeffs
-            if name == "c":  # the intercept's order is chosen from the data (12 here), and its
-                # series is kept at the bins' highest order with the harmonics above 12 zero
-                assert set(model.meta["intercept_order"]) == {12}
-                assert not bool(got[..., expected.shape[-2]:, :].any())
-                got = got[..., :expected.shape[-2], :]
-            torch.testing.assert_close(got, expected, rtol=0, atol=1e-12)
+        got = getattr(model, name).coeffs
+        if name == "c":  # the intercept's order is chosen from the data (12 here), and its
+            # series is kept at the bins' highest order with the harmonics above 12 zero
+            assert set(model.meta["intercept_order"]) == {12}
+            assert not bool(got[..., expected.shape[-2]:, :].any())
+            got = got[..., :expected.shape[-2], :]
+        torch.testing.assert_close(got, expected, rtol=0, atol=1e-12)
     torch.testing.assert_close(model.bins.A_se, se_A, rtol=0, atol=1e-12)
-    # except the metric, whose default is now the tied model: the old one is a named option
-    paper = ConnectionEstimator(phaser=old_phaser, regression=TubeRegression(metric_method="paper"),
-                                complexity="fixed").fit(recording)
-    torch.testing.assert_close(paper.model_.M.coeffs, coeffs["M"], rtol=0, atol=1e-12)
     # and the estimates are real ones: A within a few per cent of the swimmer's exact A
     A_true = NLinkSwimmer(3).connection(model.bins.gamma)
     assert float((model.bins.A - A_true).norm() / A_true.norm()) < 0.3
-
-
-def test_flat_settings_of_0_1_still_work_with_a_warning(recording):
-    # the flat keys set the fields of the default regression stage (NoiseAwareRegression)
-    with pytest.warns(DeprecationWarning, match="regression=NoiseAwareRegression"):
-        old = ConnectionEstimator(n_bins=24, fourier_order=6, phase_order=4, cycle_order=5)
-    new = ConnectionEstimator(phaser=Phaser(order=4), cycle=SelfConsistentCycle(order=5),
-                              regression=NoiseAwareRegression(n_bins=24, fourier_order=6))
-    assert old.get_params() == new.get_params()
-    with pytest.raises(TypeError, match=r"'n_bin' \(did you mean 'n_bins'\?\)"):
-        ConnectionEstimator(n_bin=24)
 
 
 def test_stage_options_validate_themselves():
@@ -189,9 +171,8 @@ def test_settings_tables_build_the_estimator_and_name_bad_keys():
         "pool": True, "phaser": {"order": 4},
         "regression": {"n_bins": 24, "fourier_order": 6, "kernel": "box"},
     })
-    flat = estimator_from_settings({"pool": True, "phase_order": 4, "n_bins": 24,
-                                    "fourier_order": 6, "kernel": "box"})
-    assert nested.get_params() == flat.get_params()
+    assert nested.pool and nested.phaser == Phaser(order=4)
+    assert nested.regression == NoiseAwareRegression(n_bins=24, fourier_order=6, kernel="box")
     assert estimator_from_settings(estimator_settings(nested)).get_params() == nested.get_params()
     assert estimator_settings(ConnectionEstimator())["regression"]["method"] == "noise_aware"
     # today's method is the default; torchconn 0.1's stays selectable by name
@@ -209,7 +190,8 @@ def test_settings_tables_build_the_estimator_and_name_bad_keys():
         ({"smoother": {"method": "kalman"}}, r"estimator.smoother.method: unknown key 'kalman'"),
         ({"phaser": 3}, "estimator.phaser must be a table"),
         ({"pool": "yes"}, "estimator.pool must be true or false"),
-        ({"phase_order": -2}, "Phaser.order must be >= 0, got -2"),
+        ({"phaser": {"order": -2}}, "Phaser.order must be >= 0, got -2"),
+        ({"n_bins": 24}, r"estimator: unknown key 'n_bins'"),
     ]
     for settings, message in bad:
         with pytest.raises(ValueError, match=message):

@@ -25,7 +25,7 @@ seed = 5
 error_bins = 12
 [simulation]
 n_cycles = 8
-[estimator]
+[estimator.regression]
 n_bins = 24
 fourier_order = 6
 [[experiment]]
@@ -114,7 +114,7 @@ def test_resume_after_interruption_gives_the_uninterrupted_table(tmp_path, monke
 def test_changed_config_never_reuses_stale_cells(tmp_path):
     path = _small_config(tmp_path)
     first = load_config(path)
-    second = load_config(path, ["estimator.fourier_order=5"])
+    second = load_config(path, ["estimator.regression.fourier_order=5"])
     assert all(first.fingerprint(a) != second.fingerprint(b)
                for a, b in zip(first.experiments, second.experiments, strict=True))
     cells = [experiment_module.experiment_cells(e, 4)[0] for e in first.experiments]

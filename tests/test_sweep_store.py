@@ -25,7 +25,7 @@ block_trials = 4
 [simulation]
 n_cycles = 5
 samples_per_cycle = 32
-[estimator]
+[estimator.regression]
 n_bins = 16
 fourier_order = 4
 [[experiment]]

@@ -21,14 +21,12 @@ The package's folders are the pipeline's stages:
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import _compat
 from .io import read_csv, write_csv
 from .phase import Phaser, RTSSmoother, SelfConsistentCycle
 from .physics import gaits, se2
 from .physics.systems import AffineConnectionSystem, LocomotionSystem, NLinkSwimmer
 from .regression import (
     ConnectionEstimator,
-    EstimatorSettings,
     LocalConnectionModel,
     NoiseAwareRegression,
     TubeRegression,
@@ -42,8 +40,6 @@ try:
 except PackageNotFoundError:  # running from a source tree that was never installed
     __version__ = "0+unknown"
 
-_compat.install()
-
 __all__ = [
     "__version__",
     "NLinkSwimmer", "AffineConnectionSystem", "LocomotionSystem",
@@ -51,5 +47,4 @@ __all__ = [
     "simulate", "observe", "read_csv", "write_csv",
     "ConnectionEstimator", "LocalConnectionModel", "estimator_from_settings",
     "RTSSmoother", "Phaser", "SelfConsistentCycle", "TubeRegression", "NoiseAwareRegression",
-    "EstimatorSettings",
 ]

@@ -53,7 +53,6 @@ from .io.trajectory_files import read_csv
 from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
 from .regression.estimator import (
-    FLAT_KEYS,
     ConnectionEstimator,
     estimator_from_settings,
     estimator_settings,
@@ -100,9 +99,9 @@ def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points
 #: most rows of connection.csv (``--grid``): a phase step of 6e-5 rad, far finer than any fit
 _MAX_GRID = 100_000
 
-#: shortcut flags -> the flat estimator settings they set (FLAT_KEYS maps them to a stage field)
-_FLAGS = {"n_bins": "n_bins", "fourier_order": "fourier_order", "window": "window",
-          "phase_order": "phase_order"}
+#: shortcut flags -> the (stage, field) they set
+_FLAGS = {"n_bins": ("regression", "n_bins"), "fourier_order": ("regression", "fourier_order"),
+          "window": ("regression", "window"), "phase_order": ("phaser", "order")}
 
 #: the estimator's stage names: ``--set regression.kernel=box`` means ``estimator.regression…``
 _STAGE_KEYS = ("smoother", "phaser", "cycle", "regression", "pool", "complexity",
@@ -132,11 +131,9 @@ def build_estimator(args, table: dict | None) -> ConnectionEstimator:
     if args.metric is not None:  # auto: fit the metric when there is a power column
         table["regression"] = {**table.get("regression", {}),
                                "metric": {"auto": None, "yes": True, "no": False}[args.metric]}
-    for flag, key in _FLAGS.items():
+    for flag, (stage, field) in _FLAGS.items():
         v = getattr(args, flag)
         if v is not None:
-            stage, field = FLAT_KEYS[key]
-            table.pop(key, None)
             table[stage] = {**table.get(stage, {}), field: v}
     try:
         estimator = estimator_from_settings(table)

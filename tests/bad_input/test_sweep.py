@@ -20,7 +20,7 @@ error_bins = 12
 [simulation]
 n_cycles = 5
 samples_per_cycle = 32
-[estimator]
+[estimator.regression]
 n_bins = 16
 fourier_order = 4
 [[experiment]]
@@ -126,7 +126,8 @@ SWEEP_CASES = [
     ("experiment-not-tables", "experiment = [1, 2]\n", [], ["[[experiment]] 0 must be a table"]),
     ("experiment-omega-negative", _edit("trials = 2", "trials = 2\nomega = -0.1"), [],
      ["[[experiment]] 0", "omega must be >= 0"]),
-    ("estimator-stage-not-table", _edit("fourier_order = 4", "fourier_order = 4\nphaser = 'x'"),
+    ("estimator-stage-not-table", _edit("[estimator.regression]",
+                                        "[estimator]\nphaser = 'x'\n[estimator.regression]"),
      [], ["phaser must be a table"]),
     ("set-empty-key", GOOD_TOML, ["--set", "simulation..x=2"], ["--set simulation..x=2",
                                                                "empty key"]),

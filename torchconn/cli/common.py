@@ -67,7 +67,7 @@ def config_tables(path: Path | None, overrides: list[str]) -> dict:
     for item in overrides:
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise ValueError(f"--set {item!r} must look like section.key=value, e.g. "
-                             "estimator.ridge=1e-6 or convert.max_gap=0.5")
+                             "estimator.regression.ridge=1e-6 or convert.max_gap=0.5")
     return apply_overrides(raw, list(overrides))
 
 

@@ -372,26 +372,17 @@ class Phaser(PhaseEstimator):
         max_order: the largest order ``"auto"`` considers (also capped at
             :func:`highest_order` of the samples per cycle, above which an explicit order is
             refused).
-        weighting: how the channels' corrected phases are weighted when they are combined:
-            ``"snr"`` by their phase signal-to-noise ratio (inverse phase-noise variance
-            ``1 / (−2 log ρ_c)``, with each channel's coherence ``ρ_c`` from the rank-one fit
-            ``|R_ab| = ρ_a ρ_b`` of their pairwise coherences), shrunk towards the
-            ``"coherence"`` weights as far as the differences between channels are within
-            their estimation noise (over blocks of whole cycles), so with fewer than three
-            channels, or channels of equal noise, it gives the ``"coherence"`` weights;
-            ``"coherence"`` by the leading eigenvector of the unit phasors' coherence matrix
-            (torchconn 0.1, which ignores how noisy a channel is).
-
-            The defaults (``"auto"``, ``"snr"``) were measured against torchconn 0.1's (order 3,
-            ``"coherence"``) on simulated 3-, 5- and 9-link swimmers at five noise levels and on
-            synthetic cases (``benchmarks/phase_accuracy.py``, seeds not used to set them): no
-            worse on any, 26 % better on the 9-link reference gait, 71 % with one good channel
-            among noisy ones.
         min_cycles: fewest cycles a trial must cover (default: the ``fit`` rule of
             :data:`torchconn.io.preflight.CYCLE_RULES`).
         section_channel: the channel whose upward crossing of its mean defines phase 0.
-        periodic_padding: extend each record by its periodic continuation before the Hilbert
-            transform (see :func:`estimate_phase`).
+
+    Each record is extended by its periodic continuation before the Hilbert transform, and the
+    channels' corrected phases are combined with weights by their phase signal-to-noise ratio
+    (:func:`estimate_phase`'s ``periodic_padding=True``, ``weighting="snr"``). Against
+    torchconn 0.1's phase (order 3, ``"coherence"`` weights) on simulated 3-, 5- and 9-link
+    swimmers at five noise levels and on synthetic cases (``benchmarks/phase_accuracy.py``,
+    seeds not used to set them) the defaults were no worse on any, 26 % better on the 9-link
+    reference gait, 71 % with one good channel among noisy ones.
 
     ``fit(x)`` and ``transform(x)`` take ``x (..., T, C)`` (e.g. smoothed shapes). NaN rows
     before a trial's first or after its last finite row are padding (trials of unequal length
@@ -403,8 +394,6 @@ class Phaser(PhaseEstimator):
     max_order: int = option(12, ge=1)
     min_cycles: float = option(CYCLE_RULES["fit"].per_trial, gt=0)
     section_channel: int = 0
-    periodic_padding: bool = True
-    weighting: Literal["snr", "coherence"] = "snr"
 
     def fit(self, x: Tensor) -> Phaser:
         """Phaser fitted to ``x (..., T, C)``: a copy with ``model_`` (:class:`PhaseModel`,
@@ -534,10 +523,16 @@ def estimate_phase(
         order = _checks.integer(order, "order", fn="estimate_phase")
     if not x.is_floating_point():
         x = x.to(torch.get_default_dtype())
+    if weighting not in ("snr", "coherence"):
+        raise ValueError(f"estimate_phase: weighting must be 'snr' or 'coherence', got "
+                         f"{weighting!r}")
+    if not isinstance(periodic_padding, bool):
+        raise TypeError(f"estimate_phase: periodic_padding must be True or False, got "
+                        f"{periodic_padding!r}")
     options = Phaser(order=order, max_order=max_order, min_cycles=min_cycles,
-                     section_channel=section_channel, periodic_padding=periodic_padding,
-                     weighting=weighting)
-    return _fit(x, options, "estimate_phase")[1]
+                     section_channel=section_channel)
+    return _fit(x, options, "estimate_phase", padding=periodic_padding,
+                weighting=weighting)[1]
 
 
 def highest_order(samples_per_cycle: Tensor | float) -> Tensor:
@@ -550,7 +545,7 @@ def highest_order(samples_per_cycle: Tensor | float) -> Tensor:
     return torch.floor((per_cycle - 1) / 2).clamp_min(0).long()
 
 
-def _first_pass(x: Tensor, o, fn: str) -> tuple[Tensor, Tensor]:
+def _first_pass(x: Tensor, o, fn: str, weighting: str = "snr") -> tuple[Tensor, Tensor]:
     """Pass 1 on the plainly centred record: the phase ``(..., T)`` at ``o.order`` (the lowest,
     1, for ``"auto"``) that measures the period, and the samples per cycle ``(...)`` counted
     at order 1 (checked against ``min_cycles`` and the order, :func:`highest_order`)."""
@@ -568,8 +563,8 @@ def _first_pass(x: Tensor, o, fn: str) -> tuple[Tensor, Tensor]:
         warnings.simplefilter("ignore", PhaseAmbiguityWarning)
         # the cycles are counted at the lowest order, whatever the order asked for: the count
         # that decides whether an order is too high is not made with that order
-        counted = _phaser(z, 1, None, o.weighting)[1]
-        phase = counted if o.order in ("auto", 1) else _phaser(z, o.order, None, o.weighting)[1]
+        counted = _phaser(z, 1, None, weighting)[1]
+        phase = counted if o.order in ("auto", 1) else _phaser(z, o.order, None, weighting)[1]
     span = counted[..., -1] - counted[..., 0]
     cycles = span / (2 * math.pi)
     if bool((cycles < o.min_cycles).any()):
@@ -613,17 +608,19 @@ def _order(o, per_cycle: Tensor):
     return ("auto", highest_order(per_cycle).clamp(max=o.max_order))
 
 
-def _fit(x: Tensor, o, fn: str) -> tuple[PhaseModel, Tensor]:
-    """The whole algorithm on ``x (..., T, C)`` (no NaN): the model and the phase ``(..., T)``."""
+def _fit(x: Tensor, o, fn: str, *, padding: bool = True, weighting: str = "snr"
+         ) -> tuple[PhaseModel, Tensor]:
+    """The whole algorithm on ``x (..., T, C)`` (no NaN): the model and the phase ``(..., T)``;
+    ``padding``, ``weighting``: :func:`estimate_phase`'s ``periodic_padding``, ``weighting``."""
     # pass 1 counts cycles and finds the period; pass 2 re-centres each channel on a whole
     # number of cycles (a partial cycle biases the mean by O(1/cycles)) and pads periodically
-    phase, per_cycle = _first_pass(x, o, fn)
+    phase, per_cycle = _first_pass(x, o, fn, weighting)
     w = whole_cycle_weights(phase)[..., None]
     mean = (w * x).sum(-2) / w.sum(-2)
     scale = x.std(-2)
     z = (x - mean[..., None, :]) / scale[..., None, :]
-    period = _period(phase) if o.periodic_padding else None
-    fitted, phase = _phaser(z, _order(o, per_cycle), period, o.weighting)
+    period = _period(phase) if padding else None
+    fitted, phase = _phaser(z, _order(o, per_cycle), period, weighting)
 
     # Poincaré section: rotate so the section channel's fundamental is A sin(φ), A > 0
     fund = fit_fourier(phase, z[..., o.section_channel], 1).coeffs  # (..., 3): a0, a1, b1
@@ -645,7 +642,7 @@ def _transform(model: PhaseModel, x: Tensor, o, fn: str) -> Tensor:
         raise ValueError(f"{fn}: the phase model was fitted to {model.mean.shape[-1]} channels, "
                          f"x has {x.shape[-1]}")
     first = _first_pass(x, o, fn)[0]
-    period = _period(first) if o.periodic_padding else None
+    period = _period(first)
     z = (x - model.mean[..., None, :]) / model.scale[..., None, :]
     theta = _protophases(z, period)
     combined = _combine(theta + model.channel_correction(theta), model.weights)

@@ -681,15 +681,12 @@ class RTSSmoother(Smoother):
 
     Attributes:
         order: 2 -- white-acceleration model (position, velocity); 3 -- white jerk.
-        shared_bandwidth: give all channels of a trial one noise ratio (see
-            :func:`smooth_trajectory`; measured worse under observation noise, so off).
         algorithm: ``"auto"`` (default), ``"scan"`` (parallel in time) or ``"loop"``
             (sequential): how the smoother runs over time, see :func:`rts_smooth`; the same
             result to rounding.
     """
 
     order: Literal[2, 3] = 2
-    shared_bandwidth: bool = False
     algorithm: Algorithm = "auto"
 
     def smooth(self, traj: Trajectory) -> Trajectory:
@@ -705,7 +702,6 @@ class RTSSmoother(Smoother):
 
         def run(pose: Tensor, r: Tensor) -> SmoothedState:
             return smooth_trajectory(pose, r, traj.dt, order=self.order,
-                                     shared_bandwidth=self.shared_bandwidth,
                                      algorithm=self.algorithm)
 
         T = traj.n_samples

@@ -34,7 +34,6 @@ from .connection import ConnectionFit, connection_design, connection_regression
 from .estimator import (
     STAGES,
     ConnectionEstimator,
-    EstimatorSettings,
     estimator_from_settings,
     estimator_settings,
     fit_local_model,
@@ -64,6 +63,6 @@ __all__ = [
     "IllConditionedBinWarning",
     "LocalConnectionModel", "BinEstimates",
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
-    "Regression", "TubeRegression", "NoiseAwareRegression", "EstimatorSettings", "prepare",
+    "Regression", "TubeRegression", "NoiseAwareRegression", "prepare",
     "fit_local_model",
 ]

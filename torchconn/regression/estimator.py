@@ -30,7 +30,6 @@ import dataclasses
 import math
 import warnings
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
 from typing import Any
 
 import torch
@@ -38,7 +37,6 @@ from torch import Tensor
 
 from .. import _checks
 from .._checks import unknown_keys_message
-from .._options import Options
 from ..io.preflight import MAX_GAP_CYCLES, preflight
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
@@ -52,7 +50,7 @@ from .tube import Regression, TubeRegression
 
 __all__ = [
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
-    "prepare", "fit_local_model", "EstimatorSettings",
+    "prepare", "fit_local_model",
 ]
 
 #: the estimator's stages: keyword -> (base class, {method name: class}); the first method is
@@ -68,18 +66,6 @@ STAGES: dict[str, tuple[type, dict[str, type]]] = {
 OPTIONS = ("pool", "complexity", "held_out_folds")
 #: how the regression's complexity (bins, Fourier order, ridge) is set; see ConnectionEstimator
 COMPLEXITY = ("auto", "fixed", "cv")
-
-#: torchconn 0.1's flat settings (``EstimatorSettings``) -> (stage, field)
-FLAT_KEYS: dict[str, tuple[str, str]] = {
-    **{k: ("regression", k) for k in (
-        "n_bins", "fourier_order", "window", "samples_per_regressor", "kernel", "delta_max",
-        "ridge", "on_ill_conditioned", "metric")},
-    "phase_order": ("phaser", "order"),
-    "min_cycles": ("phaser", "min_cycles"),
-    "cycle_order": ("cycle", "order"),
-    "smoother_order": ("smoother", "order"),
-}
-
 
 class ConnectionEstimator:
     """Estimate a local connection (and metric) around the gait in recorded trials.
@@ -158,9 +144,6 @@ class ConnectionEstimator:
         xi_hat = est.predict(traj)               # (..., T, 3), by forecast_model_
         A_on_cycle = est.model_.connection(phi)  # (..., P, 3, d)
         est.set_params(regression__n_bins=24)    # a new regression stage, unfitted settings
-
-    torchconn 0.1's flat keywords (``n_bins=…``, ``phase_order=…``) still work for one release,
-    with a :class:`DeprecationWarning`; they set the matching stage's field.
     """
 
     def __init__(
@@ -173,22 +156,7 @@ class ConnectionEstimator:
         pool: bool = False,
         complexity: str = "auto",
         held_out_folds: int = 3,
-        **flat: Any,
     ):
-        if flat:
-            unknown = set(flat) - set(FLAT_KEYS)
-            if unknown:
-                raise TypeError(unknown_keys_message("ConnectionEstimator", unknown,
-                                                 [*STAGES, *OPTIONS, *FLAT_KEYS]))
-            warnings.warn(
-                "ConnectionEstimator(" + ", ".join(f"{k}=…" for k in flat) + "): flat settings "
-                "are deprecated; set the stages' fields instead, e.g. "
-                "ConnectionEstimator(regression=NoiseAwareRegression(n_bins=…), phaser=Phaser(order=…))",
-                DeprecationWarning, stacklevel=2,
-            )
-            stages = _apply_flat(dict(smoother=smoother, phaser=phaser, cycle=cycle,
-                                      regression=regression), flat, "ConnectionEstimator")
-            smoother, phaser, cycle, regression = (stages[k] for k in STAGES)
         self.smoother = smoother
         self.phaser = phaser
         self.cycle = cycle
@@ -312,10 +280,8 @@ class ConnectionEstimator:
                     regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
         view = skill.regression_view(traj, regression, model, pool=self.pool)
-        # the phase average of the intercept's orders (short recordings) or the model's
-        self.phase_average_ = skill.phase_average(
-            view, regression.fourier_order,
-            skill.baseline_orders(model, regression.fourier_order))
+        # the phase average of the model's order
+        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
         forecast = model
         if choice is not None and (choice.phase_averaged_names()
                                    or choice.connection_only_names()):
@@ -654,9 +620,7 @@ def estimator_from_settings(settings: Mapping[str, Any] | None = None, *,
 
     Keys: ``pool``, and one sub-table per stage (``smoother``, ``phaser``, ``cycle``,
     ``regression``) holding that stage's fields and optionally ``method`` (a name in
-    :data:`STAGES`, default its first). torchconn 0.1's flat keys (``n_bins``,
-    ``phase_order``, ``smoother_order``, ``cycle_order``, …; see :data:`FLAT_KEYS`) are
-    accepted too. Example::
+    :data:`STAGES`, default its first). Example::
 
         [estimator]
         pool = false
@@ -673,9 +637,9 @@ def estimator_from_settings(settings: Mapping[str, Any] | None = None, *,
     settings = dict(settings or {})
     if not isinstance(settings, Mapping):
         raise ValueError(f"{where} must be a table (mapping), got {type(settings).__name__}")
-    unknown = set(settings) - {*STAGES, *OPTIONS, *FLAT_KEYS}
+    unknown = set(settings) - {*STAGES, *OPTIONS}
     if unknown:
-        raise ValueError(unknown_keys_message(where, unknown, [*STAGES, *OPTIONS, *FLAT_KEYS]))
+        raise ValueError(unknown_keys_message(where, unknown, [*STAGES, *OPTIONS]))
     stages = {}
     for name, (_, methods) in STAGES.items():
         table = settings.get(name, {})
@@ -695,8 +659,6 @@ def estimator_from_settings(settings: Mapping[str, Any] | None = None, *,
             stages[name] = cls(**table)
         except ValueError as err:
             raise ValueError(f"{where}.{name}: {err}") from None
-    flat = {k: v for k, v in settings.items() if k in FLAT_KEYS}
-    stages = _apply_flat(stages, flat, where)
     pool = settings.get("pool", False)
     if not isinstance(pool, bool):
         raise ValueError(f"{where}.pool must be true or false, got {pool!r}")
@@ -721,21 +683,6 @@ def estimator_settings(estimator: ConnectionEstimator,
         out[name] = {"method": method, **stage.get_params()}
     for key in OPTIONS:
         out[key] = getattr(estimator, key)
-    return out
-
-
-def _apply_flat(stages: dict[str, Options], flat: Mapping[str, Any], where: str) -> dict:
-    """Stages with torchconn 0.1's flat settings applied (:data:`FLAT_KEYS`)."""
-    changes: dict[str, dict[str, Any]] = {}
-    for key, value in flat.items():
-        stage, field = FLAT_KEYS[key]
-        changes.setdefault(stage, {})[field] = value
-    out = dict(stages)
-    for stage, fields in changes.items():
-        try:
-            out[stage] = out[stage].replace(**fields)
-        except ValueError as err:
-            raise ValueError(f"{where}: {err}") from None
     return out
 
 
@@ -797,7 +744,7 @@ def _gap_note(traj: Trajectory) -> str:
 
 
 def fit_local_model(traj: Trajectory, cycle: LimitCycle,
-                    regression: Regression | EstimatorSettings = NoiseAwareRegression(), *,
+                    regression: Regression = NoiseAwareRegression(), *,
                     pool: bool = False) -> LocalConnectionModel:
     """The regressions in every phase bin and their Fourier series in phase:
     ``regression.fit(traj, cycle, pool=pool)``.
@@ -805,59 +752,12 @@ def fit_local_model(traj: Trajectory, cycle: LimitCycle,
     Args:
         traj: a prepared trajectory (``smoothed`` and ``phase`` set), batch dims ``...``.
         cycle: its limit cycle (batch dims ``...``, or none when ``pool``).
-        regression: the regression stage; an :class:`EstimatorSettings` (deprecated) gives
-            its regression fields and ``pool``.
+        regression: the regression stage.
 
     Returns:
         a :class:`LocalConnectionModel` with batch dims ``...`` (none when pooled).
     """
-    if isinstance(regression, EstimatorSettings):
-        flat = {k: v for k, v in asdict(regression).items() if k in FLAT_KEYS}
-        pool = regression.pool
-        regression = estimator_from_settings(flat).regression
     return regression.fit(traj, cycle, pool=pool)
-
-
-@dataclass(frozen=True, kw_only=True)
-class EstimatorSettings:
-    """torchconn 0.1's flat estimator settings, kept for one release (deprecated).
-
-    Use the stage objects instead (:class:`ConnectionEstimator`); every field maps to one stage
-    field (:data:`FLAT_KEYS`), and ``estimator_from_settings(asdict(settings))`` converts.
-
-    Attributes:
-        n_bins, fourier_order, window, samples_per_regressor, kernel, delta_max, ridge,
-            on_ill_conditioned, metric: the fields of :class:`TubeRegression` (see there).
-        phase_order: Phaser's correction order (2-4 robust).
-        cycle_order: Fourier order of the limit cycle γ(φ).
-        smoother_order: Kalman smoother model order (2: white acceleration).
-        min_cycles: fewest cycles a trial must cover.
-        metric: None (default): estimate the metric when the data carry power; True: require
-            it; False: never.
-        pool: fit one model to all trials together (their phases must share a Poincaré section,
-            which Phaser's phase 0 provides) instead of one model per trial.
-    """
-
-    n_bins: int = 48
-    fourier_order: int = 12
-    window: float | None = None
-    samples_per_regressor: float = 2.5
-    kernel: str = "tricube"
-    delta_max: float | None = None
-    ridge: float = 0.0
-    on_ill_conditioned: str = "raise"
-    phase_order: int = 3
-    cycle_order: int = 8
-    smoother_order: int = 2
-    min_cycles: float = 3.0
-    metric: bool | None = None
-    pool: bool = False
-
-    def __post_init__(self) -> None:
-        estimator_from_settings(asdict(self), where="EstimatorSettings")  # the stages' checks
-        warnings.warn("EstimatorSettings is deprecated: build the estimator from its stages, or "
-                      "from a settings table with estimator_from_settings", DeprecationWarning,
-                      stacklevel=3)
 
 
 def _unshrunk(regression: Regression, free: Regression | None) -> Regression | None:

@@ -51,14 +51,14 @@ class BinEstimates:
             ``order_bias``): one systematic error shared by the entries and bins, not independent
             scatter; None where not estimated.
         M_change_factor: ``(..., M, d, d, R)`` a factor of the part of ``M_se``'s variance that
-            is the sampling noise of that bias estimate (``metric_order_bias="posterior"``):
+            is the sampling noise of that bias estimate (``order_bias="posterior"``):
             its covariance across entries and bins is ``Σ_r F[..., r] ⊗ F[..., r]``; None
             where that noise is not in ``M_se``.
         dM: ``(..., M, d, d, d)`` the metric's shape derivative ``∂M̂_ij/∂r_k`` at
             ``[..., i, j, k]`` (the tied model's ``∂M/∂r(φ)``), or None.
         M_offset_bias: ``(..., M, d, d)`` the tube's second-order bias of ``M̂`` (``M̂`` absorbs
             ``½∂²M/∂r² : E[δδᵀ]``), estimated as the change of ``M̂`` when that term is fitted
-            too (``TubeRegression.metric_offset_bias``): not in ``M_se``; nearby-gait draws
+            too (without ``metric_second_order``): not in ``M_se``; nearby-gait draws
             add it as one error shared by entries and bins. None where not estimated.
         M_sampling_factor: ``(..., M, d, d, R)`` a factor of the part of ``M_se``'s variance
             that is the fit's own sampling noise (the tied model's cluster-robust covariance),
@@ -133,7 +133,7 @@ class LocalConnectionModel:
             cost's standard error (:func:`~torchconn.regression.gait_prediction.predict_gait`).
         bins: the per-bin estimates the series were fitted to.
         meta: settings and provenance (JSON-serialisable).
-        dA_fit: where ``dA`` is the tied estimate of ``∂Â/∂r`` (``tie_derivative``), the
+        dA_fit: where ``dA`` is the tied estimate of ``∂Â/∂r`` (NoiseAwareRegression), the
             regression's own ``δ̇⊗δ`` coefficient, fitted beside ``c, b, A``: :meth:`predict`
             uses it (with the tied one in its place the predictions lose that consistency,
             10-60 % further off on the 9-link), while ``dA`` is the estimate of the

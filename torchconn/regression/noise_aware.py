@@ -35,7 +35,7 @@ import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 import torch
 from torch import Tensor, nn
@@ -1794,27 +1794,18 @@ _INTERVAL_NOISE_FRACTION = 0.05
 #: more slowly with the interval than the box's; seed 5 (pooled, ω = 0.01) chose 24-32 of 126
 #: samples per cycle
 _MAX_INTERVAL_CYCLES = 1 / 4
-#: the pooled fit's candidate bin half-widths (bin spacings) and longer intervals (multiples
-#: of the noise rule's), chosen among by estimated mean squared error (see
-#: ``NoiseAwareRegression._chosen_fit``). Set on seeds 5 and 6 (3-/5-link circle, 3-link
-#: reference, 5-link wave, ω = 0-0.01, pooled 4 x 30 cycles) against a grid of intervals
-#: 2-32 and windows 1-4: the chosen fits' Â errors were 1.09 times the best of the grid's on
-#: average (at most 1.45; the best at ω = 0), with 6 fits (all 12 pairs of these: 1.11; the
-#: multiples 2 and 3 instead: 1.13); the strongly curved 3-link reference gait gets 2-3
-#: spacings, circle gaits 3-4
-_INTERVAL_MULTIPLES = (1.5, 2.0)
 #: where no bin width can be fitted at an interval (the pooled reference, or an unpooled
 #: element's own), the interval is divided by this (:func:`_shorter_interval`) until one can
 _FALLBACK_INTERVAL_DIVISOR = 1.5
+#: the pooled fit's candidate bin half-widths (bin spacings)
 _CANDIDATE_WINDOWS = (1.0, 2.0, 3.0, 4.0)
-#: with the bias correction (``NoiseAwareRegression.bias_correction``) every pair of these
-#: multiples of ``h0`` and the windows above is a candidate, scored ``V + V⁺ + λ‖B‖²`` with
-#: ``λ = _RESIDUAL_BIAS_FRACTION`` (``V⁺`` added later, on seeds 5-8; see ``_chosen_fit``).
-#: Set on seeds 5 and 6 (3-/5-link circle, 3-link reference, 5-link smaller circle,
-#: ω = 0.002; intervals 2-24 and windows 1-4): λ = 0.5 and 1 chose
-#: fits whose mean Â error was 2.30 and 2.33 % (the best of the grid: 2.23 %), λ = 0.1-0.25
-#: 2.90-2.94 % (wide windows on the curved gait), λ = 2 2.55 %, λ = 0 (variance alone)
-#: 4.08 %; the correction made longer intervals pay on the 5-link (h = 16-24 at ω = 0.002)
+#: every pair of these multiples of ``h0`` and the windows above is a candidate, scored ``V +
+#: V⁺ + λ‖B‖²`` with ``λ = _RESIDUAL_BIAS_FRACTION`` (``V⁺`` added later, on seeds 5-8; see
+#: ``_chosen_fit``). Set on seeds 5 and 6 (3-/5-link circle, 3-link reference, 5-link smaller
+#: circle, ω = 0.002; intervals 2-24 and windows 1-4): λ = 0.5 and 1 chose fits whose mean Â
+#: error was 2.30 and 2.33 % (the best of the grid: 2.23 %), λ = 0.1-0.25 2.90-2.94 % (wide
+#: windows on the curved gait), λ = 2 2.55 %, λ = 0 (variance alone) 4.08 %; the correction
+#: made longer intervals pay on the 5-link (h = 16-24 at ω = 0.002)
 _CORRECTED_INTERVAL_MULTIPLES = (1.5, 2.0, 3.0, 4.0, 6.0)
 _RESIDUAL_BIAS_FRACTION = 0.5
 #: the share of the direct ``∂Â/∂r``'s squared modelled bias (:class:`_DerivativeBias`) that
@@ -1862,7 +1853,7 @@ _BIAS_HARMONIC_Z = 4.0
 #: ω = 0.01 10.1 % either way (none: 11.8 %)
 _BIAS_HARMONIC_SCALE = 2.0
 #: a pooled fit's series of ``Â`` shrinks harmonic ``k`` by ``max(0, 1 − c · noise_k /
-#: power_k)`` with this ``c`` (``NoiseAwareRegression.resolved_harmonics``; ``noise_k`` the bins'
+#: power_k)`` with this ``c`` (``NoiseAwareRegression._a_series``; ``noise_k`` the bins'
 #: noise expectation, :func:`_harmonic_noise`). Under noise the bins' errors are mostly
 #: variance, and a harmonic near its noise adds more of it than of the connection; ``c = 1`` is
 #: the estimated Wiener factor. Set on seeds 5-8 (3-/5-link circle and 0.7-circle or reference
@@ -1928,16 +1919,9 @@ class NoiseAwareRegression(TubeRegression):
             (``meta["velocity_kernel"]``).
         noise_band_low: lowest frequency (cycles per sample) of the noise fit; None: chosen
             per batch element and joint from the data (:func:`estimate_noise`).
-        noise_floor: the noise fit's process floor: ``"flat"`` (default) or ``"gait"``, which
-            follows the fitted cycle's harmonics spread by phase noise
-            (:func:`phase_noise_floor`). Either way the test for noise of the joints' mean
-            takes their shared phase noise into account (:attr:`NoiseEstimate.correlation`,
-            from the fitted cycle). At 64 samples per cycle ``"gait"`` finds ω = 0.002 on the
-            3-link reference gait where ``"flat"`` finds 0.36 of it (mean of seeds 10-29), but
-            on clean recordings it declares noise more often (seeds 40-59, 24 cells: 23 of
-            480 recordings against 7 with the correlated test, 11 with independent joints;
-            its band rule leaves a small upward bias), so it is not the default (README
-            "Noise estimates"). ``"low_rate"``: ``"gait"`` where the gait's harmonics reach
+        noise_floor: the noise fit's process floor: ``"flat"`` (default), or ``"low_rate"``:
+            the fitted cycle's harmonics spread by phase noise (:func:`phase_noise_floor`)
+            where``"low_rate"``: ``"gait"`` where the gait's harmonics reach
             the noise fit's top band (32 or fewer samples per cycle; their phase-noise tails
             fill it and drive the flat floor's ``σ̂²`` below 0), ``"flat"`` elsewhere, bit for
             bit (README "Few samples per cycle"). ``"normal"``: the joint increments projected
@@ -1947,148 +1931,27 @@ class NoiseAwareRegression(TubeRegression):
             with two joints (the 3-link) ``"flat"`` bit for bit. Held out at 64 samples per
             cycle, ω = 0.002 (seeds 100-119): the 9-link reference gait's ``ω̂`` within 20 % in
             20 of 20 pooled recordings (flat: 11), and clean recordings called noisy 3 of 320
-            against 12 (5-/9-link, seeds 60-79; README "Noise estimates").
-        shrink_to_smoothed: combine with the smoothed estimate (:func:`blend_fits`); False:
-            the corrected estimate alone (unbiased, but with one trial of a 9-link swimmer at
-            ω ≥ 0.005 measured 2-4 times further off than the smoothed one).
-        bias_correction: a pooled fit's ``Â`` (every candidate of the choice) is corrected
-            for the bias of the bins' phase windows and the velocity filter, computed from the
-            fitted model (:func:`bin_bias_correction`); False: uncorrected (the previous
-            version). Unpooled fits are not corrected yet.
-        full_search: correct every candidate of the pooled choice. By default a candidate
-            is corrected only while its uncorrected variance, a lower bound of its estimated
-            MSE, could still beat the best one corrected so far (branch and bound): the same
-            choice and fit bit for bit, and ``meta["interval_window_scores"]`` holds that
-            variance for the others (listed in ``meta["interval_window_bounds"]``). True is
-            for checks and comparisons of cost.
-        tie_derivative: ``∂Â/∂r`` tied to ``b̂`` and to the phase derivative of ``Â``
-            (:func:`~torchconn.regression.tie_connection_derivative`), which hold ``2d − 1``
-            of its ``d²`` entries per bin far better than the direct ``δ̇⊗δ`` estimate; with
-            ``bias_correction`` a pooled fit's tied ``∂Â/∂r`` is also corrected for the bins'
-            bias (:func:`derivative_bias_correction`). ``Â``, ``b̂`` and ``ĉ`` are the same
-            either way, and so are the model's predictions: they keep the direct estimate,
-            fitted beside ``ĉ, b̂, Â`` (``model.dA_fit``; with the tied one in its place the
-            9-link's predictions were 10-60 % further off and the paper's Fig. 4A claim (b)
-            failed). On here, off in :class:`TubeRegression`; False: the direct estimate
-            is also the reported ``∂Â/∂r`` (the previous version).
-        derivative_bias_allowance: with ``tie_derivative`` and ``bias_correction``, a pooled
-            fit of data with measurement noise (where the tie is not corrected) allows for the
-            bins' bias of
-            ``b̂`` and of the direct estimate in the tie's weights and bands
-            (:func:`derivative_bias_allowance`); False: their standard errors as they are
-            (the previous version, bands too narrow on the curved 3-link reference gait).
-        joint_covariance: with ``tie_derivative``, under detected noise, the tie's
-            standard errors take ``b̂`` and the direct ``∂Â/∂r`` of a bin, which come from
-            one regression, with their joint covariance (``ConnectionFit.cov_b_dA``;
-            :func:`noise_aware_regression`): ``"solver"`` the sandwich whose diagonal gives
-            their standard errors (mean ``|ρ|`` of a ``b̂`` and a direct entry 0.10-0.54, of
-            two direct entries 0.17-0.41, on the 3-/5-link under noise); ``"robust"`` the
-            rows' own scores (variances 0.8-0.97 of the solver's; for comparison: its bands
-            further from honest than the solver's in 12 of 16 held-out cells, README); None:
-            taken as independent (the previous version, bands too narrow on the 5-link under
-            noise).
-            The tied estimate itself is unchanged bit for bit.
-        joint_weights: with ``joint_covariance``, also weigh the two by its inverse in the
-            tie (:func:`tie_connection_derivative`; README: off, bands too narrow on the
-            3-link circle and the 5-link up to 3 % further off). True needs
-            ``joint_covariance`` and ``tie_derivative`` (a ``ValueError`` otherwise: there
-            would be nothing to weigh by).
-        resolved_harmonics: the series of ``Â`` shrinks each harmonic (up to
-            ``fourier_order``) of each row (``x, y, θ``) by how far its power stands out of
-            the bins' noise (:data:`_SERIES_SHRINK`, :func:`_harmonic_noise`; the factors are
-            ``meta["A_harmonic_factors"]``, ``(K + 1, 3)``, ``(..., K + 1, 3)`` unpooled).
-            True: pooled fits only;
-            ``"per_trial"``: also each element of an unpooled fit, by its own bins' noise and
-            window (README: ``Â`` closer to the truth in every one-trial cell measured, but the
-            default sweep's predicted motion worse on the 9-link, so not the default); False:
-            the plain least-squares series (the previous version).
-        refit_offsets: where the series of ``Â`` is shrunk, ``ĉ`` and ``b̂`` (fitted jointly
-            with the unshrunk ``Â``) are re-estimated in each bin with ``Â`` held at the
-            shrunk series: the least-squares solution of the bin's own normal equations
-            (noise-corrected, with its ridge) at ``Â`` moved by the shrink's change at the
-            bin's centre (:func:`offset_gain`, :func:`offsets_at`; ``∂Â/∂r`` held too, and
-            ``Â``, ``∂Â/∂r`` and the bins' estimates unchanged; ``meta["offsets_refit"]``).
-            Where the fit is shrunk towards the smoothed one, the change is the corrected
-            regression's. True (default): pooled fits (held out, 72 pooled 3-/5-/9-link
-            fits: later cycles' ``v_x`` closer to the swimmer's than without it in 44,
-            ``v_y`` in 52; 9-link reference gait at ω = 0.01 ``v_x`` RMS 162.1 → 160.0 ×
-            10⁻⁴, plain series 162.3); ``"per_trial"``: also the unpooled fits of
-            ``resolved_harmonics="per_trial"`` (measured worse there: the default sweep's
-            one-trial ``v_x`` further off in 113 of 180 trials, the 9-link's by up to 3 %);
-            False: ``ĉ, b̂`` as fitted (the previous version). README "Â's series shrinks".
-        sampling_factor: a pooled fit also keeps a factor of ``Â``'s sampling covariance
-            across entries and bins (``model.bins.A_sampling_factor``, :func:`sampling_factor`:
-            each whole cycle's share of the error, scaled to ``se_A``), from which nearby-gait
-            predictions draw ``Â``
-            (:func:`~torchconn.regression.gait_prediction.sample_models`); the estimates are
-            the same bit for bit. False: ``Â`` drawn entry by entry, correlated only between
-            bins whose windows overlap (the previous version; the displacement's standard
-            error too wide along ``γ̇`` under noise, README "Is the displacement standard error
-            honest?").
-        bias_allowance: a pooled fit of a recording without detected measurement noise also
-            estimates the bias of the ``Â`` it delivers from the tube's second order
-            (:func:`offset_bias`: that ``Â`` minus the second-order fit's) and the sampling
-            interval (:func:`interval_bias`), their sum shrunk by how far
-            it stands out of its own noise (``model.bins.A_bias_allowance``), which
-            nearby-gait predictions draw as one error shared by the entries and bins; not in
-            ``se_A`` or the bands, and the estimates are the same bit for bit. Under detected
-            noise it is small against the noise and not estimated (noise the estimate does
-            not detect, the 3-link reference gait at ω = 0.002 and 64 samples per cycle, gets
-            one, and the uncorrected fits' change holds its attenuation: a wider error there).
-            Held out it brings the clean 3-link's displacement error from 3.1 to 1.05 times
-            its variance and takes the clean 5-link's from 1.2 to 0.27 (README "The
-            displacement standard error, built"). False: none (the previous version).
-        blend_covariance: with ``shrink_to_smoothed`` and ``joint_covariance``, the joint
-            covariance of ``b̂`` and the direct ``∂Â/∂r`` after the shrink (:func:`blend_fits`'s
-            ``covariance``, for the tie's bands): ``"shift"`` allows for the shift the shrink
-            makes (the smoothed estimate's attenuation, of which the combination keeps a
-            ``1 − w`` share); ``"interpolated"`` without it (the previous version). Only the
-            tie's bands change (its weights are the standard errors): ``∂Â/∂r`` is the same
-            bit for bit (with ``joint_weights`` the covariance weighs too, and it changes).
-            Held out at ω = 0.01 the bands' mean e²/se² moves towards 1 in every cell
-            (1.14–1.37 → 0.87–1.30, 3-/5-/9-link); at ω ≤ 0.005 they widen by 0–15 %
-            (0.76–1.28 → 0.73–1.26); the mean |log e²/se²| over the 15 held-out cells
-            0.165 → 0.156 (README "The tied ``∂Â/∂r``'s bands at ω = 0.01").
-        derivative_correlation: a pooled fit also keeps the correlation of each bin's tied
-            ``∂Â/∂r`` entries (``model.bins.dA_correlation``, the tie's covariance,
-            :func:`~torchconn.regression.tie_connection_derivative`'s ``correlation``), with
-            which nearby-gait draws take ``∂Â/∂r`` (its entries' standard errors unchanged).
-            The displacement's first-order term contracts ``∂Â/∂r`` with the gait's velocity,
-            which the tie pins through ``b̂``: drawn entry by entry, that term's spread on
-            the 9-link reference gait was 20-100 times its actual error (README "The
-            displacement standard error on the 9-link"). Off until measured: the fits are
-            bit for bit the same either way; model files grow by ``M·3·d⁴`` floats.
+            against 12 (5-/9-link, seeds 60-79; README "Noise estimates"). Either way the test
+            for noise of the joints' mean takes their shared phase noise into account
+            (:attr:`NoiseEstimate.correlation`, from the fitted cycle).
+
+    The corrected fit is always shrunk towards the smoothed one (:func:`blend_fits`), a
+    pooled fit's ``Â`` corrected for the bins' bias (:func:`bin_bias_correction`), ``∂Â/∂r``
+    tied (:func:`~torchconn.regression.tie_connection_derivative`; a pooled fit's corrected
+    for, or under noise allowing for, the bins' bias, with ``b̂`` and the direct estimate's
+    joint covariance in the bands), a pooled fit's series of ``Â`` shrunk harmonic by
+    harmonic with ``ĉ, b̂`` re-estimated to it, and a pooled fit keeps ``Â``'s sampling factor
+    and, without detected noise, its bias allowance (docs/validation/deleted-options.md lists
+    the variants these replaced and what was measured).
     """
 
     velocity_interval: int | None = option(None, ge=1)
     noise_band_low: float | None = option(None, gt=0, le=0.45)
-    noise_floor: Literal["flat", "gait", "low_rate", "normal"] = "flat"
-    shrink_to_smoothed: bool = True
-    bias_correction: bool = True
-    full_search: bool = False
-    tie_derivative: bool = True  # (TubeRegression's field, on here)
-    derivative_bias_allowance: bool = True
-    resolved_harmonics: bool | Literal["per_trial"] = True
-    refit_offsets: bool | Literal["per_trial"] = True
-    joint_covariance: Literal["solver", "robust"] | None = "solver"
-    joint_weights: bool = False
-    sampling_factor: bool = True
-    bias_allowance: bool = True
-    blend_covariance: Literal["shift", "interpolated"] = "shift"
-    derivative_correlation: bool = False
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        # joint_weights is the one opt-in that needs two other options: without them there is
-        # no joint covariance to weigh by and the fit would be the one without it, bit for bit
-        if self.joint_weights and (self.joint_covariance is None or not self.tie_derivative):
-            raise ValueError(
-                f"NoiseAwareRegression.joint_weights=True needs joint_covariance='solver' or "
-                f"'robust' and tie_derivative=True (the tie weighs b̂ and the direct ∂Â/∂r by "
-                f"the inverse of their joint covariance), got joint_covariance="
-                f"{self.joint_covariance!r}, tie_derivative={self.tie_derivative!r}; set "
-                f"joint_weights=False or enable both"
-            )
+    noise_floor: Literal["flat", "low_rate", "normal"] = "flat"
+    #: test hook: correct every candidate of the pooled choice instead of branch and bound
+    #: (the same choice and fit bit for bit; ``meta["interval_window_scores"]`` then holds
+    #: every candidate's MSE)
+    _full_search: ClassVar[bool] = False
 
     def _corrected_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """Unpooled batch elements may carry different noise (a sweep's noise levels), so each
@@ -2107,8 +1970,7 @@ class NoiseAwareRegression(TubeRegression):
                                               noise_var=var)
         # b̂ and ∂Â/∂r's joint covariance, for the tie: only for groups with detected noise
         # (elsewhere the tie takes the two as independent, and _scatter_fits leaves it NaN)
-        joint = ({"joint_covariance": self.joint_covariance}
-                 if self.tie_derivative and self.joint_covariance else {})
+        joint = {"joint_covariance": "solver"}
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
         flat = _flatten_batch(traj)
@@ -2167,31 +2029,21 @@ class NoiseAwareRegression(TubeRegression):
         estimated mean squared error of ``Â``.
 
         Longer intervals and wider bins lower the variance and add bias (they average ``A``
-        over more of the cycle). With ``bias_correction`` (:func:`bin_bias_correction`) every
-        candidate's bias is estimated and removed, and ``MSE_c ≈ V_c + V⁺_c + λ‖B_c‖²``:
-        ``V`` the summed squared standard errors of ``Â`` (calibrated for the rows' overlap by
+        over more of the cycle). Every candidate's bias (:func:`bin_bias_correction`) is
+        estimated and removed, and ``MSE_c ≈ V_c + V⁺_c + λ‖B_c‖²``: ``V`` the summed squared
+        standard errors of ``Â`` (calibrated for the rows' overlap by
         :func:`overlap_inflation`), ``V⁺`` the variance the correction adds, ``B_c`` the
         correction applied and ``λ =`` :data:`_RESIDUAL_BIAS_FRACTION` the part of its square
         taken to remain (on the 3-link reference gait without noise the correction removed 2/3
         of the bias). The candidates are every pair of the half-widths
-        :data:`_CANDIDATE_WINDOWS` (at least the data-size rule's) and the intervals ``h0`` and
-        ``h0 · _CORRECTED_INTERVAL_MULTIPLES`` (``h0`` the noise rule's,
+        :data:`_CANDIDATE_WINDOWS` (at least the data-size rule's) and the intervals ``h0``
+        and ``h0 · _CORRECTED_INTERVAL_MULTIPLES`` (``h0`` the noise rule's,
         :func:`velocity_interval_for`; at most a quarter cycle); the first of least ``MSE`` in
         that order is taken. ``V_c`` comes from the uncorrected fit and ``V⁺``, ``‖B‖²`` are
         ``≥ 0``, so ``V_c`` bounds ``MSE_c`` from below: the candidates are corrected in
         increasing ``V`` until the next ``V`` exceeds the least ``MSE`` found (or equals it
         and comes later in the order), and the rest cannot be chosen (branch and bound; the
-        same choice and fit as correcting all, bit for bit, unless ``full_search``).
-
-        Without the correction (the previous version), the candidate of the shortest interval
-        and narrowest bins (``0``, least bias) is the reference: ``MSE_c ≈ ‖Â_c − Â_0‖² − V_0
-        + 2 V_c`` (for nested estimates ``E‖Â_c − Â_0‖²`` is the squared bias difference plus
-        ``V_0 − V_c``) and ``MSE_0 = V_0``, searched greedily: the half-widths at ``h0``, then
-        the intervals ``h0 · _INTERVAL_MULTIPLES`` at the best of them. (Estimates at
-        different intervals are far from nested: on the 5-link circle at ω = 0.002, seed 5,
-        ``Â`` at ``h = 24`` was nearly uncorrelated with ``Â`` at ``h = 4``, and this rule
-        scored it worst of the intervals while its error was the least, 2.3 % against
-        4.6-7.1 %.)
+        same choice and fit as correcting all, bit for bit).
 
         ``window`` or ``velocity_interval``, when given, fix theirs. Where no width can be
         fitted at ``h0``, shorter intervals (:func:`_shorter_interval`) are tried first.
@@ -2199,18 +2051,17 @@ class NoiseAwareRegression(TubeRegression):
         The triangle filter needs all ``h + 1`` samples of an interval, the box only its two
         ends: where missing samples cost the triangle rows the box keeps, the box's search
         (from its own noise rule's interval) runs too and the lower estimated MSE of the two
-        is taken (each at least its candidate's variance: without the bias correction the two
-        searches' references differ, and one made of few rows can give a negative estimate;
-        on a tie the triangle). The box's candidates are then corrected only while their
-        ``V`` is below the triangle's MSE. Complete data (no NaN in the poses, shapes or
-        phase) lose no rows to either filter, and the rows are not counted.
+        is taken (each at least its candidate's variance; on a tie the triangle). The box's
+        candidates are then corrected only while their ``V`` is below the triangle's MSE.
+        Complete data (no NaN in the poses, shapes or phase) lose no rows to either filter,
+        and the rows are not counted.
 
         Returns the fit, its interval samples (pooled; ``.h`` and ``.kernel`` the chosen
         interval and filter), the window, the candidates' ``[h, window, MSE]`` (a list;
         ``[h, window, MSE, "box"]`` for the box's), the ``[h, window(, "box")]`` of the
         candidates whose correction was skipped (their table entry is ``V``, a lower bound of
         their MSE, and at least the chosen one's) and the one-sample offsets the bias
-        correction models (None without it).
+        correction models.
         """
         kernels = {VELOCITY_KERNEL: int(self.velocity_interval or h0)}
         if VELOCITY_KERNEL != "box" and _has_missing(traj):
@@ -2219,7 +2070,7 @@ class NoiseAwareRegression(TubeRegression):
             if _usable_rows(traj, kernels[VELOCITY_KERNEL], VELOCITY_KERNEL) < _usable_rows(
                     traj, kernels[VELOCITY_KERNEL], "box"):
                 kernels["box"] = h_box
-        offsets = _one_sample_offsets(traj, gamma_m) if self.bias_correction else None
+        offsets = _one_sample_offsets(traj, gamma_m)
         found, bound = {}, math.inf
         for k, h in kernels.items():
             # a later filter is taken only where its MSE is below the earlier ones'
@@ -2243,17 +2094,16 @@ class NoiseAwareRegression(TubeRegression):
         return best.fit, best.view, best.window, table, skipped, offsets
 
     def _search(self, traj: Trajectory, var: Tensor, kernel: str, h0: int, gamma_m: Tensor,
-                gamma_dot_m: Tensor, opts: dict, offsets: _OneSampleOffsets | None,
+                gamma_dot_m: Tensor, opts: dict, offsets: _OneSampleOffsets,
                 bound: float = math.inf) -> _Search:
         """:meth:`_chosen_fit`'s search for one filter (:class:`_Search`). ``offsets``: the
-        one-sample offsets the bias correction models (:func:`_one_sample_offsets`), None
-        without it. ``bound``: an MSE to beat (another filter's; with the correction, a
-        candidate whose ``V`` is not below it is not corrected, and none beating it gives no
-        fit)."""
+        one-sample offsets the bias correction models (:func:`_one_sample_offsets`).
+        ``bound``: an MSE to beat (another filter's; a candidate whose ``V`` is not below it
+        is not corrected, and none beating it gives no fit)."""
         d = traj.shape_dim
         longest = max(2, int(_samples_per_cycle(traj) * _MAX_INTERVAL_CYCLES))
         # per candidate (h, window), in the order tried: the variance V of the uncorrected
-        # fit (inf: it cannot be fitted) and the score (without the correction, at once)
+        # fit (inf: it cannot be fitted) and the score (once corrected)
         views, fits, variances, scores = {}, {}, {}, {}
 
         def candidate(h: int, w: float | None) -> tuple[int, float]:
@@ -2270,14 +2120,7 @@ class NoiseAwareRegression(TubeRegression):
             if bool(bad):  # bins too sparse at this width: not a candidate
                 variances[key] = scores[key] = math.inf
                 return key
-            v = variances[key] = float(fit.se_A.square().nansum())
-            if offsets is None:
-                if not fits:
-                    scores[key] = v
-                else:
-                    ref = next(iter(fits))
-                    scores[key] = (float((fit.A - fits[ref].A).square().nansum())
-                                   - scores[ref] + 2 * v)
+            variances[key] = float(fit.se_A.square().nansum())
             fits[key] = fit
             return key
 
@@ -2294,29 +2137,23 @@ class NoiseAwareRegression(TubeRegression):
             return _Search(None, views[h0], h0, least, math.inf, [], [])
         intervals = [] if self.velocity_interval else sorted(
             {min(longest, max(1, round(h0 * f)), traj.n_samples - 1)
-             for f in (_CORRECTED_INTERVAL_MULTIPLES if offsets is not None
-                       else _INTERVAL_MULTIPLES)} - {h0})
-        if offsets is None:  # the intervals at the best width
-            best = min(first, key=scores.__getitem__)
-            for h in intervals:
-                best = min(best, candidate(h, best[1]), key=scores.__getitem__)
-            fit = fits[best]
-        else:  # every pair of interval and width
+             for f in _CORRECTED_INTERVAL_MULTIPLES} - {h0})
 
-            def corrected(key: tuple[int, float]) -> tuple[ConnectionFit, float]:
-                view = views[key[0]]
-                fit, added = bin_bias_correction(
-                    fits[key], traj, view, self._bins(view, key[1]), gamma_m, gamma_dot_m,
-                    pool=True, offsets=offsets, **opts)
-                bias = float((fit.A - fits[key].A).square().nansum())
-                return fit, variances[key] + float(added) + _RESIDUAL_BIAS_FRACTION * bias
+        def corrected(key: tuple[int, float]) -> tuple[ConnectionFit, float]:
+            view = views[key[0]]
+            fit, added = bin_bias_correction(
+                fits[key], traj, view, self._bins(view, key[1]), gamma_m, gamma_dot_m,
+                pool=True, offsets=offsets, **opts)
+            bias = float((fit.A - fits[key].A).square().nansum())
+            return fit, variances[key] + float(added) + _RESIDUAL_BIAS_FRACTION * bias
 
-            order = list(dict.fromkeys(first + [candidate(h, w) for h in intervals
-                                                for w in widths]))
-            best, done = _least_score([k for k in order if k in fits], variances, corrected,
-                                      bound=bound, prune=not self.full_search)
-            scores.update({k: score for k, (_, score) in done.items()})
-            fit = None if best is None else done[best][0]
+        # every pair of interval and width
+        order = list(dict.fromkeys(first + [candidate(h, w) for h in intervals
+                                            for w in widths]))
+        best, done = _least_score([k for k in order if k in fits], variances, corrected,
+                                  bound=bound, prune=not self._full_search)
+        scores.update({k: score for k, (_, score) in done.items()})
+        fit = None if best is None else done[best][0]
         # a candidate not corrected (branch and bound) enters the table with its V
         table = [[h, w, scores.get((h, w), v)] for (h, w), v in variances.items()
                  if math.isfinite(scores.get((h, w), v))]
@@ -2335,35 +2172,31 @@ class NoiseAwareRegression(TubeRegression):
     def _connection_fit(self, traj, pool, samples, gamma_m, gamma_dot_m, opts, bins_for):
         """The corrected fit, shrunk towards the smoothed one (:func:`blend_fits`), with
         ``∂Â/∂r`` tied (:meth:`_tied`) and, pooled, ``Â``'s sampling factor
-        (``sampling_factor_A``, with ``sampling_factor``) and, without detected noise, its
-        bias allowance (``bias_allowance_A``, with ``bias_allowance``)."""
+        (``sampling_factor_A``) and, without detected noise, its bias allowance
+        (``bias_allowance_A``)."""
         fit, window, meta, chosen = self._corrected_fit(traj, pool, samples, gamma_m,
                                                         gamma_dot_m, opts, bins_for)
         # (unpooled elements got their joint covariance with their fits)
-        joint = bool(self.tie_derivative and self.joint_covariance and chosen.view is not None
-                     and not chosen.noise_free)
+        joint = chosen.view is not None and not chosen.noise_free
         rerun = None
-        if joint or (self.sampling_factor and chosen.view is not None):
+        if chosen.view is not None:
             fit, rerun = self._rerun_chosen(fit, traj, chosen, gamma_m, gamma_dot_m, opts,
                                             joint)
         if pool:  # (unpooled elements got theirs with their fits)
             fit = self._with_offset_gain(fit, (
                 chosen.view, self._bins(chosen.view, chosen.windows), gamma_m, gamma_dot_m,
                 chosen.noise_var), opts, pool)
-        if self.shrink_to_smoothed:
-            tube, _, _ = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
-            fit, weights = blend_fits(tube, fit, covariance=self.blend_covariance)
-            meta["corrected_weight"] = weights.tolist()
-        if self.tie_derivative:
-            # the direct estimate stays the coefficient the model predicts with (dA_fit)
-            tied, meta["derivative"] = self._tied(fit, traj, chosen, gamma_m, gamma_dot_m,
-                                                  opts)
-            fit = dataclasses.replace(tied, dA_direct=fit.dA, cov_b_dA=None)
+        tube, _, _ = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
+        fit, weights = blend_fits(tube, fit)
+        meta["corrected_weight"] = weights.tolist()
+        # the direct estimate stays the coefficient the model predicts with (dA_fit)
+        tied, meta["derivative"] = self._tied(fit, traj, chosen, gamma_m, gamma_dot_m, opts)
+        fit = dataclasses.replace(tied, dA_direct=fit.dA, cov_b_dA=None)
         if rerun is not None and rerun.influence_A is not None:
             # scaled to the standard errors of the Â delivered
             fit = dataclasses.replace(fit, sampling_factor_A=sampling_factor(
                 rerun.influence_A, fit.se_A))
-        if self.bias_allowance and chosen.view is not None and chosen.noise_free:
+        if chosen.view is not None and chosen.noise_free:
             bins = self._bins(chosen.view, chosen.windows)
             # without noise the rerun is the plain first-order fit both parts start from,
             # standard errors too where the rows' overlap does not inflate them (κ = 1)
@@ -2384,18 +2217,12 @@ class NoiseAwareRegression(TubeRegression):
                 torch.nan_to_num(tube_var) + torch.nan_to_num(step_var)))
         return fit, window, meta
 
-    def _refits_offsets(self, pool: bool) -> bool:
-        """Whether ``ĉ, b̂`` are re-estimated to the shrunk series of ``Â``
-        (:attr:`refit_offsets`, where :attr:`resolved_harmonics` shrinks it)."""
-        if pool:
-            return bool(self.refit_offsets) and bool(self.resolved_harmonics)
-        return self.refit_offsets == "per_trial" and self.resolved_harmonics == "per_trial"
-
     def _with_offset_gain(self, fit: ConnectionFit, args: tuple, opts: dict, pool: bool
                           ) -> ConnectionFit:
         """``fit`` (:func:`noise_aware_regression` of ``args``: samples, bins, cycle, noise)
-        with its :func:`offset_gain` where ``ĉ, b̂`` will be re-estimated to a shrunk ``Â``."""
-        if not self._refits_offsets(pool):
+        with its :func:`offset_gain` where ``ĉ, b̂`` will be re-estimated to a shrunk ``Â``
+        (pooled)."""
+        if not pool:
             return fit
         gain = offset_gain(fit, *args, delta_max=opts["delta_max"],
                            ridge_connection=opts["ridge_connection"])
@@ -2411,11 +2238,10 @@ class NoiseAwareRegression(TubeRegression):
         ``sampling_factor`` holding each whole cycle's share of the error of ``Â``
         (``influence_A``, ``(M, 3, d, C)``)."""
         bins = self._bins(chosen.view, chosen.windows)
-        cycles = interval_cycles(traj.phase, chosen.view.h, pool=True) \
-            if self.sampling_factor else None
+        cycles = interval_cycles(traj.phase, chosen.view.h, pool=True)
         raw = noise_aware_regression(
             chosen.view, bins, gamma_m, gamma_dot_m, chosen.noise_var,
-            joint_covariance=self.joint_covariance if joint else None, cycles=cycles, **opts)
+            joint_covariance="solver" if joint else None, cycles=cycles, **opts)
         if joint:
             fit = dataclasses.replace(fit, cov_b_dA=_rescaled_covariance(
                 raw.cov_b_dA, (raw.se_b, raw.se_dA), (fit.se_b, fit.se_dA)))
@@ -2436,39 +2262,29 @@ class NoiseAwareRegression(TubeRegression):
         tie alone in 19 of 24 cells (5-link circle ω = 0.01, seed 5: 781 % against 619 %),
         while at ω = 0 it takes the 3-link reference gait from 15 % (tie alone) to 5 %.
         Under noise the same bias is instead allowed for in the tie's weights and bands
-        (:func:`derivative_bias_allowance`, with ``derivative_bias_allowance``)."""
-        modelled = self.bias_correction and chosen.view is not None
-        if modelled and (chosen.noise_free or self.derivative_bias_allowance):
+        (:func:`derivative_bias_allowance`)."""
+        if chosen.view is not None:
             bins = assign_bins(chosen.view.phase, self.n_bins, window=chosen.windows,
                                kernel=self.kernel)
             if chosen.noise_free:
-                run, how, extra = derivative_bias_correction, "tied, bias-corrected", {}
+                run, how = derivative_bias_correction, "tied, bias-corrected"
             else:
                 run, how = derivative_bias_allowance, "tied, bias allowed for"
-                extra = {"joint_weights": self.joint_weights}
             tied, _ = run(fit, traj, chosen.view, bins, gamma_m, gamma_dot_m,
-                          order=self.fourier_order, pool=True, offsets=chosen.offsets,
-                          correlation=self.derivative_correlation, **extra, **opts)
+                          order=self.fourier_order, pool=True, offsets=chosen.offsets, **opts)
             return tied, how
         tied = tie_connection_derivative(fit, gamma_m, gamma_dot_m, self.fourier_order,
-                                         window=chosen.windows, kernel=self.kernel,
-                                         joint_weights=self.joint_weights,
-                                         correlation=(self.derivative_correlation
-                                                      and chosen.view is not None))
+                                         window=chosen.windows, kernel=self.kernel)
         return tied, "tied"
 
     def _a_series(self, centres: Tensor, fit: ConnectionFit, window, pool: bool):
         """``Â``'s series, each harmonic of each row shrunk by how far it stands out of the
-        bins' noise when pooled (``resolved_harmonics``; unpooled with ``"per_trial"``, each
-        element by its own bins' noise at its own window, ``window (...)``), the fit with
-        ``ĉ, b̂`` re-estimated in each bin with ``Â`` held at the shrunk series
-        (``refit_offsets``: moved by the shrink's change at the bin's centre,
+        bins' noise when pooled, the fit with ``ĉ, b̂`` re-estimated in each bin with ``Â``
+        held at the shrunk series (moved by the shrink's change at the bin's centre,
         :func:`offsets_at`), and the meta entries that record it."""
         series, fit, meta = super()._a_series(centres, fit, window, pool)
-        if not self.resolved_harmonics or (not pool and self.resolved_harmonics != "per_trial"):
+        if not pool:
             return series, fit, meta
-        window = window if pool else torch.as_tensor(window, dtype=torch.float64,
-                                                     device=centres.device)
         # each row (x, y, θ) by its own power: one factor for the whole harmonic would shrink
         # the rows where it stands far out of its noise (the fundamental that carries the
         # gait's displacement) as much as those where it is noise (README)
@@ -2481,7 +2297,7 @@ class NoiseAwareRegression(TubeRegression):
                                   factor[..., 1:, :].repeat_interleave(2, -2)], -2)
         shrunk = dataclasses.replace(series, coeffs=series.coeffs * coeff_factor.unsqueeze(-1))
         meta = {"A_harmonic_factors": (torch.round(factor * 1e4) / 1e4).tolist()}  # (..., K + 1, 3)
-        if fit.offset_gain is not None:  # (_refits_offsets)
+        if fit.offset_gain is not None:  # (_with_offset_gain)
             c, b = offsets_at(fit, shrunk(centres) - series(centres))  # (..., M, 3, d)
             fit = dataclasses.replace(fit, c=c, b=b)
             meta["offsets_refit"] = True

@@ -49,8 +49,7 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_G
            "regression_view", "cross_validate", "checked_terms", "few_cycles",
            "phase_average_orders", "unchecked_choice", "connection_columns",
            "ConnectionAlone", "select_connection_alone", "connection_alone_model",
-           "select_complexity", "skill", "with_phase_average", "with_intercept_orders",
-           "baseline_orders", "model_intercept_orders", "nested_list"]
+           "select_complexity", "skill", "with_phase_average", "nested_list"]
 
 #: the body-velocity components, in the order of the last axis of ξ
 COMPONENTS = ("v_x", "v_y", "omega")
@@ -593,8 +592,7 @@ def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, 
     n_cycles = None if cycle is None else int(cycle.amax()) + 1
     for f, fold_model in enumerate(models):
         base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
-                                   view.r_dot, view.xi), reg.fourier_order,
-                             baseline_orders(fold_model, reg.fourier_order))
+                                   view.r_dot, view.xi), reg.fourier_order)
         template = fold_model  # Â(γ)γ̇ of the fold's fit, even where it falls back
         if phase_averaged is not None or connection_only is not None:
             fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
@@ -661,53 +659,6 @@ def with_phase_average(model: LocalConnectionModel, baseline: FourierSeries,
                                A=zeroed(model.A, mask), dA=zeroed(model.dA, mask | offsets),
                                dA_fit=None if model.dA_fit is None
                                else zeroed(model.dA_fit, mask | offsets), meta=meta)
-
-
-def model_intercept_orders(traj: Trajectory, cycle: LimitCycle, regression: Regression,
-                           model: LocalConnectionModel, *, pool: bool, n_folds: int = 3
-                           ) -> Tensor:
-    """``(..., 3)`` (pooled: ``(3,)``) per component the order, at most the regression's
-    ``fourier_order``, at which the intercept of the full model (shape terms present) has the
-    least squared error on the ``n_folds`` held-out blocks of whole cycles (the downdated fits
-    without each block, :func:`_fold_models`; the lowest order on ties; ``fourier_order`` where
-    some block's fit predicts NaN). ``model``: the regression's fit to the whole recording,
-    its intercept not truncated; ``regression`` must downdate (:func:`downdates`)."""
-    reg, models, view, fold, _ = _fold_models(traj, cycle, regression, model, pool=pool,
-                                              n_folds=n_folds, refit=False)
-    ok, phase, r, r_dot, y = _scored(view, None)
-    top = reg.fourier_order
-    sse = 0.0
-    for f, fold_model in enumerate(models):
-        w = (ok & (fold == f))[..., None]
-        resid = y - (fold_model.predict(phase, r, r_dot) - fold_model.c(phase))
-        cut = torch.stack([fold_model.c.truncated(k)(phase) for k in range(top + 1)])
-        sse = sse + torch.where(w, (resid - cut).square(), 0.0).sum(-2)  # (K+1, ..., 3)
-    # an element some fold cannot fit keeps every harmonic
-    return torch.where(torch.isfinite(sse).all(0), torch.nan_to_num(sse, nan=math.inf).argmin(0),
-                       top)
-
-
-def with_intercept_orders(model: LocalConnectionModel, orders: Tensor,
-                          phase_average_orders: Tensor) -> LocalConnectionModel:
-    """``model`` with the harmonics of its intercept ``c`` above ``orders`` (``(..., 3)`` per
-    batch element and component) set to 0, recorded in ``meta["intercept_component_order"]``
-    (:attr:`TubeRegression.short_intercept_order`; :func:`with_coefficients` truncates the
-    held-out folds' intercepts alike), and the phase average's orders ``phase_average_orders``
-    (same shape) in ``meta["phase_average_order"]`` (:func:`baseline_orders`)."""
-    return dataclasses.replace(model, c=model.c.truncated_values(orders),
-                               meta={**(model.meta or {}),
-                                     "intercept_component_order": orders.tolist(),
-                                     "phase_average_order": phase_average_orders.tolist()})
-
-
-def baseline_orders(model: LocalConnectionModel, order: int) -> Tensor | None:
-    """``(..., 3)`` the per-component orders, at most ``order``, of the phase average that
-    competes with ``model`` (held out, and as its fall-back; :func:`with_intercept_orders`),
-    for :func:`phase_average`; None where the model's intercept is not truncated."""
-    orders = (model.meta or {}).get("phase_average_order")
-    if orders is None:
-        return None
-    return torch.as_tensor(orders, device=model.device).clamp(max=order)
 
 
 def downdates(regression: Regression) -> bool:
@@ -787,8 +738,8 @@ def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConne
                      coef: Tensor, n_folds: int, *, pool: bool,
                      ridges: tuple[float, ...] | None = None, columns: Tensor | None = None,
                      sample_fold: Tensor | None = None) -> Tensor:
-    """Held-out coefficients ``coef (R, F, ..., M, P, 3)`` of a noise-aware regression that
-    shrinks towards the smoothed fit (``shrink_to_smoothed``), combined as its fit combines
+    """Held-out coefficients ``coef (R, F, ..., M, P, 3)`` of a noise-aware regression, which
+    shrinks towards the smoothed fit, combined as its fit combines
     them: the smoothed regression's own downdated fits ``β̂_s`` (on the smoothed samples, its
     own window rule, same blocks of whole cycles) and the corrected ones ``β̂_c`` give
     ``β̂_s + w (β̂_c − β̂_s)`` with the whole recording's weights ``w`` per trial and term
@@ -798,7 +749,7 @@ def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConne
     ``columns``: as :func:`held_out_coefficients`'s (``coef`` fitted with them);
     ``sample_fold``: ``(..., T)`` block of every sample (default: ``n_folds`` blocks of whole
     cycles, :func:`_cycle_blocks`)."""
-    if not (isinstance(regression, NoiseAwareRegression) and regression.shrink_to_smoothed):
+    if not isinstance(regression, NoiseAwareRegression):
         return coef
     smoothed = TubeRegression(**{f.name: getattr(regression, f.name)
                                  for f in dataclasses.fields(TubeRegression)})
@@ -862,10 +813,6 @@ def with_coefficients(model: LocalConnectionModel, coef: Tensor, order: int
         c_order = torch.as_tensor(c_order, device=coef.device)
     # the coefficients are the regression's own: its δ̇⊗δ one is what predictions use
     c_series = intercept_series(centres, c, order, c_order)
-    per_component = (model.meta or {}).get("intercept_component_order")
-    if per_component is not None:
-        c_series = c_series.truncated_values(torch.as_tensor(per_component,
-                                                             device=coef.device))
     return dataclasses.replace(model, c=masked(c_series), b=series(b, 2), A=series(a, 2),
                                dA=series(da, 3), dA_fit=None)
 

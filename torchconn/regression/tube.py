@@ -2,10 +2,9 @@
 
 :class:`TubeRegression` fits, in each of M phase bins, the first-order model of the body
 velocity around the cycle (eq. ``advancedregression``, :func:`connection_regression`) and, when
-the data carry power, the metric -- by default the tied, noise-corrected model of
+the data carry power, the metric -- the tied, noise-corrected model of
 :func:`~torchconn.regression.metric.tied_metric_regression` on the sample intervals of the raw
-shapes, or the paper's per-bin expansion (eq. ``advancedmetricregression``,
-:func:`metric_regression`) -- and interpolates the per-bin estimates by Fourier series in phase into a
+shapes -- and interpolates the per-bin estimates by Fourier series in phase into a
 :class:`~torchconn.regression.model.LocalConnectionModel`. Other regression methods derive from
 :class:`Regression` and slot into ``ConnectionEstimator(regression=…)``.
 """
@@ -15,7 +14,7 @@ from __future__ import annotations
 import abc
 import math
 import warnings
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from typing import Literal
 
 import torch
@@ -30,15 +29,12 @@ from ..trajectory import Trajectory, over_spans, pool_batch, span_bounds
 from .binning import assign_bins
 from .connection import connection_regression
 from .metric import (
-    metric_n_coef,
-    metric_regression,
     power_noise_variance,
     tied_metric_coefficients,
     tied_metric_n_coef,
     tied_metric_predict,
 )
 from .model import BinEstimates, LocalConnectionModel
-from .tied import tie_connection_derivative
 
 __all__ = ["Regression", "TubeRegression"]
 
@@ -47,8 +43,7 @@ _MIN_SAMPLES_PER_COEF = 3.0
 #: the fields of :class:`TubeRegression` that its tied metric's coefficients depend on
 #: (besides the data, the cycle and the pooling; not the bins, where they are only evaluated)
 METRIC_SETTINGS = ("metric_order", "metric_derivative_order", "metric_second_order",
-                   "metric_held_out_order", "metric_noise_correction", "metric_noise_level",
-                   "metric_order_bias", "metric_offset_bias")
+                   "metric_held_out_order")
 #: the metric's per-bin fields of :class:`~torchconn.regression.model.BinEstimates`
 _METRIC_BIN_FIELDS = ("M", "M_se", "M_gamma_dot", "M_gamma_dot_se", "power_on_cycle",
                       "power_on_cycle_se", "M_bias", "M_change_factor", "M_sampling_factor", "dM",
@@ -82,23 +77,6 @@ class TubeRegression(Regression):
             (M−1)/2, per batch element; ``model.meta["intercept_order"]``); an integer fixes
             it; None: ``fourier_order``. Measured on the 9-link reference gait at 0.25η: the
             intercept truncated at order 12 doubled the model's error (README, "Accuracy").
-        short_intercept_order: on short recordings (at most
-            :data:`~torchconn.regression.skill.FALLBACK_CYCLES` cycles,
-            :func:`~torchconn.regression.skill.few_cycles`) each component of ``c(φ)`` keeps
-            only the harmonics up to an order (at most ``fourier_order``) chosen on the blocks
-            of whole cycles the held-out check uses (``model.meta
-            ["intercept_component_order"]``, ``(..., 3)``): ``"phase_average"``: the order of
-            least held-out error of the phase-averaged velocity
-            (:func:`~torchconn.regression.skill.phase_average_orders`); ``"model"``: of the
-            full model's intercept, shape terms present
-            (:func:`~torchconn.regression.skill.model_intercept_orders`). The phase average
-            the model competes with held out and falls back to gets the orders of the first
-            (``meta["phase_average_order"]``). None (default): the intercept of
-            ``intercept_order`` everywhere. An order-12 series through 3-6 cycles overfits as
-            the phase average of that order does, but measured (README, "Short recordings")
-            the stronger phase average the truncated model competes with takes over more
-            components and the later cycles' mean R² falls, so it is off by default. Longer
-            recordings are unchanged.
         window: half-width of a bin's phase window in units of the bin spacing (0.5: each
             sample in exactly one bin; larger: overlapping windows, more samples per bin).
             None (default) sizes it from the data: wide enough that a window holds about
@@ -125,13 +103,6 @@ class TubeRegression(Regression):
         metric: estimate the dissipation metric: None (default) when the data carry a power
             channel, True to require one (fitting data without it is an error that names the
             missing ``power`` column), False never.
-        metric_method: ``"tied"`` (default): one ``M(φ)`` (and ``∂M/∂r(φ)``), Fourier in phase,
-            explains the power of each sample interval, ``P ≈ vᵀ[M + ∂M/∂r δ]v`` with ``v`` the
-            raw sample differences, noise-corrected
-            (:func:`~torchconn.regression.metric.tied_metric_regression`); ``"paper"``: the
-            per-bin expansion of eq. ``advancedmetricregression`` in the smoothed offsets, with
-            separate linear and quadratic terms (torchconn 0.1's method, kept for comparison;
-            it does not converge, see the README).
         metric_order, metric_derivative_order: Fourier orders in phase of the tied model's
             ``M(φ)`` (the largest considered when ``metric_held_out_order``) and ``∂M/∂r(φ)``
             (None: no derivative term; it is also left out when the data hold fewer than 3
@@ -147,60 +118,22 @@ class TubeRegression(Regression):
             (5-link M̂γ̇ 2.3 -> 3.1 % at ω = 0.002, 5.5 -> 8.7 % at 0.005, 8 held-out seed
             sets), so it is an option.
             Left out where the data hold fewer than 3 usable samples per coefficient with it.
-        metric_offset_bias: estimate that bias as the change of ``M̂`` when the term is fitted
-            (one more fit, ``"full"`` where the data identify it, else ``"diagonal"``), kept
-            in ``BinEstimates.M_offset_bias``: not in the bands, but drawn by nearby-gait
-            predictions as one error shared by entries and bins, so that ``predict_gait``'s
-            cost standard error covers it (README). Ignored with ``metric_second_order``.
         metric_held_out_order: choose the order of ``M(φ)`` in ``0 … metric_order`` from the
             data, by the noise-corrected error on held-out blocks of whole cycles (lower orders
             where the noise leaves the higher harmonics unresolved); False: ``metric_order``.
-        metric_noise_correction: estimate the shapes' observation noise and remove its
-            contribution to the tied model's normal equations.
-        metric_noise_level: how that noise is estimated: ``"combined"`` (default): the two
-            estimates below averaged with weights from their standard errors, then set to 0
-            unless 2 standard errors above it; ``"spectrum"``: one level for all joints (and
-            pooled trials) from the spectrum of the shapes' increments
-            (:func:`~torchconn.regression.noise_aware.estimate_noise`); ``"residuals"``: from
-            the lag structure of an uncorrected fit's power residuals
-            (:func:`~torchconn.regression.metric.power_noise_variance`, the previous default).
-            Measured (README, "The metric"): on the 5-link wave at ω = 0.005 the residual
-            level scatters over 0.79-1.17 of the true variance (standard error 0.06-0.10) and
-            the spectrum's over 0.94-1.04 (0.04), while on the 3-link reference gait the
-            spectrum does not resolve ω = 0.002 (standard error 0.5 of it) and the residuals'
-            do (0.07).
-        metric_order_bias: widen the tied metric's bands by its bias, estimated as the change
-            of ``M̂`` at two more harmonics of ``M(φ)`` than the order used
-            (:func:`~torchconn.regression.metric.tied_metric_regression`'s ``order_bias``; the
-            estimates are unchanged). Measured (README, "The metric"): without it, the 95 %
-            bands of the 3-link's full ``M̂`` held the truth in 15-26 % of entries on clean
-            data, with it in 76-96 % (seven held-out seed sets, pooled 4 x 30 cycles).
-            ``"posterior"`` (default): its own sampling variance added as well
-            (``order_bias``), for where the change is as noisy as the bias it estimates.
-            Measured (README): where the held-out order drops harmonics of the 3-link at
-            ω = 0.002 it holds the truth in 99-100 % of entries (47-90 % with ``True``), mean
-            cover 84 → 93 % at ω = 0; bands that already held the truth widen 1.3-2.3 times
-            under noise. Nearby-gait draws take that variance as one error correlated across
-            entries and bins (``BinEstimates.M_change_factor``), so ``predict_gait``'s cost
-            standard error was ``True``'s (within 0.2 %, 48 held-out recordings); with the
-            fit's own noise drawn that way too, 0.99-1.28 times (README). ``True``: the
-            change's square alone. ``"dropped"``: that variance only where the held-out
-            order fell below ``metric_order`` (README: the same as ``"posterior"`` on every
-            5-link recording measured, whose order is always dropped).
-        tie_derivative: ``∂Â/∂r`` tied to ``b̂`` and the phase derivative of ``Â``
-            (:func:`~torchconn.regression.tie_connection_derivative`); predictions keep the
-            direct estimate (``model.dA_fit``). Off here by default, so that ``method =
-            "tube"`` stays the previous method for comparison
-            (:class:`~torchconn.regression.NoiseAwareRegression` ties by default). Measured
-            with this regression on seeds 5-6 (3-link circle and reference gait, 5-link circle,
-            pooled 4 x 30 cycles, ω = 0-0.01): better in 22 of 22 cells (3-link circle ω = 0
-            21.6 -> 10.9 %, ω = 0.005 298 -> 162 %; 3-link reference ω = 0 31.3 -> 25.0 %).
+
+    The metric is one ``M(φ)`` (and ``∂M/∂r(φ)``), Fourier in phase, that explains the
+    power of each sample interval, ``P ≈ vᵀ[M + ∂M/∂r δ]v`` with ``v`` the raw sample
+    differences, corrected for the shapes' observation noise
+    (:func:`~torchconn.regression.metric.tied_metric_regression`), with its bands widened
+    by its order bias and that estimate's own variance, and, without
+    ``metric_second_order``, the tube's second-order bias estimated beside it
+    (``BinEstimates.M_offset_bias``, drawn by nearby-gait predictions).
     """
 
     n_bins: int = option(48, ge=3)
     fourier_order: int = option(12, ge=0)
     intercept_order: int | Literal["auto"] | None = option("auto", ge=0)
-    short_intercept_order: Literal["phase_average", "model"] | None = None
     window: float | None = option(None, gt=0)
     samples_per_regressor: float = option(2.5, gt=0)
     kernel: Literal["box", "tricube", "epanechnikov"] = "tricube"
@@ -209,16 +142,10 @@ class TubeRegression(Regression):
     ridge_connection: bool = True
     on_ill_conditioned: Literal["raise", "warn", "ridge"] = "raise"
     metric: bool | None = None
-    metric_method: Literal["tied", "paper"] = "tied"
     metric_order: int = option(6, ge=0)
     metric_derivative_order: int | None = option(1, ge=0)
     metric_second_order: Literal["diagonal", "full"] | None = None
-    metric_offset_bias: bool = True
     metric_held_out_order: bool = True
-    metric_noise_correction: bool = True
-    metric_noise_level: Literal["combined", "spectrum", "residuals"] = "combined"
-    metric_order_bias: bool | Literal["posterior", "dropped"] = "posterior"
-    tie_derivative: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -276,7 +203,6 @@ class TubeRegression(Regression):
         opts = dict(delta_max=self.delta_max, ridge=self.ridge,
                     on_ill_conditioned=self.on_ill_conditioned,
                     ridge_connection=self.ridge_connection)
-        d = r.shape[-1]
 
         def bins_for(n_regressors: int):
             window = self.window or _auto_window(phase, M, n_regressors,
@@ -285,19 +211,14 @@ class TubeRegression(Regression):
 
         fit, window, connection_meta = self._connection_fit(
             traj, pool, (phase, r, r_dot, xi), gamma_m, gamma_dot_m, opts, bins_for)
-        # the metric's per-bin estimates (BinEstimates' fields), window, noise and order
+        # the metric's per-bin estimates (BinEstimates' fields), noise and order (the tied
+        # metric has no bins of its own: metric_window None)
         metric, metric_window, noise, metric_order = {}, None, None, None
         second_order = None
         if self.metric is not False and power is not None:
-            if self.metric_method == "tied":
-                coefficients, noise = self._tied_metric(traj, cycle, pool, metric_cache)
-                metric_fit = coefficients.at(centres, gamma_dot_m)
-                second_order = coefficients.second_order
-            else:
-                mbins, metric_window = bins_for(metric_n_coef(d, False))
-                metric_fit = metric_regression(r, r_dot, power, mbins, gamma_m, gamma_dot_m,
-                                               with_metric_derivative=False,
-                                               **_metric_opts(opts))
+            coefficients, noise = self._tied_metric(traj, cycle, pool, metric_cache)
+            metric_fit = coefficients.at(centres, gamma_dot_m)
+            second_order = coefficients.second_order
             metric = dict(zip(_METRIC_BIN_FIELDS, (
                 metric_fit.M, metric_fit.se_M, metric_fit.M_gamma_dot,
                 metric_fit.se_M_gamma_dot, metric_fit.power_on_cycle,
@@ -340,28 +261,7 @@ class TubeRegression(Regression):
                   **connection_meta,
                   "tube_rms": _tube_rms(r, cycle.gamma_at(phase))},
         )
-        return self._short_intercept(traj, cycle, model, pool)
-
-    def _short_intercept(self, traj: Trajectory, cycle: LimitCycle,
-                         model: LocalConnectionModel, pool: bool) -> LocalConnectionModel:
-        """``model`` with its intercept truncated per component on short recordings
-        (:attr:`short_intercept_order`); unchanged where none is short."""
-        if self.short_intercept_order is None:
-            return model
-        from . import skill  # skill builds on this module
-
-        short = skill.few_cycles(traj.phase, pool)
-        if not bool(short.any()):
-            return model
-        unflat = skill.regression_view(traj, self, model, pool=pool, flatten=False)
-        base = skill.phase_average_orders(unflat, self.fourier_order, pool)  # (..., 3)
-        # (a regression that does not downdate would refit, and truncate, without each block)
-        orders = base if self.short_intercept_order == "phase_average" or not (
-            skill.downdates(self)) else (
-            skill.model_intercept_orders(traj, cycle, self, model, pool=pool))
-        long = ~short.unsqueeze(-1)  # their intercept and phase average stay as they were
-        return skill.with_intercept_orders(model, orders.masked_fill(long, model.c.order),
-                                           base.masked_fill(long, self.fourier_order))
+        return model
 
     def _a_series(self, centres: Tensor, fit, window, pool: bool):
         """The Fourier series of ``Â`` (order ``fourier_order``), the fit whose per-bin ``ĉ``
@@ -387,17 +287,10 @@ class TubeRegression(Regression):
 
     def _connection_fit(self, traj: Trajectory, pool: bool, samples, gamma_m: Tensor,
                         gamma_dot_m: Tensor, opts: dict, bins_for):
-        """The connection's per-bin regression (:meth:`_smoothed_fit`), its ``∂Â/∂r`` tied when
-        ``tie_derivative``: returns the :class:`ConnectionFit`, the window and extra meta.
-        Subclasses regress differently (:class:`~torchconn.regression.NoiseAwareRegression`)."""
-        fit, window, meta = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
-        if self.tie_derivative:
-            fit = replace(
-                tie_connection_derivative(fit, gamma_m, gamma_dot_m, self.fourier_order,
-                                          window=window, kernel=self.kernel),
-                dA_direct=fit.dA)
-            meta["derivative"] = "tied"
-        return fit, window, meta
+        """The connection's per-bin regression (:meth:`_smoothed_fit`): returns the
+        :class:`ConnectionFit`, the window and extra meta. Subclasses regress differently
+        (:class:`~torchconn.regression.NoiseAwareRegression`, which also ties ``∂Â/∂r``)."""
+        return self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
 
     def _smoothed_fit(self, samples, gamma_m: Tensor, gamma_dot_m: Tensor, opts: dict,
                       bins_for):
@@ -476,19 +369,16 @@ class TubeRegression(Regression):
         # its bias allowance in the form the data identify (the 9-link's 36² coefficients of
         # the full form outnumber 4 x 30 cycles' samples / 3; its diagonal's 8·36 do not)
         offset_bias = next((f for f in ("full", "diagonal") if identified(f)), None) \
-            if self.metric_offset_bias and second is None else None
+            if second is None else None
         orders = dict(order=self.metric_order, derivative_order=derivative,
                       second_order=second)
-        noise, noise_variance = None, None
-        if self.metric_noise_correction:
-            omega2 = self._metric_noise(traj, offset, v, power, phase, orders,
-                                        pool)  # (..., d)
-            noise = omega2.sqrt().tolist()
-            noise_variance = 2 * omega2 / traj.dt**2
+        omega2 = self._metric_noise(traj, offset, v, power, phase, orders, pool)  # (..., d)
+        noise = omega2.sqrt().tolist()
+        noise_variance = 2 * omega2 / traj.dt**2
         fit = tied_metric_coefficients(offset, v, power, phase, **orders,
                                        noise_variance=noise_variance,
                                        held_out_order=self.metric_held_out_order,
-                                       order_bias=self.metric_order_bias,
+                                       order_bias="posterior",
                                        offset_bias=offset_bias,
                                        min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
         if cache is not None:
@@ -498,19 +388,19 @@ class TubeRegression(Regression):
     def _metric_noise(self, traj: Trajectory, offset: Tensor, v: Tensor, power: Tensor,
                       phase: Tensor, orders: dict, pool: bool) -> Tensor:
         """The shapes' observation-noise variance ``(..., d)`` (one level for all joints, and
-        for the pooled trials: they share the rig) by ``metric_noise_level``."""
-        estimates = []
-        if self.metric_noise_level in ("combined", "spectrum"):
-            from .noise_aware import estimate_noise  # noise_aware builds on this module
+        for the pooled trials: they share the rig): the estimate from the spectrum of the shapes'
+        increments (:func:`~torchconn.regression.noise_aware.estimate_noise`) and the one from
+        the lag structure of an uncorrected fit's power residuals
+        (:func:`~torchconn.regression.metric.power_noise_variance`) averaged with weights from
+        their standard errors, then set to 0 unless 2 standard errors above it."""
+        from .noise_aware import estimate_noise  # noise_aware builds on this module
 
-            spectrum = estimate_noise(traj.r)
-            n_pool = traj.r.ndim - 2 if pool else 0
-            # the joints taken as independent: the metric's combination was set that way
-            # (correlated standard errors, NoiseEstimate.correlation, not measured here)
-            if self.metric_noise_level == "spectrum":
-                return spectrum.pooled_variance(n_pool, channels=True, correlated=False).to(v)
-            estimates.append(tuple(x.to(v) for x in spectrum.pooled_mean(
-                n_pool, channels=True, correlated=False)))
+        spectrum = estimate_noise(traj.r)
+        n_pool = traj.r.ndim - 2 if pool else 0
+        # the joints taken as independent: the metric's combination was set that way
+        # (correlated standard errors, NoiseEstimate.correlation, not measured here)
+        estimates = [tuple(x.to(v) for x in spectrum.pooled_mean(
+            n_pool, channels=True, correlated=False))]
         # from the uncorrected fit's power residuals (the power channel is noise-free)
         first = tied_metric_coefficients(offset, v, power, phase, **orders,
                                          min_samples_per_coef=_MIN_SAMPLES_PER_COEF)
@@ -518,8 +408,6 @@ class TubeRegression(Regression):
         residual = _per_span(lambda res, mv: power_noise_variance(res, mv, traj.dt,
                                                                   with_se=True),
                              power - predicted, m_v, None if pool else recorded_span(traj))
-        if self.metric_noise_level == "residuals":
-            return residual[0]
         estimates.append(residual)
         # inverse-variance weights (an unresolved estimate, infinite standard error, gets none)
         tiny = torch.finfo(v.dtype).tiny
@@ -613,9 +501,3 @@ def _auto_windows(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: 
     # a tricube window of half-width w spacings carries the weight of ~1.2 w spacings
     window = per_regressor * n_regressors / (1.2 * per_spacing)
     return window.clamp(1.0, n_bins / 4)
-
-
-def _metric_opts(opts: dict) -> dict:
-    """The connection regressions' solver options without the one the metric's lacks (its
-    design has no connection columns)."""
-    return {k: v for k, v in opts.items() if k != "ridge_connection"}
