@@ -61,7 +61,7 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
         assert (out / name).stat().st_size > 1000
     sidecar = json.loads((out / "fit.json").read_text())
     assert sidecar["device"] == "cpu"  # the default
-    assert sidecar["model"]["intercept_component_order"] is None  # 40 cycles: not short
+    assert sidecar["model"] == {"window": model.meta["window"], "metric": True}
 
 
 def test_fit_rejects_the_wrong_number_of_links(recording, tmp_path, capsys):

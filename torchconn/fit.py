@@ -288,10 +288,7 @@ def main(argv: list[str] | None = None) -> int:
                      "dt": traj.dt, "trials": traj.meta.get("trials"),
                      "conversion": [r.to_dict() for r in rec.reports]},
             "preflight": check.to_dict(),
-            "model": {"window": model.meta.get("window"), "metric": model.M is not None,
-                      # short recordings with short_intercept_order: per trial and component
-                      "intercept_component_order": model.meta.get(
-                          "intercept_component_order")},
+            "model": {"window": model.meta.get("window"), "metric": model.M is not None},
             # how the forecasting model (forecast_model.npz) differs from model.npz; None:
             # model.npz is the forecasting model too
             "forecast_model": None if forecast is None else {
