@@ -198,3 +198,19 @@ def test_cross_validate_repeats_the_check_the_fit_ran(video):
     with pytest.raises(ValueError, match="connection_regressed"):
         skill.cross_validate(est.trajectory_, est.limit_cycle_, est.regression_, pool=False,
                              refit=True, connection_regressed=True)
+
+
+def test_four_cycles_at_14_samples_per_cycle_are_checked_not_refused():
+    # 2 of 3 blocks hold 24 samples, fewer than the 25 an order-12 phase average needs: the
+    # held-out baseline takes the order they determine (this raised in fit_fourier before)
+    from torchconn.physics.gaits import reference_gait
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for seed in (1, 3):
+            tr = observe(simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025,
+                                  n_cycles=4, samples_per_cycle=14, seeds=[seed]), 0.002,
+                         seeds=[seed])
+            est = ConnectionEstimator(pool=True).set_params(regression__metric=False).fit(tr)
+            assert est.held_out_skill_ is not None
+            assert bool(torch.isfinite(est.held_out_skill_.r2).all())

@@ -591,8 +591,12 @@ def _score_folds(models, view: _View, fold: Tensor, reg: Regression, dt: float, 
     sums, gaps = [], []
     n_cycles = None if cycle is None else int(cycle.amax()) + 1
     for f, fold_model in enumerate(models):
-        base = phase_average(_View(torch.where(fold != f, view.phase, torch.nan), view.r,
-                                   view.r_dot, view.xi), reg.fourier_order)
+        train = torch.where(fold != f, view.phase, torch.nan)
+        # on a few cycles at video rates the other blocks may hold fewer samples than the
+        # model's order needs: the baseline then takes the highest order they determine
+        n_train = int(torch.isfinite(train).sum(-1).min())
+        base = phase_average(_View(train, view.r, view.r_dot, view.xi),
+                             min(reg.fourier_order, max((n_train - 1) // 2, 0)))
         template = fold_model  # Â(γ)γ̇ of the fold's fit, even where it falls back
         if phase_averaged is not None or connection_only is not None:
             fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
