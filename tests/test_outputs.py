@@ -41,7 +41,7 @@ seed = 11
 error_bins = 12
 block_trials = 4
 simulation = {n_cycles = 5, samples_per_cycle = 32}
-estimator = {n_bins = 16, fourier_order = 4}
+estimator = {regression = {n_bins = 16, fourier_order = 4}}
 experiment = [{system = "3link", noise_kind = "system", levels = [1.0], trials = 4}]
 """  # one cell
 
