@@ -46,7 +46,7 @@ from . import skill
 from ._wls import IllConditionedBinWarning
 from .model import LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
-from .tube import Regression, TubeRegression
+from .tube import Regression, TubeRegression, check_bin_count
 
 __all__ = [
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
@@ -224,12 +224,8 @@ class ConnectionEstimator:
                 "to estimate the metric, or use metric=None (fit it when power is present) / "
                 "False to fit the connection alone (torchconn-fit: --metric auto / no)"
             )
-        n_bins, n_samples = self.regression.n_bins, int(torch.isfinite(traj.r).all(-1).sum())
-        if n_bins > n_samples:
-            raise ValueError(
-                f"ConnectionEstimator.fit: regression n_bins = {n_bins} is more than the "
-                f"{n_samples} samples of the recording: every phase bin needs samples of its "
-                "own; use fewer bins (regression__n_bins; torchconn-fit --n-bins)")
+        check_bin_count(self.regression.n_bins, int(torch.isfinite(traj.r).all(-1).sum()),
+                        "ConnectionEstimator.fit: regression")
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
         regression, choice, free, searched = self.regression, None, None, False

@@ -36,7 +36,19 @@ from .metric import (
 )
 from .model import BinEstimates, LocalConnectionModel
 
-__all__ = ["Regression", "TubeRegression"]
+__all__ = ["Regression", "TubeRegression", "check_bin_count"]
+
+
+def check_bin_count(n_bins: int, n_samples: int, where: str) -> None:
+    """Refuse more phase bins than the recording's ``n_samples`` samples (``ValueError``
+    naming ``where``): every bin needs samples of its own, and the bins' series grow as
+    ``n_bins²``."""
+    if n_bins > n_samples:
+        raise ValueError(
+            f"{where}: n_bins = {n_bins} is more than the {n_samples} samples of the recording: "
+            "every phase bin needs samples of its own; use fewer bins (regression__n_bins; "
+            "torchconn-fit --n-bins, estimator.regression.n_bins)")
+
 
 #: fewest usable power samples per coefficient of the tied metric model
 _MIN_SAMPLES_PER_COEF = 3.0
@@ -189,12 +201,7 @@ class TubeRegression(Regression):
                                    for x, k in ((phase, 0), (r, 1), (r_dot, 1), (xi, 1)))
             power = None if power is None else pool_batch(power, 0)
         M = self.n_bins
-        n_samples = int(torch.isfinite(phase).sum())
-        if M > n_samples:
-            raise ValueError(
-                f"{type(self).__name__}.n_bins = {M} is more than the {n_samples} samples of "
-                "the recording: every phase bin needs samples of its own; use fewer bins "
-                "(torchconn-fit --n-bins, estimator.regression.n_bins)")
+        check_bin_count(M, int(torch.isfinite(phase).sum()), type(self).__name__)
         centres = torch.arange(M, dtype=r.dtype, device=r.device) * (2 * math.pi / M)
         batch = phase.shape[:-1]
         gamma_m = cycle.gamma_at(centres.expand(batch + (M,)))
