@@ -76,7 +76,7 @@ from torchconn import (
     simulate,
 )
 from torchconn.physics.gaits import FourierGait, reference_gait
-from torchconn.regression import skill
+from torchconn.regression.selection import skill
 
 SAMPLES_PER_CYCLE = 126  # Δt ≈ 0.05
 TEST_CYCLES = 4

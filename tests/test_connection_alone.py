@@ -10,8 +10,9 @@ import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, Phaser, observe, simulate
 from torchconn.physics.gaits import FourierGait
-from torchconn.regression import IllConditionedBinWarning, TubeRegression, assign_bins, skill
-from torchconn.regression.skill import PoorHeldOutSkillWarning
+from torchconn.regression import IllConditionedBinWarning, TubeRegression, assign_bins
+from torchconn.regression.selection import skill
+from torchconn.regression.selection.skill import PoorHeldOutSkillWarning
 
 F64 = torch.float64
 SPC = 10  # samples per cycle: 50 fps video of a 5 Hz tail beat

@@ -176,7 +176,7 @@ def test_fit_says_when_no_held_out_check_can_score_a_short_recording(tmp_path, c
     """Where not even the connection alone can be scored (made so here), the printout,
     fit.json and the model say the fit stood unchecked and which components the phase
     average predicts."""
-    from torchconn.regression import skill
+    from torchconn.regression.selection import skill
 
     def unscored(*args, **kw):
         raise ValueError("select_connection_alone: no candidate could be fitted")

@@ -25,10 +25,10 @@ from torchconn.regression import (
     assign_bins,
     connection_regression,
     noise_aware,
-    skill,
 )
 from torchconn.regression.noise_aware import IntervalSamples, noise_aware_regression
-from torchconn.regression.skill import PoorHeldOutSkillWarning
+from torchconn.regression.selection import skill
+from torchconn.regression.selection.skill import PoorHeldOutSkillWarning
 
 F64 = torch.float64
 SPC = 126  # samples per cycle (Δt ≈ 0.05)

@@ -35,7 +35,7 @@ from torchconn.regression.noise_aware import (
     sampling_factor,
     velocity_interval_for,
 )
-from torchconn.regression.skill import COMPLEXITY_GRID, RIDGE_GRID, PoorHeldOutSkillWarning
+from torchconn.regression.selection.skill import COMPLEXITY_GRID, RIDGE_GRID, PoorHeldOutSkillWarning
 
 F64 = torch.float64
 DT_SAMPLES = 126  # samples per cycle: Δt ≈ 0.05 as in the issue's measurements
@@ -1093,7 +1093,7 @@ def test_missing_samples_shorten_the_interval_or_take_the_box_filter():
     width. The pooled fit then falls back to a shorter interval, and tries the box filter
     (which needs only the interval's two ends), instead of failing; the held-out check and
     the observed view use the filter it took."""
-    from torchconn.regression.skill import regression_view
+    from torchconn.regression.selection.skill import regression_view
 
     traj = _gappy_recording()
     est = ConnectionEstimator(pool=True)
@@ -1168,7 +1168,7 @@ def test_noise_corrected_score_uses_the_filters_noise_gains():
     takes the noise of the samples the model sees: the filter's gains
     (``interval_noise_gains``), not the box's ``σ²/2`` and ``2σ²/(hΔt)²`` (3.5x and 1.6x too much
     for a triangle over 8 samples)."""
-    from torchconn.regression.skill import _noise_of
+    from torchconn.regression.selection.skill import _noise_of
 
     traj = _recording(0.005, n_cycles=10, n_trials=2)
     model = _fit(traj).model_

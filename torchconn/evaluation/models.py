@@ -28,8 +28,8 @@ from torch import Tensor
 from ..phase.fourier import FourierSeries, fourier_on_grid
 from ..phase.smoothing import smooth_trajectory
 from ..physics.systems.base import LocomotionSystem
-from ..regression import skill
 from ..regression.model import LocalConnectionModel
+from ..regression.selection import skill
 from ..trajectory import Trajectory
 
 __all__ = [

@@ -42,10 +42,10 @@ from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
 from ..trajectory import Trajectory, for_estimation, power_problem
-from . import skill
 from ._wls import IllConditionedBinWarning
 from .model import LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
+from .selection import skill
 from .tube import Regression, TubeRegression, check_bin_count
 
 __all__ = [

@@ -22,8 +22,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from . import _wls
-from .connection import _blocks, ridge_exemptions
+from .. import _wls
+from ..connection import _blocks, ridge_exemptions
 
 __all__ = ["leave_blocks_out"]
 

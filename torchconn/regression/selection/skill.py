@@ -24,24 +24,24 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .. import _linalg
-from ..phase.fourier import FourierSeries, fit_fourier, fourier_design
-from ..phase.limit_cycle import LimitCycle
-from ..trajectory import Trajectory, pool_batch
-from . import _wls
-from ._wls import IllConditionedBinWarning
-from .binning import assign_bins
-from .connection import split_coefficients, unpenalised_columns
-from .held_out import leave_blocks_out
-from .model import LocalConnectionModel
-from .noise_aware import (
+from ... import _linalg
+from ...phase.fourier import FourierSeries, fit_fourier, fourier_design
+from ...phase.limit_cycle import LimitCycle
+from ...trajectory import Trajectory, pool_batch
+from .. import _wls
+from .._wls import IllConditionedBinWarning
+from ..binning import assign_bins
+from ..connection import split_coefficients, unpenalised_columns
+from ..model import LocalConnectionModel
+from ..noise_aware import (
     VELOCITY_KERNEL,
     NoiseAwareRegression,
     eiv_correction,
     interval_noise_gains,
     interval_view,
 )
-from .tube import Regression, TubeRegression, _auto_window, intercept_series
+from ..tube import Regression, TubeRegression, _auto_window, intercept_series
+from .held_out import leave_blocks_out
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "ComplexityChoice", "COMPLEXITY_GRID",
            "RIDGE_GRID", "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",

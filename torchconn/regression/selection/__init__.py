@@ -1,0 +1,1 @@
+"""Model selection: held-out skill, the complexity ladder and the connection alone."""
