@@ -52,8 +52,7 @@ from torchconn import ConnectionEstimator, Phaser, RTSSmoother, TubeRegression
 from torchconn.convert import load_recordings
 from torchconn.io.tracking import ConversionSettings
 from torchconn.io.trajectory_files import count_cycles
-from torchconn.regression.selection import skill
-from torchconn.regression.selection.skill import COMPONENTS
+from torchconn.regression.selection import COMPONENTS, skill
 
 
 def later_phase(est: ConnectionEstimator, traj, cut: int) -> torch.Tensor:

@@ -12,9 +12,9 @@ differences of the noisy poses for ``NoiseAwareRegression``):
   over blocks of whole training cycles when the fixed one loses to the phase average there,
   each component predicted by the full model, by the connection alone (``ĉ + Âδ̇``,
   ``choice`` ends in ``/A:x,y`` for v_x and v_y) or by the phase average (``/pa:x,y``; such a
-  component ties it exactly), whichever clearly wins held out (``skill._choose_terms``);
+  component ties it exactly), whichever clearly wins held out (``complexity._choose_terms``);
   ``unchecked``: no candidate could be scored held out; ``alone``: no full model could, and
-  the connection alone was regressed and checked instead (``skill.select_connection_alone``);
+  the connection alone was regressed and checked instead (``complexity.select_connection_alone``);
 - ``phase avg``: the training cycles' phase-averaged velocity, ``score()``'s baseline: of the
   model's Fourier order (12 unless the complexity was re-chosen);
 - ``pa h-o``: a stronger phase average, each component of the order (up to 12) with the least
@@ -36,9 +36,9 @@ apart). The R² columns are the forecasting model's (``score()``).
 ``--no-ridge-connection`` fits with ``NoiseAwareRegression(ridge_connection=False)`` (the
 chosen ridge leaves ``Â`` unpenalised); ``--z``, ``--margin``, ``--offset-z`` and
 ``--every-cycle`` (a model with shape terms must also beat the phase average on every scored
-held-out cycle) measure other settings of the check's rules (``skill._choose_terms``).
-``--fallback-cycles N`` sets ``skill.FALLBACK_CYCLES`` (recordings of up to ``N`` cycles
-presume the simpler model, ``skill.few_cycles``), and ``--complexity cv`` fits the default
+held-out cycle) measure other settings of the check's rules (``complexity._choose_terms``).
+``--fallback-cycles N`` sets ``torchconn.cycles.FALLBACK_CYCLES`` (recordings of up to ``N`` cycles
+presume the simpler model, ``torchconn.cycles.few_cycles``), and ``--complexity cv`` fits the default
 column with ``ConnectionEstimator(complexity="cv")`` (the complexity chosen on every recording,
 not only where the given one loses held out).
 
@@ -75,8 +75,9 @@ from torchconn import (
     observe,
     simulate,
 )
+from torchconn import cycles as cycle_rules
 from torchconn.physics.gaits import FourierGait, reference_gait
-from torchconn.regression.selection import skill
+from torchconn.regression.selection import complexity, skill
 
 SAMPLES_PER_CYCLE = 126  # Δt ≈ 0.05
 TEST_CYCLES = 4
@@ -144,7 +145,7 @@ def _held_out_order_r2(est: ConnectionEstimator, test) -> torch.Tensor:
     up to order 12), on the samples and target :meth:`ConnectionEstimator.score` uses."""
     reg, model = est.regression_, est.forecast_model_
     unflat = skill.regression_view(est.trajectory_, reg, model, pool=False, flatten=False)
-    top = max(reg.fourier_order, skill.COMPLEXITY_GRID[-1][1])
+    top = max(reg.fourier_order, complexity.COMPLEXITY_GRID[-1][1])
     orders = skill.phase_average_orders(unflat, top, pool=False)
     base = skill.phase_average(skill.regression_view(est.trajectory_, reg, model, pool=False),
                                top, orders)
@@ -356,40 +357,40 @@ def main(argv=None) -> int:
     p.add_argument("--cost", action="store_true", help="time the held-out check instead")
     p.add_argument("--skip-fixed", action="store_true", help="leave out the fixed column")
     p.add_argument("--margin", type=float, default=None,
-                   help="skill.FALLBACK_MARGIN to measure (default: the library's)")
+                   help="complexity.FALLBACK_MARGIN to measure (default: the library's)")
     p.add_argument("--z", type=float, default=None,
-                   help="skill.FALLBACK_Z to measure (default: the library's)")
+                   help="complexity.FALLBACK_Z to measure (default: the library's)")
     p.add_argument("--offset-z", type=float, default=None,
-                   help="skill.OFFSET_TERMS_Z to measure (default: the library's)")
+                   help="complexity.OFFSET_TERMS_Z to measure (default: the library's)")
     p.add_argument("--no-ridge-connection", action="store_true",
                    help="NoiseAwareRegression(ridge_connection=False): the chosen ridge leaves "
                    "Â's columns unpenalised")
     p.add_argument("--every-cycle", action="store_true",
                    help="measure: a model with shape terms beats the phase average "
-                   "(skill._clearly_better) only if it does on every scored held-out cycle too")
+                   "(complexity._clearly_better) only if it does on every scored held-out cycle too")
     p.add_argument("--complexity", choices=("auto", "cv"), default="auto",
                    help="measure: the default column's ConnectionEstimator(complexity=...); "
                    "cv: chosen by held-out error on every recording")
     p.add_argument("--fallback-cycles", type=int, default=None,
-                   help="measure: skill.FALLBACK_CYCLES (recordings of up to this many cycles "
+                   help="measure: torchconn.cycles.FALLBACK_CYCLES (recordings of up to this many cycles "
                    "presume the simpler model; default: the library's)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     if args.every_cycle:
-        clearly = skill._clearly_better
+        clearly = complexity._clearly_better
 
         def every_cycle(gaps):
             diff = gaps[..., 0]  # (..., C, 3), 0 on cycles without scored samples
             return clearly(gaps) & (diff <= 0).all(-2)
-        skill._clearly_better = every_cycle
+        complexity._clearly_better = every_cycle
     if args.margin is not None:
-        skill.FALLBACK_MARGIN = args.margin
+        complexity.FALLBACK_MARGIN = args.margin
     if args.z is not None:
-        skill.FALLBACK_Z = args.z
+        complexity.FALLBACK_Z = args.z
     if args.offset_z is not None:
-        skill.OFFSET_TERMS_Z = args.offset_z
+        complexity.OFFSET_TERMS_Z = args.offset_z
     if args.fallback_cycles is not None:
-        skill.FALLBACK_CYCLES = args.fallback_cycles
+        cycle_rules.FALLBACK_CYCLES = args.fallback_cycles
     return cost(args) if args.cost else table(args)
 
 

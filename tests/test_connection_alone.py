@@ -1,5 +1,5 @@
 """Recordings at video rates whose full model no held-out check can score: the connection
-alone ``c + Âδ̇`` is scored instead (``skill.select_connection_alone``)."""
+alone ``c + Âδ̇`` is scored instead (``complexity.select_connection_alone``)."""
 
 import math
 import warnings
@@ -10,9 +10,13 @@ import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, Phaser, observe, simulate
 from torchconn.physics.gaits import FourierGait
-from torchconn.regression import IllConditionedBinWarning, TubeRegression, assign_bins
-from torchconn.regression.selection import skill
-from torchconn.regression.selection.skill import PoorHeldOutSkillWarning
+from torchconn.regression import (
+    IllConditionedBinWarning,
+    TubeRegression,
+    assign_bins,
+    selection,
+)
+from torchconn.regression.selection import PoorHeldOutSkillWarning, complexity, skill
 
 F64 = torch.float64
 SPC = 10  # samples per cycle: 50 fps video of a 5 Hz tail beat
@@ -57,12 +61,12 @@ def test_a_video_rate_recording_no_full_model_can_score_is_checked_by_the_connec
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         with pytest.raises(ValueError, match="no candidate could be fitted"):
-            skill.select_complexity(est.trajectory_, est.limit_cycle_,
+            complexity.select_complexity(est.trajectory_, est.limit_cycle_,
                                     ConnectionEstimator().regression, pool=False)
     choice = est.complexity_
     assert choice.checked and choice.connection_regressed
     # chosen by held-out error among the grid's bins and orders
-    assert [row[:2] for row in choice.scores] == [k for k in skill.COMPLEXITY_GRID]
+    assert [row[:2] for row in choice.scores] == [k for k in complexity.COMPLEXITY_GRID]
     best = min(choice.scores, key=lambda row: row[3])
     assert (choice.n_bins, choice.fourier_order) == best[:2]
     assert (est.regression_.n_bins, est.regression_.fourier_order) == best[:2]
@@ -76,7 +80,7 @@ def test_a_video_rate_recording_no_full_model_can_score_is_checked_by_the_connec
     assert bool((held.r2[alone] > held.r2_phase_average[alone]).all())
     assert bool(alone.any())  # on this recording the connection predicts something
     # the same data give the same choice
-    again = skill.select_connection_alone(est.trajectory_, est.limit_cycle_,
+    again = complexity.select_connection_alone(est.trajectory_, est.limit_cycle_,
                                           ConnectionEstimator().regression, pool=False)
     assert again.choice == choice
     # forecasts: c + Âδ̇ or the phase average, never b̂ or ∂Â/∂r
@@ -149,7 +153,7 @@ def test_recordings_a_grid_candidate_can_score_or_of_few_cycles_are_unchanged(
     def refused(*args, **kw):
         raise AssertionError("select_connection_alone called")
 
-    monkeypatch.setattr(skill, "select_connection_alone", refused)
+    monkeypatch.setattr(selection, "select_connection_alone", refused)
     traj = _recording(n_cycles, seed=11, spc=spc)
     est = _fit(traj)
     assert est.complexity_ is None or not est.complexity_.connection_regressed
@@ -165,7 +169,7 @@ def test_the_connection_alone_fit_is_the_weighted_least_squares_of_c_and_a(video
     reg = TubeRegression(metric=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
-        alone = skill.select_connection_alone(traj, cycle, reg, pool=False)
+        alone = complexity.select_connection_alone(traj, cycle, reg, pool=False)
     model = alone.model
     m = alone.regression.n_bins
     window = skill._fold_windows(alone.regression, model.meta, traj.phase,

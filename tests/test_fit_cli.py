@@ -176,12 +176,12 @@ def test_fit_says_when_no_held_out_check_can_score_a_short_recording(tmp_path, c
     """Where not even the connection alone can be scored (made so here), the printout,
     fit.json and the model say the fit stood unchecked and which components the phase
     average predicts."""
-    from torchconn.regression.selection import skill
+    from torchconn.regression import selection
 
     def unscored(*args, **kw):
         raise ValueError("select_connection_alone: no candidate could be fitted")
 
-    monkeypatch.setattr(skill, "select_connection_alone", unscored)
+    monkeypatch.setattr(selection, "select_connection_alone", unscored)
     out = _fit_nine_link_three_cycles(tmp_path)
     text = capsys.readouterr().out
     assert "fit needs 2.5 cycles per trial and 2.5 in all: ok" in text

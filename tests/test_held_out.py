@@ -18,6 +18,7 @@ from torchconn import (
     observe,
     simulate,
 )
+from torchconn.cycles import cycle_blocks, few_cycles
 from torchconn.physics.gaits import FourierGait
 from torchconn.regression import (
     IllConditionedBinWarning,
@@ -25,10 +26,10 @@ from torchconn.regression import (
     assign_bins,
     connection_regression,
     noise_aware,
+    selection,
 )
 from torchconn.regression.noise_aware import IntervalSamples, noise_aware_regression
-from torchconn.regression.selection import skill
-from torchconn.regression.selection.skill import PoorHeldOutSkillWarning
+from torchconn.regression.selection import PoorHeldOutSkillWarning, complexity, skill
 
 F64 = torch.float64
 SPC = 126  # samples per cycle (Δt ≈ 0.05)
@@ -59,7 +60,7 @@ def eight():
 def _setup(traj, cycle, reg, pool):
     model = reg.fit(traj, cycle, pool=pool)
     view = skill.regression_view(traj, reg, model, pool=pool, flatten=False)
-    return model, view, skill._cycle_blocks(view.phase, 3)
+    return model, view, cycle_blocks(view.phase, 3)
 
 
 def _close(a, b):
@@ -124,7 +125,7 @@ def test_the_check_scores_the_noise_aware_fit_as_blended_with_the_smoothed_one(e
     corrected = skill.held_out_coefficients(traj, reg, model, view, fold, 3, pool=False)
     blended = skill.blended_held_out(traj, reg, model, corrected, 3, pool=False)[0]
     sm, d = traj.smoothed, traj.shape_dim
-    sample_fold = skill._cycle_blocks(traj.phase, 3)
+    sample_fold = cycle_blocks(traj.phase, 3)
     term = torch.tensor([0] + [1] * d + [2] * d + [3] * d * d)
     # the window rule on the samples outside block 0, as for the corrected fits (the blocks
     # are about equal)
@@ -200,15 +201,15 @@ def test_the_shape_terms_must_win_by_more_than_z_standard_errors_of_the_cycles()
     base = torch.full_like(gaps, 2.0)  # the phase average's squared error per cycle
     for z in (0.0, 1.0, 2.5):
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(skill, "FALLBACK_Z", z)
-            mp.setattr(skill, "FALLBACK_MARGIN", 0.0)
-            better = skill._clearly_better(torch.stack([gaps, base], -1))
+            mp.setattr(complexity, "FALLBACK_Z", z)
+            mp.setattr(complexity, "FALLBACK_MARGIN", 0.0)
+            better = complexity._clearly_better(torch.stack([gaps, base], -1))
             assert torch.equal(better, torch.nan_to_num(t, nan=math.inf) < -z)
             assert not bool(better[2, 1])
             # and by more than a fraction of the phase average's error
-            mp.setattr(skill, "FALLBACK_MARGIN", 0.1)
+            mp.setattr(complexity, "FALLBACK_MARGIN", 0.1)
             wins = gaps.sum(-2) < -0.1 * base.sum(-2)
-            assert torch.equal(skill._clearly_better(torch.stack([gaps, base], -1)),
+            assert torch.equal(complexity._clearly_better(torch.stack([gaps, base], -1)),
                                better & wins)
 
 
@@ -327,7 +328,7 @@ def test_the_connection_is_unpenalised_and_whole_while_forecasts_keep_the_ridge(
     assert choice.ridge > 0 and reg.ridge == choice.ridge and reg.ridge_connection
     traj, cycle = est.trajectory_, est.limit_cycle_
     # the connection: the complexity chosen with Â unpenalised, fitted, nothing zeroed
-    free, _ = skill.select_complexity(traj, cycle, NoiseAwareRegression(ridge_connection=False),
+    free, _ = complexity.select_complexity(traj, cycle, NoiseAwareRegression(ridge_connection=False),
                                       pool=False)
     direct = free.fit(traj, cycle, pool=False)
     _same_series_and_bins(est.model_, direct)
@@ -374,8 +375,8 @@ def test_the_connection_is_unpenalised_and_whole_while_forecasts_keep_the_ridge(
 
 def test_one_search_chooses_both_complexities_fitting_no_ridge_0_candidate_twice(
         short_and_later, monkeypatch):
-    """Seed 7 (4 cycles): :func:`skill.select_complexities` of the regression with Â
-    penalised and without makes the choices :func:`skill.select_complexity` makes for each
+    """Seed 7 (4 cycles): :func:`complexity.select_complexities` of the regression with Â
+    penalised and without makes the choices :func:`complexity.select_complexity` makes for each
     alone (equal scores, bins, order, ridge and masks), while each ``(n_bins, order)`` gets
     one whole-recording fit and one held-out pass per setting, and ridge 0 (which penalises
     nothing) is solved once: in the first setting's pass."""
@@ -386,7 +387,7 @@ def test_one_search_chooses_both_complexities_fitting_no_ridge_0_candidate_twice
         est = ConnectionEstimator(complexity="fixed").fit(train)
     traj, cycle = est.trajectory_, est.limit_cycle_
     both = (NoiseAwareRegression(), NoiseAwareRegression(ridge_connection=False))
-    alone = [skill.select_complexity(traj, cycle, reg, pool=False) for reg in both]
+    alone = [complexity.select_complexity(traj, cycle, reg, pool=False) for reg in both]
     passes, fits = [], []
     held_out, fit = skill.held_out_coefficients, NoiseAwareRegression.fit
 
@@ -399,17 +400,17 @@ def test_one_search_chooses_both_complexities_fitting_no_ridge_0_candidate_twice
         fits.append(self.n_bins)
         return fit(self, *args, **kwargs)
 
-    monkeypatch.setattr(skill, "held_out_coefficients", counted_pass)
+    monkeypatch.setattr(complexity, "held_out_coefficients", counted_pass)
     monkeypatch.setattr(NoiseAwareRegression, "fit", counted_fit)
-    together = skill.select_complexities(traj, cycle, both, pool=False)
+    together = complexity.select_complexities(traj, cycle, both, pool=False)
     assert together == alone
     assert alone[0][1].ridge > 0 and alone[0][1] != alone[1][1]  # the choices differ here
-    grid = [n_bins for n_bins, _ in skill.COMPLEXITY_GRID]
+    grid = [n_bins for n_bins, _ in complexity.COMPLEXITY_GRID]
     assert sorted(fits) == sorted(grid)
-    assert sorted(passes) == sorted([(n, True, skill.RIDGE_GRID) for n in grid]
-                                    + [(n, False, skill.RIDGE_GRID[1:]) for n in grid])
+    assert sorted(passes) == sorted([(n, True, complexity.RIDGE_GRID) for n in grid]
+                                    + [(n, False, complexity.RIDGE_GRID[1:]) for n in grid])
     with pytest.raises(ValueError, match="differ only in ridge_connection"):
-        skill.select_complexities(traj, cycle, (both[0], both[1].replace(n_bins=96)),
+        complexity.select_complexities(traj, cycle, (both[0], both[1].replace(n_bins=96)),
                                   pool=False)
 
 
@@ -427,25 +428,25 @@ def test_the_terms_choice_presumes_the_simpler_model_on_few_cycles_only():
     # both models beat the phase average clearly; the full one beats the connection by
     # less than OFFSET_TERMS_Z standard errors (0.05 per cycle, scatter 0.1)
     few, many = gaps(-2.0, -1.95, 4), gaps(-2.0, -1.95, 12)
-    fallback, conn = skill._choose_terms(*few, True)
+    fallback, conn = complexity._choose_terms(*few, True)
     assert not bool(fallback.any()) and bool(conn.all())
-    fallback, conn = skill._choose_terms(*many, False)
+    fallback, conn = complexity._choose_terms(*many, False)
     assert not bool(fallback.any()) and not bool(conn.any())
     # models no better than the phase average: it predicts, few cycles or many
     for n in (4, 12):
         worse = gaps(0.5, 0.5, n)
-        fallback, conn = skill._choose_terms(*worse, n == 4)
+        fallback, conn = complexity._choose_terms(*worse, n == 4)
         assert bool(fallback.all()) and not bool(conn.any())
     # many cycles and a connection clearly better than the full model: the connection alone
-    fallback, conn = skill._choose_terms(*gaps(-1.0, -2.0, 12), False)
+    fallback, conn = complexity._choose_terms(*gaps(-1.0, -2.0, 12), False)
     assert not bool(fallback.any()) and bool(conn.all())
     # "short": the phase spans at most FALLBACK_CYCLES cycles, rounded (pooled: summed)
     spans = torch.tensor([[3.0], [6.05], [6.6], [30.0]], dtype=F64)  # cycles per trial
     phase = 2 * math.pi * spans * torch.linspace(0, 1, 200, dtype=F64) + 1.0
     phase[0, :20] = math.nan  # a gap at the start shortens the span
-    assert skill.few_cycles(phase, pool=False).tolist() == [True, True, False, False]
-    assert not bool(skill.few_cycles(phase[:2], pool=True))  # 2.7 + 6.05 cycles pooled
-    assert bool(skill.few_cycles(phase[:1], pool=True))
+    assert few_cycles(phase, pool=False).tolist() == [True, True, False, False]
+    assert not bool(few_cycles(phase[:2], pool=True))  # 2.7 + 6.05 cycles pooled
+    assert bool(few_cycles(phase[:1], pool=True))
 
 
 def test_no_component_falls_back_on_a_long_recording():
@@ -530,7 +531,7 @@ def test_the_phase_average_takes_each_component_s_order_from_held_out_cycles():
     noise = 0.05 * torch.randn(n, 3, generator=gen, dtype=F64)
     xi = torch.stack([0.5 * torch.cos(2 * phase), torch.zeros_like(phase),
                       torch.sin(phase) + 0.3 * torch.cos(5 * phase)], -1) + noise
-    view = skill._View(phase, torch.zeros(n, 4, dtype=F64), torch.zeros(n, 4, dtype=F64), xi)
+    view = skill.RegressionView(phase, torch.zeros(n, 4, dtype=F64), torch.zeros(n, 4, dtype=F64), xi)
     orders = skill.phase_average_orders(view, 12, pool=False)
     fold = (torch.arange(n) // SPC) * 3 // 4
     sse = torch.zeros(13, 3, dtype=F64)
@@ -551,7 +552,7 @@ def test_the_phase_average_takes_each_component_s_order_from_held_out_cycles():
                                    rtol=0, atol=1e-12)
         assert bool((series.coeffs[2 * order + 1:, k] == 0).all())
     # pooled trials (batch dims first) get one order per component
-    two = skill._View(torch.stack([phase, phase]), view.r.expand(2, n, 4),
+    two = skill.RegressionView(torch.stack([phase, phase]), view.r.expand(2, n, 4),
                       view.r_dot.expand(2, n, 4), torch.stack([xi, xi.flip(0)]))
     assert skill.phase_average_orders(two, 12, pool=True).shape == (3,)
     assert skill.phase_average_orders(two, 12, pool=False).shape == (2, 3)
@@ -619,7 +620,7 @@ def test_a_short_recording_no_check_can_score_predicts_the_phase_average(monkeyp
     def unscored(*args, **kw):
         raise ValueError("select_connection_alone: no candidate could be fitted")
 
-    monkeypatch.setattr(skill, "select_connection_alone", unscored)
+    monkeypatch.setattr(selection, "select_connection_alone", unscored)
     train, later = _nine_link_three_cycles()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
@@ -647,7 +648,7 @@ def test_warning_names_each_loss_with_both_scores_from_the_same_trial():
     s = skill.Skill(r2=r2, r2_phase_average=base, r2_template=base,
                     n_samples=torch.tensor([100.0, 100.0], dtype=F64))
     with pytest.warns(PoorHeldOutSkillWarning) as record:
-        s.warn_if_poor()
+        complexity.warn_if_poor(s)
     message = str(record[0].message)
     assert "v_x (held-out R² 0.950 vs phase average 0.970 in trial 1)" in message
     assert "omega (held-out R² 0.500 vs phase average 0.700 in trial 0)" in message
@@ -657,19 +658,19 @@ def test_warning_names_each_loss_with_both_scores_from_the_same_trial():
                       n_samples=torch.tensor(100.0, dtype=F64))
     with pytest.warns(PoorHeldOutSkillWarning, match=r"v_x \(held-out R² 0.950 vs phase "
                       r"average 0.970\), omega"):
-        one.warn_if_poor()
+        complexity.warn_if_poor(one)
     grid = skill.Skill(r2=r2.reshape(1, 2, 3), r2_phase_average=base.reshape(1, 2, 3),
                        r2_template=base.reshape(1, 2, 3),
                        n_samples=torch.full((1, 2), 100.0, dtype=F64))
     with pytest.warns(PoorHeldOutSkillWarning, match=r"in trial \(0, 1\)"):
-        grid.warn_if_poor()
+        complexity.warn_if_poor(grid)
     # a loss smaller than the third decimal is printed with the digits that show it
     close = skill.Skill(r2=torch.tensor([0.99212, 0.5, 0.5], dtype=F64),
                         r2_phase_average=torch.tensor([0.99238, 0.4, 0.4], dtype=F64),
                         r2_template=base[0], n_samples=torch.tensor(100.0, dtype=F64))
     with pytest.warns(PoorHeldOutSkillWarning, match=r"v_x \(held-out R² 0.9921 vs phase "
                       r"average 0.9924\)"):
-        close.warn_if_poor()
+        complexity.warn_if_poor(close)
 
 
 def test_an_unchecked_fit_on_many_cycles_advises_more_data_not_the_search_it_ran(monkeypatch):
@@ -682,7 +683,7 @@ def test_an_unchecked_fit_on_many_cycles_advises_more_data_not_the_search_it_ran
     def unscored(*args, **kw):
         raise ValueError("select_connection_alone: no candidate could be fitted")
 
-    monkeypatch.setattr(skill, "select_connection_alone", unscored)
+    monkeypatch.setattr(selection, "select_connection_alone", unscored)
     seeds = np.array([1000])
     clean = simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=10, samples_per_cycle=10,
                      seeds=seeds)
@@ -709,7 +710,7 @@ def test_components_neither_model_predicts_are_named():
     assert not bool(s.worse_than_phase_average.any())
     assert s.without_skill.any(0).tolist() == [True, True, False]
     with pytest.warns(PoorHeldOutSkillWarning) as record:
-        s.warn_if_poor()
+        complexity.warn_if_poor(s)
     assert len(record) == 1
     message = str(record[0].message)
     assert message.startswith("neither the model nor the phase-averaged velocity")
@@ -721,11 +722,11 @@ def test_components_neither_model_predicts_are_named():
                        n_samples=torch.tensor([100.0, 100.0], dtype=F64))
     with warnings.catch_warnings():
         warnings.simplefilter("error", PoorHeldOutSkillWarning)
-        fine.warn_if_poor()
+        complexity.warn_if_poor(fine)
     # a component that fell back to the phase average ties it exactly: 3 decimals, not 6
     tied = skill.Skill(r2=torch.tensor([-0.114239, 0.8, 0.9], dtype=F64),
                        r2_phase_average=torch.tensor([-0.114239, 0.7, 0.8], dtype=F64),
                        r2_template=base[0], n_samples=torch.tensor(100.0, dtype=F64))
     with pytest.warns(PoorHeldOutSkillWarning, match=r"v_x \(held-out R² -0.114, phase "
                       r"average -0.114\)"):
-        tied.warn_if_poor()
+        complexity.warn_if_poor(tied)

@@ -35,7 +35,7 @@ from torchconn.regression.noise_aware import (
     sampling_factor,
     velocity_interval_for,
 )
-from torchconn.regression.selection.skill import COMPLEXITY_GRID, RIDGE_GRID, PoorHeldOutSkillWarning
+from torchconn.regression.selection import COMPLEXITY_GRID, RIDGE_GRID, PoorHeldOutSkillWarning
 
 F64 = torch.float64
 DT_SAMPLES = 126  # samples per cycle: Δt ≈ 0.05 as in the issue's measurements
@@ -1093,7 +1093,7 @@ def test_missing_samples_shorten_the_interval_or_take_the_box_filter():
     width. The pooled fit then falls back to a shorter interval, and tries the box filter
     (which needs only the interval's two ends), instead of failing; the held-out check and
     the observed view use the filter it took."""
-    from torchconn.regression.selection.skill import regression_view
+    from torchconn.regression.selection import regression_view
 
     traj = _gappy_recording()
     est = ConnectionEstimator(pool=True)

@@ -59,7 +59,7 @@ from .regression.estimator import (
 )
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
-from .regression.selection.skill import COMPONENTS, PoorHeldOutSkillWarning, nested_list
+from .regression.selection import COMPONENTS, PoorHeldOutSkillWarning, nested_list
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
 

@@ -29,7 +29,7 @@ from ..phase.fourier import FourierSeries, fourier_on_grid
 from ..phase.smoothing import smooth_trajectory
 from ..physics.systems.base import LocomotionSystem
 from ..regression.model import LocalConnectionModel
-from ..regression.selection import skill
+from ..regression.selection import regression_view
 from ..trajectory import Trajectory
 
 __all__ = [
@@ -123,11 +123,11 @@ def observed_view(system: LocomotionSystem, traj: Trajectory, regression,
     Returns:
         ``(observed (..., N, 3), {model: (..., N, 3)})``, NaN where an element has fewer samples.
     """
-    view = skill.regression_view(traj, regression, model, pool=False, flatten=False)
+    view = regression_view(traj, regression, model, pool=False, flatten=False)
     truth_in = None
     if clean is not None:
-        twin = skill.regression_view(clean.with_fields(phase=traj.phase), regression, model,
-                                     pool=False, flatten=False)
+        twin = regression_view(clean.with_fields(phase=traj.phase), regression, model,
+                               pool=False, flatten=False)
         truth_in = (twin.r, twin.r_dot)
     return view.xi, models_on(system, model, view.phase, view.r, view.r_dot, truth_in,
                               on_cycle=on_cycle)

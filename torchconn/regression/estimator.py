@@ -42,10 +42,10 @@ from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
 from ..trajectory import Trajectory, for_estimation, power_problem
+from . import selection
 from ._wls import IllConditionedBinWarning
 from .model import LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
-from .selection import skill
 from .tube import Regression, TubeRegression, check_bin_count
 
 __all__ = [
@@ -82,7 +82,7 @@ class ConnectionEstimator:
             which Phaser's phase 0 provides) instead of one model per trial.
         complexity: the regression's bins, Fourier order and ridge: ``"fixed"`` as given;
             ``"cv"`` chosen by held-out error over blocks of whole cycles
-            (:func:`~torchconn.regression.skill.select_complexity`), where each component
+            (:func:`~torchconn.regression.selection.select_complexity`), where each component
             is predicted by the full model, the connection alone or the phase-averaged
             velocity, whichever clearly wins held out (in ``forecast_model_``; ``model_``
             keeps every component's terms, its complexity chosen with ``Â`` unpenalised);
@@ -91,13 +91,13 @@ class ConnectionEstimator:
             (short recordings), then chosen as by ``"cv"``. Where no candidate can be
             fitted without one block (video rates: 5-link, 3-12 cycles at 10-32 samples per
             cycle), the recording is checked with the connection alone ``c + Âδ̇`` regressed
-            (:func:`~torchconn.regression.skill.select_connection_alone`: it predicts the
+            (:func:`~torchconn.regression.selection.select_connection_alone`: it predicts the
             components where it clearly beats the phase average held out, and it is
             ``model_``, ``b̂`` and ``∂Â/∂r`` 0); where that cannot be scored either, the
             phase average is presumed on up to 6 cycles and the given fit kept unchecked on
             more.
         held_out_folds: blocks of whole cycles of the held-out check every fit runs (0: no
-            check). The fit warns (:class:`~torchconn.regression.skill.PoorHeldOutSkillWarning`)
+            check). The fit warns (:class:`~torchconn.regression.selection.PoorHeldOutSkillWarning`)
             where the model predicts held-out cycles worse than their phase-averaged velocity.
             The fits without each block come from downdating the bins' normal equations
             (:mod:`~torchconn.regression.held_out`), not from refits.
@@ -126,14 +126,14 @@ class ConnectionEstimator:
       recordings"), and the unpenalised ``Â`` is closer to the swimmer's;
     - ``regression_``: the regression stage fitted for ``forecast_model_`` (``regression``
       with the chosen complexity);
-    - ``complexity_``: the :class:`~torchconn.regression.skill.ComplexityChoice` when the
+    - ``complexity_``: the :class:`~torchconn.regression.selection.ComplexityChoice` when the
       complexity was chosen by held-out error, else None; its ``phase_averaged`` names the
       components (per trial) predicted by the phase-averaged velocity because their shape
       terms did not beat it on held-out cycles (their rows of ``b``, ``A``, ``∂A/∂r`` are 0 in
       ``forecast_model_``), its ``connection_only`` those predicted by ``c + Aδ̇`` because
       ``b`` and ``∂A/∂r`` did not add to the connection held out (their rows of ``b`` and
       ``∂A/∂r`` are 0 there, ``A`` kept);
-    - ``held_out_skill_``: the held-out :class:`~torchconn.regression.skill.Skill` of the
+    - ``held_out_skill_``: the held-out :class:`~torchconn.regression.selection.Skill` of the
       check, of ``forecast_model_`` (None when ``held_out_folds=0`` or the regression is not
       a built-in one).
 
@@ -237,7 +237,7 @@ class ConnectionEstimator:
             try:
                 model = _fit(regression, traj, cycle, self.pool, cache)
             except ValueError:
-                if self.complexity != "auto" or not skill.downdates(regression):
+                if self.complexity != "auto" or not selection.downdates(regression):
                     raise
                 model = None  # too many coefficients for this recording: choose them below
             # on few cycles the check also asks whether each component's full model is the
@@ -246,7 +246,7 @@ class ConnectionEstimator:
             held, full = (None, None) if model is None else self._held_out(
                 traj, cycle, regression, model, choice,
                 terms=self.complexity == "auto"
-                and bool(skill.few_cycles(traj.phase, self.pool).any()))
+                and bool(selection.few_cycles(traj.phase, self.pool).any()))
             if self.complexity == "auto" and (model is None or (held is not None and bool(
                     (held.worse_than_phase_average | held.unscored[..., None] | ~full).any()))):
                 # the given complexity overfits this recording: choose it by held-out error
@@ -261,10 +261,10 @@ class ConnectionEstimator:
                         if model is None:
                             raise
                         # on few cycles, where the check cannot score the given fit, the
-                        # simpler model is presumed (as skill._choose_terms does) and it
+                        # simpler model is presumed (as selection.complexity._choose_terms does) and it
                         # predicts the phase average; longer recordings keep it unchecked
-                        choice = skill.unchecked_choice(
-                            held, regression, skill.few_cycles(traj.phase, self.pool))
+                        choice = selection.unchecked_choice(
+                            held, regression, selection.few_cycles(traj.phase, self.pool))
                         searched = True  # the check warns
                     else:
                         delivered = _connection_delivered(alone, model, regression, traj,
@@ -275,15 +275,15 @@ class ConnectionEstimator:
                     model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
                     regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
-        view = skill.regression_view(traj, regression, model, pool=self.pool)
+        view = selection.regression_view(traj, regression, model, pool=self.pool)
         # the phase average of the model's order
-        self.phase_average_ = skill.phase_average(view, regression.fourier_order)
+        self.phase_average_ = selection.phase_average(view, regression.fourier_order)
         forecast = model
         if choice is not None and (choice.phase_averaged_names()
                                    or choice.connection_only_names()):
             # components whose shape terms lost to the phase average held out predict it;
             # those whose offset terms did not help keep the connection alone
-            forecast = skill.with_phase_average(model, self.phase_average_,
+            forecast = selection.with_phase_average(model, self.phase_average_,
                                                 *_masks(choice, model.device))
             # one order for both, so that score() finds them tied exactly
             self.phase_average_ = self.phase_average_.padded(forecast.c.order)
@@ -306,26 +306,26 @@ class ConnectionEstimator:
                                          estimator_settings(self, unshrunk or regression),
                                          forecast_model=_forecast_meta(choice, regression))
         if held is not None:
-            held.warn_if_poor(stacklevel=3, choice=choice, searched=searched)
+            selection.warn_if_poor(held, stacklevel=3, choice=choice, searched=searched)
         return self
 
     def _folds(self) -> int:
         return self.held_out_folds or 3
 
     def _select(self, traj: Trajectory, cycle: LimitCycle
-                ) -> tuple[Regression, "skill.ComplexityChoice", Regression | None]:
+                ) -> tuple[Regression, "selection.ComplexityChoice", Regression | None]:
         """The given regression with the complexity chosen by held-out error
-        (:func:`~torchconn.regression.skill.select_complexity`), its choice, and, where its
+        (:func:`~torchconn.regression.selection.select_complexity`), its choice, and, where its
         ridges penalise ``Â`` (``ridge_connection``; whichever ridge wins, 0 included), the
         connection's regression: the complexity chosen the same way with ``Â`` unpenalised
         (the bins, order and ridge whose unshrunk connection predicts held-out cycles best,
         not those whose shrunk one did; where no such candidate scores, the forecasts'
         complexity), else None. One search serves both: the candidates they fit alike (ridge
-        0) are fitted once (:func:`~torchconn.regression.skill.select_complexities`)."""
+        0) are fitted once (:func:`~torchconn.regression.selection.select_complexities`)."""
         given = (self.regression,)
         if getattr(self.regression, "ridge_connection", False):
             given += (self.regression.replace(ridge_connection=False),)
-        (chosen, choice), *free = skill.select_complexities(
+        (chosen, choice), *free = selection.select_complexities(
             traj, cycle, given, pool=self.pool, n_folds=self._folds())
         if not free:
             return chosen, choice, None
@@ -333,9 +333,9 @@ class ConnectionEstimator:
                                 else free[0][0])
 
     def _connection_alone(self, traj, cycle, regression, held, model
-                          ) -> "skill.ConnectionAlone | None":
+                          ) -> "selection.ConnectionAlone | None":
         """Where no model with ``b̂`` and ``∂Â/∂r`` can be scored held out, the connection
-        alone scored instead (:func:`~torchconn.regression.skill.select_connection_alone`);
+        alone scored instead (:func:`~torchconn.regression.selection.select_connection_alone`);
         None where it cannot be scored either, or where the check is off (``held`` None) and
         the given complexity's fit ``model`` stands."""
         if held is None and model is not None:
@@ -343,35 +343,35 @@ class ConnectionEstimator:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
             try:
-                return skill.select_connection_alone(traj, cycle, regression, pool=self.pool,
+                return selection.select_connection_alone(traj, cycle, regression, pool=self.pool,
                                                      n_folds=self._folds())
             except ValueError:
                 return None
 
     def _held_out(self, traj, cycle, regression, model, choice=None, terms=False
-                  ) -> tuple[skill.Skill | None, Tensor]:
+                  ) -> tuple[selection.Skill | None, Tensor]:
         """The held-out check's skill (downdated fits; the components ``choice`` gave to the
         phase average or the connection alone predicted so), or None when it is off; and
         ``(..., 3)`` True where the full model is the one to keep (``terms``:
-        :func:`~torchconn.regression.skill.checked_terms`; else all True)."""
+        :func:`~torchconn.regression.selection.checked_terms`; else all True)."""
         every = torch.ones(3, dtype=torch.bool, device=model.device)
-        if not self.held_out_folds or not skill.downdates(regression):
+        if not self.held_out_folds or not selection.downdates(regression):
             return None, every
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
             if terms and choice is None:
-                return skill.checked_terms(traj, cycle, regression, model, pool=self.pool,
+                return selection.checked_terms(traj, cycle, regression, model, pool=self.pool,
                                            n_folds=self.held_out_folds)
             fallback, conn = _masks(choice, model.device)
-            return skill.cross_validate(traj, cycle, regression, pool=self.pool,
+            return selection.cross_validate(traj, cycle, regression, pool=self.pool,
                                         n_folds=self.held_out_folds, model=model,
                                         phase_averaged=fallback, connection_only=conn), every
 
     # ------------------------------------------------------------------ held-out skill
-    def score(self, traj: Trajectory, phase: Tensor | None = None) -> skill.Skill:
+    def score(self, traj: Trajectory, phase: Tensor | None = None) -> selection.Skill:
         """Skill of ``forecast_model_`` on recordings ``traj`` the fit did not see, beside the
         phase-averaged velocity of the training data and the template ``ĉ(φ) = Â(γ)γ̇`` of the
-        connection ``model_`` (:class:`~torchconn.regression.skill.Skill`; the forecasting
+        connection ``model_`` (:class:`~torchconn.regression.selection.Skill`; the forecasting
         model's own ``ĉ`` is the phase average where a component falls back to it).
 
         The target is the observed velocity the way the regression sees it. ``traj`` is
@@ -379,24 +379,24 @@ class ConnectionEstimator:
         """
         model = self._fitted()
         traj = self._prepare_new(traj, phase)
-        view = skill.regression_view(traj, self.regression_, model, pool=self.pool)
-        return skill.skill(model, self.phase_average_, view, template=self.model_)
+        view = selection.regression_view(traj, self.regression_, model, pool=self.pool)
+        return selection.skill.skill(model, self.phase_average_, view, template=self.model_)
 
-    def cross_validate(self, n_folds: int = 3) -> skill.Skill:
+    def cross_validate(self, n_folds: int = 3) -> selection.Skill:
         """Held-out skill of ``forecast_model_``'s regression on the training recordings over
-        ``n_folds`` blocks of whole cycles (:func:`~torchconn.regression.skill.cross_validate`)."""
+        ``n_folds`` blocks of whole cycles (:func:`~torchconn.regression.selection.cross_validate`)."""
         model = self._fitted()
         fallback, conn = _masks(self.complexity_, model.device)
-        return skill.cross_validate(
+        return selection.cross_validate(
             self.trajectory_, self.limit_cycle_, self.regression_, pool=self.pool,
             n_folds=n_folds, model=model, phase_averaged=fallback, connection_only=conn,
             connection_regressed=getattr(self.complexity_, "connection_regressed", False))
 
-    def check_held_out(self, n_folds: int = 3) -> skill.Skill:
-        """:meth:`cross_validate`, warning (:class:`~torchconn.regression.skill.
+    def check_held_out(self, n_folds: int = 3) -> selection.Skill:
+        """:meth:`cross_validate`, warning (:class:`~torchconn.regression.selection.
         PoorHeldOutSkillWarning`) where the model loses to the phase-averaged velocity."""
         result = self.cross_validate(n_folds)
-        result.warn_if_poor(stacklevel=3, choice=self.complexity_)
+        selection.warn_if_poor(result, stacklevel=3, choice=self.complexity_)
         self.held_out_skill_ = result
         return result
 
@@ -406,7 +406,7 @@ class ConnectionEstimator:
         ``n_folds`` blocks of whole cycles, then fit with them; returns self.
 
         The choice is in ``complexity_``
-        (:class:`~torchconn.regression.skill.ComplexityChoice`) and in ``regression`` (which
+        (:class:`~torchconn.regression.selection.ComplexityChoice`) and in ``regression`` (which
         is set to the chosen stage, so that a refit keeps it).
         """
         if not isinstance(traj, Trajectory):
@@ -490,7 +490,7 @@ def _refit(chosen: Regression, given: Regression, model: LocalConnectionModel | 
     return _fit(chosen, traj, cycle, pool, cache)
 
 
-def _connection_delivered(alone: "skill.ConnectionAlone", given: LocalConnectionModel | None,
+def _connection_delivered(alone: "selection.ConnectionAlone", given: LocalConnectionModel | None,
                           regression: Regression, traj: Trajectory, cycle: LimitCycle,
                           pool: bool, cache: dict) -> LocalConnectionModel:
     """The connection delivered where the connection alone was checked (``alone``, chosen
@@ -512,17 +512,17 @@ def _connection_delivered(alone: "skill.ConnectionAlone", given: LocalConnection
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         fitted = _fit(alone.regression.replace(on_ill_conditioned="warn"), traj, cycle, pool,
                       cache)
-    return skill.connection_alone_model(fitted, alone.coef, alone.regression.fourier_order)
+    return selection.connection_alone_model(fitted, alone.coef, alone.regression.fourier_order)
 
 
-def _forecast_meta(choice: "skill.ComplexityChoice", regression: Regression) -> dict:
+def _forecast_meta(choice: "selection.ComplexityChoice", regression: Regression) -> dict:
     """How the forecasting model (the fit of ``regression``, with ``choice``'s components
     zeroed) differs from the connection model (``meta["forecast_model"]`` of ``model_``;
     JSON-ready): its bins and Fourier order, the ridge it puts on ``Â`` (0: none) and the
     components it predicts by the phase average or by the connection alone (nested lists of
     bools shaped like the model's batch dims x 3, or None)."""
     def listed(mask, names):
-        return None if not names else skill.nested_list(mask)
+        return None if not names else selection.nested_list(mask)
 
     penalised = getattr(regression, "ridge_connection", False)
     return {"n_bins": regression.n_bins, "fourier_order": regression.fourier_order,
@@ -537,7 +537,7 @@ def _with_settings(model: LocalConnectionModel, settings: dict, **meta: Any
     return dataclasses.replace(model, meta={**(model.meta or {}), "settings": settings, **meta})
 
 
-def _masks(choice: "skill.ComplexityChoice | None", device) -> tuple[Tensor | None,
+def _masks(choice: "selection.ComplexityChoice | None", device) -> tuple[Tensor | None,
                                                                    Tensor | None]:
     """The components ``choice`` predicts by the phase average and by the connection alone,
     ``(..., 3)`` bool each (None, None without a choice)."""
