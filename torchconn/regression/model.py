@@ -25,6 +25,7 @@ from torch import Tensor
 from .. import _checks
 from .._output import savez
 from ..phase.fourier import FourierSeries
+from .diagnostics import RegressionDiagnostics
 from .gait_prediction import GaitPrediction, predict_gait
 
 __all__ = ["LocalConnectionModel", "BinEstimates"]
@@ -132,7 +133,8 @@ class LocalConnectionModel:
             A nearby gait's cost uses ``M̂`` on the cycle; this term's change of it enters the
             cost's standard error (:func:`~torchconn.regression.gait_prediction.predict_gait`).
         bins: the per-bin estimates the series were fitted to.
-        meta: settings and provenance (JSON-serialisable).
+        meta: settings and provenance (JSON-serialisable); :attr:`diagnostics` reads the
+            regression's choices from it.
         dA_fit: where ``dA`` is the tied estimate of ``∂Â/∂r`` (NoiseAwareRegression), the
             regression's own ``δ̇⊗δ`` coefficient, fitted beside ``c, b, A``: :meth:`predict`
             uses it (with the tied one in its place the predictions lose that consistency,
@@ -152,6 +154,12 @@ class LocalConnectionModel:
     meta: dict | None = None
     dA_fit: FourierSeries | None = None
     dM: FourierSeries | None = None
+
+    @property
+    def diagnostics(self) -> RegressionDiagnostics:
+        """What the regression chose while fitting (window, intercept order, velocity
+        interval, noise level, blend weights), as recorded in :attr:`meta`."""
+        return RegressionDiagnostics.from_meta(self.meta)
 
     @property
     def shape_dim(self) -> int:

@@ -32,6 +32,7 @@ from ...trajectory import Trajectory, pool_batch
 from .. import _wls
 from ..binning import assign_bins
 from ..connection import split_coefficients, unpenalised_columns
+from ..diagnostics import RegressionDiagnostics
 from ..model import LocalConnectionModel
 from ..noise_aware import (
     VELOCITY_KERNEL,
@@ -138,11 +139,12 @@ class RegressionView:
 def regression_view(traj: Trajectory, regression: Regression, model: LocalConnectionModel,
                     *, pool: bool, flatten: bool = True) -> RegressionView:
     """Samples ``(..., N, ·)`` as ``regression`` sees them (pooled to ``(N,)`` when ``pool``
-    and ``flatten``); the interval of a noise-aware model comes from its ``meta``."""
+    and ``flatten``); the interval of a noise-aware model comes from its
+    :attr:`~torchconn.regression.model.LocalConnectionModel.diagnostics`."""
     if isinstance(regression, NoiseAwareRegression):
-        iv = interval_view(traj, torch.as_tensor(model.meta["velocity_interval"],
-                                                 device=traj.r.device),
-                           model.meta.get("velocity_kernel", VELOCITY_KERNEL))
+        diag = model.diagnostics
+        iv = interval_view(traj, torch.as_tensor(diag.velocity_interval, device=traj.r.device),
+                           diag.velocity_kernel or VELOCITY_KERNEL)
         view = RegressionView(iv.phase, iv.r, iv.r_dot, iv.xi)
     else:
         sm = traj.smoothed
@@ -243,7 +245,7 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     drop-outs do), re-choosing window, interval and noise level from the remaining cycles.
 
     ``model``: the regression's fit to the whole recording, when already at hand (its
-    ``meta`` gives the window, interval and noise level).
+    ``diagnostics`` give the window, interval and noise level).
 
     ``phase_averaged``: ``(..., 3)`` bool, components each fold's model predicts by the
     phase-averaged velocity of its training blocks (:func:`with_phase_average`, as
@@ -422,14 +424,14 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
     the ``F = n_folds`` blocks (:func:`~torchconn.regression.held_out.leave_blocks_out`), for
     each ridge in ``ridges`` (default: the regression's own).
 
-    ``model`` is the regression's fit to the whole recording (its bins' centres and ``meta``:
-    velocity interval, noise level); ``view`` and ``fold`` ``(..., N)`` are the samples it
+    ``model`` is the regression's fit to the whole recording (its bins' centres and
+    ``diagnostics``: velocity interval, noise level); ``view`` and ``fold`` ``(..., N)`` are the samples it
     regressed on (:func:`regression_view` with ``flatten=False``) and their blocks. ``window``:
     the bins' half-width (default: the regression's own, or its rule applied to the samples
     outside one block, :func:`_fold_windows`).
     """
     ridges = (regression.ridge,) if ridges is None else tuple(ridges)
-    meta = model.meta or {}
+    diag = model.diagnostics
     bins = model.bins
     d = bins.gamma.shape[-1]
     gamma, gamma_dot = bins.gamma, bins.gamma_dot
@@ -442,10 +444,10 @@ def held_out_coefficients(traj: Trajectory, regression: Regression,
     kw = dict(dtype=r.dtype, device=r.device)
     var_delta = var_rate = None
     if isinstance(regression, NoiseAwareRegression):
-        var_delta, var_rate = (v.reshape(n, d) for v in _interval_noise(meta, batch, traj.dt,
+        var_delta, var_rate = (v.reshape(n, d) for v in _interval_noise(diag, batch, traj.dt,
                                                                          **kw))
     if window is None:
-        window = _fold_windows(regression, meta, phase, fold, d)
+        window = _fold_windows(regression, diag, phase, fold, d)
     windows = torch.as_tensor(window, dtype=torch.float64, device=r.device).expand(
         batch).reshape(n)
     flat = [x.reshape((n,) + x.shape[len(batch):]) for x in (phase, r, r_dot, xi, fold)]
@@ -487,7 +489,7 @@ def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConne
     them: the smoothed regression's own downdated fits ``β̂_s`` (on the smoothed samples, its
     own window rule, same blocks of whole cycles) and the corrected ones ``β̂_c`` give
     ``β̂_s + w (β̂_c − β̂_s)`` with the whole recording's weights ``w`` per trial and term
-    (``model.meta["corrected_weight"]``, as the window and the interval are the whole
+    (``model.diagnostics.corrected_weight``, as the window and the interval are the whole
     recording's). Without this the check would score the corrected estimate alone, which is
     far off where the fit falls back to the smoothed one. Other regressions: ``coef``.
     ``columns``: as :func:`held_out_coefficients`'s (``coef`` fitted with them);
@@ -505,14 +507,15 @@ def blended_held_out(traj: Trajectory, regression: Regression, model: LocalConne
                                    ridges=ridges, columns=columns)
     d = model.shape_dim
     term = torch.tensor([0] + [1] * d + [2] * d + [3] * d * d, device=coef.device)
-    w = torch.as_tensor(model.meta["corrected_weight"], dtype=coef.dtype,
+    w = torch.as_tensor(model.diagnostics.corrected_weight, dtype=coef.dtype,
                         device=coef.device)[..., term]  # (..., P)
     w = w[..., None, :, None]  # (..., 1, P, 1): over bins and outputs
     # exact ends, so that a bin only one of the two could fit keeps the other's coefficients
     return torch.where(w == 1, coef, torch.where(w == 0, coef_s, coef_s + w * (coef - coef_s)))
 
 
-def _fold_windows(regression: Regression, meta: dict, phase: Tensor, fold: Tensor, d: int):
+def _fold_windows(regression: Regression, diag: RegressionDiagnostics, phase: Tensor,
+                  fold: Tensor, d: int):
     """The bins' half-width(s) the regression's own rule gives on the samples outside one
     block (block 0; the blocks are about equal): a refit on fewer cycles widens its windows,
     and keeping the whole recording's narrower ones would handicap the models with more
@@ -527,9 +530,9 @@ def _fold_windows(regression: Regression, meta: dict, phase: Tensor, fold: Tenso
     if not isinstance(regression, NoiseAwareRegression):
         return _auto_window(train, regression.n_bins, 1 + 2 * d + d * d,
                             regression.samples_per_regressor)
-    ratio = torch.as_tensor(meta["noise_ratio"], dtype=torch.float64, device=phase.device)
+    ratio = torch.as_tensor(diag.noise_ratio, dtype=torch.float64, device=phase.device)
     if train.ndim == 1:  # pooled: the window the fit chose, widened as fewer cycles need
-        return max(float(meta["window"]), _auto_window(train, regression.n_bins,
+        return max(float(diag.window), _auto_window(train, regression.n_bins,
                                                        1 + 2 * d + d * d,
                                                        regression.samples_per_regressor))
     return regression.element_windows(train.reshape(-1, train.shape[-1]), d,
@@ -552,7 +555,7 @@ def with_coefficients(model: LocalConnectionModel, coef: Tensor, order: int
     def series(values: Tensor, ndim: int):
         return masked(fit_fourier(centres, values, order, value_ndim=ndim))
 
-    c_order = (model.meta or {}).get("intercept_order")
+    c_order = model.diagnostics.intercept_order
     if c_order is not None:
         c_order = torch.as_tensor(c_order, device=coef.device)
     # the coefficients are the regression's own: its δ̇⊗δ one is what predictions use
@@ -562,25 +565,27 @@ def with_coefficients(model: LocalConnectionModel, coef: Tensor, order: int
 
 
 def _noise_of(model: LocalConnectionModel, dt: float, pool: bool):
-    """Noise variances of the view's ``δ`` and ``δ̇`` from a noise-aware model's ``meta``,
-    shaped to broadcast against the view's ``(..., N, d)``."""
+    """Noise variances of the view's ``δ`` and ``δ̇`` from a noise-aware model's
+    ``diagnostics``, shaped to broadcast against the view's ``(..., N, d)``."""
     kw = dict(dtype=model.phase_rate.dtype, device=model.phase_rate.device)
-    batch = () if pool else tuple(torch.as_tensor(model.meta["velocity_interval"], **kw).shape)
-    var_delta, var_rate = _interval_noise(model.meta, batch, dt, **kw)
+    diag = model.diagnostics
+    batch = () if pool else tuple(torch.as_tensor(diag.velocity_interval, **kw).shape)
+    var_delta, var_rate = _interval_noise(diag, batch, dt, **kw)
     if not pool:
         var_rate, var_delta = var_rate.unsqueeze(-2), var_delta.unsqueeze(-2)
     return var_delta, var_rate
 
 
-def _interval_noise(meta: dict, batch: tuple, dt: float, **kw) -> tuple[Tensor, Tensor]:
+def _interval_noise(diag: RegressionDiagnostics, batch: tuple, dt: float, **kw
+                    ) -> tuple[Tensor, Tensor]:
     """Noise variances ``(*batch, d)`` of ``δ`` and ``δ̇`` in a noise-aware fit's interval
-    samples, from its ``meta`` (noise level, velocity interval and filter; the gains of
+    samples, from its diagnostics (noise level, velocity interval and filter; the gains of
     :func:`~torchconn.regression.noise_aware.interval_noise_gains`)."""
-    sigma2 = torch.as_tensor(meta["noise_r"], **kw).square()
+    sigma2 = torch.as_tensor(diag.noise_r, **kw).square()
     sigma2 = sigma2.expand(batch + sigma2.shape[-1:])
-    h = torch.as_tensor(meta["velocity_interval"], device=kw.get("device")).expand(batch)
+    h = torch.as_tensor(diag.velocity_interval, device=kw.get("device")).expand(batch)
     h = h.reshape(-1).tolist()
-    kernel = meta.get("velocity_kernel", VELOCITY_KERNEL)
+    kernel = diag.velocity_kernel or VELOCITY_KERNEL
     gains = torch.tensor([interval_noise_gains(int(v), dt, kernel) for v in h],
                          **kw).reshape(batch + (2,))
     return sigma2 * gains[..., :1], sigma2 * gains[..., 1:]
