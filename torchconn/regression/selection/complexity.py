@@ -49,39 +49,25 @@ __all__ = ["ComplexityChoice", "ConnectionAlone", "COMPLEXITY_GRID", "RIDGE_GRID
 
 #: (n_bins, fourier_order) candidates of :func:`select_complexity`, simplest first
 COMPLEXITY_GRID = ((12, 3), (24, 6), (48, 12))
-#: ridge candidates of :func:`select_complexity` (relative to the standardised normal matrix).
-#: Chosen by held-out prediction, which the intercept dominates, a ridge on every shape column
-#: shrinks ``Â`` -- the attenuation the noise correction removes (one trial, 3-link circle, 32
-#: samples per cycle, ω = 0.005, seed 610, ``noise_floor="low_rate"``: ridge 1 chosen, Â
-#: 79.2 % off at scale 0.23); ``TubeRegression(ridge_connection=False)`` leaves ``Â``'s
-#: columns alone (12.8 % there; README "The ridge and Â")
+#: ridge candidates of :func:`select_complexity`, relative to the standardised normal matrix
+#: and applied as the regression applies its own ridge (``ridge_connection=False``: ``Â``'s
+#: columns are not penalised)
 RIDGE_GRID = (0.0, 0.1, 1.0, 10.0)
-#: a ridge is chosen only when it lowers the best unpenalised held-out loss by more than this
-#: fraction: a ridge shrinks Â (the attenuation the noise-aware regression removes), and on
-#: long recordings the candidates' losses differ by less than their noise (measured: 5-link,
-#: ω = 0.01, 0.38879 with a ridge vs 0.38884 without, and Â 48 % vs 10 % off)
+#: a ridge is chosen only when it lowers the best unpenalised candidate's mean held-out loss
+#: by more than this fraction of it (a ridge shrinks ``Â``, the attenuation the noise-aware
+#: regression removes)
 RIDGE_MIN_GAIN = 0.01
 #: per component, three models compete on held-out cycles (:func:`select_complexity`): the
 #: full model, the connection alone (``ĉ + Âδ̇``: the rows of ``b̂`` and ``∂Â/∂r`` set to 0),
 #: and the phase-averaged velocity. A model counts only when it lowers the component's
 #: held-out squared error below the phase average's by more than ``FALLBACK_Z`` standard
-#: errors (over the held-out cycles) and by more than the fraction ``FALLBACK_MARGIN`` of it;
-#: when neither does, the component is predicted by the phase-averaged velocity alone.
-#: Held-out blocks of the training cycles flatter the shape terms against later cycles: on
-#: short recordings the swimmer's shape offsets wander, and later cycles reach offsets 2-5x
-#: those of the training cycles, where ``b̂δ`` and ``∂Â/∂r`` extrapolate (measured with the
-#: noise-aware default, 5-link, ω = 0.005, 3-6 cycles, 3 gaits, tuning seeds 30-34, the later
-#: 4 cycles scored: lost to the phase average in 37 of 180 components without a fall-back,
-#: 17 with the connection alone everywhere, 1 with these settings (4 if the auto fit's check
-#: does not choose too, :func:`checked_terms`; held out, seeds 10-14 / 20-24: 37 / 21 -> 5 / 1,
-#: all under 0.03 in R²); percomp's earlier
-#: full-model-or-phase-average rule, ``z = 1`` and 30 %, left 5 losses but 149 ties: v_x and
-#: v_y fell back in 54-56 of 59 recordings)
+#: errors (of the sum over held-out cycles of the per-cycle differences) and by more than the
+#: fraction ``FALLBACK_MARGIN`` of the phase average's; when neither does, the component is
+#: predicted by the phase-averaged velocity alone (:func:`_choose_terms`)
 FALLBACK_Z = 2.5
 FALLBACK_MARGIN = 0.1
 #: the rows of ``b̂`` and ``∂Â/∂r`` are kept only when the full model's held-out squared error
-#: is below the connection alone's by more than this many standard errors (seeds 30-34: 3 and
-#: 4 gave the same losses; 3 keeps them wherever the data clearly ask for them)
+#: is below the connection alone's by more than this many standard errors
 OFFSET_TERMS_Z = 3.0
 
 
@@ -142,10 +128,8 @@ def unchecked_choice(held: "Skill | None", regression: Regression, short: Tensor
     """The choice when :func:`select_complexity` has no candidate (too few cycles) and the
     given complexity's fit stands: every component of a batch element that the held-out check
     ``held`` could not score (:attr:`Skill.unscored`) and that spans few cycles (``short``,
-    :func:`few_cycles`) is predicted by the phase average, the simpler model presumed there
-    (9-link reference gait, 3 cycles, ω = 0.005: the unchecked 48-bin fit scored R² −0.58 /
-    0.34 / 0.75 on the next 4 cycles, the phase average 0.54 / 0.84 / 0.96). None where no
-    such element (longer recordings keep the fit; the check warns)."""
+    :func:`few_cycles`) is predicted by the phase average, the simpler model presumed there.
+    None where no such element (longer recordings keep the fit; the check warns)."""
     if held is None:
         return None
     mask = (held.unscored & short)[..., None].expand(held.r2.shape)
@@ -354,9 +338,8 @@ def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Reg
             failures.append(f"{n_bins} bins: some bins cannot be fitted without one of the "
                             f"{n_folds} blocks of cycles")
             continue
-        # the simpler model presumed, as on short recordings: measured (README "Few samples
-        # per cycle"), presuming the connection alone unless the phase average beats it
-        # clearly lost to the phase average more often and by more
+        # the simpler model presumed, as on short recordings: the connection alone only
+        # where it beats the phase average clearly
         fallback = ~_clearly_better(gaps)
         loss = float(torch.where(fallback, 1 - scored.r2_phase_average, 1 - scored.r2).mean())
         scores.append((n_bins, order, 0.0, loss))
@@ -559,8 +542,8 @@ def _choose_terms(gaps: Tensor, gaps_conn: Tensor, short: Tensor | bool
     model is kept when it beats the phase average (:func:`_clearly_better`) and either the
     connection alone does not or the full model beats it by :data:`OFFSET_TERMS_Z` standard
     errors; else the connection alone when it beats the phase average; else the phase
-    average: few cycles do not span the shape offsets of later ones (their correlation time
-    is about 3 cycles in the paper's SDE), so ``b̂δ`` and ``∂Â/∂r δ̇⊗δ`` extrapolate there.
+    average: few cycles do not span the shape offsets of later ones, so ``b̂δ`` and
+    ``∂Â/∂r δ̇⊗δ`` extrapolate there.
 
     On longer ones the full model is presumed: the phase average is taken only
     when it beats both models by :data:`FALLBACK_Z` standard errors, the connection alone

@@ -11,7 +11,7 @@ fits without every block, for every bin, at the cost of one ``P x P`` solve per 
 -- instead of refitting the regression once per block. The errors-in-variables correction of
 the noise-aware regression is linear in ``G`` and is applied to ``G − G_f`` (with its guard);
 a ridge is applied to ``G − G_f`` as the solver applies it to ``G``. The coefficients equal a
-refit on the remaining rows with the same bins, window and noise level (tested).
+refit on the remaining rows with the same bins, window and noise level.
 """
 
 from __future__ import annotations

@@ -130,17 +130,42 @@ class Skill:
 
 @dataclass(frozen=True)
 class RegressionView:
-    phase: Tensor  # (..., N)
-    r: Tensor  # (..., N, d)
+    """The samples a regression fits and is scored on (:func:`regression_view`).
+
+    Attributes:
+        phase: ``(..., N)`` phase in radians (NaN: not a sample).
+        r: ``(..., N, d)`` joint angles in radians.
+        r_dot: ``(..., N, d)`` their rates in radians per time unit.
+        xi: ``(..., N, 3)`` body velocity ``(v_x, v_y, ω)``.
+    """
+
+    phase: Tensor
+    r: Tensor
     r_dot: Tensor
-    xi: Tensor  # (..., N, 3)
+    xi: Tensor
 
 
 def regression_view(traj: Trajectory, regression: Regression, model: LocalConnectionModel,
                     *, pool: bool, flatten: bool = True) -> RegressionView:
-    """Samples ``(..., N, ·)`` as ``regression`` sees them (pooled to ``(N,)`` when ``pool``
-    and ``flatten``); the interval of a noise-aware model comes from its
-    :attr:`~torchconn.regression.model.LocalConnectionModel.diagnostics`."""
+    """The samples of ``traj`` as ``regression`` regressed them into ``model``.
+
+    A :class:`~torchconn.regression.noise_aware.NoiseAwareRegression` regresses interval
+    samples (``N = T − h``, ``h`` the shortest of the trials' intervals, a longer one's
+    trial padded with NaN; velocities as interval differences) at the velocity interval its
+    fit chose
+    (:attr:`~torchconn.regression.model.LocalConnectionModel.diagnostics`); other regressions
+    regress the smoothed trajectory (``N = T``).
+
+    Args:
+        traj: a prepared trajectory (smoothed and phased), batch dims ``...``.
+        regression: the regression stage that fitted ``model``.
+        model: its fit to ``traj``.
+        pool: the fit pooled the trials; with ``flatten`` (default) the view is pooled too,
+            every field flattened to ``(B·N, ·)`` (:func:`~torchconn.trajectory.pool_batch`).
+
+    Returns:
+        :class:`RegressionView`, ``(..., N, ·)``, or pooled ``(B·N, ·)``.
+    """
     if isinstance(regression, NoiseAwareRegression):
         diag = model.diagnostics
         iv = interval_view(traj, torch.as_tensor(diag.velocity_interval, device=traj.r.device),
@@ -151,7 +176,7 @@ def regression_view(traj: Trajectory, regression: Regression, model: LocalConnec
         view = RegressionView(traj.phase, sm.r, sm.r_dot, sm.xi)
     if pool and flatten:
         view = RegressionView(pool_batch(view.phase, 0), pool_batch(view.r, 1),
-                     pool_batch(view.r_dot, 1), pool_batch(view.xi, 1))
+                              pool_batch(view.r_dot, 1), pool_batch(view.xi, 1))
     return view
 
 
@@ -180,11 +205,9 @@ def phase_average_orders(view: RegressionView, max_order: int, pool: bool, n_fol
     of whole cycles the models are scored on (:func:`cycle_blocks`; ``view`` unflattened,
     ``(..., N, ·)``; the lowest order on ties). One set of normal equations per block gives
     every order (their designs are nested). A stronger baseline than :func:`phase_average` at
-    the model's own order, which overfits the few cycles of a short recording (5- and 3-link,
-    3-6 cycles, ω = 0.005: the order-12 phase average of 2 of 3 cycles scored R² 0.38-0.54 on
-    v_x held out, order 3 0.66-0.78); ``benchmarks/short_recordings.py`` scores the default
-    against both (the estimator's checks use the model's order: measured against this one they
-    fell back on nearly every v_x and v_y and lost mean skill, README "Short recordings")."""
+    the model's own order, which overfits the few cycles of a short recording; the
+    estimator's checks use the model's order, ``benchmarks/short_recordings.py`` scores
+    against both."""
     fold = cycle_blocks(view.phase, n_folds)
     ok = torch.isfinite(view.phase) & torch.isfinite(view.xi).all(-1)
     x = fourier_design(torch.where(ok, view.phase, 0.0), max_order)  # (..., N, P)
@@ -519,8 +542,7 @@ def _fold_windows(regression: Regression, diag: RegressionDiagnostics, phase: Te
     """The bins' half-width(s) the regression's own rule gives on the samples outside one
     block (block 0; the blocks are about equal): a refit on fewer cycles widens its windows,
     and keeping the whole recording's narrower ones would handicap the models with more
-    regressors (measured: 3-link reference gait, 3 cycles, ω = 0.005: 12 bins / order 3
-    chosen and held-out R² of v_x 0.90, against 24 / 6 and 0.99 with the refits' windows).
+    regressors.
 
     ``phase``, ``fold``: ``(..., N)`` (pooled: ``(N,)``). Returns a float or a ``(...)`` list.
     """
