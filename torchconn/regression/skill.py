@@ -538,10 +538,10 @@ def few_cycles(phase: Tensor, pool: bool) -> Tensor:
 
 def _fold_models(traj, cycle, regression, model, *, pool, n_folds, refit,
                  connection_regressed=False):
-    """The regression (metric off), its fits without each of ``n_folds`` blocks of cycles
+    """The regression, its fits without each of ``n_folds`` blocks of cycles
     (downdated ones of the connection alone where ``connection_regressed``), the view they
     are scored on, its block index and its cycle index (:func:`_cycle_index`)."""
-    reg = regression.replace(metric=False)
+    reg = regression
     if model is None:
         model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
     unflat = regression_view(traj, reg, model, pool=pool, flatten=False)
@@ -917,7 +917,7 @@ def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Reg
     """
     best, failures, scores = None, [], []
     for n_bins, order in COMPLEXITY_GRID:
-        base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
+        base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
             try:  # the whole recording's window, interval and noise level
@@ -1176,7 +1176,7 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, pen
     SSE minus the phase average's; or, for a candidate that cannot be fitted, the failure (a
     string). One whole-recording fit serves every candidate, and one pass over the data every
     ridge of a setting."""
-    base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
+    base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0)
 
     def penalised(setting):
         return base if setting is None else base.replace(ridge_connection=setting)
