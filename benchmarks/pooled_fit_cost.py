@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=1, help="fits per method (the least time)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    default = NoiseAwareRegression(metric=False)
+    default = NoiseAwareRegression()
     print("CPU seconds per pooled fit (regression stage), ratio to the full search, same run")
     print(f"{'links':>5} {'gait':>9} {'omega':>6} {'full s':>8} "
           f"{'default x':>9} {'default s':>9} {'corrected':>9} {'identical':>9}")

@@ -329,7 +329,7 @@ def cost(args) -> int:
                                 n_cycles=n_cycles, samples_per_cycle=spc, seeds=seeds),
                        0.005, seeds=seeds)
 
-        reg = TubeRegression(metric=False)
+        reg = TubeRegression()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             plain = _best_of_3(partial(_fit_for_cost, traj, reg, pool, 0))

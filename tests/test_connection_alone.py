@@ -166,7 +166,7 @@ def test_the_connection_alone_fit_is_the_weighted_least_squares_of_c_and_a(video
     squares of ξ on ``[1, δ̇]`` in each bin (numpy)."""
     est = video[2]
     traj, cycle = est.trajectory_, est.limit_cycle_
-    reg = TubeRegression(metric=False)
+    reg = TubeRegression()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         alone = complexity.select_connection_alone(traj, cycle, reg, pool=False)
@@ -216,6 +216,6 @@ def test_four_cycles_at_14_samples_per_cycle_are_checked_not_refused():
             tr = observe(simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025,
                                   n_cycles=4, samples_per_cycle=14, seeds=[seed]), 0.002,
                          seeds=[seed])
-            est = ConnectionEstimator(pool=True).set_params(regression__metric=False).fit(tr)
+            est = ConnectionEstimator(pool=True).set_params(metric__enabled=False).fit(tr)
             assert est.held_out_skill_ is not None
             assert bool(torch.isfinite(est.held_out_skill_.r2).all())

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import AffineConnectionSystem, NLinkSwimmer, Trajectory
+from torchconn import AffineConnectionSystem, NLinkSwimmer, TiedMetric, Trajectory
 from torchconn.evaluation.models import phase_bin_errors, reference_models
 from torchconn.phase.limit_cycle import SelfConsistentCycle
 from torchconn.physics.gaits import FourierGait, reference_gait
@@ -50,8 +50,8 @@ def test_toy_connection_is_recovered_exactly_from_noise_free_data():
     gait = FourierGait(coeffs)
     traj = _exact_trajectory(toy, gait)
     est = ConnectionEstimator(
-        cycle=SelfConsistentCycle(order=2),
-        regression=TubeRegression(n_bins=16, fourier_order=6, window=1.0, metric=False),
+        cycle=SelfConsistentCycle(order=2), metric=TiedMetric(enabled=False),
+        regression=TubeRegression(n_bins=16, fourier_order=6, window=1.0),
     ).fit(traj)
     phi = torch.linspace(0, 2 * math.pi, 50, dtype=F64)
     gamma = est.model_.gamma_at(phi)
@@ -109,8 +109,8 @@ def test_estimates_converge_to_the_simulator_as_data_grows():
 def test_data_driven_mean_error_per_phase_bin_is_zero_within_its_standard_error():
     s, tr = _swimmer_truth_trajectory(30, seeds=np.arange(8) + 11)
     M = 32
-    est = ConnectionEstimator(regression=TubeRegression(
-        n_bins=M, fourier_order=10, window=0.5, kernel="box", metric=False)).fit(tr)
+    est = ConnectionEstimator(metric=TiedMetric(enabled=False), regression=TubeRegression(
+        n_bins=M, fourier_order=10, window=0.5, kernel="box")).fit(tr)
     b = est.model_.bins
     # each sample predicted by its own bin's regression (eq. advanceddatadriven at γ_m)
     m = torch.round(torch.remainder(tr.phase, 2 * math.pi) / (2 * math.pi / M)).long() % M
@@ -137,7 +137,7 @@ def test_data_driven_mean_error_per_phase_bin_is_zero_within_its_standard_error(
 
 def test_batched_fit_equals_one_trial_at_a_time():
     s, tr = _swimmer_truth_trajectory(12, seeds=np.arange(2))
-    regression = TubeRegression(n_bins=24, fourier_order=6, metric=False)
+    regression = TubeRegression(n_bins=24, fourier_order=6)
     both = ConnectionEstimator(regression=regression).fit(tr).model_
     one = ConnectionEstimator(regression=regression).fit(tr[1]).model_
     phi = torch.linspace(0, 6, 7, dtype=F64)
@@ -171,12 +171,13 @@ def test_bad_settings_and_inputs_raise():
     # a window too narrow for the full model's regressors: refused at the complexity given
     # (complexity="auto" regresses the connection alone there, which it can score)
     with pytest.raises(ValueError, match="samples"):
-        ConnectionEstimator(regression=TubeRegression(window=0.5, metric=False),
+        ConnectionEstimator(regression=TubeRegression(window=0.5), metric=TiedMetric(enabled=False),
                             complexity="fixed").fit(tr)
     with pytest.raises(RuntimeError, match="not fitted"):
         ConnectionEstimator().predict(tr)
     model = ConnectionEstimator(
-        regression=TubeRegression(n_bins=12, fourier_order=4, metric=False)).fit(tr).model_
+        metric=TiedMetric(enabled=False),
+        regression=TubeRegression(n_bins=12, fourier_order=4)).fit(tr).model_
     with pytest.raises(ValueError, match="r must have shape"):
         model.predict(tr.phase, torch.zeros(tr.phase.shape + (3,), dtype=F64), tr.r)
 
@@ -191,8 +192,8 @@ def test_trials_of_different_lengths_are_not_extrapolated(tmp_path):
     write_csv(long, tmp_path / "long.csv")
     write_csv(short, tmp_path / "short.csv")
     traj = read_csv([tmp_path / "long.csv", tmp_path / "short.csv"])  # short one NaN-padded
-    est = ConnectionEstimator(regression=TubeRegression(n_bins=24, fourier_order=6, metric=False),
-                              pool=True).fit(traj)
+    est = ConnectionEstimator(regression=TubeRegression(n_bins=24, fourier_order=6),
+                              metric=TiedMetric(enabled=False), pool=True).fit(traj)
     prepared = est.trajectory_
     n_short = short.n_samples
     assert torch.isnan(prepared.phase[1, n_short:]).all()

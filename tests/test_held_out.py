@@ -14,6 +14,7 @@ from torchconn import (
     NLinkSwimmer,
     NoiseAwareRegression,
     SelfConsistentCycle,
+    TiedMetric,
     TubeRegression,
     observe,
     simulate,
@@ -71,7 +72,7 @@ def _close(a, b):
 @pytest.mark.parametrize("ridge", [0.0, 0.3])
 def test_downdated_fits_equal_refits_without_each_block(eight, ridge):
     traj, cycle, _ = eight
-    reg = TubeRegression(metric=False, n_bins=24, fourier_order=6, window=2.0)
+    reg = TubeRegression(n_bins=24, fourier_order=6, window=2.0)
     model, view, fold = _setup(traj, cycle, reg, pool=False)
     coef = skill.held_out_coefficients(traj, reg, model, view, fold, 3, pool=False,
                                        ridges=(ridge,))[0]
@@ -85,7 +86,7 @@ def test_downdated_fits_equal_refits_without_each_block(eight, ridge):
 
 def test_downdated_noise_aware_fits_equal_refits_with_the_noise_correction(eight):
     traj, _, cycle = eight
-    reg = NoiseAwareRegression(metric=False, n_bins=16, fourier_order=4)
+    reg = NoiseAwareRegression(n_bins=16, fourier_order=4)
     model, view, fold = _setup(traj, cycle, reg, pool=True)
     assert float(torch.as_tensor(model.meta["noise_r"]).min()) > 0  # the correction is on
     coef = skill.held_out_coefficients(traj, reg, model, view, fold, 3, pool=True)[0]
@@ -127,7 +128,7 @@ def test_a_fits_diagnostics_are_the_choices_its_meta_records(eight, tmp_path):
 
 def test_cross_validate_matches_the_refitting_one_when_nothing_is_rechosen(eight):
     traj, cycle, _ = eight
-    reg = TubeRegression(metric=False, n_bins=24, fourier_order=6, window=2.0)
+    reg = TubeRegression(n_bins=24, fourier_order=6, window=2.0)
     down = skill.cross_validate(traj, cycle, reg, pool=False)
     refit = skill.cross_validate(traj, cycle, reg, pool=False, refit=True)
     torch.testing.assert_close(down.r2, refit.r2, rtol=0, atol=1e-9)
@@ -142,7 +143,7 @@ def test_the_check_scores_the_noise_aware_fit_as_blended_with_the_smoothed_one(e
     from torchconn.regression.tube import _auto_window
 
     traj, cycle, _ = eight
-    reg = NoiseAwareRegression(metric=False, n_bins=16, fourier_order=4)
+    reg = NoiseAwareRegression(n_bins=16, fourier_order=4)
     model, view, fold = _setup(traj, cycle, reg, pool=False)
     w = torch.as_tensor(model.meta["corrected_weight"], dtype=F64)  # (2, 4): c, b, A, ∂A/∂r
     assert bool((w < 1).any()) and bool((w > 0).any())
@@ -202,7 +203,7 @@ def test_the_fit_warns_by_itself_and_auto_complexity_stops_the_overfit(short):
 def test_a_complexity_the_recording_cannot_carry_is_reported(short):
     # a window just wide enough for the whole recording's bins (30 samples for 25 regressors)
     # leaves too few once a third of the cycles is held out
-    reg = TubeRegression(metric=False, window=1.8)
+    reg = TubeRegression(window=1.8)
     with pytest.warns(PoorHeldOutSkillWarning, match="cannot be fitted when one block"):
         est = ConnectionEstimator(regression=reg, complexity="fixed").fit(short)
     assert bool(est.held_out_skill_.unscored.all())
@@ -507,33 +508,31 @@ def _same_model(a, b):
 
 def test_the_refit_after_the_complexity_choice_fits_nothing_twice(eight, monkeypatch):
     """``ConnectionEstimator``'s refit with the chosen complexity equals a fresh fit of the
-    chosen regression bit for bit, but keeps the first fit when the choice is the given
-    complexity, and takes the tied metric's coefficients from the first fit whenever the
-    metric's settings are unchanged (other bins only evaluate them elsewhere)."""
+    chosen regression with a fresh metric fit bit for bit, keeps the first fit when the choice
+    is the given complexity, and the metric stage is fitted once for all of them (other bins
+    only evaluate it elsewhere)."""
     from torchconn.regression import estimator as estimator_module
-    from torchconn.regression import tube as tube_module
 
     traj, cycle, _ = eight
-    given = NoiseAwareRegression()
+    given, stage = NoiseAwareRegression(), TiedMetric()
     calls = []
-    original = tube_module.tied_metric_coefficients
-    monkeypatch.setattr(tube_module, "tied_metric_coefficients",
-                        lambda *a, **k: calls.append(1) or original(*a, **k))
+    original = TiedMetric.fit
+    monkeypatch.setattr(TiedMetric, "fit", lambda *a, **k: calls.append(1) or original(*a, **k))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        cache = {}
-        first = estimator_module._fit(given, traj, cycle, False, cache)
-        assert calls and len(cache) == 1
-        assert estimator_module._refit(given, given, first, traj, cycle, False, cache) is first
-        for chosen, reused in ((given.replace(ridge=0.1, fourier_order=6), True),
-                               (given.replace(n_bins=24, fourier_order=6), True),
-                               (given.replace(metric_order=4), False)):
+        metric = stage, stage.fit(traj, cycle)
+        first = estimator_module._fit(given, traj, cycle, False, metric)
+        assert first.M is not None
+        assert estimator_module._refit(given, given, first, traj, cycle, False, metric) is first
+        for chosen in (given.replace(ridge=0.1, fourier_order=6),
+                       given.replace(n_bins=24, fourier_order=6)):
             calls.clear()
-            refit = estimator_module._refit(chosen, given, first, traj, cycle, False, cache)
-            assert (not calls) == reused, chosen
-            calls.clear()
-            _same_model(refit, chosen.fit(traj, cycle))
-            assert calls  # the fresh fit (no cache) fits its metric
+            refit = estimator_module._refit(chosen, given, first, traj, cycle, False, metric)
+            assert not calls, chosen
+            _same_model(refit, stage.attach(chosen.fit(traj, cycle), stage.fit(traj, cycle)))
+        calls.clear()
+        ConnectionEstimator(complexity="cv").fit(traj)
+    assert len(calls) == 1  # one metric fit, whatever the candidates
 
 
 def _fourier_columns(phase, order):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, TubeRegression, simulate
+from torchconn import ConnectionEstimator, NLinkSwimmer, TiedMetric, TubeRegression, simulate
 from torchconn.evaluation.models import error_summary, reference_models
 from torchconn.phase import held_out_order, whole_cycle_weights
 from torchconn.phase.fourier import FourierSeries, fit_fourier
@@ -60,7 +60,8 @@ def _errors(name, seeds, eta_factor):
     system = NLinkSwimmer(int(name[0]))
     traj = simulate(system, reference_gait(name), eta=0.025 * eta_factor, alpha=0.05,
                     n_cycles=30, samples_per_cycle=64, substeps=8, seeds=seeds)
-    est = ConnectionEstimator(regression=TubeRegression(metric=False), complexity="fixed",
+    est = ConnectionEstimator(regression=TubeRegression(), complexity="fixed",
+                              metric=TiedMetric(enabled=False),
                               held_out_folds=0).fit(traj)
     model = est.model_
     fixed = dataclasses.replace(model, c=fit_fourier(model.bins.phase, model.bins.c, 12,

@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
+from torchconn import ConnectionEstimator, NLinkSwimmer, TiedMetric, observe, simulate
 from torchconn.phase.fourier import fourier_design
 from torchconn.physics.gaits import FourierGait, reference_gait
 from torchconn.physics.gaits.evaluate import evaluate
 from torchconn.regression.gait_prediction import predict_gait
 from torchconn.regression.metric import (
-    _CorrectedNormal,
     tied_metric_coefficients,
     tied_metric_predict,
     tied_metric_regression,
 )
+from torchconn.regression.metric.normal import CorrectedNormal
 from torchconn.regression.tube import TubeRegression
 
 F64 = torch.float64
@@ -90,7 +90,7 @@ def test_floored_correction_against_its_explicit_construction():
                        [0.2, 0.5, 0.85, 0.1, 0.0, -0.1]], dtype=F64)
     t = lower @ rot  # G = T Tᵀ, C = T diag(ν) Tᵀ
     corr = t @ torch.diag_embed(nu) @ t.mT
-    normal = _CorrectedNormal.of(gram, corr, torch.full((3,), floor, dtype=F64))
+    normal = CorrectedNormal.of(gram, corr, torch.full((3,), floor, dtype=F64))
     share = torch.where(nu > 1 - floor, (1 - floor) / nu, 1.0)
     a = t @ torch.diag_embed(1 - share * nu) @ t.mT
     h = torch.randn(3, p, generator=g0, dtype=F64)
@@ -536,8 +536,8 @@ def test_metric_bands_cover_the_truth():
 def test_metric_asked_for_without_power_is_a_clear_error(three_link):
     _, traj, _ = three_link
     no_power = traj.with_fields(power=None)
-    with pytest.raises(ValueError, match="metric=True but|no power channel"):
-        ConnectionEstimator(regression=TubeRegression(metric=True)).fit(no_power)
+    with pytest.raises(ValueError, match="requires a power channel.*metric__enabled=True"):
+        ConnectionEstimator(metric=TiedMetric(enabled=True)).fit(no_power)
     # by default the metric is simply not fitted
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -640,20 +640,21 @@ def test_cost_standard_error_of_the_recorded_gait_is_honest():
 
 
 def test_second_order_option_reaches_the_fit_and_is_left_out_with_a_warning():
-    """``TubeRegression(metric_second_order=...)``: used where identified (recorded in the
+    """``TiedMetric(second_order=...)``: used where identified (recorded in the
     meta), left out with a warning naming the option where the first-order term is not fitted;
     the default records None and the allowance (``M_offset_bias``) is estimated."""
     traj = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=10,
                     seeds=np.arange(1))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        est = ConnectionEstimator(regression=TubeRegression(metric_second_order="full"))
+        est = ConnectionEstimator(regression=TubeRegression(),
+                                  metric=TiedMetric(second_order="full"))
         used = est.fit(traj).model_
-        left = ConnectionEstimator(regression=TubeRegression(
-            metric_second_order="full", metric_derivative_order=None)).fit(traj).model_
+        left = ConnectionEstimator(regression=TubeRegression(), metric=TiedMetric(
+            second_order="full", derivative_order=None)).fit(traj).model_
     assert used.meta["metric_second_order"] == "full" and used.bins.M_offset_bias is None
     assert left.meta["metric_second_order"] is None
-    assert any("metric_second_order='full'" in str(w.message) for w in caught)
+    assert any("second_order='full'" in str(w.message) for w in caught)
     default = _fit(traj).model_
     assert default.meta["metric_second_order"] is None
     assert default.bins.M_offset_bias is not None and default.dM is not None

@@ -19,7 +19,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from torchconn import NLinkSwimmer, simulate
+from torchconn import NLinkSwimmer, TiedMetric, simulate
 from torchconn.fit import main as fit_main
 from torchconn.io.trajectory_files import read_csv, write_csv
 from torchconn.phase.fourier import FourierSeries
@@ -119,8 +119,8 @@ def test_per_trial_fits_of_unequal_recordings_are_close_to_the_swimmer(files):
 def test_each_trial_is_fitted_in_a_batch_of_unequal_trials_as_alone(files):
     # the batch shares its settings (the bins' window, the complexity: fixed here), nothing
     # else: smoothing, phase, cycle, noise and regression of each trial see only its span
-    est = ConnectionEstimator(complexity="fixed",
-                              regression=NoiseAwareRegression(window=8.0, metric=False))
+    est = ConnectionEstimator(complexity="fixed", metric=TiedMetric(enabled=False),
+                              regression=NoiseAwareRegression(window=8.0))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         batch = copy.deepcopy(est).fit(read_csv(files))

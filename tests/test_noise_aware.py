@@ -14,6 +14,7 @@ from torchconn import (
     NLinkSwimmer,
     NoiseAwareRegression,
     Phaser,
+    TiedMetric,
     TubeRegression,
     estimator_from_settings,
     observe,
@@ -67,7 +68,8 @@ def clean30():
 def _fit(traj, method=NoiseAwareRegression, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return ConnectionEstimator(pool=True, regression=method(metric=False, **kw)).fit(traj)
+        return ConnectionEstimator(pool=True, regression=method(**kw),
+                                   metric=TiedMetric(enabled=False)).fit(traj)
 
 
 def _corrected_alone(monkeypatch):
@@ -742,8 +744,9 @@ def test_bad_velocity_interval_and_too_few_cycles_are_clear():
     traj = _recording(0.005, n_cycles=4, n_trials=1)
     with pytest.raises(ValueError, match="phase bins cannot be fitted.*this recording has 4.0 "
                                          "cycles.*need at least"):
-        ConnectionEstimator(complexity="fixed", regression=NoiseAwareRegression(
-            metric=False, n_bins=200, fourier_order=12, window=0.5)).fit(traj)
+        ConnectionEstimator(complexity="fixed", metric=TiedMetric(enabled=False),
+                            regression=NoiseAwareRegression(
+            n_bins=200, fourier_order=12, window=0.5)).fit(traj)
 
 
 @pytest.mark.slow
@@ -788,7 +791,8 @@ def test_overfitting_a_short_recording_is_reported_and_complexity_from_cv_stops_
 
     def estimator(complexity="fixed"):
         return ConnectionEstimator(phaser=Phaser(min_cycles=2.0), complexity=complexity,
-                                   regression=NoiseAwareRegression(metric=False))
+                                   metric=TiedMetric(enabled=False),
+                                   regression=NoiseAwareRegression())
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
@@ -912,16 +916,17 @@ def test_shrinkage_falls_back_to_the_smoothed_fit_with_one_9_link_trial():
             warnings.simplefilter("ignore")
             # the sweep's setting: fixed complexity (48 bins, order 12), no held-out check
             model = ConnectionEstimator(regression=regression, complexity="fixed",
+                                        metric=TiedMetric(enabled=False),
                                         held_out_folds=0).fit(traj).model_
         a_true = NLinkSwimmer(9).connection(model.gamma_at(phi))
         err = (model.connection(phi) - a_true).square().sum((-3, -2, -1)).sqrt()
         return err / a_true.square().sum((-3, -2, -1)).sqrt(), model
 
-    smoothed, _ = error(TubeRegression(metric=False))
-    blended, model = error(NoiseAwareRegression(metric=False))
+    smoothed, _ = error(TubeRegression())
+    blended, model = error(NoiseAwareRegression())
     with pytest.MonkeyPatch.context() as mp:
         _corrected_alone(mp)
-        alone, _ = error(NoiseAwareRegression(metric=False))
+        alone, _ = error(NoiseAwareRegression())
     assert bool((alone > 1.5 * smoothed).all())  # the failure the fallback exists for
     assert bool((blended <= 1.02 * smoothed).all()), (blended, smoothed)
     assert np.array(model.meta["corrected_weight"]).shape == (2, 4)
@@ -932,7 +937,7 @@ def test_observed_view_is_what_each_regression_sees():
 
     traj = _recording(0.005, n_cycles=10, n_trials=2)
     system = NLinkSwimmer(3)
-    for regression in (NoiseAwareRegression(metric=False), TubeRegression(metric=False)):
+    for regression in (NoiseAwareRegression(), TubeRegression()):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             est = ConnectionEstimator(regression=regression).fit(traj)
@@ -995,7 +1000,7 @@ def test_an_unpooled_trials_fit_does_not_depend_on_the_trials_beside_it():
 
     # (ω = 0.002 is not resolved by 12 cycles at 64 samples per cycle, README "Noise estimates")
     prep, cycle = _unpooled_trials([0.0, 0.005, 0.01, 0.02] * 2)
-    reg = NoiseAwareRegression(metric=False)
+    reg = NoiseAwareRegression()
     full = reg.fit(prep, cycle)
     assert "A_harmonic_factors" not in full.meta and "offsets_refit" not in full.meta
     assert torch.equal(full.A.coeffs,
@@ -1033,7 +1038,7 @@ def test_an_unpooled_fit_computes_the_joint_covariance_only_for_groups_with_nois
 
     monkeypatch.setattr(_wls, "sandwich_correlation", counted)
     prep, cycle = _unpooled_trials([0.0, 0.01, 0.0, 0.02])
-    reg = NoiseAwareRegression(metric=False)
+    reg = NoiseAwareRegression()
     mixed = reg.fit(prep, cycle)
     assert [min(r) > 0 for r in mixed.meta["noise_r"]] == [False, True, False, True]
     assert sum(rows) == 2  # the two noisy trials only (their groups)
@@ -1059,7 +1064,7 @@ def test_an_interval_the_bins_cannot_support_falls_back_to_a_shorter_one():
     est = ConnectionEstimator()
     prep = est.prepare(observe(clean, 0.01, seeds=seeds))
     cycle = est.cycle.fit(prep)
-    reg = NoiseAwareRegression(metric=False)
+    reg = NoiseAwareRegression()
     rule = reg.noise_setup(prep, pool=False, gamma_m=_bin_cycle(reg, cycle))[2].tolist()
     assert rule[0] == 16  # a quarter of 64 samples per cycle
     with pytest.raises(ValueError, match="cannot be fitted reliably"):
@@ -1099,7 +1104,7 @@ def test_missing_samples_shorten_the_interval_or_take_the_box_filter():
     est = ConnectionEstimator(pool=True)
     prep = est.prepare(traj)
     cycle = est.cycle.fit(prep, pool=True)
-    reg = NoiseAwareRegression(metric=False)
+    reg = NoiseAwareRegression()
     rule = int(reg.noise_setup(prep, pool=True, gamma_m=_bin_cycle(reg, cycle))[2])
     assert rule > 2
 
@@ -1291,10 +1296,10 @@ def test_pruned_search_gives_the_full_searchs_choice_and_fit(case):
     est = ConnectionEstimator(pool=True)
     prep = est.prepare(traj)
     cycle = est.cycle.fit(prep, pool=True)
-    pruned = NoiseAwareRegression(metric=False).fit(prep, cycle, pool=True)
+    pruned = NoiseAwareRegression().fit(prep, cycle, pool=True)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(NoiseAwareRegression, "_full_search", True)
-        full = NoiseAwareRegression(metric=False).fit(prep, cycle, pool=True)
+        full = NoiseAwareRegression().fit(prep, cycle, pool=True)
     for name in ("c", "b", "A", "dA", "c_se", "b_se", "A_se", "dA_se", "n_samples"):
         assert torch.equal(getattr(pruned.bins, name), getattr(full.bins, name)), name
     for name in ("c", "b", "A", "dA"):
@@ -2019,7 +2024,7 @@ def test_a_shrunk_series_gets_its_offsets_refitted_and_nothing_else_moves(clean3
     plain_b = fit_fourier(a.bins.phase, a.bins.b, 12, value_ndim=2)
     assert not torch.equal(a.b.coeffs, plain_b.coeffs)
     prep, cycle = _unpooled_trials([0.005, 0.01])
-    unpooled = NoiseAwareRegression(metric=False).fit(prep, cycle)
+    unpooled = NoiseAwareRegression().fit(prep, cycle)
     assert "offsets_refit" not in unpooled.meta
     assert torch.equal(unpooled.b.coeffs,
                        fit_fourier(unpooled.bins.phase, unpooled.bins.b, 12, value_ndim=2).coeffs)

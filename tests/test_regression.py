@@ -14,8 +14,8 @@ from torchconn.regression import (
     IllConditionedBinWarning,
     assign_bins,
     connection_regression,
-    metric_regression,
 )
+from torchconn.testing.paper_metric import metric_regression
 
 F64 = torch.float64
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchconn import NLinkSwimmer, observe, simulate
+from torchconn import NLinkSwimmer, TiedMetric, observe, simulate
 from torchconn.phase.fourier import fit_fourier
 from torchconn.phase.limit_cycle import SelfConsistentCycle, fit_limit_cycle
 from torchconn.phase.phaser import Phaser, circular_rms, estimate_phase
@@ -124,8 +124,8 @@ def test_stage_options_validate_themselves():
 def test_get_and_set_params_follow_scikit_learn_without_it():
     est = ConnectionEstimator(regression=TubeRegression(n_bins=24, fourier_order=6), pool=True)
     shallow = est.get_params(deep=False)
-    assert set(shallow) == {"smoother", "phaser", "cycle", "regression", "pool", "complexity",
-                            "held_out_folds"}
+    assert set(shallow) == {"smoother", "phaser", "cycle", "regression", "metric", "pool",
+                            "complexity", "held_out_folds"}
     deep = est.get_params(deep=True)
     assert deep["regression__n_bins"] == 24 and deep["phaser__order"] == "auto"
     assert deep["smoother__order"] == 2 and deep["cycle__order"] == 8 and deep["pool"] is True
@@ -152,8 +152,8 @@ def test_get_and_set_params_follow_scikit_learn_without_it():
 
 def test_sklearn_clone_gives_an_unfitted_estimator_with_equal_parameters(recording):
     base = pytest.importorskip("sklearn.base")
-    est = ConnectionEstimator(phaser=Phaser(order=4),
-                              regression=TubeRegression(n_bins=24, fourier_order=6, metric=False))
+    est = ConnectionEstimator(phaser=Phaser(order=4), metric=TiedMetric(enabled=False),
+                              regression=TubeRegression(n_bins=24, fourier_order=6))
     est.fit(recording)
     twin = base.clone(est)
     assert not hasattr(twin, "model_") and not hasattr(twin, "phaser_")
@@ -286,8 +286,8 @@ class _TruthSmoother(Smoother):
 
 
 def test_a_new_stage_slots_in_by_keyword(recording):
-    est = ConnectionEstimator(smoother=_TruthSmoother(),
-                              regression=TubeRegression(n_bins=24, fourier_order=6, metric=False))
+    est = ConnectionEstimator(smoother=_TruthSmoother(), metric=TiedMetric(enabled=False),
+                              regression=TubeRegression(n_bins=24, fourier_order=6))
     est.fit(recording)
     assert est.trajectory_.smoothed.xi is recording.truth.xi
     settings = estimator_settings(est)

@@ -29,6 +29,7 @@ from .regression import (
     ConnectionEstimator,
     LocalConnectionModel,
     NoiseAwareRegression,
+    TiedMetric,
     TubeRegression,
     estimator_from_settings,
 )
@@ -47,4 +48,5 @@ __all__ = [
     "simulate", "observe", "read_csv", "write_csv",
     "ConnectionEstimator", "LocalConnectionModel", "estimator_from_settings",
     "RTSSmoother", "Phaser", "SelfConsistentCycle", "TubeRegression", "NoiseAwareRegression",
+    "TiedMetric",
 ]

@@ -129,8 +129,8 @@ def build_estimator(args, table: dict | None) -> ConnectionEstimator:
     if args.regression is not None:
         table["regression"] = {**table.get("regression", {}), "method": args.regression}
     if args.metric is not None:  # auto: fit the metric when there is a power column
-        table["regression"] = {**table.get("regression", {}),
-                               "metric": {"auto": None, "yes": True, "no": False}[args.metric]}
+        table["metric"] = {**table.get("metric", {}),
+                           "enabled": {"auto": None, "yes": True, "no": False}[args.metric]}
     for flag, (stage, field) in _FLAGS.items():
         v = getattr(args, flag)
         if v is not None:

@@ -435,7 +435,7 @@ def test_a_recording_held_wholly_in_float32_is_fitted(recording):
     torch.testing.assert_close(tr.t, good.t, rtol=0, atol=1e-5)
     with pytest.warns(UserWarning, match=r"torch\.float32 arrays; converted to float64"):
         est = ConnectionEstimator(held_out_folds=0).set_params(
-            regression__metric=False).fit(tr)
+            metric__enabled=False).fit(tr)
     assert bool(torch.isfinite(est.model_.connection(torch.zeros(1, dtype=torch.float64))).all())
 
 
@@ -449,12 +449,12 @@ def test_trajectory_accepts_unix_time_stamps():
 def test_estimator_converts_float32_and_refuses_negative_power(recording):
     good = read_csv(recording)
     with pytest.raises(ValueError, match=r"ConnectionEstimator\.fit: power of trial 0.*"
-                                         r"negative.*regression__metric=False"):
+                                         r"negative.*metric__enabled=False"):
         ConnectionEstimator().fit(good.with_fields(power=-good.power))
     with pytest.warns(UserWarning, match=r"ConnectionEstimator\.fit: the trajectory holds "
                                          r"torch\.float32 arrays; converted to float64"):
         est = ConnectionEstimator(held_out_folds=0).set_params(
-            regression__metric=False).fit(good.to(torch.float32))
+            metric__enabled=False).fit(good.to(torch.float32))
     assert est.model_.connection(torch.zeros(1, dtype=torch.float64)).dtype == torch.float64
 
 
@@ -491,9 +491,9 @@ def test_metric_with_too_few_cycles_says_how_many_are_needed():
                     seeds=seeds)
     with pytest.raises(ValueError, match=r"need at least 3·P = 390 \(about 3\.\d cycles at the "
                                          r"12\d samples per cycle of this recording\).*"
-                                         r"or leave the metric out: metric=False"):
+                                         r"or leave the metric out: metric__enabled=False"):
         ConnectionEstimator(phaser=Phaser(min_cycles=2.5)).fit(traj)
     # and so it does: the connection alone fits
     est = ConnectionEstimator(phaser=Phaser(min_cycles=2.5)).set_params(
-        regression__metric=False).fit(traj)
+        metric__enabled=False).fit(traj)
     assert est.model_.M is None

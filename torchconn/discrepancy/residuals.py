@@ -26,6 +26,7 @@ from torch import Tensor
 
 from ..physics.systems.base import LocomotionSystem
 from ..regression.estimator import ConnectionEstimator
+from ..regression.metric import TiedMetric
 from ..regression.tube import TubeRegression
 from ..trajectory import Trajectory
 from .forward import Measurement
@@ -123,7 +124,8 @@ def compare_terms(
     """
     def fit(recording):
         est = ConnectionEstimator(
-            regression=TubeRegression(n_bins=n_bins, fourier_order=fourier_order, metric=False),
+            regression=TubeRegression(n_bins=n_bins, fourier_order=fourier_order),
+            metric=TiedMetric(enabled=False),
             pool=True, complexity="fixed", held_out_folds=0,  # the workflow cross-validates
         )
         return est.fit(recording, phase=phase).model_.bins

@@ -4,6 +4,7 @@
   (smooth → phase → limit cycle → tube regressions → Fourier in phase) in scikit-learn manners,
   each stage a pluggable option object.
 - :mod:`~torchconn.regression.tube` -- :class:`TubeRegression`, the regression stage.
+- :mod:`~torchconn.regression.metric` -- :class:`TiedMetric`, the metric stage.
 - :mod:`~torchconn.regression.model` -- :class:`LocalConnectionModel`, the fitted ``Â``, ``∂Â/∂r``,
   ``M̂`` as Fourier series in phase, with per-bin standard errors.
 - :mod:`~torchconn.regression.plots` -- figures of a fitted model with confidence bands.
@@ -15,10 +16,9 @@ The hot path of the estimator, batched over leading dims ``...`` (noise levels �
 2. :func:`connection_regression` -- ``ξ ≈ c + b δ + A δ̇ + ∂A/∂r (δ̇ ⊗ δ)`` per bin
    (eq. ``advancedregression``) → :class:`ConnectionFit`; :func:`tie_connection_derivative`
    ties its ``∂Â/∂r`` to ``b̂`` and ``dÂ/dφ`` (:mod:`~torchconn.regression.tied`).
-3. :func:`tied_metric_regression` -- ``P ≈ vᵀ[M(φ) + ∂M/∂r(φ) δ]v`` on the sample intervals
-   of the raw shapes, Fourier in phase, noise-corrected → :class:`MetricFit` (the default);
-   :func:`metric_regression` -- the paper's per-bin expansion
-   ``P ≈ (γ̇+δ̇)ᵀ[M + ∂M/∂r δ](γ̇+δ̇)`` (eq. ``advancedmetricregression``).
+3. :class:`TiedMetric` (:mod:`~torchconn.regression.metric`), the metric stage:
+   :func:`tied_metric_regression`, ``P ≈ vᵀ[M(φ) + ∂M/∂r(φ) δ]v`` on the sample intervals of
+   the raw shapes, Fourier in phase, noise-corrected → :class:`MetricFit`.
 
 The bin regressions share one batched weighted least-squares solver (equilibrated normal equations,
 Cholesky, calibrated standard errors) and one policy for bins that cannot be fitted: too few
@@ -40,10 +40,9 @@ from .estimator import (
     prepare,
 )
 from .metric import (
+    MetricEstimator,
     MetricFit,
-    metric_design,
-    metric_n_coef,
-    metric_regression,
+    TiedMetric,
     power_noise_variance,
     tied_metric_n_coef,
     tied_metric_predict,
@@ -57,7 +56,7 @@ from .tube import Regression, TubeRegression
 __all__ = [
     "assign_bins", "BinIndex", "KERNELS",
     "connection_regression", "ConnectionFit", "connection_design", "tie_connection_derivative",
-    "metric_regression", "MetricFit", "metric_design", "metric_n_coef",
+    "MetricEstimator", "TiedMetric", "MetricFit",
     "tied_metric_regression", "tied_metric_n_coef", "tied_metric_predict",
     "power_noise_variance",
     "IllConditionedBinWarning",

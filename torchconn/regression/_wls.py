@@ -1,7 +1,7 @@
 """The one batched weighted least-squares solver behind every phase-bin regression.
 
 Both :func:`~torchconn.regression.connection_regression` and
-:func:`~torchconn.regression.metric_regression` reduce to: for every (batch element, bin), fit
+:func:`~torchconn.testing.paper_metric.metric_regression` reduce to: for every (batch element, bin), fit
 ``y ≈ X β`` on that bin's weighted rows, where ``X`` is a polynomial design in the offsets
 ``δ = r − γ_m`` and ``δ̇ = ṙ − γ̇_m``. This module gathers the rows, builds the design chunk by
 chunk, forms the weighted normal equations with one batched matmul, equilibrates them, solves

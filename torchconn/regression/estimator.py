@@ -1,6 +1,6 @@
 """The estimator: recordings in, a local connection model out (the paper's Sec. 4).
 
-:class:`ConnectionEstimator` joins four stages, each a small immutable option object with one
+:class:`ConnectionEstimator` joins five stages, each a small immutable option object with one
 job, in the manner of pysindy's ``SINDy(differentiation_method=…, feature_library=…,
 optimizer=…)``::
 
@@ -8,13 +8,15 @@ optimizer=…)``::
         smoother=RTSSmoother(order=2),          # phase/smoothing.py: smooth(traj) -> traj
         phaser=Phaser(order="auto"),            # phase/phaser.py: fit(r) -> fitted, transform(r)
         cycle=SelfConsistentCycle(order=8),     # phase/limit_cycle.py: fit(traj) -> LimitCycle
-        regression=NoiseAwareRegression(n_bins=48),  # regression/noise_aware.py: fit(traj, cycle)
+        regression=NoiseAwareRegression(n_bins=48),  # regression/noise_aware: fit(traj, cycle)
+        metric=TiedMetric(order=6),             # regression/metric: fit(traj, cycle), attach
         pool=False,                             # one model per trial, or one for all trials
     )
 
 Swapping a stage is a keyword argument; a new method is a new subclass of the stage's base
 (:class:`~torchconn.phase.smoothing.Smoother`, :class:`~torchconn.phase.phaser.PhaseEstimator`,
-:class:`~torchconn.phase.limit_cycle.CycleEstimator`, :class:`~torchconn.regression.tube.Regression`).
+:class:`~torchconn.phase.limit_cycle.CycleEstimator`, :class:`~torchconn.regression.tube.Regression`,
+:class:`~torchconn.regression.metric.MetricEstimator`).
 ``get_params`` / ``set_params`` follow scikit-learn (``regression__n_bins`` keys), so
 ``sklearn.base.clone`` and grid searches work without torchconn depending on scikit-learn.
 
@@ -44,6 +46,7 @@ from ..phase.smoothing import RTSSmoother, Smoother
 from ..trajectory import Trajectory, for_estimation, power_problem
 from . import selection
 from ._wls import IllConditionedBinWarning
+from .metric import FittedMetric, MetricEstimator, TiedMetric
 from .model import LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
 from .tube import Regression, TubeRegression, check_bin_count
@@ -60,6 +63,7 @@ STAGES: dict[str, tuple[type, dict[str, type]]] = {
     "phaser": (PhaseEstimator, {"phaser": Phaser}),
     "cycle": (CycleEstimator, {"self_consistent": SelfConsistentCycle}),
     "regression": (Regression, {"noise_aware": NoiseAwareRegression, "tube": TubeRegression}),
+    "metric": (MetricEstimator, {"tied": TiedMetric}),
 }
 
 #: the estimator's own options besides its stages (settings-table keys beside the stages)
@@ -78,6 +82,10 @@ class ConnectionEstimator:
             raw interval differences corrected for the motion-capture noise, shrunk towards
             the smoothed fit where the data cannot support the correction;
             :class:`TubeRegression`: Kalman-smoothed velocities, torchconn 0.1's method).
+        metric: fits the dissipation metric from a recorded power channel
+            (:class:`~torchconn.regression.metric.TiedMetric`; its ``enabled`` says whether:
+            None, when the data carry power; True, required; False, never). One metric fit
+            serves every candidate model of a recording.
         pool: fit one model to all trials together (their phases must share a Poincaré section,
             which Phaser's phase 0 provides) instead of one model per trial.
         complexity: the regression's bins, Fourier order and ridge: ``"fixed"`` as given;
@@ -153,6 +161,7 @@ class ConnectionEstimator:
         phaser: PhaseEstimator = Phaser(),
         cycle: CycleEstimator = SelfConsistentCycle(),
         regression: Regression = NoiseAwareRegression(),
+        metric: MetricEstimator = TiedMetric(),
         pool: bool = False,
         complexity: str = "auto",
         held_out_folds: int = 3,
@@ -161,6 +170,7 @@ class ConnectionEstimator:
         self.phaser = phaser
         self.cycle = cycle
         self.regression = regression
+        self.metric = metric
         self.pool = pool
         self.complexity = complexity
         self.held_out_folds = held_out_folds
@@ -210,32 +220,32 @@ class ConnectionEstimator:
             phase: optional ``(..., T)`` phase to use instead of the phaser's estimate.
         """
         traj = for_estimation(traj, "ConnectionEstimator.fit", phase)
-        if getattr(self.regression, "metric", None) is not False and traj.power is not None:
+        if self.metric.enabled is not False and traj.power is not None:
             for k, p in enumerate(traj.power.reshape(-1, traj.n_samples)):
                 problem = power_problem(p)
                 if problem is not None:
                     raise ValueError(f"ConnectionEstimator.fit: power of trial {k} (flattened "
                                      f"batch): {problem}; or fit the connection alone "
-                                     "(regression__metric=False)")
-        if getattr(self.regression, "metric", None) is True and traj.power is None:
+                                     "(metric__enabled=False)")
+        if self.metric.enabled is True and traj.power is None:
             raise ValueError(
-                "the regression asks for the metric (metric=True) but the data have no power "
-                "channel (CSV column 'power', or Trajectory.power): record the dissipated power "
-                "to estimate the metric, or use metric=None (fit it when power is present) / "
-                "False to fit the connection alone (torchconn-fit: --metric auto / no)"
+                "the metric stage requires a power channel (metric__enabled=True) but the data "
+                "have none (CSV column 'power', or Trajectory.power): record the dissipated "
+                "power to estimate the metric, or use metric__enabled=None (fit it when power "
+                "is present) / False to fit the connection alone"
             )
         check_bin_count(self.regression.n_bins, int(torch.isfinite(traj.r).all(-1).sum()),
                         "ConnectionEstimator.fit: regression")
         traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
         cycle = self.cycle.fit(traj, pool=self.pool)
+        metric = self._fit_metric(traj, cycle)
         regression, choice, free, searched = self.regression, None, None, False
         delivered = None  # the connection delivered where it is not the forecasts' fit
         with _cycles_in_errors(traj, regression, self.complexity):
             if self.complexity == "cv":
                 regression, choice, free = self._select(traj, cycle)
-            cache = {}  # the tied metric's coefficients, shared with a refit
             try:
-                model = _fit(regression, traj, cycle, self.pool, cache)
+                model = _fit(regression, traj, cycle, self.pool, metric)
             except ValueError:
                 if self.complexity != "auto" or not selection.downdates(regression):
                     raise
@@ -268,11 +278,11 @@ class ConnectionEstimator:
                         searched = True  # the check warns
                     else:
                         delivered = _connection_delivered(alone, model, regression, traj,
-                                                          cycle, self.pool, cache)
+                                                          cycle, self.pool, metric)
                         regression, choice, held = alone.regression, alone.choice, alone.held_out
                         model = alone.model
                 else:
-                    model = _refit(chosen, regression, model, traj, cycle, self.pool, cache)
+                    model = _refit(chosen, regression, model, traj, cycle, self.pool, metric)
                     regression = chosen
                     held = self._held_out(traj, cycle, regression, model, choice)[0]
         view = selection.regression_view(traj, regression, model, pool=self.pool)
@@ -292,7 +302,7 @@ class ConnectionEstimator:
         # connection delivered, the forecasts kept")
         unshrunk = _unshrunk(regression, free)
         connection = delivered if delivered is not None else model if unshrunk is None else (
-            _fit(unshrunk, traj, cycle, self.pool, cache))
+            _fit(unshrunk, traj, cycle, self.pool, metric))
         self.trajectory_ = traj
         self.phaser_ = fitted_phaser
         self.limit_cycle_ = cycle
@@ -308,6 +318,13 @@ class ConnectionEstimator:
         if held is not None:
             selection.warn_if_poor(held, stacklevel=3, choice=choice, searched=searched)
         return self
+
+    def _fit_metric(self, traj: Trajectory, cycle: LimitCycle
+                    ) -> tuple[MetricEstimator, FittedMetric] | None:
+        """The metric stage and its fit to ``traj``, or None where no metric is fitted."""
+        if not self.metric.wanted(traj.power):
+            return None
+        return self.metric, self.metric.fit(traj, cycle, pool=self.pool)
 
     def _folds(self) -> int:
         return self.held_out_folds or 3
@@ -469,49 +486,47 @@ class ConnectionEstimator:
 
 
 def _fit(regression: Regression, traj: Trajectory, cycle: LimitCycle, pool: bool,
-         cache: dict) -> LocalConnectionModel:
-    """``regression.fit``, sharing ``cache`` (the tied metric's coefficients) between the fits
-    of one recording (:meth:`TubeRegression.fit`'s ``metric_cache``)."""
-    if isinstance(regression, TubeRegression):
-        return regression.fit(traj, cycle, pool=pool, metric_cache=cache)
-    return regression.fit(traj, cycle, pool=pool)
+         metric: tuple[MetricEstimator, FittedMetric] | None) -> LocalConnectionModel:
+    """``regression.fit`` with the recording's one ``metric`` fit (stage, fit) attached (None:
+    no metric)."""
+    model = regression.fit(traj, cycle, pool=pool)
+    return model if metric is None else metric[0].attach(model, metric[1])
 
 
 def _refit(chosen: Regression, given: Regression, model: LocalConnectionModel | None,
-           traj: Trajectory, cycle: LimitCycle, pool: bool, cache: dict
-           ) -> LocalConnectionModel:
+           traj: Trajectory, cycle: LimitCycle, pool: bool,
+           metric: tuple[MetricEstimator, FittedMetric] | None) -> LocalConnectionModel:
     """The fit of the regression ``chosen`` by held-out error, after ``given`` fitted
-    ``model`` (None where it could not) to the same data with ``cache``: ``model`` itself
+    ``model`` (None where it could not) to the same data with ``metric``: ``model`` itself
     where the choice is the given complexity, else a new fit that takes the metric's
-    coefficients from the cache where its settings are unchanged: the same results as fitting
+    coefficients from the metric where its settings are unchanged: the same results as fitting
     ``chosen`` afresh, without fitting anything twice."""
     if model is not None and chosen == given:
         return model
-    return _fit(chosen, traj, cycle, pool, cache)
+    return _fit(chosen, traj, cycle, pool, metric)
 
 
 def _connection_delivered(alone: "selection.ConnectionAlone", given: LocalConnectionModel | None,
                           regression: Regression, traj: Trajectory, cycle: LimitCycle,
-                          pool: bool, cache: dict) -> LocalConnectionModel:
+                          pool: bool, metric: tuple[MetricEstimator, FittedMetric] | None
+                          ) -> LocalConnectionModel:
     """The connection delivered where the connection alone was checked (``alone``, chosen
     after the given ``regression`` fitted ``given``, or could not: None): ``alone.model``,
     with the metric where ``given`` has one, or where it could not be fitted and
     ``regression`` asks for the metric of a recording with a power channel (a fit at the
-    chosen bins, the metric's coefficients from ``cache``). Measured (README "Few samples per
+    chosen bins, the metric's coefficients from ``metric``). Measured (README "Few samples per
     cycle"): 5-link, 10-12 samples per cycle, 7-12 cycles, its ``Â`` was 27-30 % off against
     the given 48-bin fit's 55-64 % and the chosen bins' full fit's 62 %.
 
     Raises:
         ValueError: the metric asked for cannot be fitted at the chosen bins either.
     """
-    metric = (given.M is not None if given is not None
-              else traj.power is not None and getattr(regression, "metric", None) is not False)
-    if not metric:
+    if metric is None:
         return alone.model
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         fitted = _fit(alone.regression.replace(on_ill_conditioned="warn"), traj, cycle, pool,
-                      cache)
+                      metric)
     return selection.connection_alone_model(fitted, alone.coef, alone.regression.fourier_order)
 
 

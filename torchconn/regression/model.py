@@ -59,7 +59,7 @@ class BinEstimates:
             ``[..., i, j, k]`` (the tied model's ``∂M/∂r(φ)``), or None.
         M_offset_bias: ``(..., M, d, d)`` the tube's second-order bias of ``M̂`` (``M̂`` absorbs
             ``½∂²M/∂r² : E[δδᵀ]``), estimated as the change of ``M̂`` when that term is fitted
-            too (without ``metric_second_order``): not in ``M_se``; nearby-gait draws
+            too (without ``TiedMetric.second_order``): not in ``M_se``; nearby-gait draws
             add it as one error shared by entries and bins. None where not estimated.
         M_sampling_factor: ``(..., M, d, d, R)`` a factor of the part of ``M_se``'s variance
             that is the fit's own sampling noise (the tied model's cluster-robust covariance),

@@ -321,7 +321,7 @@ def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Reg
     """
     best, failures, scores = None, [], []
     for n_bins, order in COMPLEXITY_GRID:
-        base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
+        base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
             try:  # the whole recording's window, interval and noise level
@@ -579,7 +579,7 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, pen
     SSE minus the phase average's; or, for a candidate that cannot be fitted, the failure (a
     string). One whole-recording fit serves every candidate, and one pass over the data every
     ridge of a setting."""
-    base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0, metric=False)
+    base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0)
 
     def penalised(setting):
         return base if setting is None else base.replace(ridge_connection=setting)

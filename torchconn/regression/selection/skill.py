@@ -303,10 +303,10 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
 
 def fold_models(traj, cycle, regression, model, *, pool, n_folds, refit,
                  connection_regressed=False):
-    """The regression (metric off), its fits without each of ``n_folds`` blocks of cycles
+    """The regression, its fits without each of ``n_folds`` blocks of cycles
     (downdated ones of the connection alone where ``connection_regressed``), the view they
     are scored on, its block index and its cycle index (:func:`cycle_index`)."""
-    reg = regression.replace(metric=False)
+    reg = regression
     if model is None:
         model = reg.fit(traj, cycle, pool=pool)  # the view's interval, from the whole recording
     unflat = regression_view(traj, reg, model, pool=pool, flatten=False)
