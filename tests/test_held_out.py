@@ -107,7 +107,7 @@ def test_a_fits_diagnostics_are_the_choices_its_meta_records(eight, tmp_path):
     fit's interval, noise level and blend weights per trial, a tube fit's window and no
     noise-aware fields; a model saved and loaded keeps them."""
     traj, cycle, _ = eight
-    noisy = NoiseAwareRegression(metric=False, n_bins=16, fourier_order=4).fit(
+    noisy = NoiseAwareRegression(n_bins=16, fourier_order=4).fit(
         traj, cycle, pool=False)
     diag = noisy.diagnostics
     assert torch.equal(torch.as_tensor(diag.velocity_interval),
@@ -120,7 +120,7 @@ def test_a_fits_diagnostics_are_the_choices_its_meta_records(eight, tmp_path):
     with pytest.raises(dataclasses.FrozenInstanceError):
         diag.window = 1.0
     assert LocalConnectionModel.load(noisy.save(tmp_path / "model")).diagnostics == diag
-    tube = TubeRegression(metric=False, n_bins=16, fourier_order=4, window=2.0).fit(
+    tube = TubeRegression(n_bins=16, fourier_order=4, window=2.0).fit(
         traj, cycle, pool=False)
     assert tube.diagnostics.window == 2.0
     assert tube.diagnostics.noise_r is None and tube.diagnostics.corrected_weight is None

@@ -214,11 +214,30 @@ class ConnectionEstimator:
     def fit(self, traj: Trajectory, phase: Tensor | None = None) -> "ConnectionEstimator":
         """Fit to recordings ``traj`` (batch dims ``...``: one model per trial unless pooled).
 
+        The pipeline: check the input; smooth (``smoother``) and phase (``phaser``); fit the
+        limit cycle (``cycle``); fit the connection (``regression``) and the metric
+        (``metric``); select the forecasts' complexity on held-out cycles; deliver the
+        fitted attributes.
+
         Args:
             traj: a :class:`~torchconn.trajectory.Trajectory` (simulated, or read with
                 :func:`torchconn.io.trajectory_files.read_csv`).
             phase: optional ``(..., T)`` phase to use instead of the phaser's estimate.
         """
+        traj = self._checked(traj, phase)
+        traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
+        cycle = self.cycle.fit(traj, pool=self.pool)
+        with _cycles_in_errors(traj, self.regression, self.complexity):
+            connection = self._connection(traj, cycle)
+            metric = self._fit_metric(traj, cycle)
+            outcome = self._selection(traj, cycle, connection, metric)
+        self._deliver(traj, fitted_phaser, cycle, outcome, metric)
+        return self
+
+    # ------------------------------------------------------------------ the pipeline's steps
+    def _checked(self, traj: Trajectory, phase: Tensor | None) -> Trajectory:
+        """``traj`` checked for estimation: shapes, the power channel the metric stage needs
+        (or refuses), and no more phase bins than samples."""
         traj = for_estimation(traj, "ConnectionEstimator.fit", phase)
         if self.metric.enabled is not False and traj.power is not None:
             for k, p in enumerate(traj.power.reshape(-1, traj.n_samples)):
@@ -236,88 +255,121 @@ class ConnectionEstimator:
             )
         check_bin_count(self.regression.n_bins, int(torch.isfinite(traj.r).all(-1).sum()),
                         "ConnectionEstimator.fit: regression")
-        traj, fitted_phaser = _prepare(traj, phase, self.smoother, self.phaser)
-        cycle = self.cycle.fit(traj, pool=self.pool)
-        metric = self._fit_metric(traj, cycle)
-        regression, choice, free, searched = self.regression, None, None, False
-        delivered = None  # the connection delivered where it is not the forecasts' fit
-        with _cycles_in_errors(traj, regression, self.complexity):
-            if self.complexity == "cv":
-                regression, choice, free = self._select(traj, cycle)
-            try:
-                model = _fit(regression, traj, cycle, self.pool, metric)
-            except ValueError:
-                if self.complexity != "auto" or not selection.downdates(regression):
-                    raise
-                model = None  # too many coefficients for this recording: choose them below
-            # on few cycles the check also asks whether each component's full model is the
-            # one to keep (a simpler one is presumed there; on more cycles only where the
-            # full model loses to the phase average, and the choice below decides)
-            held, full = (None, None) if model is None else self._held_out(
-                traj, cycle, regression, model, choice,
-                terms=self.complexity == "auto"
-                and bool(selection.few_cycles(traj.phase, self.pool).any()))
-            if self.complexity == "auto" and (model is None or (held is not None and bool(
-                    (held.worse_than_phase_average | held.unscored[..., None] | ~full).any()))):
-                # the given complexity overfits this recording: choose it by held-out error
-                try:
-                    chosen, choice, free = self._select(traj, cycle)
-                except ValueError:
-                    # no candidate fits 2 of 3 blocks: the connection alone (1 + d regressors
-                    # per bin), which the check can score, predicts where it clearly beats the
-                    # phase average, and is the connection (README "Few samples per cycle")
-                    alone = self._connection_alone(traj, cycle, regression, held, model)
-                    if alone is None:
-                        if model is None:
-                            raise
-                        # on few cycles, where the check cannot score the given fit, the
-                        # simpler model is presumed (as selection.complexity._choose_terms does) and it
-                        # predicts the phase average; longer recordings keep it unchecked
-                        choice = selection.unchecked_choice(
-                            held, regression, selection.few_cycles(traj.phase, self.pool))
-                        searched = True  # the check warns
-                    else:
-                        delivered = _connection_delivered(alone, model, regression, traj,
-                                                          cycle, self.pool, metric)
-                        regression, choice, held = alone.regression, alone.choice, alone.held_out
-                        model = alone.model
-                else:
-                    model = _refit(chosen, regression, model, traj, cycle, self.pool, metric)
-                    regression = chosen
-                    held = self._held_out(traj, cycle, regression, model, choice)[0]
+        return traj
+
+    def _connection(self, traj: Trajectory, cycle: LimitCycle) -> LocalConnectionModel | None:
+        """The given regression's fit (no metric yet); None with ``complexity="cv"`` (the
+        complexity is chosen first) and, with ``"auto"``, where the recording cannot carry its
+        coefficients (the selection chooses them)."""
+        if self.complexity == "cv":
+            return None
+        try:
+            return self.regression.fit(traj, cycle, pool=self.pool)
+        except ValueError:
+            if self.complexity != "auto" or not selection.downdates(self.regression):
+                raise
+            return None
+
+    def _selection(self, traj: Trajectory, cycle: LimitCycle,
+                   connection: LocalConnectionModel | None, metric) -> _Outcome:
+        """The forecasts' regression and model: the first of these candidates that the
+        recording supports, in order:
+
+        1. the given complexity (always with ``"fixed"``; with ``"auto"`` where it passes the
+           held-out check);
+        2. the complexity chosen by held-out error (always with ``"cv"``);
+        3. the connection alone, where no candidate with ``b̂`` and ``∂Â/∂r`` can be scored;
+        4. the given fit unchecked (the phase average presumed on few cycles).
+        """
+        given = _Given(self.regression, _with_metric(connection, metric))
+        if given.model is not None:
+            few = bool(selection.few_cycles(traj.phase, self.pool).any())
+            given.held, given.full = self._held_out(
+                traj, cycle, given.regression, given.model,
+                terms=self.complexity == "auto" and few)
+        for candidate in (self._as_given, self._by_held_out, self._alone, self._unchecked):
+            outcome = candidate(traj, cycle, metric, given)
+            if outcome is not None:
+                return outcome
+        raise AssertionError("the last candidate always returns")  # pragma: no cover
+
+    def _as_given(self, traj, cycle, metric, given: _Given) -> _Outcome | None:
+        """Candidate 1: the given complexity's fit, where it is kept."""
+        if given.model is None or self.complexity == "cv":
+            return None
+        if self.complexity == "auto" and given.held is not None and bool(
+                (given.held.worse_than_phase_average | given.held.unscored[..., None]
+                 | ~given.full).any()):
+            return None  # the given complexity overfits this recording
+        return _Outcome(given.regression, given.model, given.held)
+
+    def _by_held_out(self, traj, cycle, metric, given: _Given) -> _Outcome | None:
+        """Candidate 2: the complexity chosen by held-out error, fitted; None with ``"auto"``
+        where no candidate can be scored (the error kept for candidate 4)."""
+        try:
+            chosen, choice, free = self._select(traj, cycle)
+        except ValueError as err:
+            if self.complexity != "auto":
+                raise
+            given.error = err
+            return None
+        model = _refit(chosen, given.regression, given.model, traj, cycle, self.pool, metric)
+        held = self._held_out(traj, cycle, chosen, model, choice)[0]
+        return _Outcome(chosen, model, held, choice, free)
+
+    def _alone(self, traj, cycle, metric, given: _Given) -> _Outcome | None:
+        """Candidate 3: the connection alone (``1 + d`` regressors per bin), which the check
+        can score: it predicts where it clearly beats the phase average, and it is the
+        connection delivered."""
+        alone = self._connection_alone(traj, cycle, given.regression, given.held, given.model)
+        if alone is None:
+            return None
+        delivered = _connection_delivered(alone, given.model, given.regression, traj, cycle,
+                                          self.pool, metric)
+        return _Outcome(alone.regression, alone.model, alone.held_out, alone.choice,
+                        delivered=delivered)
+
+    def _unchecked(self, traj, cycle, metric, given: _Given) -> _Outcome:
+        """Candidate 4: the given fit unchecked; on few cycles the simpler model is presumed
+        and the phase average predicts. Raises the selection's error where there is no fit."""
+        if given.model is None:
+            raise given.error
+        choice = selection.unchecked_choice(given.held, given.regression,
+                                            selection.few_cycles(traj.phase, self.pool))
+        return _Outcome(given.regression, given.model, given.held, choice, searched=True)
+
+    def _deliver(self, traj: Trajectory, fitted_phaser: PhaseEstimator | None,
+                 cycle: LimitCycle, outcome: _Outcome, metric) -> None:
+        """Set the fitted attributes from the selection's ``outcome``: the forecasting model
+        (the components its choice gave to the phase average or the connection alone
+        predicted so) and the connection model (every row as estimated; where the choice
+        penalised ``Â``, the complexity chosen with ``Â`` unpenalised); warn where the
+        held-out check found the forecasts poor."""
+        regression, model, choice = outcome.regression, outcome.model, outcome.choice
         view = selection.regression_view(traj, regression, model, pool=self.pool)
-        # the phase average of the model's order
         self.phase_average_ = selection.phase_average(view, regression.fourier_order)
         forecast = model
         if choice is not None and (choice.phase_averaged_names()
                                    or choice.connection_only_names()):
-            # components whose shape terms lost to the phase average held out predict it;
-            # those whose offset terms did not help keep the connection alone
             forecast = selection.with_phase_average(model, self.phase_average_,
-                                                *_masks(choice, model.device))
+                                                    *_masks(choice, model.device))
             # one order for both, so that score() finds them tied exactly
             self.phase_average_ = self.phase_average_.padded(forecast.c.order)
-        # the connection: every row as estimated, and where the complexity was chosen among
-        # ridges that penalise Â, chosen in the same search with Â unpenalised (README "The
-        # connection delivered, the forecasts kept")
-        unshrunk = _unshrunk(regression, free)
-        connection = delivered if delivered is not None else model if unshrunk is None else (
-            _fit(unshrunk, traj, cycle, self.pool, metric))
-        self.trajectory_ = traj
-        self.phaser_ = fitted_phaser
-        self.limit_cycle_ = cycle
-        self.regression_ = regression
-        self.complexity_ = choice
-        self.held_out_skill_ = held
+        unshrunk = _unshrunk(regression, outcome.free)
+        connection = outcome.delivered if outcome.delivered is not None else model \
+            if unshrunk is None else _fit(unshrunk, traj, cycle, self.pool, metric)
+        self.trajectory_, self.phaser_, self.limit_cycle_ = traj, fitted_phaser, cycle
+        self.regression_, self.complexity_ = regression, choice
+        self.held_out_skill_ = outcome.held
         self.forecast_model_ = _with_settings(forecast, estimator_settings(self, regression))
         self.model_ = self.forecast_model_
         if forecast is not connection:
             self.model_ = _with_settings(connection,
                                          estimator_settings(self, unshrunk or regression),
                                          forecast_model=_forecast_meta(choice, regression))
-        if held is not None:
-            selection.warn_if_poor(held, stacklevel=3, choice=choice, searched=searched)
-        return self
+        if outcome.held is not None:
+            selection.warn_if_poor(outcome.held, stacklevel=4, choice=choice,
+                                   searched=outcome.searched)
 
     def _fit_metric(self, traj: Trajectory, cycle: LimitCycle
                     ) -> tuple[MetricEstimator, FittedMetric] | None:
@@ -485,12 +537,51 @@ class ConnectionEstimator:
         return "ConnectionEstimator(" + ", ".join(changed) + ")"
 
 
+@dataclasses.dataclass
+class _Given:
+    """The given regression's fit and its held-out check, as the selection's candidates see
+    them: ``model`` None where it could not be fitted (or with ``complexity="cv"``); ``held``
+    the check's skill (None: off), ``full`` ``(..., 3)`` True where each component's full
+    model is the one to keep; ``error`` the selection's error where no candidate scored."""
+
+    regression: Regression
+    model: LocalConnectionModel | None
+    held: "selection.Skill | None" = None
+    full: Tensor | None = None
+    error: ValueError | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class _Outcome:
+    """A selection candidate's result: the regression fitted for the forecasts and its
+    ``model``, the held-out skill, the complexity ``choice`` (None: as given), ``free`` the
+    connection's regression where it differs (``Â`` unpenalised), ``delivered`` the
+    connection where it is not the forecasts' fit, and ``searched``: the search ran and no
+    candidate could be scored."""
+
+    regression: Regression
+    model: LocalConnectionModel
+    held: "selection.Skill | None" = None
+    choice: "selection.ComplexityChoice | None" = None
+    free: Regression | None = None
+    delivered: LocalConnectionModel | None = None
+    searched: bool = False
+
+
+def _with_metric(model: LocalConnectionModel | None,
+                 metric: tuple[MetricEstimator, FittedMetric] | None
+                 ) -> LocalConnectionModel | None:
+    """``model`` with the recording's one ``metric`` fit (stage, fit) attached (None: no
+    metric, or no model)."""
+    if model is None or metric is None:
+        return model
+    return metric[0].attach(model, metric[1])
+
+
 def _fit(regression: Regression, traj: Trajectory, cycle: LimitCycle, pool: bool,
          metric: tuple[MetricEstimator, FittedMetric] | None) -> LocalConnectionModel:
-    """``regression.fit`` with the recording's one ``metric`` fit (stage, fit) attached (None:
-    no metric)."""
-    model = regression.fit(traj, cycle, pool=pool)
-    return model if metric is None else metric[0].attach(model, metric[1])
+    """``regression.fit`` with the recording's one ``metric`` fit attached."""
+    return _with_metric(regression.fit(traj, cycle, pool=pool), metric)
 
 
 def _refit(chosen: Regression, given: Regression, model: LocalConnectionModel | None,

@@ -151,7 +151,7 @@ class TiedMetric(MetricEstimator):
                 f"({tied_metric_n_coef(d, self.order, derivative)} coefficients with it, "
                 f"{MIN_SAMPLES_PER_COEF:g} samples each); it is left out, so M̂ also absorbs "
                 "how M varies off the cycle. Pool more trials or record more cycles",
-                stacklevel=4)
+                stacklevel=5)
             derivative = None
         second = self.second_order if self._identified(d, usable, derivative,
                                                        self.second_order) else None
@@ -161,7 +161,7 @@ class TiedMetric(MetricEstimator):
                 f"is left out: it needs the ∂M/∂r term and {MIN_SAMPLES_PER_COEF:g} usable "
                 f"power samples per coefficient ({usable} usable); M̂ keeps the tube's "
                 "second-order bias. Pool more trials or cycles, or use 'diagonal'",
-                stacklevel=4)
+                stacklevel=5)
         return dict(order=self.order, derivative_order=derivative, second_order=second)
 
     def _noise(self, traj: Trajectory, offset: Tensor, v: Tensor, power: Tensor,
