@@ -28,7 +28,7 @@ from pathlib import Path
 from ._checks import did_you_mean, unknown_keys_message
 
 __all__ = ["InputError", "check_center_frame", "add_threads", "set_threads", "add_device", "resolve_device",
-           "prepare_output", "run_command", "check_keys", "did_you_mean"]
+           "prepare_output", "run_command", "check_keys", "did_you_mean", "os_error_reason"]
 
 #: set to 1 to see the traceback of an unexpected error
 DEBUG_ENV = "TORCHCONN_DEBUG"
@@ -131,19 +131,21 @@ def prepare_output(path: Path | str, flag: str = "--out") -> Path:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise InputError(f"{flag} {path}: cannot create the output folder ({_reason(err)})") \
+        raise InputError(f"{flag} {path}: cannot create the output folder ({os_error_reason(err)})") \
             from None
     probe = path / f".write-test-{uuid.uuid4().hex}"
     try:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as err:
-        raise InputError(f"{flag} {path}: the output folder is not writable ({_reason(err)})") \
+        raise InputError(f"{flag} {path}: the output folder is not writable ({os_error_reason(err)})") \
             from None
     return path
 
 
-def _reason(err: OSError) -> str:
+def os_error_reason(err: OSError) -> str:
+    """The short reason of an ``OSError`` for a message: its ``strerror`` (e.g. "Permission
+    denied"), else the name of its type."""
     return err.strerror or type(err).__name__
 
 
@@ -180,5 +182,5 @@ def run_command(prog: str, body: Callable[[], int]) -> int:
 def _message(err: BaseException) -> str:
     if isinstance(err, OSError) and err.filename is not None and str(err.filename) not in str(
             err.args[-1] if err.args else ""):
-        return f"{err.filename}: {_reason(err)}"
+        return f"{err.filename}: {os_error_reason(err)}"
     return str(err)

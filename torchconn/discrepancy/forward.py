@@ -51,7 +51,7 @@ from ..phase.smoothing import (
     unwrap,
 )
 from ..physics import se2
-from ..physics.effects import Effect, _swimmer_kwargs, cubic_interp, get_effect
+from ..physics.effects import Effect, cubic_interp, get_effect, swimmer_kwargs
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..trajectory import Trajectory, span_bounds
@@ -431,7 +431,7 @@ class ForwardModel:
                 f"effects {[e.name for e, _ in active]} change the swimmer, which needs an "
                 f"NLinkSwimmer nominal model, got {type(self.system).__name__}"
             )
-        kwargs = _swimmer_kwargs(self.system)
+        kwargs = swimmer_kwargs(self.system)
         for effect, p in active:
             kwargs = effect.system_kwargs(p, kwargs)
         return NLinkSwimmer(**kwargs)

@@ -67,7 +67,8 @@ from ..physics.gaits import as_gait
 from ..physics.systems.base import LocomotionSystem
 from ..trajectory import GroundTruth, Trajectory
 
-__all__ = ["simulate", "cell_generators", "interval_power", "POWER_DEFINITION"]
+__all__ = ["simulate", "cell_generators", "interval_power", "POWER_DEFINITION", "seed_array", "per_cell",
+           "meta_value"]
 
 POWER_DEFINITION = (
     "power at sample k belongs to the sample interval [t_k, t_k+1): v_k^T M(rbar_k) v_k with "
@@ -90,7 +91,7 @@ Drift = Callable[[Tensor, float], Tensor]
 
 
 # ---------------------------------------------------------------------------- randomness
-def _seed_array(seeds, name: str = "seeds") -> np.ndarray:
+def seed_array(seeds, name: str = "seeds") -> np.ndarray:
     """Seeds as an object array of non-negative Python ints (batch shape kept)."""
     if isinstance(seeds, np.random.SeedSequence):
         seeds = [seeds]
@@ -146,7 +147,7 @@ def cell_generators(
     """
     if stream not in _STREAMS:
         raise ValueError(f"stream must be one of {tuple(_STREAMS)}, got {stream!r}")
-    arr = _seed_array(seeds)
+    arr = seed_array(seeds)
     key = _STREAMS[stream]
     gens = []
     for s in arr.reshape(-1):
@@ -155,7 +156,7 @@ def cell_generators(
     return gens, tuple(arr.shape)
 
 
-def _per_cell(value, name: str, batch: tuple[int, ...], dtype, device) -> Tensor:
+def per_cell(value, name: str, batch: tuple[int, ...], dtype, device) -> Tensor:
     """A float or a tensor broadcastable to ``batch`` -> flat ``(B,)`` tensor."""
     t = torch.as_tensor(value, dtype=dtype, device=device)
     try:
@@ -170,7 +171,9 @@ def _per_cell(value, name: str, batch: tuple[int, ...], dtype, device) -> Tensor
     return t.reshape(-1)
 
 
-def _meta_value(value):
+def meta_value(value):
+    """``value`` as written to a recording's metadata: a tensor becomes a (nested) list, any
+    other value is returned as is."""
     return value.detach().cpu().tolist() if isinstance(value, Tensor) else value
 
 
@@ -238,9 +241,9 @@ def simulate(
     dtype = like.dtype if like is not None else torch.float64
     device = like.device if like is not None else torch.device("cpu")
     gens, batch = cell_generators(seeds, "rollout", device)
-    eta_c = _per_cell(eta, "eta", batch, dtype, device)
-    alpha_c = _per_cell(alpha, "alpha", batch, dtype, device)
-    phase0_c = _per_cell(phase0, "phase0", batch, dtype, device)
+    eta_c = per_cell(eta, "eta", batch, dtype, device)
+    alpha_c = per_cell(alpha, "alpha", batch, dtype, device)
+    phase0_c = per_cell(phase0, "phase0", batch, dtype, device)
     if (eta_c < 0).any():
         raise ValueError("eta must be >= 0")
     if (alpha_c < 0).any():
@@ -278,10 +281,10 @@ def simulate(
         "source": "torchconn.simulation.rollout.simulate",
         "system": repr(system),
         "gait": repr(gait),
-        "eta": _meta_value(eta),
-        "alpha": _meta_value(alpha),
-        "phase0": _meta_value(phase0),
-        "seeds": _seed_array(seeds).tolist(),
+        "eta": meta_value(eta),
+        "alpha": meta_value(alpha),
+        "phase0": meta_value(phase0),
+        "seeds": seed_array(seeds).tolist(),
         "batch_shape": list(batch),
         "n_cycles": int(n_cycles),
         "samples_per_cycle": int(samples_per_cycle),
