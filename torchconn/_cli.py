@@ -25,6 +25,8 @@ import warnings
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+import torch
+
 from ._checks import did_you_mean, unknown_keys_message
 
 __all__ = ["InputError", "check_center_frame", "add_threads", "set_threads", "add_device", "resolve_device",
@@ -65,8 +67,6 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
 
 def set_threads(n: int) -> None:
     """Set torch's intra-op thread count (``--threads``)."""
-    import torch
-
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise InputError(f"--threads must be an integer >= 1, got {n!r}")
     torch.set_num_threads(n)
@@ -93,8 +93,6 @@ def resolve_device(name, where: str = "--device"):
             the device is not available here (no CUDA in this torch build, no GPU ``N``), or it
             cannot run torchconn (MPS has no float64).
     """
-    import torch
-
     text = str(name).strip() if isinstance(name, (str, torch.device)) else None
     match = re.fullmatch(r"(cpu|cuda|mps)(?::(\d+))?", text or "")
     if match is None or (match[2] is not None and match[1] != "cuda"):

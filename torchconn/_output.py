@@ -36,6 +36,8 @@ from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
+
 from ._cli import InputError, os_error_reason
 
 try:
@@ -163,8 +165,6 @@ def write_table(path: str | Path, columns, rows) -> Path:
 def savez(path: str | Path, **arrays) -> Path:
     """``numpy.savez`` into ``path`` atomically; like it, adds ``.npz`` to a name without it.
     Returns the path written."""
-    import numpy as np
-
     path = Path(path)
     if not path.name.endswith(".npz"):
         path = path.with_name(path.name + ".npz")

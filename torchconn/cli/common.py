@@ -16,7 +16,7 @@ import tomllib
 from collections.abc import Callable
 from pathlib import Path
 
-from .. import __version__
+from .._version import __version__
 from .._cli import InputError, add_device, add_threads
 from .._files import read_toml
 

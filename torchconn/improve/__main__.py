@@ -62,6 +62,7 @@ def _simulate(args, folder: OutputFolder) -> int:
     })
     write_gait(result.rounds[-1].proposal, out / "next_gait")
     if not args.no_figures:
+        # lazy: .plots imports matplotlib, which only a run that draws figures needs
         from .plots import plot_gaits, plot_rounds
 
         plot_gaits(result, system, out / "gaits.png")

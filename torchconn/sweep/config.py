@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .. import __version__
+from .._version import __version__
 from .._cli import InputError, check_keys, did_you_mean, resolve_device
 from .._files import read_text
 from .._options import check_value
