@@ -213,6 +213,46 @@ def prepare_measurement(
     Raises:
         ValueError: wrong number of joints, too few samples or cycles, a trial without data.
     """
+    _check_joints(traj, system)
+    batch_shape = tuple(traj.batch_shape)
+    T = traj.n_samples
+    pose, r, finite = _flat_recording(traj)
+    B = pose.shape[0]
+    dt = traj.dt
+
+    # trials of different lengths on one grid: each is smoothed and phased over its own span,
+    # the time outside it (never recorded) filled with the span's edge values
+    start, stop = span_bounds(finite)
+    padded = bool(((start > 0) | (stop < T)).any())
+    sm = (_smooth_spans(pose, r, dt, start, stop) if padded
+          else smooth_trajectory(pose, r, dt))
+    pose_f = torch.where(torch.isfinite(pose), pose, sm.pose)
+    r_f = torch.where(torch.isfinite(r), r, sm.r)
+    if phase is None and traj.phase is not None:
+        phase = traj.phase
+    if phase is None:
+        phase = _estimated_phase(sm.r, start, stop, padded, min_cycles)
+    else:
+        phase = torch.as_tensor(phase, dtype=torch.float64, device=pose.device).reshape(B, T)
+
+    kernel = _smoothing_kernels(pose, dt)
+    mask = _usable_mask(finite, (kernel.shape[-1] - 1) // 2)
+    cycle, trials, index = _number_cycles(phase, mask)
+    _check_whole_cycles(phase, mask, min_cycles)
+
+    heading = sm.pose[..., 2]
+    m = Measurement(
+        dt=dt, t=traj.t.to(torch.float64), pose=pose_f, r=r_f, heading=heading, phase=phase,
+        kernel=kernel, mask=mask, cycle=cycle,
+        cycle_trial=torch.tensor(trials, dtype=torch.long, device=pose.device),
+        cycle_index=torch.tensor(index, dtype=torch.long, device=pose.device),
+        xi=torch.zeros_like(pose_f), batch_shape=batch_shape,
+    )
+    return _with_xi(m)
+
+
+def _check_joints(traj: Trajectory, system: LocomotionSystem) -> None:
+    """Refuse inputs of the wrong type, and a system whose number of joints is not the data's."""
     if not isinstance(traj, Trajectory):
         raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
     if not isinstance(system, LocomotionSystem):
@@ -226,12 +266,15 @@ def prepare_measurement(
             f"the data have {d} joint angle(s) (r1..r{d}), but {what} joints; pass the model "
             f"that recorded them (--links {d + 1} for an N-link swimmer with N − 1 = {d} joints)"
         )
-    batch_shape = tuple(traj.batch_shape)
-    T = traj.n_samples
+
+
+def _flat_recording(traj: Trajectory) -> tuple[Tensor, Tensor, Tensor]:
+    """The trials flattened to one batch dim, in float64: poses ``(B, T, 3)`` with the heading
+    unwrapped, shapes ``(B, T, d)`` and which samples are complete ``(B, T)``. Raises
+    ``ValueError`` when a trial has fewer than 64 complete samples."""
+    T, d = traj.n_samples, traj.shape_dim
     pose = traj.pose.reshape(-1, T, 3).to(torch.float64)
     r = traj.r.reshape(-1, T, d).to(torch.float64)
-    B = pose.shape[0]
-    dt = traj.dt
     pose = torch.cat([pose[..., :2], unwrap(pose[..., 2], dim=-1)[..., None]], -1)
     finite = torch.isfinite(pose).all(-1) & torch.isfinite(r).all(-1)  # (B, T)
     n_finite = finite.sum(-1)
@@ -239,48 +282,55 @@ def prepare_measurement(
         b = int(n_finite.argmin())
         raise ValueError(f"trial {b} has only {int(n_finite[b])} complete samples; the "
                          "discrepancy workflow needs whole gait cycles of data per trial")
+    return pose, r, finite
 
-    # trials of different lengths on one grid: each is smoothed and phased over its own span,
-    # the time outside it (never recorded) filled with the span's edge values
-    start, stop = span_bounds(finite)
-    padded = bool(((start > 0) | (stop < T)).any())
-    sm = (_smooth_spans(pose, r, dt, start, stop) if padded
-          else smooth_trajectory(pose, r, dt))
-    pose_f = torch.where(torch.isfinite(pose), pose, sm.pose)
-    r_f = torch.where(torch.isfinite(r), r, sm.r)
-    if phase is None and traj.phase is not None:
-        phase = traj.phase
-    if phase is None:
-        try:
-            phase = (_edge_filled(Phaser(min_cycles=MIN_CYCLES_PER_TRIAL).fit(
-                _outside_nan(sm.r, start, stop)).phase_.unsqueeze(-1), start, stop)[..., 0]
-                if padded else estimate_phase(sm.r, min_cycles=MIN_CYCLES_PER_TRIAL))
-        except ValueError as err:
-            if "cycles" in str(err):
-                raise ValueError(
-                    f"too few cycles: {err}. The discrepancy workflow needs at least "
-                    f"{MIN_CYCLES_PER_TRIAL:g} gait cycles per trial and {min_cycles:g} in all"
-                ) from None
-            raise
-    else:
-        phase = torch.as_tensor(phase, dtype=torch.float64, device=pose.device).reshape(B, T)
 
-    # smoothing kernels: the GCV noise ratios of the recorded channels; x and y share one
+def _estimated_phase(r: Tensor, start: Tensor, stop: Tensor, padded: bool,
+                     min_cycles: float) -> Tensor:
+    """Phaser's phase ``(B, T)`` of the smoothed shapes ``r (B, T, d)``, each trial phased over
+    its span ``start:stop`` (edge-filled outside) when the trials differ in length. Too few
+    cycles per trial raise ``ValueError`` naming the workflow's minimum."""
+    try:
+        return (_edge_filled(Phaser(min_cycles=MIN_CYCLES_PER_TRIAL).fit(
+            _outside_nan(r, start, stop)).phase_.unsqueeze(-1), start, stop)[..., 0]
+            if padded else estimate_phase(r, min_cycles=MIN_CYCLES_PER_TRIAL))
+    except ValueError as err:
+        if "cycles" in str(err):
+            raise ValueError(
+                f"too few cycles: {err}. The discrepancy workflow needs at least "
+                f"{MIN_CYCLES_PER_TRIAL:g} gait cycles per trial and {min_cycles:g} in all"
+            ) from None
+        raise
+
+
+def _smoothing_kernels(pose: Tensor, dt: float) -> Tensor:
+    """Derivative kernels ``(B, 3, 2W+1)`` per trial and pose channel, from the GCV noise
+    ratios of the recorded channels; x and y share one (the geometric mean of their ratios)."""
+    B = pose.shape[0]
     q, R = noise_parameters(pose, dt)
     lam = q / R  # (B, 3)
     lam_xy = torch.sqrt(lam[:, 0] * lam[:, 1])
     ratios = torch.stack([lam_xy, lam_xy, lam[:, 2]], -1).reshape(-1)
-    kernel = derivative_kernel(ratios, dt).reshape(B, 3, -1)
-    W = (kernel.shape[-1] - 1) // 2
+    return derivative_kernel(ratios, dt).reshape(B, 3, -1)
 
-    # usable samples: inside each trial's recorded span, clear of the kernel's reach
-    idx = torch.arange(T, device=pose.device)
+
+def _usable_mask(finite: Tensor, half_width: int) -> Tensor:
+    """Usable samples ``(B, T)``: complete, inside each trial's recorded span and clear of the
+    kernel's reach (``half_width`` plus a few samples) from its ends."""
+    T = finite.shape[-1]
+    idx = torch.arange(T, device=finite.device)
     first = torch.where(finite, idx, T).amin(-1)
     last = torch.where(finite, idx, -1).amax(-1)
-    margin = W + _EDGE_EXTRA
-    mask = finite & (idx >= (first + margin)[:, None]) & (idx <= (last - margin)[:, None])
+    margin = half_width + _EDGE_EXTRA
+    return finite & (idx >= (first + margin)[:, None]) & (idx <= (last - margin)[:, None])
 
-    # cycles: whole turns of the phase from each trial's first usable sample
+
+def _number_cycles(phase: Tensor, mask: Tensor) -> tuple[Tensor, list[int], list[int]]:
+    """Cycles: whole turns of the phase from each trial's first usable sample, numbered over
+    all trials. Returns the cycle of each sample ``(B, T)`` (-1 where unusable), and each
+    cycle's trial and index within it. Cycles of fewer than 4 usable samples are dropped from
+    ``mask`` (in place)."""
+    B = phase.shape[0]
     ph0 = torch.stack([phase[b][mask[b]][0] if mask[b].any() else phase[b, 0]
                        for b in range(B)])
     local = torch.floor((phase - ph0[:, None]) / (2 * math.pi)).long()
@@ -298,7 +348,13 @@ def prepare_measurement(
             trials.append(b)
             index.append(k)
             nxt += 1
-    # whole cycles in total (partial ones at the ends still serve as data)
+    return cycle, trials, index
+
+
+def _check_whole_cycles(phase: Tensor, mask: Tensor, min_cycles: float) -> None:
+    """Refuse a recording whose usable samples span fewer than ``min_cycles`` whole cycles in
+    total (partial ones at the ends still serve as data)."""
+    B = phase.shape[0]
     span = torch.stack([(phase[b][mask[b]].max() - phase[b][mask[b]].min()) / (2 * math.pi)
                         if mask[b].any() else phase.new_zeros(())
                         for b in range(B)])
@@ -309,16 +365,6 @@ def prepare_measurement(
             f"gait cycle(s) over {B} trial(s); the discrepancy workflow needs at least "
             f"{min_cycles:g} (it cross-validates over whole cycles) -- record longer or more trials"
         )
-
-    heading = sm.pose[..., 2]
-    m = Measurement(
-        dt=dt, t=traj.t.to(torch.float64), pose=pose_f, r=r_f, heading=heading, phase=phase,
-        kernel=kernel, mask=mask, cycle=cycle,
-        cycle_trial=torch.tensor(trials, dtype=torch.long, device=pose.device),
-        cycle_index=torch.tensor(index, dtype=torch.long, device=pose.device),
-        xi=torch.zeros_like(pose_f), batch_shape=batch_shape,
-    )
-    return _with_xi(m)
 
 
 def _outside_nan(x: Tensor, start: Tensor, stop: Tensor) -> Tensor:

@@ -220,39 +220,14 @@ def simulate(
         ``r (..., T, d)``, ``power (..., T)`` and ``truth`` (phase, noise-free pose / r / power,
         ``xi``, ``r_dot``, ``delta``), ``T = n_cycles · samples_per_cycle``.
     """
-    if not isinstance(system, LocomotionSystem):
-        raise TypeError(f"system must be a LocomotionSystem, got {type(system).__name__}")
-    gait = as_gait(gait)
+    gait = _checked_run(system, gait, n_cycles, samples_per_cycle, substeps, drift)
     d = system.shape_dim
-    if gait.shape_dim != d:
-        raise ValueError(f"gait has {gait.shape_dim} joints but the system has {d}")
-    for name, v, lo in (("n_cycles", n_cycles, 1), ("samples_per_cycle", samples_per_cycle, 2),
-                        ("substeps", substeps, 2)):
-        _checks.integer(v, name, minimum=lo)
-    if substeps % 2:
-        raise ValueError(
-            f"substeps must be even (each sample sits mid-way through its {substeps} fine "
-            "steps' recording interval), got {substeps}"
-        )
-    if drift is not None and not callable(drift):
-        raise TypeError(f"drift must be a callable (pose, t) -> body velocity, got {drift!r}")
-
     like = eta if isinstance(eta, Tensor) and eta.is_floating_point() else None
     dtype = like.dtype if like is not None else torch.float64
     device = like.device if like is not None else torch.device("cpu")
     gens, batch = cell_generators(seeds, "rollout", device)
-    eta_c = per_cell(eta, "eta", batch, dtype, device)
-    alpha_c = per_cell(alpha, "alpha", batch, dtype, device)
-    phase0_c = per_cell(phase0, "phase0", batch, dtype, device)
-    if (eta_c < 0).any():
-        raise ValueError("eta must be >= 0")
-    if (alpha_c < 0).any():
-        raise ValueError("alpha must be >= 0")
-    if stationary_start and (alpha_c <= 0).any():
-        raise ValueError(
-            "stationary_start needs alpha > 0 (the stationary law N(0, η²/(2α)) does not exist "
-            "for alpha = 0); pass stationary_start=False"
-        )
+    eta_c, alpha_c, phase0_c = _cell_parameters(eta, alpha, phase0, stationary_start, batch,
+                                                dtype, device)
 
     kw = dict(dtype=dtype, device=device)
     if stationary_start:
@@ -277,7 +252,18 @@ def simulate(
         phase=rec["phase"], pose=rec["pose"], r=rec["r"], xi=rec["xi"], r_dot=rec["r_dot"],
         power=power, delta=rec["delta"],
     )
-    meta = {
+    meta = _rollout_meta(system, gait, eta=eta, alpha=alpha, phase0=phase0, seeds=seeds,
+                         batch=batch, n_cycles=n_cycles, samples_per_cycle=samples_per_cycle,
+                         substeps=substeps, dt=dt, stationary_start=stationary_start,
+                         drift=drift)
+    return Trajectory(t=t, pose=rec["pose"], r=rec["r"], power=power, truth=truth,
+                      meta=meta)
+
+
+def _rollout_meta(system, gait, *, eta, alpha, phase0, seeds, batch, n_cycles,
+                  samples_per_cycle, substeps, dt, stationary_start, drift) -> dict:
+    """The metadata of a simulated recording: the system, gait and every setting of the run."""
+    return {
         "source": "torchconn.simulation.rollout.simulate",
         "system": repr(system),
         "gait": repr(gait),
@@ -297,8 +283,47 @@ def simulate(
         "scheme": "Heun (Stratonovich), pose step exp(½(A(r_n)+A(r_n+1)) Δr) on SE(2)",
         "power": POWER_DEFINITION,
     }
-    return Trajectory(t=t, pose=rec["pose"], r=rec["r"], power=power, truth=truth,
-                      meta=meta)
+
+
+def _checked_run(system, gait, n_cycles, samples_per_cycle, substeps, drift):
+    """The gait as a gait object, after checking the system, the gait's joints, the integer
+    sizes of the run (``substeps`` even) and that ``drift`` is callable."""
+    if not isinstance(system, LocomotionSystem):
+        raise TypeError(f"system must be a LocomotionSystem, got {type(system).__name__}")
+    gait = as_gait(gait)
+    d = system.shape_dim
+    if gait.shape_dim != d:
+        raise ValueError(f"gait has {gait.shape_dim} joints but the system has {d}")
+    for name, v, lo in (("n_cycles", n_cycles, 1), ("samples_per_cycle", samples_per_cycle, 2),
+                        ("substeps", substeps, 2)):
+        _checks.integer(v, name, minimum=lo)
+    if substeps % 2:
+        raise ValueError(
+            f"substeps must be even (each sample sits mid-way through its {substeps} fine "
+            "steps' recording interval), got {substeps}"
+        )
+    if drift is not None and not callable(drift):
+        raise TypeError(f"drift must be a callable (pose, t) -> body velocity, got {drift!r}")
+    return gait
+
+
+def _cell_parameters(eta, alpha, phase0, stationary_start: bool, batch: tuple[int, ...],
+                     dtype, device) -> tuple[Tensor, Tensor, Tensor]:
+    """``eta``, ``alpha`` and ``phase0`` per batch cell, flat ``(B,)``; refuses negative
+    ``eta`` or ``alpha``, and ``alpha = 0`` with a stationary start."""
+    eta_c = per_cell(eta, "eta", batch, dtype, device)
+    alpha_c = per_cell(alpha, "alpha", batch, dtype, device)
+    phase0_c = per_cell(phase0, "phase0", batch, dtype, device)
+    if (eta_c < 0).any():
+        raise ValueError("eta must be >= 0")
+    if (alpha_c < 0).any():
+        raise ValueError("alpha must be >= 0")
+    if stationary_start and (alpha_c <= 0).any():
+        raise ValueError(
+            "stationary_start needs alpha > 0 (the stationary law N(0, η²/(2α)) does not exist "
+            "for alpha = 0); pass stationary_start=False"
+        )
+    return eta_c, alpha_c, phase0_c
 
 
 def interval_power(system: LocomotionSystem, r: Tensor, dt: float) -> Tensor:
