@@ -94,11 +94,9 @@ class Proposal:
         predicted: ``current + gain``.
         gain, gain_se: ``predicted − current`` and its standard error (model draws; the two
             predictions share the model, so their common errors cancel). The ascent also
-            follows the model's errors, so the gain of its own optimum is biased high; a
-            parametric bootstrap of that bias (each redrawn model running its own ascent)
-            measured ~0 on clean fits and failed where the bias is large (weak signal, the
-            bootstrap's known limit), so it is not applied; the loop's intervals carry the
-            measured over-prediction instead.
+            follows the model's errors, so the gain of its own optimum is biased high; no
+            correction is applied here (the loop's intervals carry the over-prediction it
+            observes, :class:`~torchconn.improve.loop.LoopSettings`).
         radius, step: the trust radius and the largest change ``max_φ |Δ|`` taken (rad).
         prediction: the model's :class:`GaitPrediction` of the proposal.
     """
@@ -210,7 +208,7 @@ class _ChangeSearch:
 
     Attributes:
         radius: the trust radius (rad).
-        grid: 256 phases on ``[0, 2π)`` where the change's peak is measured.
+        grid: 256 phases on ``[0, 2π)`` where the change's peak is taken.
     """
 
     def __init__(self, model: LocalConnectionModel, objective: str, tr: TrustRegion,
