@@ -2,7 +2,7 @@
 
 - :func:`add_threads` adds ``--threads`` (default 1) and :func:`set_threads` applies it: the
   work is many small tensor operations, and torch's default of one thread per core
-  oversubscribes a machine that is busy with other work (measured: a diagnosis 10x slower).
+  oversubscribes a machine that is busy with other work.
 - :func:`add_device` adds ``--device`` (default ``cpu``) and :func:`resolve_device` checks a
   device name (the flag, or a config key) against what this machine has.
 - :func:`prepare_output` creates an output folder and proves it writable *before* any work.

@@ -1,10 +1,10 @@
-"""The differentiable forward model: measured shapes + swimmer + effects -> body-velocity residual.
+"""The differentiable forward model: recorded shapes + swimmer + effects -> body-velocity residual.
 
 Comparing like with like
-    The measured body velocity is not ``g⁻¹ġ`` itself but what a smoother makes of noisy poses:
+    The recorded body velocity is not ``g⁻¹ġ`` itself but what a smoother makes of noisy poses:
     ``ξ_meas = body(S_d y)``, with ``y (T, 3)`` the recorded world poses and ``S_d`` the
     smoothing differentiator. The simulator's prediction goes through the *same* ``S_d``:
-    the swimmer is driven by the measured shapes, its predicted poses ``y_pred`` are integrated
+    the swimmer is driven by the recorded shapes, its predicted poses ``y_pred`` are integrated
     on the recording grid, and ``ξ_pred = body(S_d y_pred)``. The residual
     ``ρ = ξ_meas − ξ_pred = body(S_d (y − y_pred))`` is then zero up to smoothed observation
     noise when the model is right, whatever the smoother's bias (filter lag, attenuated
@@ -25,7 +25,7 @@ The prediction
     finer than the recording -- shape effects act here (``joint_bias``, ``time_lag``) -- and
     the body twist of each fine step is ``½(A(r_n) + A(r_{n+1})) Δr_n`` plus any extra body
     velocity (``ambient_flow``, ``body_drift``). It is carried into the world frame with the
-    measured (smoothed) heading, not an integrated one, so a wrong model does not rotate its own
+    recorded (smoothed) heading, not an integrated one, so a wrong model does not rotate its own
     prediction away from the data over a long record, and summed. Observation effects
     (``marker_offset``) change the predicted recorded pose last.
 
@@ -74,8 +74,8 @@ MIN_CYCLES_PER_TRIAL = CYCLE_RULES["discrepancy"].per_trial
 _KERNEL_TOL = 1e-10
 #: extra samples left out at each end beyond the kernel's reach (room for shape shifts)
 _EDGE_EXTRA = 8
-#: smoothing kernels at least this half-width are applied by FFT (measured on 2 trials, float64,
-#: one thread: 1.15x faster than the direct correlation at 20, 3x at 64, 4-9x at 120-211)
+#: smoothing kernels at least this half-width are applied by FFT (faster than the direct
+#: correlation from there on)
 _FFT_HALF_WIDTH = 20
 
 
@@ -130,7 +130,7 @@ class Measurement:
         cycle: ``(B, T)`` integer id of the gait cycle a sample is in (unique over trials;
             −1 outside the mask).
         cycle_trial: ``(n_cycles,)`` trial of each cycle; cycle_index: position in its trial.
-        xi: ``(B, T, 3)`` measured body velocity ``body(S_d y)``.
+        xi: ``(B, T, 3)`` recorded body velocity ``body(S_d y)``.
         batch_shape: the original trajectory's batch shape.
     """
 
@@ -540,9 +540,9 @@ class ForwardModel:
         return poses
 
     def integrate_poses(self, params: dict[str, Tensor] | None = None) -> Tensor:
-        """A self-consistent recording of the (augmented) simulator driven by the measured
-        shapes: the fine steps' twists composed on SE(2) from the first measured pose, its own
-        heading included (unlike :meth:`predict_poses`, which borrows the measured heading).
+        """A self-consistent recording of the (augmented) simulator driven by the recorded
+        shapes: the fine steps' twists composed on SE(2) from the first recorded pose, its own
+        heading included (unlike :meth:`predict_poses`, which borrows the recorded heading).
         Velocity effects are evaluated at the integrated heading; observation effects are not
         applied. Returns ``(B, T, 3)``."""
         params = {k: v.detach() for k, v in (params or {}).items()}
@@ -589,7 +589,7 @@ class ForwardModel:
 
         A recording without observation noise still leaves the forward model's own error (the
         swimming path between samples is not recorded): the floor is at least
-        ``min_relative_floor`` times the RMS of the measured body velocity, per component.
+        ``min_relative_floor`` times the RMS of the recorded body velocity, per component.
 
         Returns:
             ``(variance (B, 3), floor (3,))`` -- the floor is the RMS over usable samples.

@@ -153,7 +153,7 @@ class Confound(_Record):
 class EffectEstimate(_Record):
     """A named effect: physical values with intervals, and how it was chosen.
 
-    ``parameters`` and ``fitted`` are corrected for ``bias``, the estimator's own error measured
+    ``parameters`` and ``fitted`` are corrected for ``bias``, the estimator's own error estimated
     on simulated twins with the fitted values and the recording's observation noise (time
     stepping, smoothing, noisy shapes driving the forward model); ``bias`` is its size. The
     interval half-width is ``q · √(se² + bias²) · lack_of_fit``: ``se`` the cluster-robust

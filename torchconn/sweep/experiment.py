@@ -163,7 +163,7 @@ def run_cell(config: SweepConfig, cell: Cell, *,
     # quadratic regressors can be too thin to fit, which should not stop a connection study);
     # it scores every trial against the truth, so the held-out check is off, and the paper's
     # fixed complexity is kept unless the config asks for "cv" (the check costs about 0.6x a
-    # 9-link trial's fit, README "Held-out skill")
+    # 9-link trial's fit)
     estimator = config.make_estimator()
     estimator.set_params(regression__metric=False, held_out_folds=0,
                          complexity="cv" if estimator.complexity == "cv" else "fixed")

@@ -84,9 +84,8 @@ class ConversionSettings(Options):
         fix_flips: undo head/tail swaps found between frames (else only report them).
         fill_interior: a frame that lost interior keypoints (not the first or last) keeps them,
             placed on the straight line between their tracked neighbours; default off: the
-            frame is missing and the smoother bridges it in time, which measured more accurate
-            (joint-angle RMS error 0.013 vs 0.048 rad, 3-link, 3 keypoints per link, 3 % lost
-            points, 0.5 px noise; docs/tracking.md), though it keeps fewer frames.
+            frame is missing and the smoother bridges it in time, which is the more accurate
+            (docs/tracking.md), though it keeps fewer frames.
         time_origin: ``"first"`` (t = 0 at the first frame read) or ``"frame0"`` (t = frame / fps).
     """
 
