@@ -74,12 +74,12 @@ def main(argv=None) -> int:
             phi = torch.linspace(0, 2 * math.pi, 256, dtype=torch.float64)
             print(f"\n{links}-link, seed {seed}, ω {args.omega}, start {res.start_true:.4f}, "
                   f"loop {loop_s:.0f} s")
-            print("| round | cycles | measured | true | accepted | step (rad) | predicted [95%] "
+            print("| round | cycles | observed | true | accepted | step (rad) | predicted [95%] "
                   "| realised | covered | max abs r |")
             print("|---|---|---|---|---|---|---|---|---|---|")
             for r in res.rounds:
                 shape = float(torch.linalg.vector_norm(r.proposal(phi), dim=-1).max())
-                print(f"| {r.index} | {r.cycles_used} | {r.measured:.4f} ± {r.measured_se:.4f} "
+                print(f"| {r.index} | {r.cycles_used} | {r.observed:.4f} ± {r.observed_se:.4f} "
                       f"| {r.true:.4f} | {r.accepted} | {r.step:.3f} | {r.predicted:.4f} "
                       f"[{r.predicted_low:.4f}, {r.predicted_high:.4f}] | {r.realised:.4f} | "
                       f"{r.covered} | {shape:.2f} |")

@@ -141,7 +141,7 @@ print(f"simulator: current {true_objective(swimmer, cycle, 'displacement'):.4f},
 # %%
 settings = LoopSettings(rounds=rounds, trials=trials, cycles=cycles, seed=1)
 result = improve(swimmer, start, settings, progress=lambda r: print(
-    f"round {r.index}: {r.cycles_used} cycles, measured {r.measured:.4f} ± {r.measured_se:.4f}, "
+    f"round {r.index}: {r.cycles_used} cycles, observed {r.observed:.4f} ± {r.observed_se:.4f}, "
     f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, {r.predicted_high:.4f}], "
     f"realised {r.realised:.4f}"))
 best_true = None if nb.small else ceiling(swimmer, max_turn=0.05).x_displacement

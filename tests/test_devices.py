@@ -241,7 +241,7 @@ def test_no_tensor_is_made_on_the_default_device_in_an_improvement_round():
         res = improve(system, start, settings)
     (rnd,) = res.rounds
     assert rnd.proposal.coeffs.device.type == "cpu"
-    assert np.isfinite([rnd.measured, rnd.predicted, rnd.realised]).all()
+    assert np.isfinite([rnd.observed, rnd.predicted, rnd.realised]).all()
 
 
 def test_no_tensor_is_made_on_the_default_device_in_a_sweep_cell(monkeypatch):

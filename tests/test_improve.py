@@ -219,7 +219,7 @@ def test_one_loop_round_improves_realised_displacement():
     (rnd,) = res.rounds
     assert rnd.realised > res.start_true * 1.3
     assert rnd.cycles_used == 30
-    assert abs(rnd.measured - rnd.true) < 4 * rnd.measured_se + 0.05 * rnd.true
+    assert abs(rnd.observed - rnd.true) < 4 * rnd.observed_se + 0.05 * rnd.true
 
 
 def test_measure_cycles_matches_the_noise_free_gait():
@@ -383,7 +383,7 @@ def test_three_link_loop_reaches_the_straight_ceiling_with_covering_intervals():
     assert sum(r.covered for r in res.rounds) >= 7
     kept = [r for r in res.rounds if r.accepted]
     for a, b in zip(kept, kept[1:], strict=False):
-        assert b.true > a.true - 2 * math.hypot(a.measured_se, b.measured_se)
+        assert b.true > a.true - 2 * math.hypot(a.observed_se, b.observed_se)
 
 
 def test_connection_draws_take_a_s_sampling_factor_and_bias_allowance_whole(tmp_path):

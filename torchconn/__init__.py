@@ -19,8 +19,7 @@ The package's folders are the pipeline's stages:
 ``trajectory`` holds the :class:`Trajectory` container that flows through every stage.
 """
 
-from importlib.metadata import PackageNotFoundError, version
-
+from ._version import __version__
 from .io import read_csv, write_csv
 from .phase import Phaser, RTSSmoother, SelfConsistentCycle
 from .physics import gaits, se2
@@ -35,11 +34,6 @@ from .regression import (
 )
 from .simulation import observe, simulate
 from .trajectory import GroundTruth, SmoothedState, Trajectory
-
-try:
-    __version__ = version("torchconn")
-except PackageNotFoundError:  # running from a source tree that was never installed
-    __version__ = "0+unknown"
 
 __all__ = [
     "__version__",

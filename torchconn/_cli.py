@@ -2,7 +2,7 @@
 
 - :func:`add_threads` adds ``--threads`` (default 1) and :func:`set_threads` applies it: the
   work is many small tensor operations, and torch's default of one thread per core
-  oversubscribes a machine that is busy with other work (measured: a diagnosis 10x slower).
+  oversubscribes a machine that is busy with other work.
 - :func:`add_device` adds ``--device`` (default ``cpu``) and :func:`resolve_device` checks a
   device name (the flag, or a config key) against what this machine has.
 - :func:`prepare_output` creates an output folder and proves it writable *before* any work.
@@ -25,10 +25,12 @@ import warnings
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+import torch
+
 from ._checks import did_you_mean, unknown_keys_message
 
 __all__ = ["InputError", "check_center_frame", "add_threads", "set_threads", "add_device", "resolve_device",
-           "prepare_output", "run_command", "check_keys", "did_you_mean"]
+           "prepare_output", "run_command", "check_keys", "did_you_mean", "os_error_reason"]
 
 #: set to 1 to see the traceback of an unexpected error
 DEBUG_ENV = "TORCHCONN_DEBUG"
@@ -65,8 +67,6 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
 
 def set_threads(n: int) -> None:
     """Set torch's intra-op thread count (``--threads``)."""
-    import torch
-
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise InputError(f"--threads must be an integer >= 1, got {n!r}")
     torch.set_num_threads(n)
@@ -93,8 +93,6 @@ def resolve_device(name, where: str = "--device"):
             the device is not available here (no CUDA in this torch build, no GPU ``N``), or it
             cannot run torchconn (MPS has no float64).
     """
-    import torch
-
     text = str(name).strip() if isinstance(name, (str, torch.device)) else None
     match = re.fullmatch(r"(cpu|cuda|mps)(?::(\d+))?", text or "")
     if match is None or (match[2] is not None and match[1] != "cuda"):
@@ -131,19 +129,21 @@ def prepare_output(path: Path | str, flag: str = "--out") -> Path:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise InputError(f"{flag} {path}: cannot create the output folder ({_reason(err)})") \
+        raise InputError(f"{flag} {path}: cannot create the output folder ({os_error_reason(err)})") \
             from None
     probe = path / f".write-test-{uuid.uuid4().hex}"
     try:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as err:
-        raise InputError(f"{flag} {path}: the output folder is not writable ({_reason(err)})") \
+        raise InputError(f"{flag} {path}: the output folder is not writable ({os_error_reason(err)})") \
             from None
     return path
 
 
-def _reason(err: OSError) -> str:
+def os_error_reason(err: OSError) -> str:
+    """The short reason of an ``OSError`` for a message: its ``strerror`` (e.g. "Permission
+    denied"), else the name of its type."""
     return err.strerror or type(err).__name__
 
 
@@ -180,5 +180,5 @@ def run_command(prog: str, body: Callable[[], int]) -> int:
 def _message(err: BaseException) -> str:
     if isinstance(err, OSError) and err.filename is not None and str(err.filename) not in str(
             err.args[-1] if err.args else ""):
-        return f"{err.filename}: {_reason(err)}"
+        return f"{err.filename}: {os_error_reason(err)}"
     return str(err)

@@ -71,7 +71,7 @@ def eigh(a: Tensor, what: str) -> tuple[Tensor, Tensor]:
         return torch.linalg.eigh(a)
     except torch.linalg.LinAlgError as err:
         _nonfinite(a, what)
-        import scipy.linalg
+        import scipy.linalg  # only on this fallback path: importing torchconn does not load scipy
 
         try:
             return _per_element(lambda m: scipy.linalg.eigh(m, driver="evr"), a, like=a)
@@ -93,7 +93,7 @@ def svd(a: Tensor, what: str) -> tuple[Tensor, Tensor, Tensor]:
         return torch.linalg.svd(a, full_matrices=False)
     except torch.linalg.LinAlgError as err:
         _nonfinite(a, what)
-        import scipy.linalg
+        import scipy.linalg  # only on this fallback path: importing torchconn does not load scipy
 
         try:
             return _per_element(

@@ -36,7 +36,9 @@ from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ._cli import InputError, _reason
+import numpy as np
+
+from ._cli import InputError, os_error_reason
 
 try:
     import fcntl
@@ -163,8 +165,6 @@ def write_table(path: str | Path, columns, rows) -> Path:
 def savez(path: str | Path, **arrays) -> Path:
     """``numpy.savez`` into ``path`` atomically; like it, adds ``.npz`` to a name without it.
     Returns the path written."""
-    import numpy as np
-
     path = Path(path)
     if not path.name.endswith(".npz"):
         path = path.with_name(path.name + ".npz")
@@ -386,7 +386,7 @@ class OutputFolder:
         try:
             entries = {p.name for p in real.iterdir()} - OS_LITTER
         except OSError as err:
-            raise InputError(f"{self._where()}: cannot read the folder ({_reason(err)})") \
+            raise InputError(f"{self._where()}: cannot read the folder ({os_error_reason(err)})") \
                 from None
         if not entries:
             return
@@ -442,7 +442,7 @@ class OutputFolder:
         except OSError as err:
             self._unmake_parent()
             raise InputError(f"{self._where()}: cannot create the output folder "
-                             f"({_reason(err)})") from None
+                             f"({os_error_reason(err)})") from None
         if not self._parent.is_dir():
             raise InputError(f"{self._where()}: cannot create the output folder "
                              f"({self._parent} is a file)")
@@ -502,7 +502,7 @@ class OutputFolder:
             self._lock = None
             self._unmake_parent()
             raise InputError(f"{self._where()}: cannot write in {self._parent} "
-                             f"({_reason(err)})") from None
+                             f"({os_error_reason(err)})") from None
         except BaseException:
             self._lock = None
             self._unmake_parent()
@@ -515,7 +515,7 @@ class OutputFolder:
                                                     prefix=f".{self._real.name}.staging-"))
             except OSError as err:
                 raise InputError(f"{self._where()}: cannot write in {self._parent} "
-                                 f"({_reason(err)})") from None
+                                 f"({os_error_reason(err)})") from None
         except BaseException:
             self._release(failed=True)
             raise

@@ -18,19 +18,19 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ._output import write_bytes_atomic
+from ._version import __version__
 
 __all__ = ["versions", "source_hash", "spawn_seeds", "jsonable", "write_json", "write_sidecar"]
 
 
 def versions() -> dict[str, str]:
     """Versions of torchconn, Python and the libraries that determine its numbers."""
+    # scipy and matplotlib are imported here only, so that importing torchconn loads neither
     import matplotlib
     import scipy
-    import torch
-
-    from . import __version__
 
     return {"torchconn": __version__, "python": platform.python_version(),
             "torch": torch.__version__, "numpy": np.__version__, "scipy": scipy.__version__,

@@ -146,7 +146,8 @@ def build_estimator(args, table: dict | None) -> ConnectionEstimator:
     return estimator
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
+    """The argument parser of ``torchconn-fit``."""
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Fit one local connection model (and the metric, when the files have a "
@@ -196,202 +197,270 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
     add_conversion_arguments(p)
     add_common(p)
-    args = p.parse_args(argv)
+    return p
+
+
+def _check_flags(args) -> None:
+    """Refuse out-of-range numeric flags (``--links``, ``--grid``, ``--folds``, ``--window``)."""
+    if args.links < 2:
+        raise InputError(f"--links must be >= 2, got {args.links}")
+    if args.grid < 2:
+        raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
+    if args.grid > _MAX_GRID:
+        raise InputError(f"--grid must be <= {_MAX_GRID} (rows of connection.csv), got "
+                         f"{args.grid}")
+    if args.folds is not None and (args.folds < 0 or args.folds == 1):
+        raise InputError(f"--folds must be 0 (no held-out check) or >= 2, got {args.folds}")
+    if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
+        raise InputError(f"--window must be a positive number, got {args.window}")
+
+
+def _config_tables(args) -> dict:
+    """The ``--config`` file with the ``--set`` overrides applied (a stage's short form
+    ``regression.kernel=box`` read as ``estimator.regression.kernel``), checked to hold only
+    an ``[estimator]`` table and a valid ``[convert]`` table."""
+    overrides = [f"estimator.{o}" if o.split(".", 1)[0] in _STAGE_KEYS else o
+                 for o in args.overrides]
+    tables = config_tables(args.config, overrides)
+    unknown = sorted(set(tables) - {"estimator", "convert"})
+    if unknown:
+        raise InputError(f"unknown config section(s) {unknown}; fit reads [estimator] and "
+                         "[convert]")
+    if not isinstance(tables.get("estimator", {}), dict):
+        raise InputError(f"[estimator] must be a table of estimator settings, got "
+                         f"{tables['estimator']!r}")
+    check_conversion_table(tables.get("convert"))  # checked even where no file needs it
+    return tables
+
+
+def _swimmer_and_known(args, tables: dict) -> tuple[NLinkSwimmer, list]:
+    """The swimmer of ``--links`` in the frame of ``--frame`` (or ``[convert] frame``, else
+    the centre link for odd N and the mean-rotation frame for even N), and the ``--known``
+    conditions, each checked to change the data (not only the simulator)."""
+    frame = args.frame or (tables.get("convert", {}).get("frame")
+                           or ("center" if args.links % 2 else "com-mean"))
+    swimmer = NLinkSwimmer(args.links, frame=frame)
+    known = [parse_known(k, swimmer) for k in args.known]
+    for k in known:
+        if not changes_data(k):
+            raise InputError(f"--known {k.name}: it changes only the simulator, and fit "
+                             "estimates the model from the data without one; give it to "
+                             "torchconn-discrepancy instead")
+    return swimmer, known
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``torchconn-fit`` on ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
+    args = _parser().parse_args(argv)
     say = informer(args.quiet)
 
     def body() -> int:
         set_threads(args.threads)
         device = resolve_device(args.device)
-        if args.links < 2:
-            raise InputError(f"--links must be >= 2, got {args.links}")
-        if args.grid < 2:
-            raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
-        if args.grid > _MAX_GRID:
-            raise InputError(f"--grid must be <= {_MAX_GRID} (rows of connection.csv), got "
-                             f"{args.grid}")
-        if args.folds is not None and (args.folds < 0 or args.folds == 1):
-            raise InputError(f"--folds must be 0 (no held-out check) or >= 2, got {args.folds}")
-        if args.window is not None and not (math.isfinite(args.window) and args.window > 0):
-            raise InputError(f"--window must be a positive number, got {args.window}")
-        overrides = [f"estimator.{o}" if o.split(".", 1)[0] in _STAGE_KEYS else o
-                     for o in args.overrides]
-        tables = config_tables(args.config, overrides)
-        unknown = sorted(set(tables) - {"estimator", "convert"})
-        if unknown:
-            raise InputError(f"unknown config section(s) {unknown}; fit reads [estimator] and "
-                             "[convert]")
-        if not isinstance(tables.get("estimator", {}), dict):
-            raise InputError(f"[estimator] must be a table of estimator settings, got "
-                             f"{tables['estimator']!r}")
-        check_conversion_table(tables.get("convert"))  # checked even where no file needs it
+        _check_flags(args)
+        tables = _config_tables(args)
         given = conversion_flags(args)
         estimator = build_estimator(args, tables.get("estimator"))
+
         def conv():  # conversion options matter (and are checked) for tracking files only
             return conversion_settings(args, args.links, tables.get("convert"))
 
-        frame = args.frame or (tables.get("convert", {}).get("frame")
-                               or ("center" if args.links % 2 else "com-mean"))
-        swimmer = NLinkSwimmer(args.links, frame=frame)
-        known = [parse_known(k, swimmer) for k in args.known]
-        for k in known:
-            if not changes_data(k):
-                raise InputError(f"--known {k.name}: it changes only the simulator, and fit "
-                                 "estimates the model from the data without one; give it to "
-                                 "torchconn-discrepancy instead")
+        swimmer, known = _swimmer_and_known(args, tables)
         with OutputFolder(args.out, command=PROG) as folder:
-            return fit_into(folder, estimator, conv, known, swimmer, device, given)
-
-    def fit_into(folder: OutputFolder, estimator, conv, known, swimmer, device, given) -> int:
-        """Read, check and fit the recordings; write the outputs into ``folder``, whose
-        contents replace ``--out`` when this returns."""
-        out = folder.path
-        rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
-                              settings=conv, read_csv=read_csv)
-        warn_unused_conversion(rec, given)
-        traj = relative_to_known(rec.trajectory, known, swimmer)
-        # the phase estimator's own minimum (``--set phaser.min_cycles=...``) is the fit's rule
-        need = getattr(estimator.phaser, "min_cycles", CYCLE_RULES["fit"].per_trial)
-        check = preflight(traj, body_length=rec.body_length,
-                          rules={"fit": CycleRule(per_trial=need, total=need)})
-        say("\n".join(check.lines("fit")))
-        if not check.ready["fit"]:
-            raise InputError("the recording is not ready to fit: "
-                             + "; ".join(check.problems["fit"]))
-        traj = traj.to(device)  # read and checked on the CPU, moved once
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", PoorHeldOutSkillWarning)  # reported below
-            est = estimator.fit(traj)
-        held_out, folds = est.held_out_skill_, est.held_out_folds
-        model = est.model_.to("cpu")  # outputs are written from CPU copies
-        # the model predict() uses, where it differs from the connection (short recordings)
-        forecast = None if est.forecast_model_ is est.model_ else est.forecast_model_.to("cpu")
-        model.save(out / "model.npz")
-        write_connection_csv(model, out / "connection.csv", args.grid)
-        outputs = ["model.npz", "connection.csv"]
-        if forecast is not None:
-            forecast.save(out / FORECAST_FILE)
-            outputs.append(FORECAST_FILE)
-        if not args.no_figures:
-            plot_connection(model, out / "connection.png")
-            plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r.cpu())
-            outputs += ["connection.png", "limit_cycle.png"]
-            if model.M is not None:
-                plot_metric(model, out / "metric.png")
-                outputs.append("metric.png")
-        write_sidecar(out / "fit.json", {
-            "command": PROG, "argv": sys.argv[1:] if argv is None else list(argv),
-            "settings": {"estimator": estimator_settings(estimator),
-                         "convert": rec.reports[0].settings if rec.reports else None},
-            "known": [k.to_dict() for k in known],
-            "data": {"sources": [str(x) for x in args.data],
-                     "n_trials": int(traj.batch_shape.numel()), "n_samples": traj.n_samples,
-                     "dt": traj.dt, "trials": traj.meta.get("trials"),
-                     "conversion": [r.to_dict() for r in rec.reports]},
-            "preflight": check.to_dict(),
-            "model": {"window": model.meta.get("window"), "metric": model.M is not None},
-            # how the forecasting model (forecast_model.npz) differs from model.npz; None:
-            # model.npz is the forecasting model too
-            "forecast_model": None if forecast is None else {
-                "file": FORECAST_FILE, **model.meta["forecast_model"]},
-            "complexity": (None if est.complexity_ is None else
-                           {"n_bins": est.complexity_.n_bins,
-                            "fourier_order": est.complexity_.fourier_order,
-                            "ridge": est.complexity_.ridge,
-                            "checked": est.complexity_.checked,
-                            "connection_regressed": est.complexity_.connection_regressed,
-                            "components": list(COMPONENTS),
-                            "phase_averaged": nested_list(est.complexity_.phase_averaged),
-                            "connection_only": nested_list(
-                                est.complexity_.connection_only)}),
-            "held_out_skill": None if held_out is None else _skill_summary(held_out, folds),
-            "outputs": outputs,
-            "device": str(device),
-        })
-        out = folder.commit()
-        say(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
-            f"samples (d = {traj.shape_dim})")
-        if model.M is not None:
-            noise = (model.meta or {}).get("metric_noise_std")
-            if noise is not None:
-                say("shape noise estimated for the metric (rad): "
-                    + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
-            say("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; "
-                "the full M only as far as the data leave the cycle (see the bands in "
-                "metric.png)")
-        if est.complexity_ is not None:
-            c = est.complexity_
-            if not c.checked:
-                say(f"complexity as given ({c.n_bins} bins, Fourier order "
-                    f"{c.fourier_order}, ridge {c.ridge:g}): no held-out check can score it "
-                    "or a simpler one on this short recording, so "
-                    f"{', '.join(c.phase_averaged_names())} are predicted by the "
-                    f"phase-averaged velocity (rows of A, b and dA/dr 0 in {FORECAST_FILE}; "
-                    "model.npz holds the given complexity's estimates, unchecked)")
-            else:
-                say(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
-                    f"{c.fourier_order}, ridge {c.ridge:g}")
-            if c.connection_regressed:
-                say("no model with the offset terms b and dA/dr can be checked held out on "
-                    "this recording (too few samples per bin without one block of cycles), "
-                    "so the connection alone (1 + d regressors per bin) was fitted and "
-                    "checked instead; model.npz holds it (b and dA/dr not estimated: 0)")
-            if c.checked and c.phase_averaged_names():
-                say("forecasts predict by the phase-averaged velocity (the shape terms did not "
-                    "beat it on held-out cycles; their rows of A, b and dA/dr are 0 in "
-                    f"{FORECAST_FILE}): {', '.join(c.phase_averaged_names())}")
-            if c.connection_only_names() and not c.connection_regressed:
-                say("forecasts predict by the connection alone (the offset terms did not add "
-                    "to it on held-out cycles; their rows of b and dA/dr are 0 in "
-                    f"{FORECAST_FILE}, A is kept): {', '.join(c.connection_only_names())}")
-            elif c.connection_only_names():
-                say("forecasts predict by the connection alone (it beat the phase-averaged "
-                    f"velocity on held-out cycles): {', '.join(c.connection_only_names())}")
-        if forecast is not None:
-            differs, own = model.meta["forecast_model"], model.meta["settings"]["regression"]
-            ridge = differs["A_ridge"]
-            # the connection's own setting, not the forecasts' ridge: its complexity may have
-            # been chosen with A unpenalised where the forecasts' ridge is 0
-            free = own.get("ridge_connection", True) is False
-            say("model.npz, connection.csv and the plots: the connection, every row estimated "
-                f"({own['n_bins']} bins, Fourier order {own['fourier_order']}, ridge "
-                f"{own['ridge']:g}" + (" on b and dA/dr only, A unpenalised: the complexity "
-                                       "chosen held out with A unpenalised)"
-                                       if free else ")"))
-            how = [f"{differs['n_bins']} bins, Fourier order {differs['fourier_order']}"] + (
-                [f"A shrunk by the ridge {ridge:g}"] if ridge else []) + (
-                ["rows 0 where named above"]
-                if differs["phase_averaged"] or differs["connection_only"] else [])
-            say(f"{FORECAST_FILE}: the forecasting model (what ConnectionEstimator.predict "
-                "uses, and the held-out R² below): " + ", ".join(how))
-        if held_out is not None:
-            say(f"held-out R² (v_x, v_y, omega) of the forecasting model, each of {folds} "
-                "blocks of whole cycles left out in turn:")
-            for name, r2 in (("model", held_out.r2),
-                             ("phase-averaged velocity", held_out.r2_phase_average),
-                             ("template", held_out.r2_template)):
-                say(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
-            if bool(held_out.unscored.any()):
-                print("WARNING: some phase bins cannot be fitted when a block of cycles is "
-                      "left out: the model has too many coefficients for this recording "
-                      "(record more cycles, or use fewer --n-bins)")
-            elif bool(held_out.worse_than_phase_average.any()):
-                print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
-                      f"velocity for {held_out.shortfalls()}: its shape terms do not help "
-                      "predict those components on this "
-                      "recording (" + ("record more cycles; the complexity was already chosen "
-                      "by held-out error)" if est.complexity_ is not None else "try --complexity "
-                      "cv, fewer --n-bins, a lower --fourier-order or a wider --window, or "
-                      "record more cycles)"))
-            if bool(held_out.without_skill.any()):
-                print("WARNING: neither the model nor the phase-averaged velocity predicts "
-                      "held-out cycles better than their mean velocity for "
-                      f"{held_out.without_skill_names()}: not predictable from the gait's "
-                      "phase and shape on this recording (noise, or a motion the shape "
-                      "changes do not drive: a flow, a tether, contact)")
-        say(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
-        return 0
+            rec, traj, check = _read_checked(args, conv, given, known, swimmer, estimator, say)
+            traj = traj.to(device)  # read and checked on the CPU, moved once
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", PoorHeldOutSkillWarning)  # reported below
+                est = estimator.fit(traj)
+            model = est.model_.to("cpu")  # outputs are written from CPU copies
+            # the model predict() uses, where it differs from the connection (short recordings)
+            forecast = None if est.forecast_model_ is est.model_ else est.forecast_model_.to("cpu")
+            outputs = _write_results(folder.path, args, est, model, forecast)
+            write_sidecar(folder.path / "fit.json", {
+                "command": PROG, "argv": sys.argv[1:] if argv is None else list(argv),
+                **_sidecar(args, estimator, est, rec, traj, check, known, model, forecast),
+                "outputs": outputs,
+                "device": str(device),
+            })
+            out = folder.commit()
+            say(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
+                f"samples (d = {traj.shape_dim})")
+            _report_metric(model, say)
+            if est.complexity_ is not None:
+                _report_complexity(est.complexity_, say)
+            if forecast is not None:
+                _report_forecast(model, say)
+            if est.held_out_skill_ is not None:
+                _report_held_out(est, say)
+            say(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
+            return 0
 
     return run_command(PROG, body)
+
+
+def _read_checked(args, conv, given, known, swimmer, estimator, say):
+    """Read the recordings (converting tracking files), make them relative to the known
+    conditions and print the checks before fitting; returns ``(recordings, trajectory,
+    checks)``, or raises :class:`InputError` when the recording is not ready to fit."""
+    rec = load_recordings(args.data, fmt=args.format, n_links=args.links,
+                          settings=conv, read_csv=read_csv)
+    warn_unused_conversion(rec, given)
+    traj = relative_to_known(rec.trajectory, known, swimmer)
+    # the phase estimator's own minimum (``--set phaser.min_cycles=...``) is the fit's rule
+    need = getattr(estimator.phaser, "min_cycles", CYCLE_RULES["fit"].per_trial)
+    check = preflight(traj, body_length=rec.body_length,
+                      rules={"fit": CycleRule(per_trial=need, total=need)})
+    say("\n".join(check.lines("fit")))
+    if not check.ready["fit"]:
+        raise InputError("the recording is not ready to fit: "
+                         + "; ".join(check.problems["fit"]))
+    return rec, traj, check
+
+
+def _write_results(out: Path, args, est, model, forecast) -> list[str]:
+    """Write ``model.npz``, ``connection.csv``, the forecasting model where it differs and the
+    figures (unless ``--no-figures``) into ``out``; returns the names written."""
+    model.save(out / "model.npz")
+    write_connection_csv(model, out / "connection.csv", args.grid)
+    outputs = ["model.npz", "connection.csv"]
+    if forecast is not None:
+        forecast.save(out / FORECAST_FILE)
+        outputs.append(FORECAST_FILE)
+    if not args.no_figures:
+        plot_connection(model, out / "connection.png")
+        plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r.cpu())
+        outputs += ["connection.png", "limit_cycle.png"]
+        if model.M is not None:
+            plot_metric(model, out / "metric.png")
+            outputs.append("metric.png")
+    return outputs
+
+
+def _sidecar(args, estimator, est, rec, traj, check, known, model, forecast) -> dict:
+    """The entries of ``fit.json`` that describe the settings, the data, the checks and the
+    fit (``command``, ``argv``, ``outputs`` and ``device`` are added by the caller)."""
+    held_out = est.held_out_skill_
+    return {
+        "settings": {"estimator": estimator_settings(estimator),
+                     "convert": rec.reports[0].settings if rec.reports else None},
+        "known": [k.to_dict() for k in known],
+        "data": {"sources": [str(x) for x in args.data],
+                 "n_trials": int(traj.batch_shape.numel()), "n_samples": traj.n_samples,
+                 "dt": traj.dt, "trials": traj.meta.get("trials"),
+                 "conversion": [r.to_dict() for r in rec.reports]},
+        "preflight": check.to_dict(),
+        "model": {"window": model.meta.get("window"), "metric": model.M is not None},
+        # how the forecasting model (forecast_model.npz) differs from model.npz; None:
+        # model.npz is the forecasting model too
+        "forecast_model": None if forecast is None else {
+            "file": FORECAST_FILE, **model.meta["forecast_model"]},
+        "complexity": (None if est.complexity_ is None else
+                       {"n_bins": est.complexity_.n_bins,
+                        "fourier_order": est.complexity_.fourier_order,
+                        "ridge": est.complexity_.ridge,
+                        "checked": est.complexity_.checked,
+                        "connection_regressed": est.complexity_.connection_regressed,
+                        "components": list(COMPONENTS),
+                        "phase_averaged": nested_list(est.complexity_.phase_averaged),
+                        "connection_only": nested_list(
+                            est.complexity_.connection_only)}),
+        "held_out_skill": (None if held_out is None
+                           else _skill_summary(held_out, est.held_out_folds)),
+    }
+
+
+def _report_metric(model, say) -> None:
+    """Print the shape noise estimated for the metric and what of it the gait identifies."""
+    if model.M is None:
+        return
+    noise = (model.meta or {}).get("metric_noise_std")
+    if noise is not None:
+        say("shape noise estimated for the metric (rad): "
+            + ", ".join(f"r{i + 1} {w:.2g}" for i, w in enumerate(noise)))
+    say("metric: M_gamma_dot and power_on_cycle are identified by the gait itself; "
+        "the full M only as far as the data leave the cycle (see the bands in "
+        "metric.png)")
+
+
+def _report_complexity(c, say) -> None:
+    """Print the complexity used (given or chosen held out) and which components the
+    forecasting model predicts by a baseline (phase average, connection alone)."""
+    if not c.checked:
+        say(f"complexity as given ({c.n_bins} bins, Fourier order "
+            f"{c.fourier_order}, ridge {c.ridge:g}): no held-out check can score it "
+            "or a simpler one on this short recording, so "
+            f"{', '.join(c.phase_averaged_names())} are predicted by the "
+            f"phase-averaged velocity (rows of A, b and dA/dr 0 in {FORECAST_FILE}; "
+            "model.npz holds the given complexity's estimates, unchecked)")
+    else:
+        say(f"complexity chosen by held-out error: {c.n_bins} bins, Fourier order "
+            f"{c.fourier_order}, ridge {c.ridge:g}")
+    if c.connection_regressed:
+        say("no model with the offset terms b and dA/dr can be checked held out on "
+            "this recording (too few samples per bin without one block of cycles), "
+            "so the connection alone (1 + d regressors per bin) was fitted and "
+            "checked instead; model.npz holds it (b and dA/dr not estimated: 0)")
+    if c.checked and c.phase_averaged_names():
+        say("forecasts predict by the phase-averaged velocity (the shape terms did not "
+            "beat it on held-out cycles; their rows of A, b and dA/dr are 0 in "
+            f"{FORECAST_FILE}): {', '.join(c.phase_averaged_names())}")
+    if c.connection_only_names() and not c.connection_regressed:
+        say("forecasts predict by the connection alone (the offset terms did not add "
+            "to it on held-out cycles; their rows of b and dA/dr are 0 in "
+            f"{FORECAST_FILE}, A is kept): {', '.join(c.connection_only_names())}")
+    elif c.connection_only_names():
+        say("forecasts predict by the connection alone (it beat the phase-averaged "
+            f"velocity on held-out cycles): {', '.join(c.connection_only_names())}")
+
+
+def _report_forecast(model, say) -> None:
+    """Print how ``model.npz`` (the connection) and the forecasting model differ."""
+    differs, own = model.meta["forecast_model"], model.meta["settings"]["regression"]
+    ridge = differs["A_ridge"]
+    # the connection's own setting, not the forecasts' ridge: its complexity may have
+    # been chosen with A unpenalised where the forecasts' ridge is 0
+    free = own.get("ridge_connection", True) is False
+    say("model.npz, connection.csv and the plots: the connection, every row estimated "
+        f"({own['n_bins']} bins, Fourier order {own['fourier_order']}, ridge "
+        f"{own['ridge']:g}" + (" on b and dA/dr only, A unpenalised: the complexity "
+                               "chosen held out with A unpenalised)"
+                               if free else ")"))
+    how = [f"{differs['n_bins']} bins, Fourier order {differs['fourier_order']}"] + (
+        [f"A shrunk by the ridge {ridge:g}"] if ridge else []) + (
+        ["rows 0 where named above"]
+        if differs["phase_averaged"] or differs["connection_only"] else [])
+    say(f"{FORECAST_FILE}: the forecasting model (what ConnectionEstimator.predict "
+        "uses, and the held-out R² below): " + ", ".join(how))
+
+
+def _report_held_out(est, say) -> None:
+    """Print the held-out R² of the forecasting model and its baselines, and a warning where
+    bins cannot be scored, the model loses to the phase average, or nothing has skill."""
+    held_out, folds = est.held_out_skill_, est.held_out_folds
+    say(f"held-out R² (v_x, v_y, omega) of the forecasting model, each of {folds} "
+        "blocks of whole cycles left out in turn:")
+    for name, r2 in (("model", held_out.r2),
+                     ("phase-averaged velocity", held_out.r2_phase_average),
+                     ("template", held_out.r2_template)):
+        say(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
+    if bool(held_out.unscored.any()):
+        print("WARNING: some phase bins cannot be fitted when a block of cycles is "
+              "left out: the model has too many coefficients for this recording "
+              "(record more cycles, or use fewer --n-bins)")
+    elif bool(held_out.worse_than_phase_average.any()):
+        print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
+              f"velocity for {held_out.shortfalls()}: its shape terms do not help "
+              "predict those components on this "
+              "recording (" + ("record more cycles; the complexity was already chosen "
+              "by held-out error)" if est.complexity_ is not None else "try --complexity "
+              "cv, fewer --n-bins, a lower --fourier-order or a wider --window, or "
+              "record more cycles)"))
+    if bool(held_out.without_skill.any()):
+        print("WARNING: neither the model nor the phase-averaged velocity predicts "
+              "held-out cycles better than their mean velocity for "
+              f"{held_out.without_skill_names()}: not predictable from the gait's "
+              "phase and shape on this recording (noise, or a motion the shape "
+              "changes do not drive: a flow, a tether, contact)")
 
 
 def _skill_summary(skill, n_folds: int) -> dict:

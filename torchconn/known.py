@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .physics.effects import Effect, _swimmer_kwargs, cubic_interp, get_effect
+from .physics.effects import Effect, cubic_interp, get_effect, swimmer_kwargs
 from .physics.systems.swimmer import NLinkSwimmer
 from .trajectory import Trajectory
 
@@ -161,7 +161,7 @@ def relative_to_known(traj: Trajectory, known: Sequence[KnownEffect],
 
 def known_system(system: NLinkSwimmer, known: Sequence[KnownEffect]) -> NLinkSwimmer:
     """The nominal swimmer with the known effects' simulator changes (drag ratio, lengths)."""
-    kwargs = _swimmer_kwargs(system)
+    kwargs = swimmer_kwargs(system)
     changed = False
     for k in known:
         if _overrides(k.effect, "system_kwargs"):

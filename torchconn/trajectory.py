@@ -81,7 +81,7 @@ class Trajectory:
         t: ``(T,)`` sample times, uniform spacing ``dt``.
         pose: ``(..., T, 3)`` body-frame origin ``(x, y)`` in body lengths and heading θ (rad).
         r: ``(..., T, d)`` joint angles (rad).
-        power: ``(..., T)`` measured dissipated power, or None.
+        power: ``(..., T)`` recorded dissipated power, or None.
         truth: hidden ground truth of simulated data, or None.
         meta: free-form metadata (system, seeds, noise levels, source files, ...).
         phase: ``(..., T)`` phase (unwrapped, rad) -- added by the phase stage or supplied.

@@ -148,7 +148,7 @@ def test_convert_same_file_twice_and_trajectory_csvs(tracked, recording, tmp_pat
 
 
 @pytest.mark.parametrize("argv,fragments", [
-    (["--links", "9"], ["7 keypoints for 9 links", "interpolated, not measured"]),
+    (["--links", "9"], ["7 keypoints for 9 links", "interpolated, not tracked"]),
     (["--min-score", "0.5", "NPZ"], ["min_score 0.5 has no effect", "no confidence scores"]),
     (["COPY"], ["identical contents"]),
 ], ids=["few-keypoints", "min-score-without-scores", "copies"])

@@ -16,9 +16,9 @@ import tomllib
 from collections.abc import Callable
 from pathlib import Path
 
-from .. import __version__
 from .._cli import InputError, add_device, add_threads
 from .._files import read_toml
+from .._version import __version__
 
 __all__ = ["add_common", "add_version", "informer", "add_config", "config_tables",
            "apply_overrides"]

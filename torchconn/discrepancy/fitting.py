@@ -335,8 +335,8 @@ def fit_effects(
             if decrease <= tol * costs[-2] + abs_tol or abs(pred) <= abs_tol:
                 if exact:
                     break
-                # a stalled Broyden Jacobian also takes small steps, far from the minimum
-                # (measured: 0.75 standard errors short on a 3-link time lag); only a step
+                # a stalled Broyden Jacobian also takes small steps, far from the minimum;
+                # only a step
                 # from the exact Jacobian may declare convergence
                 rho, J = problem.evaluate(names, p, jacobian=True)
                 fresh = True

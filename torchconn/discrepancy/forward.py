@@ -1,10 +1,10 @@
-"""The differentiable forward model: measured shapes + swimmer + effects -> body-velocity residual.
+"""The differentiable forward model: recorded shapes + swimmer + effects -> body-velocity residual.
 
 Comparing like with like
-    The measured body velocity is not ``g⁻¹ġ`` itself but what a smoother makes of noisy poses:
+    The recorded body velocity is not ``g⁻¹ġ`` itself but what a smoother makes of noisy poses:
     ``ξ_meas = body(S_d y)``, with ``y (T, 3)`` the recorded world poses and ``S_d`` the
     smoothing differentiator. The simulator's prediction goes through the *same* ``S_d``:
-    the swimmer is driven by the measured shapes, its predicted poses ``y_pred`` are integrated
+    the swimmer is driven by the recorded shapes, its predicted poses ``y_pred`` are integrated
     on the recording grid, and ``ξ_pred = body(S_d y_pred)``. The residual
     ``ρ = ξ_meas − ξ_pred = body(S_d (y − y_pred))`` is then zero up to smoothed observation
     noise when the model is right, whatever the smoother's bias (filter lag, attenuated
@@ -25,7 +25,7 @@ The prediction
     finer than the recording -- shape effects act here (``joint_bias``, ``time_lag``) -- and
     the body twist of each fine step is ``½(A(r_n) + A(r_{n+1})) Δr_n`` plus any extra body
     velocity (``ambient_flow``, ``body_drift``). It is carried into the world frame with the
-    measured (smoothed) heading, not an integrated one, so a wrong model does not rotate its own
+    recorded (smoothed) heading, not an integrated one, so a wrong model does not rotate its own
     prediction away from the data over a long record, and summed. Observation effects
     (``marker_offset``) change the predicted recorded pose last.
 
@@ -51,7 +51,7 @@ from ..phase.smoothing import (
     unwrap,
 )
 from ..physics import se2
-from ..physics.effects import Effect, _swimmer_kwargs, cubic_interp, get_effect
+from ..physics.effects import Effect, cubic_interp, get_effect, swimmer_kwargs
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..trajectory import Trajectory, span_bounds
@@ -74,8 +74,8 @@ MIN_CYCLES_PER_TRIAL = CYCLE_RULES["discrepancy"].per_trial
 _KERNEL_TOL = 1e-10
 #: extra samples left out at each end beyond the kernel's reach (room for shape shifts)
 _EDGE_EXTRA = 8
-#: smoothing kernels at least this half-width are applied by FFT (measured on 2 trials, float64,
-#: one thread: 1.15x faster than the direct correlation at 20, 3x at 64, 4-9x at 120-211)
+#: smoothing kernels at least this half-width are applied by FFT (faster than the direct
+#: correlation from there on)
 _FFT_HALF_WIDTH = 20
 
 
@@ -130,7 +130,7 @@ class Measurement:
         cycle: ``(B, T)`` integer id of the gait cycle a sample is in (unique over trials;
             −1 outside the mask).
         cycle_trial: ``(n_cycles,)`` trial of each cycle; cycle_index: position in its trial.
-        xi: ``(B, T, 3)`` measured body velocity ``body(S_d y)``.
+        xi: ``(B, T, 3)`` recorded body velocity ``body(S_d y)``.
         batch_shape: the original trajectory's batch shape.
     """
 
@@ -213,6 +213,46 @@ def prepare_measurement(
     Raises:
         ValueError: wrong number of joints, too few samples or cycles, a trial without data.
     """
+    _check_joints(traj, system)
+    batch_shape = tuple(traj.batch_shape)
+    T = traj.n_samples
+    pose, r, finite = _flat_recording(traj)
+    B = pose.shape[0]
+    dt = traj.dt
+
+    # trials of different lengths on one grid: each is smoothed and phased over its own span,
+    # the time outside it (never recorded) filled with the span's edge values
+    start, stop = span_bounds(finite)
+    padded = bool(((start > 0) | (stop < T)).any())
+    sm = (_smooth_spans(pose, r, dt, start, stop) if padded
+          else smooth_trajectory(pose, r, dt))
+    pose_f = torch.where(torch.isfinite(pose), pose, sm.pose)
+    r_f = torch.where(torch.isfinite(r), r, sm.r)
+    if phase is None and traj.phase is not None:
+        phase = traj.phase
+    if phase is None:
+        phase = _estimated_phase(sm.r, start, stop, padded, min_cycles)
+    else:
+        phase = torch.as_tensor(phase, dtype=torch.float64, device=pose.device).reshape(B, T)
+
+    kernel = _smoothing_kernels(pose, dt)
+    mask = _usable_mask(finite, (kernel.shape[-1] - 1) // 2)
+    cycle, trials, index = _number_cycles(phase, mask)
+    _check_whole_cycles(phase, mask, min_cycles)
+
+    heading = sm.pose[..., 2]
+    m = Measurement(
+        dt=dt, t=traj.t.to(torch.float64), pose=pose_f, r=r_f, heading=heading, phase=phase,
+        kernel=kernel, mask=mask, cycle=cycle,
+        cycle_trial=torch.tensor(trials, dtype=torch.long, device=pose.device),
+        cycle_index=torch.tensor(index, dtype=torch.long, device=pose.device),
+        xi=torch.zeros_like(pose_f), batch_shape=batch_shape,
+    )
+    return _with_xi(m)
+
+
+def _check_joints(traj: Trajectory, system: LocomotionSystem) -> None:
+    """Refuse inputs of the wrong type, and a system whose number of joints is not the data's."""
     if not isinstance(traj, Trajectory):
         raise TypeError(f"traj must be a torchconn.Trajectory, got {type(traj).__name__}")
     if not isinstance(system, LocomotionSystem):
@@ -226,12 +266,15 @@ def prepare_measurement(
             f"the data have {d} joint angle(s) (r1..r{d}), but {what} joints; pass the model "
             f"that recorded them (--links {d + 1} for an N-link swimmer with N − 1 = {d} joints)"
         )
-    batch_shape = tuple(traj.batch_shape)
-    T = traj.n_samples
+
+
+def _flat_recording(traj: Trajectory) -> tuple[Tensor, Tensor, Tensor]:
+    """The trials flattened to one batch dim, in float64: poses ``(B, T, 3)`` with the heading
+    unwrapped, shapes ``(B, T, d)`` and which samples are complete ``(B, T)``. Raises
+    ``ValueError`` when a trial has fewer than 64 complete samples."""
+    T, d = traj.n_samples, traj.shape_dim
     pose = traj.pose.reshape(-1, T, 3).to(torch.float64)
     r = traj.r.reshape(-1, T, d).to(torch.float64)
-    B = pose.shape[0]
-    dt = traj.dt
     pose = torch.cat([pose[..., :2], unwrap(pose[..., 2], dim=-1)[..., None]], -1)
     finite = torch.isfinite(pose).all(-1) & torch.isfinite(r).all(-1)  # (B, T)
     n_finite = finite.sum(-1)
@@ -239,48 +282,55 @@ def prepare_measurement(
         b = int(n_finite.argmin())
         raise ValueError(f"trial {b} has only {int(n_finite[b])} complete samples; the "
                          "discrepancy workflow needs whole gait cycles of data per trial")
+    return pose, r, finite
 
-    # trials of different lengths on one grid: each is smoothed and phased over its own span,
-    # the time outside it (never recorded) filled with the span's edge values
-    start, stop = span_bounds(finite)
-    padded = bool(((start > 0) | (stop < T)).any())
-    sm = (_smooth_spans(pose, r, dt, start, stop) if padded
-          else smooth_trajectory(pose, r, dt))
-    pose_f = torch.where(torch.isfinite(pose), pose, sm.pose)
-    r_f = torch.where(torch.isfinite(r), r, sm.r)
-    if phase is None and traj.phase is not None:
-        phase = traj.phase
-    if phase is None:
-        try:
-            phase = (_edge_filled(Phaser(min_cycles=MIN_CYCLES_PER_TRIAL).fit(
-                _outside_nan(sm.r, start, stop)).phase_.unsqueeze(-1), start, stop)[..., 0]
-                if padded else estimate_phase(sm.r, min_cycles=MIN_CYCLES_PER_TRIAL))
-        except ValueError as err:
-            if "cycles" in str(err):
-                raise ValueError(
-                    f"too few cycles: {err}. The discrepancy workflow needs at least "
-                    f"{MIN_CYCLES_PER_TRIAL:g} gait cycles per trial and {min_cycles:g} in all"
-                ) from None
-            raise
-    else:
-        phase = torch.as_tensor(phase, dtype=torch.float64, device=pose.device).reshape(B, T)
 
-    # smoothing kernels: the GCV noise ratios of the recorded channels; x and y share one
+def _estimated_phase(r: Tensor, start: Tensor, stop: Tensor, padded: bool,
+                     min_cycles: float) -> Tensor:
+    """Phaser's phase ``(B, T)`` of the smoothed shapes ``r (B, T, d)``, each trial phased over
+    its span ``start:stop`` (edge-filled outside) when the trials differ in length. Too few
+    cycles per trial raise ``ValueError`` naming the workflow's minimum."""
+    try:
+        return (_edge_filled(Phaser(min_cycles=MIN_CYCLES_PER_TRIAL).fit(
+            _outside_nan(r, start, stop)).phase_.unsqueeze(-1), start, stop)[..., 0]
+            if padded else estimate_phase(r, min_cycles=MIN_CYCLES_PER_TRIAL))
+    except ValueError as err:
+        if "cycles" in str(err):
+            raise ValueError(
+                f"too few cycles: {err}. The discrepancy workflow needs at least "
+                f"{MIN_CYCLES_PER_TRIAL:g} gait cycles per trial and {min_cycles:g} in all"
+            ) from None
+        raise
+
+
+def _smoothing_kernels(pose: Tensor, dt: float) -> Tensor:
+    """Derivative kernels ``(B, 3, 2W+1)`` per trial and pose channel, from the GCV noise
+    ratios of the recorded channels; x and y share one (the geometric mean of their ratios)."""
+    B = pose.shape[0]
     q, R = noise_parameters(pose, dt)
     lam = q / R  # (B, 3)
     lam_xy = torch.sqrt(lam[:, 0] * lam[:, 1])
     ratios = torch.stack([lam_xy, lam_xy, lam[:, 2]], -1).reshape(-1)
-    kernel = derivative_kernel(ratios, dt).reshape(B, 3, -1)
-    W = (kernel.shape[-1] - 1) // 2
+    return derivative_kernel(ratios, dt).reshape(B, 3, -1)
 
-    # usable samples: inside each trial's recorded span, clear of the kernel's reach
-    idx = torch.arange(T, device=pose.device)
+
+def _usable_mask(finite: Tensor, half_width: int) -> Tensor:
+    """Usable samples ``(B, T)``: complete, inside each trial's recorded span and clear of the
+    kernel's reach (``half_width`` plus a few samples) from its ends."""
+    T = finite.shape[-1]
+    idx = torch.arange(T, device=finite.device)
     first = torch.where(finite, idx, T).amin(-1)
     last = torch.where(finite, idx, -1).amax(-1)
-    margin = W + _EDGE_EXTRA
-    mask = finite & (idx >= (first + margin)[:, None]) & (idx <= (last - margin)[:, None])
+    margin = half_width + _EDGE_EXTRA
+    return finite & (idx >= (first + margin)[:, None]) & (idx <= (last - margin)[:, None])
 
-    # cycles: whole turns of the phase from each trial's first usable sample
+
+def _number_cycles(phase: Tensor, mask: Tensor) -> tuple[Tensor, list[int], list[int]]:
+    """Cycles: whole turns of the phase from each trial's first usable sample, numbered over
+    all trials. Returns the cycle of each sample ``(B, T)`` (-1 where unusable), and each
+    cycle's trial and index within it. Cycles of fewer than 4 usable samples are dropped from
+    ``mask`` (in place)."""
+    B = phase.shape[0]
     ph0 = torch.stack([phase[b][mask[b]][0] if mask[b].any() else phase[b, 0]
                        for b in range(B)])
     local = torch.floor((phase - ph0[:, None]) / (2 * math.pi)).long()
@@ -298,7 +348,13 @@ def prepare_measurement(
             trials.append(b)
             index.append(k)
             nxt += 1
-    # whole cycles in total (partial ones at the ends still serve as data)
+    return cycle, trials, index
+
+
+def _check_whole_cycles(phase: Tensor, mask: Tensor, min_cycles: float) -> None:
+    """Refuse a recording whose usable samples span fewer than ``min_cycles`` whole cycles in
+    total (partial ones at the ends still serve as data)."""
+    B = phase.shape[0]
     span = torch.stack([(phase[b][mask[b]].max() - phase[b][mask[b]].min()) / (2 * math.pi)
                         if mask[b].any() else phase.new_zeros(())
                         for b in range(B)])
@@ -309,16 +365,6 @@ def prepare_measurement(
             f"gait cycle(s) over {B} trial(s); the discrepancy workflow needs at least "
             f"{min_cycles:g} (it cross-validates over whole cycles) -- record longer or more trials"
         )
-
-    heading = sm.pose[..., 2]
-    m = Measurement(
-        dt=dt, t=traj.t.to(torch.float64), pose=pose_f, r=r_f, heading=heading, phase=phase,
-        kernel=kernel, mask=mask, cycle=cycle,
-        cycle_trial=torch.tensor(trials, dtype=torch.long, device=pose.device),
-        cycle_index=torch.tensor(index, dtype=torch.long, device=pose.device),
-        xi=torch.zeros_like(pose_f), batch_shape=batch_shape,
-    )
-    return _with_xi(m)
 
 
 def _outside_nan(x: Tensor, start: Tensor, stop: Tensor) -> Tensor:
@@ -431,7 +477,7 @@ class ForwardModel:
                 f"effects {[e.name for e, _ in active]} change the swimmer, which needs an "
                 f"NLinkSwimmer nominal model, got {type(self.system).__name__}"
             )
-        kwargs = _swimmer_kwargs(self.system)
+        kwargs = swimmer_kwargs(self.system)
         for effect, p in active:
             kwargs = effect.system_kwargs(p, kwargs)
         return NLinkSwimmer(**kwargs)
@@ -494,9 +540,9 @@ class ForwardModel:
         return poses
 
     def integrate_poses(self, params: dict[str, Tensor] | None = None) -> Tensor:
-        """A self-consistent recording of the (augmented) simulator driven by the measured
-        shapes: the fine steps' twists composed on SE(2) from the first measured pose, its own
-        heading included (unlike :meth:`predict_poses`, which borrows the measured heading).
+        """A self-consistent recording of the (augmented) simulator driven by the recorded
+        shapes: the fine steps' twists composed on SE(2) from the first recorded pose, its own
+        heading included (unlike :meth:`predict_poses`, which borrows the recorded heading).
         Velocity effects are evaluated at the integrated heading; observation effects are not
         applied. Returns ``(B, T, 3)``."""
         params = {k: v.detach() for k, v in (params or {}).items()}
@@ -543,7 +589,7 @@ class ForwardModel:
 
         A recording without observation noise still leaves the forward model's own error (the
         swimming path between samples is not recorded): the floor is at least
-        ``min_relative_floor`` times the RMS of the measured body velocity, per component.
+        ``min_relative_floor`` times the RMS of the recorded body velocity, per component.
 
         Returns:
             ``(variance (B, 3), floor (3,))`` -- the floor is the RMS over usable samples.

@@ -16,6 +16,7 @@ from pathlib import Path
 from .._output import write_table
 from .._provenance import jsonable, write_sidecar
 from ..physics.systems.swimmer import NLinkSwimmer
+from .figures import plot_residual_profiles, plot_terms
 from .model import AugmentedModel
 from .residuals import COMPONENTS
 
@@ -152,7 +153,7 @@ class Confound(_Record):
 class EffectEstimate(_Record):
     """A named effect: physical values with intervals, and how it was chosen.
 
-    ``parameters`` and ``fitted`` are corrected for ``bias``, the estimator's own error measured
+    ``parameters`` and ``fitted`` are corrected for ``bias``, the estimator's own error estimated
     on simulated twins with the fitted values and the recording's observation noise (time
     stepping, smoothing, noisy shapes driving the forward model); ``bias`` is its size. The
     interval half-width is ``q · √(se² + bias²) · lack_of_fit``: ``se`` the cluster-robust
@@ -317,8 +318,6 @@ class DiscrepancyReport:
              for label, prof in self.profiles.items()
              for i, ph in enumerate(prof["centres"]) for k, comp in enumerate(COMPONENTS)])
         if figures:
-            from .figures import plot_residual_profiles, plot_terms
-
             paths["figure"] = plot_residual_profiles(self, out / "residual_vs_phase.png")
             if self.terms is not None:
                 paths["terms_figure"] = plot_terms(self.terms, out / "terms_vs_simulator.png")

@@ -11,8 +11,8 @@
     ``ĉ, b̂, Â, ∂Â/∂r`` along the gait, with standard errors) against the simulator's own values
     on the same cycle -- ``c = A(γ) γ̇``, ``b = ∂A/∂r γ̇``, ``A(γ)``, ``∂A/∂r(γ)`` -- as z-scores per
     phase bin. It shows *which* terms disagree. Like with like: the simulator's terms are
-    estimated by the same estimator from the simulator's own "twin" recording of the measured
-    shapes (with noise of the measured level), so the estimator's smoothing and truncation
+    estimated by the same estimator from the simulator's own "twin" recording of the same
+    shapes (with noise of the recording's level), so the estimator's smoothing and truncation
     biases cancel; the exact values are kept for reference.
 """
 

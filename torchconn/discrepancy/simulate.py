@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from ..physics import se2
-from ..physics.effects import Effect, _swimmer_kwargs, cubic_interp, get_effect
+from ..physics.effects import Effect, cubic_interp, get_effect, swimmer_kwargs
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from ..simulation.observe import observe
@@ -88,7 +88,7 @@ def augmented_system(system: LocomotionSystem, params: dict[str, Tensor]) -> Loc
         return system
     if not isinstance(system, NLinkSwimmer):
         raise ValueError(f"effects {active} change the swimmer and need an NLinkSwimmer")
-    kwargs = _swimmer_kwargs(system)
+    kwargs = swimmer_kwargs(system)
     for n in active:
         kwargs = get_effect(n).system_kwargs(params[n], kwargs)
     return NLinkSwimmer(**{k: (v.detach() if isinstance(v, Tensor) else v)

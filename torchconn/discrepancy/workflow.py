@@ -3,8 +3,8 @@
 :func:`diagnose` runs the investigation in named stages, each returning a typed result
 (:mod:`.report`):
 
-1. **Where** (:mod:`.forward`): the measured body velocity minus the nominal simulator's, driven
-   by the measured shapes and passed through the same smoother as the measurement.
+1. **Where** (:mod:`.forward`): the recorded body velocity minus the nominal simulator's, driven
+   by the recorded shapes and passed through the same smoother as the measurement.
 2. **Screen** (:mod:`~torchconn.physics.effects`, :mod:`.fitting`): every registered effect
    not yet in the model is fitted jointly with the accepted ones by differentiating the
    augmented simulator, and scored by its held-out gain (cross-validation over blocks of whole
@@ -18,7 +18,7 @@
    candidate clears the bars (:class:`~.report.SelectionStep`).
 4. **Check backward**: each accepted effect must still earn its place next to the others.
 5. **Refit** the accepted effects jointly to full precision, correct them for the estimator's
-   own bias (measured by refitting simulated twins with the fitted values and the recording's
+   own bias (estimated by refitting simulated twins with the fitted values and the recording's
    estimated observation noise, in antithetic pairs), with intervals that account for the
    noise (cluster-robust over cycles), the bias correction and the lack of fit
    (:class:`~.report.EffectEstimate`).
@@ -119,7 +119,7 @@ class DiscrepancySettings(Options):
             below it.
         ci_level: confidence level of the parameter intervals, simultaneous over each effect's
             parameters (Bonferroni: all of an effect's intervals cover its values together).
-        twin_intervals: correct the estimates for the estimator's own bias, measured on
+        twin_intervals: correct the estimates for the estimator's own bias, estimated on
             simulated twins with the fitted values and the recording's observation noise, and
             widen the intervals by it.
         max_effects: most effects accepted.
@@ -373,7 +373,7 @@ def _screen_and_select(job: _Job, candidates: list[str], base: EffectFit, say) -
         accepted.append(best)
         current = fits[best]
         remaining.remove(best)
-        last_implausible = []  # the model changed: they were measured against the old one
+        last_implausible = []  # the model changed: they were scored against the old one
     return _Selection(accepted=tuple(accepted), current=current, steps=tuple(steps),
                       groups=tuple(groups), look_alikes=look_alikes, gains=gains,
                       implausible=tuple(implausible), last_implausible=tuple(last_implausible))
@@ -474,7 +474,7 @@ def _twin_bias(job: _Job, fit: EffectFit, max_cycles: float = 8.0,
     """The estimator's own error at the fitted values: ``(P,)`` refit minus fit on simulated
     twin recordings.
 
-    A twin is the augmented simulator with the fitted effects, driven by the smoothed measured
+    A twin is the augmented simulator with the fitted effects, driven by the smoothed recorded
     shapes of the first trial (up to ``max_cycles`` cycles), integrated on SE(2) with four times
     finer steps than the forward model and observed through the recording's own smoother, with
     white observation noise at the level estimated in the recording
@@ -764,8 +764,8 @@ def _terms(job: _Job, say) -> dict | None:
 
 
 def _twin(fm: ForwardModel, seed: int) -> Trajectory:
-    """The nominal simulator's own recording of the measured shapes: poses integrated from
-    them, plus white noise of the level measured in the recording's poses."""
+    """The nominal simulator's own recording of the recording's shapes: poses integrated from
+    them, plus white noise of the level estimated in the recording's poses."""
     m = fm.m
     # drawn on the recording's device: CPU and CUDA give different (equally valid) twins
     gen = torch.Generator(device=m.device).manual_seed(int(seed))

@@ -45,8 +45,8 @@ def _simulate(args, folder: OutputFolder) -> int:
     say = informer(args.quiet)
 
     def report(r):
-        say(f"round {r.index}: {r.cycles_used} cycles, measured {r.measured:.4f} ± "
-            f"{r.measured_se:.4f} (true {r.true:.4f}){'' if r.accepted else ' rejected'}; "
+        say(f"round {r.index}: {r.cycles_used} cycles, observed {r.observed:.4f} ± "
+            f"{r.observed_se:.4f} (true {r.true:.4f}){'' if r.accepted else ' rejected'}; "
             f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, "
             f"{r.predicted_high:.4f}], realised {r.realised:.4f}", flush=True)
 
@@ -62,6 +62,7 @@ def _simulate(args, folder: OutputFolder) -> int:
     })
     write_gait(result.rounds[-1].proposal, out / "next_gait")
     if not args.no_figures:
+        # lazy: .plots imports matplotlib, which only a run that draws figures needs
         from .plots import plot_gaits, plot_rounds
 
         plot_gaits(result, system, out / "gaits.png")
@@ -87,7 +88,7 @@ def _propose(args, folder: OutputFolder) -> int:
     period = 2 * math.pi / float(model.phase_rate)
     lo, hi = prop.gain_interval()
     summary = {
-        "objective": args.objective, "measured": meas, "measured_se": meas_se,
+        "objective": args.objective, "observed": meas, "observed_se": meas_se,
         "predicted_gain": prop.gain, "gain_interval_95": [lo, hi],
         "model_current": prop.current, "model_predicted": prop.predicted,
         "trust_radius_rad": prop.radius, "step_rad": prop.step,
@@ -101,7 +102,7 @@ def _propose(args, folder: OutputFolder) -> int:
     folder.commit()
     paths = {k: folder.final(p) for k, p in paths.items()}
     say = informer(args.quiet)
-    say(f"measured {args.objective} {meas:.4g} ± {meas_se:.2g} per cycle; the next gait is "
+    say(f"observed {args.objective} {meas:.4g} ± {meas_se:.2g} per cycle; the next gait is "
         f"predicted to gain {prop.gain:.3g} [{lo:.3g}, {hi:.3g}]")
     say(f"wrote {paths['csv']} (joint angles over one cycle) and {paths['json']}")
     return 0

@@ -1,8 +1,8 @@
-"""The model-free baseline: ascend the measured objective over the gait's Fourier coefficients.
+"""The model-free baseline: ascend the observed objective over the gait's Fourier coefficients.
 
 Each iteration records the gait at ``±h`` along every coefficient (central differences, each
-evaluation ``trials × cycles`` recorded cycles measured with :func:`measure_cycles`) and takes a
-gradient step of fixed length in coefficient space. It sees only measured displacement per cycle,
+evaluation ``trials × cycles`` recorded cycles scored with :func:`measure_cycles`) and takes a
+gradient step of fixed length in coefficient space. It sees only the observed displacement per cycle,
 like an experimenter tuning a robot by hand; its budget is counted in recorded cycles so it can
 be compared with the model-based loop at the same number of cycles.
 """
@@ -25,11 +25,11 @@ __all__ = ["BaselineStep", "finite_difference_baseline"]
 
 @dataclass(frozen=True)
 class BaselineStep:
-    """After each gradient step: recorded cycles so far, the gait and its measured objective."""
+    """After each gradient step: recorded cycles so far, the gait and its observed objective."""
 
     cycles_used: int
     gait: FourierGait
-    measured: float
+    observed: float
 
 
 def finite_difference_baseline(
@@ -38,7 +38,7 @@ def finite_difference_baseline(
     alpha: float = 0.05, objective: str = "displacement", seed: int = 0,
     shape_bound: float | None = math.pi, max_turn: float | None = 0.05,
 ) -> list[BaselineStep]:
-    """Central-difference gradient ascent of the measured objective until ``budget`` cycles.
+    """Central-difference gradient ascent of the observed objective until ``budget`` cycles.
 
     Args:
         start: the start gait; its Fourier coefficients (rows ``[a0, a1, b1, …]``) are the
@@ -46,8 +46,8 @@ def finite_difference_baseline(
             step: length of each ascent step in coefficient space (rad);
             shape_bound: after each step the gait is scaled about its mean shape until
             ``|r| ≤ shape_bound`` (the joint limits the loop's proposals respect);
-            max_turn: the measured objective is penalised like the loop's proposals when the
-            measured rotation per cycle exceeds it (see :class:`TrustRegion`).
+            max_turn: the observed objective is penalised like the loop's proposals when the
+            observed rotation per cycle exceeds it (see :class:`TrustRegion`).
     """
     coeffs = start.coeffs.detach().clone()
     n = coeffs.numel()

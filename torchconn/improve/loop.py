@@ -1,14 +1,14 @@
 """The loop on a simulator: record → fit → propose → record the proposal → …
 
 Every round records ``trials × cycles`` of the current gait with the paper's SDE (α, η) and the
-observation model (ω), measures its objective from the recordings alone, fits a pooled local
+observation model (ω), estimates its objective from the recordings alone, fits a pooled local
 model and proposes the next gait (:func:`~torchconn.improve.propose.propose_gait`). The
-proposal's predicted objective is the *measured* objective of the current gait plus the model's
+proposal's predicted objective is the *observed* objective of the current gait plus the model's
 predicted gain (the model's errors common to both gaits cancel in the gain), less the model's
-over-prediction, which grows with the step and is learned from the measured steps; the interval
+over-prediction, which grows with the step and is learned from the steps taken; the interval
 holds both standard errors and that over-prediction's spread. The trust region
-adapts: it grows when a step's measured gain is near the predicted one, shrinks when far below,
-and a proposal whose recording measures worse than its start by more than the noise is
+adapts: it grows when a step's observed gain is near the predicted one, shrinks when far below,
+and a proposal whose recording scores worse than its start by more than the noise is
 rejected -- the loop returns to the previous gait and proposes again with half the radius.
 The simulator's exact objective of every gait (:func:`torchconn.physics.gaits.evaluate`) is
 recorded for judging, never used by the loop.
@@ -79,27 +79,22 @@ class LoopSettings:
         objective: see :data:`~torchconn.improve.propose.OBJECTIVES`.
         trust_region: the first round's trust region; ``scale`` then adapts.
         grow, shrink, good_ratio, poor_ratio, max_scale, min_scale: trust-radius adaptation
-            (in tube radii): the radius grows when the measured gain of a step is more than
+            (in tube radii): the radius grows when the observed gain of a step is more than
             ``good_ratio`` of the predicted one, shrinks below ``poor_ratio`` or when the
-            recording measures worse than its start by more than the noise (rejected).
+            recording scores worse than its start by more than the noise (rejected).
         truncation, truncation_spread: prior mean and spread of the model's over-prediction
             of a gain per rad of step, in units of the first proposal's predicted gain (so the
-            first step's prior is ``truncation × step × gain``: 0.5 per rad, the one-step
-            proposals' 0.2-0.8). The over-prediction grows with the step: as step² from the
+            first step's prior is ``truncation × step × gain``; default 0.5 per rad). The
+            over-prediction grows with the step: as step² from the
             first-order model's truncation, as the step from its errors in ``∂Â/∂r``, which
             the ascent follows (the optimiser's curse: largest near an optimum, where the true
-            gain vanishes and the predicted one does not). Every informative measured step
-            (predicted gain above twice the measurement noise) adds its own
-            ``(predicted − measured gain) / step``, each prior counting as one step; the mean
-            corrects the next predicted gain, the spread widens its interval. Chosen on loops
-            from circles of radius 0.5 (3-link seeds 0-2, 5- and 9-link seed 0) among
-            step-powers 1, 1.5, 2 and spreads 0.5, 0.7, 1 by interval coverage; checked on
-            other seeds and noise levels (see the README).
+            gain vanishes and the predicted one does not). Every informative step
+            (predicted gain above twice the noise of the observed gains) adds its own
+            ``(predicted − observed gain) / step``, each prior counting as one step; the mean
+            corrects the next predicted gain, the spread widens its interval.
         level: central level of the prediction intervals.
         estimator: the estimator's settings table (:func:`estimator_from_settings`) for the
-            pooled fit each round. The noise-aware regression: on clean 4 × 20-cycle recordings
-            of 3-link circles its ``∂Â/∂r`` is off by 6-9 % against 40-200 % for
-            ``TubeRegression`` (the predicted gains by 0-3 % against 15-75 %).
+            pooled fit each round (default: the noise-aware regression).
         seed: root seed (per-round seeds from ``numpy.random.SeedSequence``).
         device: where the recordings are simulated and the models fitted (``cpu``, ``cuda``,
             ``cuda:N``); CPU and CUDA draw different random numbers from the same seed.
@@ -166,14 +161,15 @@ class Round:
         index: round number (0 records the start gait).
         cycles_used: recorded cycles so far, this round's included.
         gait: the gait recorded this round.
-        measured, measured_se: its objective from the recordings.
+        observed, observed_se: its objective estimated from the recordings, and its standard
+            error.
         true: its exact objective (simulator, for judging only).
-        accepted: False when the recording measured worse than the gait it was proposed from
+        accepted: False when the recording scored worse than the gait it was proposed from
             (by more than the noise); the loop then proposed again from that gait.
         scale: trust radius (tube radii) used for this round's proposal.
         step: the proposal's largest change ``max_φ |Δ|`` from the fitted cycle (rad).
         proposal: the gait proposed from this round's base gait.
-        predicted, predicted_low, predicted_high: the proposal's predicted objective (measured
+        predicted, predicted_low, predicted_high: the proposal's predicted objective (observed
             base + model gain) and interval.
         model_predicted: the model's own prediction of the proposal's objective.
         gain, gain_se: the model's predicted gain (selection-bias corrected, before the
@@ -184,8 +180,8 @@ class Round:
     index: int
     cycles_used: int
     gait: FourierGait
-    measured: float
-    measured_se: float
+    observed: float
+    observed_se: float
     true: float
     accepted: bool
     scale: float
@@ -219,7 +215,7 @@ class LoopResult:
 
     @property
     def best(self) -> Round:
-        return max((r for r in self.rounds if r.accepted), key=lambda r: r.measured)
+        return max((r for r in self.rounds if r.accepted), key=lambda r: r.observed)
 
     @property
     def coverage(self) -> float:
@@ -259,16 +255,16 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
         meas, meas_se = measure_cycles(traj).objective(s.objective)
         accepted = True
         if base is not None:
-            # the trust-region test: measured against predicted gain, both from data
-            predicted_gain, measured_gain = base["gain"], meas - base["measured"]
-            ratio = measured_gain / predicted_gain if predicted_gain > 0 else 0.0
-            if meas < base["measured"] - z * math.hypot(meas_se, base["measured_se"]):
+            # the trust-region test: observed against predicted gain, both from data
+            predicted_gain, observed_gain = base["gain"], meas - base["observed"]
+            ratio = observed_gain / predicted_gain if predicted_gain > 0 else 0.0
+            if meas < base["observed"] - z * math.hypot(meas_se, base["observed_se"]):
                 accepted = False
-            noise = math.hypot(meas_se, base["measured_se"])
+            noise = math.hypot(meas_se, base["observed_se"])
             if predicted_gain > 2 * noise and base["step"] > 0:
                 # an informative step (its gain stands out of the measurement noise): its
                 # over-prediction per rad of step
-                errors.append((predicted_gain - measured_gain) / base["step"])
+                errors.append((predicted_gain - observed_gain) / base["step"])
             if not accepted or ratio < s.poor_ratio:
                 scale = max(scale * s.shrink, s.min_scale)
             elif ratio > s.good_ratio:
@@ -277,11 +273,11 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # e.g. no power channel: metric not estimated
                 model = estimator_from_settings(s.estimator).fit(traj).model_
-            base = {"model": model, "measured": meas, "measured_se": meas_se, "gait": gait}
+            base = {"model": model, "observed": meas, "observed_se": meas_se, "gait": gait}
         tr = dataclasses.replace(s.trust_region, scale=scale)
         prop = propose_gait(base["model"], s.objective, tr, seed=k)
         # The over-prediction grows with the step: learned per rad of step, each prior
-        # (scaled by the first proposal's gain) worth one measured step.
+        # (scaled by the first proposal's gain) worth one step taken.
         if first_gain is None:
             first_gain = abs(prop.gain)
         n = 1 + len(errors)
@@ -289,13 +285,13 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
         spread = math.sqrt(((s.truncation_spread * first_gain) ** 2
                             + sum((e - bias) ** 2 for e in errors)) / n)
         gain = prop.gain - bias * prop.step
-        predicted = base["measured"] + gain
-        half = z * math.sqrt(base["measured_se"] ** 2 + prop.gain_se ** 2
+        predicted = base["observed"] + gain
+        half = z * math.sqrt(base["observed_se"] ** 2 + prop.gain_se ** 2
                              + (spread * prop.step) ** 2)
         base.update(gain=prop.gain, step=prop.step)
         rnd = Round(
-            index=k, cycles_used=(k + 1) * s.trials * s.cycles, gait=gait, measured=meas,
-            measured_se=meas_se, true=true_objective(system, gait, s.objective),
+            index=k, cycles_used=(k + 1) * s.trials * s.cycles, gait=gait, observed=meas,
+            observed_se=meas_se, true=true_objective(system, gait, s.objective),
             accepted=accepted, scale=scale, step=prop.step, proposal=prop.gait,
             predicted=predicted,
             predicted_low=predicted - half, predicted_high=predicted + half,

@@ -116,11 +116,8 @@ def _long_run_variance(x: Tensor, ok: Tensor, lags: int) -> tuple[Tensor, float]
 
     Consecutive periods of one trial are correlated -- the shape offset relaxes at rate α, over
     about ``1/(2πα) ≈ 3`` periods for the paper's α -- so the naive ``std/√n`` understates the
-    standard error (measured: by 2-3x for 4 trials x 20 cycles). Trials are independent: with
-    at least 3 of them the spread of the per-trial means is used (measured over 16 repeats of 4
-    trials x 20 cycles: 0.80x the true spread, as expected of a 3-dof estimate, vs 0.6x for a
-    within-trial Newey–West estimate); with fewer, Newey–West with Bartlett weights up to
-    ``lags``.
+    standard error. Trials are independent: with at least 3 of them the spread of the
+    per-trial means is used; with fewer, Newey–West with Bartlett weights up to ``lags``.
     """
     w = ok.to(x.dtype)
     mean = (torch.where(ok, x, 0) * w).sum() / w.sum()

@@ -59,13 +59,13 @@ def plot_gaits(result: LoopResult, system: LocomotionSystem, path: str | Path,
 
 
 def plot_rounds(result: LoopResult, path: str | Path, ceiling: float | None = None) -> Path:
-    """Objective per round: measured and true of each recorded gait, predicted (interval) vs
+    """Objective per round: observed and true of each recorded gait, predicted (interval) vs
     realised of each proposal, and the ceiling with the true connection."""
     rounds = result.rounds
     k = [r.index for r in rounds]
     fig, ax = plt.subplots(figsize=(6.5, 4))
-    ax.errorbar(k, [r.measured for r in rounds], yerr=[1.96 * r.measured_se for r in rounds],
-                fmt="o-", label="recorded gait: measured")
+    ax.errorbar(k, [r.observed for r in rounds], yerr=[1.96 * r.observed_se for r in rounds],
+                fmt="o-", label="recorded gait: observed")
     ax.plot(k, [r.true for r in rounds], "s", mfc="none", label="recorded gait: true")
     kp = [i + 1 for i in k]
     pred = [r.predicted for r in rounds]

@@ -94,11 +94,9 @@ class Proposal:
         predicted: ``current + gain``.
         gain, gain_se: ``predicted − current`` and its standard error (model draws; the two
             predictions share the model, so their common errors cancel). The ascent also
-            follows the model's errors, so the gain of its own optimum is biased high; a
-            parametric bootstrap of that bias (each redrawn model running its own ascent)
-            measured ~0 on clean fits and failed where the bias is large (weak signal, the
-            bootstrap's known limit), so it is not applied; the loop's intervals carry the
-            measured over-prediction instead.
+            follows the model's errors, so the gain of its own optimum is biased high; no
+            correction is applied here (the loop's intervals carry the over-prediction it
+            observes, :class:`~torchconn.improve.loop.LoopSettings`).
         radius, step: the trust radius and the largest change ``max_φ |Δ|`` taken (rad).
         prediction: the model's :class:`GaitPrediction` of the proposal.
     """
@@ -155,6 +153,33 @@ def propose_gait(
         ValueError: an unknown objective; efficiency without a metric; a batched model; a model
             without ``∂Â/∂r``.
     """
+    tr = _checked_trust_region(model, objective, trust_region)
+    search = _ChangeSearch(model, objective, tr, n_steps, seed)
+    u = search.ascend(model)
+    delta = search.change(u)
+    proposal = _shifted_gait(model, delta)
+    step = float(torch.linalg.vector_norm(delta(search.grid), dim=-1).amax())
+
+    current = float(search.predicted(model, None)[0])
+    gain, gain_se = float(search.predicted(model, u)[0]) - current, float("nan")
+    if n_draws > 0:
+        sampled = sample_models(model, n_draws, seed=seed)
+        gain_se = float((search.predicted(sampled, u)[0] - search.predicted(sampled, None)[0]).std())
+    prediction = predict_gait(model, proposal, phase_offset=0.0, n_steps=n_steps,
+                              n_draws=n_draws, seed=seed, warn_excursion=math.inf,
+                              max_excursion=math.inf)
+    return Proposal(
+        gait=proposal, objective=objective, current=current, predicted=current + gain,
+        gain=gain, gain_se=gain_se, radius=search.radius, step=step,
+        prediction=prediction,
+    )
+
+
+def _checked_trust_region(model: LocalConnectionModel, objective: str,
+                          trust_region: TrustRegion | None) -> TrustRegion:
+    """The trust region (default :class:`TrustRegion()`), after checking that ``model`` and
+    ``objective`` admit a proposal (a known objective, a metric for efficiency, one model, a
+    finite ``∂Â/∂r``)."""
     tr = TrustRegion() if trust_region is None else trust_region
     if not isinstance(tr, TrustRegion):
         raise TypeError(f"trust_region must be a TrustRegion, got {type(tr).__name__}")
@@ -173,88 +198,94 @@ def propose_gait(
     if model.dA is None or not bool(torch.isfinite(model.dA.coeffs).all()):
         raise ValueError("propose_gait needs the model's shape derivative ∂Â/∂r (model.dA), "
                          "but it is missing or non-finite")
-    radius = tr.radius_for(model)
-    with_cost = objective == "efficiency"
-    h, theta = gauss_phases(n_steps, device=model.device)
-    theta = theta.reshape(-1)
-    base = FourierGait(model.gamma.coeffs.detach())
-    base_r, base_v = base(theta), base.velocity(theta)
-    kw = dict(dtype=torch.float64, device=model.device)
-    grid = torch.arange(256, **kw) * (2 * math.pi / 256)
-    gen = torch.Generator(device=model.device).manual_seed(seed)
-    init = 1e-3 * torch.randn(2 * tr.order + 1, model.shape_dim, generator=gen, **kw)
+    return tr
 
-    def change(u: Tensor) -> FourierSeries:
+
+class _ChangeSearch:
+    """The search over changes ``Δ`` of the fitted cycle ``γ̂`` of ``model``: the change's
+    coefficients ``u (..., 2k+1, d)``, scaled into the trust radius, and the predicted,
+    penalised objective of ``γ̂ + Δ(u)`` under any model of the same shape space.
+
+    Attributes:
+        radius: the trust radius (rad).
+        grid: 256 phases on ``[0, 2π)`` where the change's peak is taken.
+    """
+
+    def __init__(self, model: LocalConnectionModel, objective: str, tr: TrustRegion,
+                 n_steps: int, seed: int) -> None:
+        self.objective, self.tr, self.n_steps = objective, tr, n_steps
+        self.radius = tr.radius_for(model)
+        self.with_cost = objective == "efficiency"
+        h, theta = gauss_phases(n_steps, device=model.device)
+        self.theta = theta.reshape(-1)
+        base = FourierGait(model.gamma.coeffs.detach())
+        self.base_r, self.base_v = base(self.theta), base.velocity(self.theta)
+        kw = dict(dtype=torch.float64, device=model.device)
+        self.grid = torch.arange(256, **kw) * (2 * math.pi / 256)
+        gen = torch.Generator(device=model.device).manual_seed(seed)
+        self.init = 1e-3 * torch.randn(2 * tr.order + 1, model.shape_dim, generator=gen, **kw)
+
+    def change(self, u: Tensor) -> FourierSeries:
         """The change ``Δ`` of coefficients ``u (..., 2k+1, d)``, scaled into the trust region."""
-        peak = torch.linalg.vector_norm(FourierSeries(u, value_ndim=1)(grid), dim=-1).amax(-1)
-        return FourierSeries(u * torch.clamp(radius / peak, max=1.0)[..., None, None],
+        peak = torch.linalg.vector_norm(FourierSeries(u, value_ndim=1)(self.grid),
+                                        dim=-1).amax(-1)
+        return FourierSeries(u * torch.clamp(self.radius / peak, max=1.0)[..., None, None],
                              value_ndim=1)
 
-    def predicted(m: LocalConnectionModel, u: Tensor | None) -> tuple[Tensor, Tensor]:
+    def predicted(self, m: LocalConnectionModel, u: Tensor | None) -> tuple[Tensor, Tensor]:
         """Objective ``(...)`` and displacement ``(..., 3)`` of ``γ̂ + Δ(u)`` under ``m``."""
-        r, v = base_r, base_v
+        r, v = self.base_r, self.base_v
         if u is not None:
-            delta = change(u)
-            r, v = r + delta(theta), v + delta.derivative()(theta)
-        disp, cost = predict_cycle(m, theta, r, v, n_steps, with_cost)
-        return objective_value(objective, disp, cost), disp
+            delta = self.change(u)
+            r, v = r + delta(self.theta), v + delta.derivative()(self.theta)
+        disp, cost = predict_cycle(m, self.theta, r, v, self.n_steps, self.with_cost)
+        return objective_value(self.objective, disp, cost), disp
 
-    def ascend(m: LocalConnectionModel) -> Tensor:
+    def penalised(self, m: LocalConnectionModel, u: Tensor) -> Tensor:
+        """The predicted objective ``(...)`` less the turning and joint-limit penalties."""
+        tr = self.tr
+        f, disp = self.predicted(m, u)
+        if tr.max_turn is not None and self.objective != "turning":
+            f = f - 1e3 * torch.relu(disp[..., 2].abs() - tr.max_turn).pow(2)
+        if tr.shape_bound is not None:
+            r = self.base_r + self.change(u)(self.theta)
+            excess = torch.relu(torch.linalg.vector_norm(r, dim=-1) - tr.shape_bound)
+            f = f - 1e3 * excess.pow(2).mean(-1)
+        return f
+
+    def ascend(self, m: LocalConnectionModel) -> Tensor:
         """Projected Adam ascent of ``m``'s objective over the change. The step length decays
         linearly to a tenth, and the best iterate is kept: the penalties (joint limits, turning)
         make the ascent oscillate, and the start (no change) is always a candidate."""
-        u = init.clone().requires_grad_(True)
-        opt = torch.optim.Adam([u], lr=tr.lr * radius)
+        tr = self.tr
+        u = self.init.clone().requires_grad_(True)
+        opt = torch.optim.Adam([u], lr=tr.lr * self.radius)
         sched = torch.optim.lr_scheduler.LambdaLR(
             opt, lambda i: 1 - 0.9 * i / max(tr.steps, 1))
         zero = torch.zeros_like(u)
-        best_u, best_f = zero, penalised(m, zero).detach()
+        best_u, best_f = zero, self.penalised(m, zero).detach()
         for _ in range(tr.steps):
             opt.zero_grad()
-            f = penalised(m, u)
+            f = self.penalised(m, u)
             better = f.detach() > best_f
             best_f = torch.where(better, f.detach(), best_f)
             best_u = torch.where(better, u.detach(), best_u)
             (-f).backward()
             opt.step()
             sched.step()
-        f = penalised(m, u).detach()
+        f = self.penalised(m, u).detach()
         return torch.where(f > best_f, u.detach(), best_u)
 
-    def penalised(m: LocalConnectionModel, u: Tensor) -> Tensor:
-        """The predicted objective ``(...)`` less the turning and joint-limit penalties."""
-        f, disp = predicted(m, u)
-        if tr.max_turn is not None and objective != "turning":
-            f = f - 1e3 * torch.relu(disp[..., 2].abs() - tr.max_turn).pow(2)
-        if tr.shape_bound is not None:
-            r = base_r + change(u)(theta)
-            excess = torch.relu(torch.linalg.vector_norm(r, dim=-1) - tr.shape_bound)
-            f = f - 1e3 * excess.pow(2).mean(-1)
-        return f
 
-    u = ascend(model)
-    delta = change(u)
+def _shifted_gait(model: LocalConnectionModel, delta: FourierSeries) -> FourierGait:
+    """The gait ``γ̂ + Δ``: the model's cycle coefficients plus the change's, zero-padded to
+    the higher of the two orders."""
     coeffs = model.gamma.coeffs.detach().clone()
     pad = delta.coeffs
     if pad.shape[0] > coeffs.shape[0]:
         coeffs = torch.cat([coeffs, coeffs.new_zeros(pad.shape[0] - coeffs.shape[0], coeffs.shape[1])])
     coeffs[: pad.shape[0]] += pad
-    proposal = FourierGait(coeffs)
-    step = float(torch.linalg.vector_norm(delta(grid), dim=-1).amax())
-
-    current = float(predicted(model, None)[0])
-    gain, gain_se = float(predicted(model, u)[0]) - current, float("nan")
-    if n_draws > 0:
-        sampled = sample_models(model, n_draws, seed=seed)
-        gain_se = float((predicted(sampled, u)[0] - predicted(sampled, None)[0]).std())
-    prediction = predict_gait(model, proposal, phase_offset=0.0, n_steps=n_steps,
-                              n_draws=n_draws, seed=seed, warn_excursion=math.inf,
-                              max_excursion=math.inf)
-    return Proposal(
-        gait=proposal, objective=objective, current=current, predicted=current + gain,
-        gain=gain, gain_se=gain_se, radius=radius, step=step,
-        prediction=prediction,
-    )
+    return FourierGait(coeffs)
 
 
 def check_trust_region(model: LocalConnectionModel, gait, trust_region: TrustRegion,

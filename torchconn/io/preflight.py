@@ -36,12 +36,8 @@ CYCLE_RULES = {
     # cross-validation over blocks of whole cycles (5 folds) needs 10 in all
     "discrepancy": CycleRule(per_trial=3.0, total=10.0),
 }
-#: fewer samples per cycle than this: velocities and phase bins are coarse. Measured with the
-#: default estimator (benchmarks/bench_sampling_rate.py: pooled 3 trials x 20 cycles, seeds
-#: 101/202, relative RMS error of Â on the cycle at 8/10/12/16/20/32/64 samples per cycle,
-#: ω = 0): 3-link reference gait 88/6.1/4.6/2.5/1.9/0.8/0.4 %, 9-link 90/20/17/8.5/6.0/3.3/4.0 %
-#: (ω = 0.002: 3-link 89/15/13/9.2/6.6/6.1/4.9 %); held out (seeds 303/404, circle gaits too)
-#: alike. Below 16 the error about doubles; at 8 the reference gaits are not recovered
+#: fewer samples per cycle than this: velocities and phase bins are coarse, and the error of
+#: the fitted connection grows quickly (benchmarks/bench_sampling_rate.py)
 MIN_SAMPLES_PER_CYCLE = 16
 #: periodicity score below which no periodic gait is found (see :func:`periodicity`)
 MIN_PERIODICITY = 0.25
@@ -78,7 +74,7 @@ def periodicity(r: Tensor, cycles: Tensor) -> Tensor:
 
 @dataclass(frozen=True)
 class Preflight:
-    """What :func:`preflight` measured, per trial, and its verdict for each command.
+    """What :func:`preflight` found, per trial, and its verdict for each command.
 
     Attributes:
         cycles: gait cycles per trial; ``total_cycles`` their sum.
@@ -91,7 +87,7 @@ class Preflight:
         ready: command -> True when it can run.
         problems: messages that stop a command (command -> list).
         warnings: messages that do not.
-        rules: command -> the :class:`CycleRule` it was measured against.
+        rules: command -> the :class:`CycleRule` it was checked against.
     """
 
     cycles: tuple[float, ...]

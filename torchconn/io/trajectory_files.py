@@ -302,9 +302,8 @@ def _check_joint_range(col: np.ndarray, name: str, label: str) -> None:
 
 
 #: a body travels at most about a body length per gait cycle, and its origin moves by less than
-#: about 0.1 body length per radian of joint motion (measured on the simulated 3- and 9-link
-#: swimmers, both frames, η up to 0.1, ω up to 0.05: 0.1-0.54 body lengths per cycle and
-#: 0.02-0.09 per radian); positions beyond these limits are not in body lengths
+#: about 0.1 body length per radian of joint motion; positions beyond these limits are not in
+#: body lengths
 _MAX_BL_PER_CYCLE = 3.0
 _MAX_BL_PER_RAD = 2.0
 #: joint motion per cycle (rad, norm over the joints) below which no gait is there to fit: a
@@ -327,7 +326,7 @@ def _per_cycle(x: np.ndarray, n: int) -> np.ndarray:
 
 def _check_pose(pose: np.ndarray, r: np.ndarray, label: str) -> None:
     """Warn about columns that do not move, positions that move further per gait cycle or per
-    radian of joint motion than a body measured in body lengths can (millimetres or pixels?),
+    radian of joint motion than a body can in body lengths (millimetres or pixels?),
     joints that barely move, and a heading that swings by more than a turn within a cycle
     (degrees?)."""
     names = ["x", "y", "theta"] + [f"r{i + 1}" for i in range(r.shape[1])]
@@ -357,7 +356,7 @@ def _check_pose(pose: np.ndarray, r: np.ndarray, label: str) -> None:
             warnings.warn(
                 f"{label}, columns 'x', 'y': the body moves {per_cycle:.3g} per gait cycle and "
                 f"{per_rad:.3g} per radian of joint motion (medians over {int(ok.sum())} "
-                "cycles), but measured in body lengths a swimmer moves at most about 1 per "
+                "cycles), but in body lengths a swimmer moves at most about 1 per "
                 "cycle and well under 1 per radian (warned above "
                 f"{_MAX_BL_PER_CYCLE:g} and {_MAX_BL_PER_RAD:g}): positions in millimetres or "
                 "pixels? x and y are in body lengths (divide them by the body length in the "
@@ -430,7 +429,7 @@ def read_csv(
 
     Joint angles wrapped to (−π, π] (jumps of about 2π between neighbouring samples) are
     unwrapped, with a warning naming column and lines. Warnings also name joint angles beyond
-    ±π (degrees?) and positions that move further than a body measured in body lengths can
+    ±π (degrees?) and positions that move further than a body can in body lengths
     (millimetres or pixels?); a file given twice is refused, two files with identical contents
     are warned about.
 

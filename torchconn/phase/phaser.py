@@ -711,10 +711,8 @@ _MIN_VARIANCE = 1e-3
 #: blocks of whole cycles over which the spread of the channels' phase-noise estimates is taken
 _BLOCKS = 5
 #: the channels' log phase-noise variances keep their deviations from the mean in full only
-#: where their spread is many times this factor times its sampling variance: set on seeds 0-1
-#: of ``benchmarks/phase_accuracy.py`` (1: equal-noise 5-link swimmers 3-4 % worse than equal
-#: weights; 4-6: the 9-link circle 0.4-0.7 % worse; 8: no swimmer worse, while channels of
-#: truly unequal noise keep most of the gain)
+#: where their spread is many times this factor times its sampling variance (smaller factors
+#: let equal-noise channels get unequal weights)
 _SHRINK = 8.0
 
 

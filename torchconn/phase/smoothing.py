@@ -337,7 +337,7 @@ def _rts_scan(y, finite, F, Q1, q, R, x0, P0) -> Tensor:
 
 # Tiny batched products written as broadcast-and-sum: inside the time loops these run on a
 # few thousand numbers, where ATen's batched matmul spreads work over threads and, on a busy
-# machine, spends far longer waiting for them than computing (25x slower measured).
+# machine, spends far longer waiting for them than computing.
 def _mv(A: Tensor, x: Tensor) -> Tensor:
     """``A (..., n, n) @ x (..., n)``."""
     return (A * x[..., None, :]).sum(-1)
@@ -504,7 +504,7 @@ def rts_smooth(
             and for few rows; ``"loop"``: one Python step per sample (the reference); ``"auto"``
             (default): the scan off the CPU, and on the CPU for data without drop-outs (after
             the first sample) or for at most 256 rows (order 2) or 64 rows (order 3), rows
-            being batch elements × channels -- where it measured faster.
+            being batch elements × channels -- where it is the faster.
             Both give the same result to rounding (≤ 1e-10 relative in float64 on
             well-conditioned data; the scan is the more accurate across long drop-outs).
 
@@ -630,9 +630,8 @@ def smooth_trajectory(
         shared_bandwidth: when the noise is estimated (``process_noise`` None), give every
             channel of a trial the same noise ratio ``q/R`` -- the geometric mean of the
             channels' own GCV choices -- so that poses and shapes pass through one filter.
-            Measured on the paper's swimmers: it lowers the data-driven error without
-            observation noise (3-link 4.1e-4 -> 3.2e-4) but raises it under noise (9-link at
-            ω = 0.01: 0.013 -> 0.023) and biases the shape velocities, so it is off by default.
+            Off by default: it biases the shape velocities, and raises the error under
+            observation noise.
         algorithm: ``"auto"``, ``"scan"`` or ``"loop"``, as in :func:`rts_smooth`.
 
     Returns:

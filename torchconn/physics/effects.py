@@ -52,6 +52,7 @@ from .systems.swimmer import NLinkSwimmer
 
 __all__ = [
     "cubic_interp",
+    "swimmer_kwargs",
     "Param",
     "Effect",
     "AmbientFlow",
@@ -370,6 +371,8 @@ def cubic_interp(x: Tensor, s: Tensor) -> Tensor:
     )
 
 
-def _swimmer_kwargs(system: NLinkSwimmer) -> dict:
+def swimmer_kwargs(system: NLinkSwimmer) -> dict:
+    """The keyword arguments that rebuild ``system`` as an :class:`NLinkSwimmer` (links, drag
+    ratio, frame, link lengths, drag coefficient)."""
     return dict(n_links=system.n_links, drag_ratio=system.drag_ratio, frame=system.frame,
                 link_lengths=system.link_lengths, drag_coefficient=system.drag_coefficient)

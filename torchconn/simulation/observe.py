@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 
 from ..trajectory import Trajectory
-from .rollout import _meta_value, _per_cell, _seed_array, cell_generators
+from .rollout import cell_generators, meta_value, per_cell, seed_array
 
 __all__ = ["observe"]
 
@@ -44,7 +44,7 @@ def observe(traj: Trajectory, omega, *, dropout: float = 0.0, seeds) -> Trajecto
     ):
         raise ValueError(f"dropout must be a probability in [0, 1), got {dropout!r}")
     batch = tuple(traj.batch_shape)
-    seed_arr = _seed_array(seeds)
+    seed_arr = seed_array(seeds)
     if tuple(seed_arr.shape) != batch:
         raise ValueError(
             f"seeds must have the trajectory's batch shape {batch}, got {tuple(seed_arr.shape)}"
@@ -52,7 +52,7 @@ def observe(traj: Trajectory, omega, *, dropout: float = 0.0, seeds) -> Trajecto
     pose, r = traj.pose, traj.r
     T, d = traj.n_samples, traj.shape_dim
     gens, _ = cell_generators(seed_arr, "observe", pose.device)
-    omega_c = _per_cell(omega, "omega", batch, pose.dtype, pose.device)
+    omega_c = per_cell(omega, "omega", batch, pose.dtype, pose.device)
     if (omega_c < 0).any():
         raise ValueError("omega must be finite and >= 0")
 
@@ -72,6 +72,6 @@ def observe(traj: Trajectory, omega, *, dropout: float = 0.0, seeds) -> Trajecto
             power = torch.where(lost, nan.to(power.dtype), power)
 
     meta = dict(traj.meta)
-    meta.update(omega=_meta_value(omega), dropout=float(dropout),
+    meta.update(omega=meta_value(omega), dropout=float(dropout),
                 observe_seeds=seed_arr.tolist())
     return traj.with_fields(pose=new_pose, r=new_r, power=power, meta=meta)

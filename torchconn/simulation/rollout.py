@@ -67,7 +67,8 @@ from ..physics.gaits import as_gait
 from ..physics.systems.base import LocomotionSystem
 from ..trajectory import GroundTruth, Trajectory
 
-__all__ = ["simulate", "cell_generators", "interval_power", "POWER_DEFINITION"]
+__all__ = ["simulate", "cell_generators", "interval_power", "POWER_DEFINITION", "seed_array", "per_cell",
+           "meta_value"]
 
 POWER_DEFINITION = (
     "power at sample k belongs to the sample interval [t_k, t_k+1): v_k^T M(rbar_k) v_k with "
@@ -90,7 +91,7 @@ Drift = Callable[[Tensor, float], Tensor]
 
 
 # ---------------------------------------------------------------------------- randomness
-def _seed_array(seeds, name: str = "seeds") -> np.ndarray:
+def seed_array(seeds, name: str = "seeds") -> np.ndarray:
     """Seeds as an object array of non-negative Python ints (batch shape kept)."""
     if isinstance(seeds, np.random.SeedSequence):
         seeds = [seeds]
@@ -146,7 +147,7 @@ def cell_generators(
     """
     if stream not in _STREAMS:
         raise ValueError(f"stream must be one of {tuple(_STREAMS)}, got {stream!r}")
-    arr = _seed_array(seeds)
+    arr = seed_array(seeds)
     key = _STREAMS[stream]
     gens = []
     for s in arr.reshape(-1):
@@ -155,7 +156,7 @@ def cell_generators(
     return gens, tuple(arr.shape)
 
 
-def _per_cell(value, name: str, batch: tuple[int, ...], dtype, device) -> Tensor:
+def per_cell(value, name: str, batch: tuple[int, ...], dtype, device) -> Tensor:
     """A float or a tensor broadcastable to ``batch`` -> flat ``(B,)`` tensor."""
     t = torch.as_tensor(value, dtype=dtype, device=device)
     try:
@@ -170,7 +171,9 @@ def _per_cell(value, name: str, batch: tuple[int, ...], dtype, device) -> Tensor
     return t.reshape(-1)
 
 
-def _meta_value(value):
+def meta_value(value):
+    """``value`` as written to a recording's metadata: a tensor becomes a (nested) list, any
+    other value is returned as is."""
     return value.detach().cpu().tolist() if isinstance(value, Tensor) else value
 
 
@@ -217,39 +220,14 @@ def simulate(
         ``r (..., T, d)``, ``power (..., T)`` and ``truth`` (phase, noise-free pose / r / power,
         ``xi``, ``r_dot``, ``delta``), ``T = n_cycles · samples_per_cycle``.
     """
-    if not isinstance(system, LocomotionSystem):
-        raise TypeError(f"system must be a LocomotionSystem, got {type(system).__name__}")
-    gait = as_gait(gait)
+    gait = _checked_run(system, gait, n_cycles, samples_per_cycle, substeps, drift)
     d = system.shape_dim
-    if gait.shape_dim != d:
-        raise ValueError(f"gait has {gait.shape_dim} joints but the system has {d}")
-    for name, v, lo in (("n_cycles", n_cycles, 1), ("samples_per_cycle", samples_per_cycle, 2),
-                        ("substeps", substeps, 2)):
-        _checks.integer(v, name, minimum=lo)
-    if substeps % 2:
-        raise ValueError(
-            f"substeps must be even (each sample sits mid-way through its {substeps} fine "
-            "steps' recording interval), got {substeps}"
-        )
-    if drift is not None and not callable(drift):
-        raise TypeError(f"drift must be a callable (pose, t) -> body velocity, got {drift!r}")
-
     like = eta if isinstance(eta, Tensor) and eta.is_floating_point() else None
     dtype = like.dtype if like is not None else torch.float64
     device = like.device if like is not None else torch.device("cpu")
     gens, batch = cell_generators(seeds, "rollout", device)
-    eta_c = _per_cell(eta, "eta", batch, dtype, device)
-    alpha_c = _per_cell(alpha, "alpha", batch, dtype, device)
-    phase0_c = _per_cell(phase0, "phase0", batch, dtype, device)
-    if (eta_c < 0).any():
-        raise ValueError("eta must be >= 0")
-    if (alpha_c < 0).any():
-        raise ValueError("alpha must be >= 0")
-    if stationary_start and (alpha_c <= 0).any():
-        raise ValueError(
-            "stationary_start needs alpha > 0 (the stationary law N(0, η²/(2α)) does not exist "
-            "for alpha = 0); pass stationary_start=False"
-        )
+    eta_c, alpha_c, phase0_c = _cell_parameters(eta, alpha, phase0, stationary_start, batch,
+                                                dtype, device)
 
     kw = dict(dtype=dtype, device=device)
     if stationary_start:
@@ -274,14 +252,25 @@ def simulate(
         phase=rec["phase"], pose=rec["pose"], r=rec["r"], xi=rec["xi"], r_dot=rec["r_dot"],
         power=power, delta=rec["delta"],
     )
-    meta = {
+    meta = _rollout_meta(system, gait, eta=eta, alpha=alpha, phase0=phase0, seeds=seeds,
+                         batch=batch, n_cycles=n_cycles, samples_per_cycle=samples_per_cycle,
+                         substeps=substeps, dt=dt, stationary_start=stationary_start,
+                         drift=drift)
+    return Trajectory(t=t, pose=rec["pose"], r=rec["r"], power=power, truth=truth,
+                      meta=meta)
+
+
+def _rollout_meta(system, gait, *, eta, alpha, phase0, seeds, batch, n_cycles,
+                  samples_per_cycle, substeps, dt, stationary_start, drift) -> dict:
+    """The metadata of a simulated recording: the system, gait and every setting of the run."""
+    return {
         "source": "torchconn.simulation.rollout.simulate",
         "system": repr(system),
         "gait": repr(gait),
-        "eta": _meta_value(eta),
-        "alpha": _meta_value(alpha),
-        "phase0": _meta_value(phase0),
-        "seeds": _seed_array(seeds).tolist(),
+        "eta": meta_value(eta),
+        "alpha": meta_value(alpha),
+        "phase0": meta_value(phase0),
+        "seeds": seed_array(seeds).tolist(),
         "batch_shape": list(batch),
         "n_cycles": int(n_cycles),
         "samples_per_cycle": int(samples_per_cycle),
@@ -294,8 +283,47 @@ def simulate(
         "scheme": "Heun (Stratonovich), pose step exp(½(A(r_n)+A(r_n+1)) Δr) on SE(2)",
         "power": POWER_DEFINITION,
     }
-    return Trajectory(t=t, pose=rec["pose"], r=rec["r"], power=power, truth=truth,
-                      meta=meta)
+
+
+def _checked_run(system, gait, n_cycles, samples_per_cycle, substeps, drift):
+    """The gait as a gait object, after checking the system, the gait's joints, the integer
+    sizes of the run (``substeps`` even) and that ``drift`` is callable."""
+    if not isinstance(system, LocomotionSystem):
+        raise TypeError(f"system must be a LocomotionSystem, got {type(system).__name__}")
+    gait = as_gait(gait)
+    d = system.shape_dim
+    if gait.shape_dim != d:
+        raise ValueError(f"gait has {gait.shape_dim} joints but the system has {d}")
+    for name, v, lo in (("n_cycles", n_cycles, 1), ("samples_per_cycle", samples_per_cycle, 2),
+                        ("substeps", substeps, 2)):
+        _checks.integer(v, name, minimum=lo)
+    if substeps % 2:
+        raise ValueError(
+            f"substeps must be even (each sample sits mid-way through its {substeps} fine "
+            "steps' recording interval), got {substeps}"
+        )
+    if drift is not None and not callable(drift):
+        raise TypeError(f"drift must be a callable (pose, t) -> body velocity, got {drift!r}")
+    return gait
+
+
+def _cell_parameters(eta, alpha, phase0, stationary_start: bool, batch: tuple[int, ...],
+                     dtype, device) -> tuple[Tensor, Tensor, Tensor]:
+    """``eta``, ``alpha`` and ``phase0`` per batch cell, flat ``(B,)``; refuses negative
+    ``eta`` or ``alpha``, and ``alpha = 0`` with a stationary start."""
+    eta_c = per_cell(eta, "eta", batch, dtype, device)
+    alpha_c = per_cell(alpha, "alpha", batch, dtype, device)
+    phase0_c = per_cell(phase0, "phase0", batch, dtype, device)
+    if (eta_c < 0).any():
+        raise ValueError("eta must be >= 0")
+    if (alpha_c < 0).any():
+        raise ValueError("alpha must be >= 0")
+    if stationary_start and (alpha_c <= 0).any():
+        raise ValueError(
+            "stationary_start needs alpha > 0 (the stationary law N(0, η²/(2α)) does not exist "
+            "for alpha = 0); pass stationary_start=False"
+        )
+    return eta_c, alpha_c, phase0_c
 
 
 def interval_power(system: LocomotionSystem, r: Tensor, dt: float) -> Tensor:

@@ -29,12 +29,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .. import __version__
 from .._cli import InputError, check_keys, did_you_mean, resolve_device
 from .._files import read_text
 from .._options import check_value
 from .._provenance import source_hash
 from .._resources import config_names, configs, read_config
+from .._version import __version__
 from ..cli.common import apply_overrides
 from ..regression.estimator import ConnectionEstimator, estimator_from_settings, estimator_settings
 

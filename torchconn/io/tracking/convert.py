@@ -84,9 +84,8 @@ class ConversionSettings(Options):
         fix_flips: undo head/tail swaps found between frames (else only report them).
         fill_interior: a frame that lost interior keypoints (not the first or last) keeps them,
             placed on the straight line between their tracked neighbours; default off: the
-            frame is missing and the smoother bridges it in time, which measured more accurate
-            (joint-angle RMS error 0.013 vs 0.048 rad, 3-link, 3 keypoints per link, 3 % lost
-            points, 0.5 px noise; docs/tracking.md), though it keeps fewer frames.
+            frame is missing and the smoother bridges it in time, which is the more accurate
+            (docs/tracking.md), though it keeps fewer frames.
         time_origin: ``"first"`` (t = 0 at the first frame read) or ``"frame0"`` (t = frame / fps).
     """
 
@@ -368,11 +367,56 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
     src = kp.source
     notes: list[str] = []
 
-    def note(msg: str) -> None:
+    def note(msg: str) -> None:  # called by the steps below, so the caller of convert is 4 up
         notes.append(msg)
-        warnings.warn(f"{src}: {msg}", stacklevel=3)
+        warnings.warn(f"{src}: {msg}", stacklevel=4)
 
-    # ---- keypoints: selection and order
+    sel, used = _select_keypoints(kp, s, note)
+    pts, point_ok, frame_ok, filled = _complete_points(kp, s, sel, used, note)
+    missing_by_kp = {n: int((~point_ok[:, j]).sum()) for j, n in enumerate(used)}
+    pts, used = _chain_order(pts, frame_ok, used, s, note)
+    grid, dt = _time_grid(kp, s)
+    F = int(grid[-1]) + 1
+    P, valid = _on_grid(pts, frame_ok, grid, F, s, dtype)
+    pose, r, bl, scale, scale_source, flipped_frames = _pose_from_points(P, valid, kp, s, note)
+    tail_first = _moves_tail_first(pose, valid, used, s, note)
+    trials, gap_frames = _trial_spans(valid, dt, kp, s, note)
+
+    t_off = 0.0 if s.time_origin == "first" else float(kp.frames[0]) * dt
+    if kp.times is not None and s.fps is None:
+        t_off = float(kp.times[0])
+    n_max = max(b - a for a, b in trials)
+    d = s.n_links - 1
+    traj_pose = pad_trials([pose[a:b] for a, b in trials])
+    traj_r = pad_trials([r[a:b] for a, b in trials]).reshape(len(trials), n_max, d)
+    times = tuple(t_off + torch.arange(a, b, dtype=torch.float64) * dt for a, b in trials)
+    t = times[0][0] + torch.arange(n_max, dtype=torch.float64) * dt
+    trial_info = tuple({"source": src, "trial": k, "first_frame": int(kp.frames[0]) + a,
+                        "n_samples": b - a, "t0": float(times[k][0])}
+                       for k, (a, b) in enumerate(trials))
+    settings_out = dataclasses.asdict(s)
+    settings_out["keypoints"] = list(used[::-1]) if s.head == "last" else list(used)
+    report = ConversionReport(
+        source=src, format=kp.format, keypoints=tuple(used), settings=settings_out,
+        scale=scale, scale_source=scale_source, dt=dt,
+        frames=(int(kp.frames[0]), int(kp.frames[0]) + F - 1), n_frames=F,
+        n_valid=int(valid.sum()), missing_by_keypoint=missing_by_kp, filled_points=filled,
+        body_length={"median": float(bl[valid].median()),
+                     "p10": float(torch.quantile(bl[valid], 0.1)),
+                     "p90": float(torch.quantile(bl[valid], 0.9))},
+        flipped_frames=flipped_frames, tail_first=tail_first, gaps=gap_frames,
+        trials=trial_info, notes=tuple(notes),
+    )
+    meta = {"source": [src], "conversion": report.to_dict(), "trials": list(trial_info),
+            "dt": dt}
+    traj = Trajectory(t=t, pose=traj_pose, r=traj_r, meta=meta)
+    return Conversion(trajectory=traj, trial_times=times, report=report, body_length=bl)
+
+
+def _select_keypoints(kp: Keypoints, s: ConversionSettings, note) -> tuple[list[int], list[str]]:
+    """The indices and names of the keypoints used, head first (``s.keypoints`` or all of the
+    file's); refuses unknown names and fewer than 2 keypoints, notes fewer than N+1."""
+    src = kp.source
     names = list(kp.names)
     if s.keypoints is not None:
         missing = [k for k in s.keypoints if k not in names]
@@ -389,8 +433,17 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
     if len(sel) < s.n_links + 1:
         note(f"{len(sel)} keypoints for {s.n_links} links: the curve through them bends at "
              f"{max(len(sel) - 2, 0)} of them at most, so the {s.n_links - 1} joint angles are "
-             f"interpolated, not measured (track at least {s.n_links + 1} keypoints, or use "
+             f"interpolated, not tracked (track at least {s.n_links + 1} keypoints, or use "
              "fewer links)")
+    return sel, used
+
+
+def _complete_points(kp: Keypoints, s: ConversionSettings, sel: list[int], used: list[str],
+                     note) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The selected points ``(F, K, 2)``, which are usable ``(F, K)`` (finite and at or above
+    ``min_score``), which frames are complete ``(F,)``, and how many interior points were
+    filled (``fill_interior``). Refuses a file without a frame that has every keypoint."""
+    src = kp.source
     pts = kp.points[:, sel].copy()
     scores = None if kp.scores is None else kp.scores[:, sel]
     if s.min_score is not None and scores is None:
@@ -422,7 +475,13 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
             f"found in {int(point_ok[:, worst].sum())} of {F_read} frames. Lower --min-score or "
             "leave out unreliable keypoints with --keypoints"
         )
-    missing_by_kp = {n: int((~point_ok[:, j]).sum()) for j, n in enumerate(used)}
+    return pts, point_ok, frame_ok, filled
+
+
+def _chain_order(pts: np.ndarray, frame_ok: np.ndarray, used: list[str],
+                 s: ConversionSettings, note) -> tuple[np.ndarray, list[str]]:
+    """The points in chain order, tail (link 1) first, and the keypoint names head first; notes
+    keypoints that zig-zag in the given order and joints a polyline cannot bend."""
     ratio = _order_ratio(pts[frame_ok])
     if ratio > _SCRAMBLED:
         note(f"the keypoints in the order {', '.join(used)} zig-zag: the chain through them is "
@@ -433,23 +492,32 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
         note(f"{len(used)} keypoints for {s.n_links} links with curve='polyline': joints between "
              "keypoints fall on straight segments (their angles are 0); use curve='spline'")
     if s.head == "last":
-        pts, point_ok = pts[:, ::-1], point_ok[:, ::-1]
+        pts = pts[:, ::-1]
         used = used[::-1]
     # the chain runs tail (link 1) to head: reverse the head-first keypoint list
-    pts = pts[:, ::-1].copy()
+    return pts[:, ::-1].copy(), used
 
-    # ---- time grid
-    grid, dt = _time_grid(kp, s)
-    F = int(grid[-1]) + 1
-    P = torch.full((F, len(used), 2), float("nan"), dtype=dtype)
+
+def _on_grid(pts: np.ndarray, frame_ok: np.ndarray, grid: np.ndarray, F: int,
+             s: ConversionSettings, dtype) -> tuple[Tensor, Tensor]:
+    """The points on the uniform time grid ``(F, K, 2)`` (NaN in frames not complete or not
+    read; y flipped when ``flip_y``) and which grid frames are valid ``(F,)``."""
+    P = torch.full((F, pts.shape[1], 2), float("nan"), dtype=dtype)
     P[torch.as_tensor(grid)] = torch.as_tensor(pts, dtype=dtype)
     valid = torch.zeros(F, dtype=torch.bool)
     valid[torch.as_tensor(grid)] = torch.as_tensor(frame_ok)
     P[~valid] = float("nan")
     if s.flip_y:
         P = P * torch.tensor([1.0, -1.0], dtype=dtype)
+    return P, valid
 
-    # ---- midline, flips, pose
+
+def _pose_from_points(P: Tensor, valid: Tensor, kp: Keypoints, s: ConversionSettings, note):
+    """Midline, head/tail flips and pose per grid frame. Returns ``pose (F, 3)`` (x, y in body
+    lengths), ``r (F, N−1)``, the body length per frame ``(F,)`` (in body lengths), the scale
+    (file units per body length) and its source (``"median"`` or ``"given"``), and the file
+    frames found flipped (NaN rows where a frame is not valid)."""
+    dtype = P.dtype
     safe = torch.where(valid[:, None, None], P, torch.zeros((), dtype=dtype))
     q = resample_midline(safe, s.n_links, curve=s.curve)  # (F, N+1, 2)
     flipped = _flips(q, valid)
@@ -468,31 +536,43 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
     if s.scale is None:
         scale, scale_source = float(length[valid].median()), "median"
         if not scale > 0:
-            raise TrackingFormatError(f"{src}: the keypoints of every frame coincide (body "
+            raise TrackingFormatError(f"{kp.source}: the keypoints of every frame coincide (body "
                                       "length 0); check the keypoint columns")
     else:
         scale, scale_source = float(s.scale), "given"
     pose = torch.cat([pose[:, :2] / scale, pose[:, 2:]], -1)
     pose = torch.where(valid[:, None], pose, nan)
     r = torch.where(valid[:, None], r, nan)
-    bl = length / scale
+    return pose, r, length / scale, scale, scale_source, flipped_frames
 
-    # ---- direction of travel: a forward swimmer moves head first
+
+def _moves_tail_first(pose: Tensor, valid: Tensor, used: list[str], s: ConversionSettings,
+                      note) -> bool:
+    """Whether the body moves tail first on average over consecutive valid frames (mean
+    forward speed more than 2 standard errors below 0); noted, as head and tail may be
+    swapped (a forward swimmer moves head first)."""
     vi = torch.nonzero(valid).flatten()
-    tail_first = False
-    if vi.numel() > 2:
-        dxy = torch.diff(pose[vi, :2], dim=0)
-        heading = pose[vi[:-1], 2]
-        fwd = dxy[:, 0] * torch.cos(heading) + dxy[:, 1] * torch.sin(heading)
-        consecutive = torch.diff(vi) == 1
-        f = fwd[consecutive]
-        if f.numel() > 2 and float(f.mean()) < -2 * float(f.std()) / math.sqrt(f.numel()):
-            tail_first = True
-            note("the body moves tail first on average: if the animal swims forwards, head and "
-                 f"tail are swapped (the keypoint list runs {used[0]!r} ... {used[-1]!r}, taken "
-                 f"as head ... tail; pass head='{'last' if s.head == 'first' else 'first'}')")
+    if vi.numel() <= 2:
+        return False
+    dxy = torch.diff(pose[vi, :2], dim=0)
+    heading = pose[vi[:-1], 2]
+    fwd = dxy[:, 0] * torch.cos(heading) + dxy[:, 1] * torch.sin(heading)
+    consecutive = torch.diff(vi) == 1
+    f = fwd[consecutive]
+    if f.numel() > 2 and float(f.mean()) < -2 * float(f.std()) / math.sqrt(f.numel()):
+        note("the body moves tail first on average: if the animal swims forwards, head and "
+             f"tail are swapped (the keypoint list runs {used[0]!r} ... {used[-1]!r}, taken "
+             f"as head ... tail; pass head='{'last' if s.head == 'first' else 'first'}')")
+        return True
+    return False
 
-    # ---- gaps and trials
+
+def _trial_spans(valid: Tensor, dt: float, kp: Keypoints, s: ConversionSettings,
+                 note) -> tuple[list[tuple[int, int]], tuple[tuple[int, int], ...]]:
+    """Trials as grid spans ``(start, stop)`` from first to last valid frame, the recording
+    split at gaps longer than ``max_gap`` seconds (a span of one valid frame is dropped, with a
+    note), and every gap as ``(first file frame, length in frames)``."""
+    F = valid.shape[0]
     miss = (~valid).numpy()
     gaps = _runs(miss)
     gap_frames = tuple((int(kp.frames[0]) + a, n) for a, n in gaps)
@@ -512,37 +592,9 @@ def convert(kp: Keypoints, settings: ConversionSettings, *, dtype=torch.float64)
             continue
         trials.append((a + int(ok[0]), a + int(ok[-1]) + 1))
     if not trials:
-        raise TrackingFormatError(f"{src}: no stretch of 2 or more valid frames between gaps "
+        raise TrackingFormatError(f"{kp.source}: no stretch of 2 or more valid frames between gaps "
                                   f"longer than max_gap={s.max_gap} s")
-    t_off = 0.0 if s.time_origin == "first" else float(kp.frames[0]) * dt
-    if kp.times is not None and s.fps is None:
-        t_off = float(kp.times[0])
-    n_max = max(b - a for a, b in trials)
-    d = s.n_links - 1
-    traj_pose = pad_trials([pose[a:b] for a, b in trials])
-    traj_r = pad_trials([r[a:b] for a, b in trials]).reshape(len(trials), n_max, d)
-    times = tuple(t_off + torch.arange(a, b, dtype=torch.float64) * dt for a, b in trials)
-    t = times[0][0] + torch.arange(n_max, dtype=torch.float64) * dt
-    trial_info = tuple({"source": src, "trial": k, "first_frame": int(kp.frames[0]) + a,
-                        "n_samples": b - a, "t0": float(times[k][0])}
-                       for k, (a, b) in enumerate(trials))
-    settings_out = dataclasses.asdict(s)
-    settings_out["keypoints"] = list(used[::-1]) if s.head == "last" else list(used)
-    report = ConversionReport(
-        source=src, format=kp.format, keypoints=tuple(used), settings=settings_out,
-        scale=scale, scale_source=scale_source, dt=dt,
-        frames=(int(kp.frames[0]), int(kp.frames[0]) + F - 1), n_frames=F,
-        n_valid=int(valid.sum()), missing_by_keypoint=missing_by_kp, filled_points=filled,
-        body_length={"median": float(bl[valid].median()),
-                     "p10": float(torch.quantile(bl[valid], 0.1)),
-                     "p90": float(torch.quantile(bl[valid], 0.9))},
-        flipped_frames=flipped_frames, tail_first=tail_first, gaps=gap_frames,
-        trials=trial_info, notes=tuple(notes),
-    )
-    meta = {"source": [src], "conversion": report.to_dict(), "trials": list(trial_info),
-            "dt": dt}
-    traj = Trajectory(t=t, pose=traj_pose, r=traj_r, meta=meta)
-    return Conversion(trajectory=traj, trial_times=times, report=report, body_length=bl)
+    return trials, gap_frames
 
 
 def _order_ratio(pts: np.ndarray) -> float:
