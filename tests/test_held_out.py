@@ -24,10 +24,10 @@ from torchconn.regression import (
     LocalConnectionModel,
     assign_bins,
     connection_regression,
-    noise_aware,
     skill,
 )
 from torchconn.regression.noise_aware import IntervalSamples, noise_aware_regression
+from torchconn.regression.noise_aware import regression as noise_aware
 from torchconn.regression.skill import PoorHeldOutSkillWarning
 
 F64 = torch.float64
@@ -114,7 +114,7 @@ def test_the_check_scores_the_noise_aware_fit_as_blended_with_the_smoothed_one(e
     smoothed regression refitted without each block (its own window rule on the other
     blocks) plus the fit's weights times the corrected fit's difference from it. Scoring the
     corrected estimate alone was pessimistic wherever the blend falls back."""
-    from torchconn.regression.tube import _auto_window
+    from torchconn.regression.binning import auto_window
 
     traj, cycle, _ = eight
     reg = NoiseAwareRegression(metric=False, n_bins=16, fourier_order=4)
@@ -128,7 +128,7 @@ def test_the_check_scores_the_noise_aware_fit_as_blended_with_the_smoothed_one(e
     term = torch.tensor([0] + [1] * d + [2] * d + [3] * d * d)
     # the window rule on the samples outside block 0, as for the corrected fits (the blocks
     # are about equal)
-    window = _auto_window(torch.where(sample_fold == 0, torch.nan, traj.phase), 16,
+    window = auto_window(torch.where(sample_fold == 0, torch.nan, traj.phase), 16,
                           1 + 2 * d + d * d, reg.samples_per_regressor)
     for f in range(3):
         phase = torch.where(sample_fold == f, torch.nan, traj.phase)

@@ -52,11 +52,11 @@ from scipy import stats
 from torch import Tensor
 
 from .._options import Options, option
+from ..noise import estimate_noise
 from ..phase.smoothing import smooth_trajectory, unwrap
 from ..physics.effects import REGISTRY, Effect, get_effect
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
-from ..regression.noise_aware import estimate_noise
 from ..trajectory import Trajectory
 from .confounding import principal_cosine, separating_experiments, signature_collinearity
 from .fitting import EffectFit, Problem, cycle_stats, fit_effects, fourier_columns, paired_gain

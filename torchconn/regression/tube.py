@@ -21,12 +21,13 @@ import torch
 from torch import Tensor, nn
 
 from .._options import Options, option
+from ..noise import estimate_noise, interval_samples
 from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import LimitCycle
 from ..phase.phaser import held_out_order, whole_cycle_weights
 from ..phase.smoothing import recorded_span
 from ..trajectory import Trajectory, over_spans, pool_batch, span_bounds
-from .binning import assign_bins
+from .binning import assign_bins, auto_window
 from .connection import connection_regression
 from .metric import (
     power_noise_variance,
@@ -212,8 +213,8 @@ class TubeRegression(Regression):
                     ridge_connection=self.ridge_connection)
 
         def bins_for(n_regressors: int):
-            window = self.window or _auto_window(phase, M, n_regressors,
-                                                 self.samples_per_regressor)
+            window = self.window or auto_window(phase, M, n_regressors,
+                                                self.samples_per_regressor)
             return assign_bins(phase, M, window=window, kernel=self.kernel), window
 
         fit, window, connection_meta = self._connection_fit(
@@ -324,8 +325,6 @@ class TubeRegression(Regression):
             raise ValueError("the power column has no values (all empty or NaN): the metric "
                              "cannot be estimated; fit the connection alone with "
                              "TubeRegression(metric=False) (torchconn-fit: --metric no)")
-        from .noise_aware import interval_samples  # noise_aware builds on this module
-
         # one-sample intervals; power k belongs to [t_k, t_{k+1}) (docs/conventions.md). A NaN
         # row closes each trial, so pooled trials stay apart in the residuals' lag structure.
         iv = interval_samples(traj.pose, traj.r, traj.phase, traj.dt, 1)
@@ -400,8 +399,6 @@ class TubeRegression(Regression):
         the lag structure of an uncorrected fit's power residuals
         (:func:`~torchconn.regression.metric.power_noise_variance`) averaged with weights from
         their standard errors, then set to 0 unless 2 standard errors above it."""
-        from .noise_aware import estimate_noise  # noise_aware builds on this module
-
         spectrum = estimate_noise(traj.r)
         n_pool = traj.r.ndim - 2 if pool else 0
         # the joints taken as independent: the metric's combination was set that way
@@ -491,20 +488,5 @@ def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:
     return [float(v) for v in delta.pow(2).nanmean(0).sqrt()]
 
 
-def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
-    """Half-width (in bin spacings) holding ``per_regressor`` samples per regressor on average
-    in the batch element with the fewest finite samples (the widest of
-    :func:`_auto_windows`)."""
-    return float(_auto_windows(phase, n_bins, n_regressors, per_regressor).max())
-
-
-def _auto_windows(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float
-                  ) -> Tensor:
-    """Per batch element of ``phase (..., N)``: the half-width ``(...)`` (in bin spacings,
-    float64) holding ``per_regressor`` samples per regressor on average in its windows; at
-    least 1, at most a quarter cycle (a window must stay local for the first-order model to
-    hold). Each element's width depends on its own samples only."""
-    per_spacing = torch.isfinite(phase).sum(-1).to(torch.float64) / n_bins
-    # a tricube window of half-width w spacings carries the weight of ~1.2 w spacings
-    window = per_regressor * n_regressors / (1.2 * per_spacing)
-    return window.clamp(1.0, n_bins / 4)
+#: the old private name, read by regression/skill.py until it imports binning.auto_window
+_auto_window = auto_window
