@@ -44,17 +44,14 @@ def offset_bias(samples: IntervalSamples, bins: BinIndex, gamma_m: Tensor,
 
     ``A(γ + δ) ṙ`` carries ``½ (δᵀ ∂²A δ) δ̇``, whose correlation with ``δ̇`` the first-order
     model loads onto ``Â``: ``Â`` is ``A`` averaged over the tube, ``A + ½ ∂²A : E[δδᵀ]``, not
-    ``A`` on the cycle (as ``M̂``, README "Is the cost standard error honest?"). Without noise
-    correction: the change is for recordings without detected measurement noise, where this
-    bias is not small against the noise (the 3-link's ``x`` displacement 1.6 % short, 6× its
-    scatter). ``first``: the first-order fit of the same samples and bins, where the caller
-    has it (computed here otherwise). ``estimate``: ``(..., M, 3, d)`` the ``Â`` whose bias is
+    ``A`` on the cycle. Without noise correction: the change is for recordings without
+    detected measurement noise, where this bias is not small against the noise. ``first``:
+    the first-order fit of the same samples and bins, where the caller has it (computed here
+    otherwise). ``estimate``: ``(..., M, 3, d)`` the ``Â`` whose bias is
     wanted where it is not that fit's (a delivered ``Â``, which the bins' bias correction and
     the blend have moved from the plain fit): the change is then ``estimate`` minus the
     second-order fit, the variance as above (the moves are functions of the fitted model,
-    not of the rows' noise). Measured from the plain fit instead, the clean 5-link's
-    allowance counted the bins' bias that :func:`bin_bias_correction` had already removed
-    (README "The bias allowance measured from the delivered ``Â``")."""
+    not of the rows' noise)."""
     fn = "offset_bias"
     s = _wls.prepare(fn, samples.r, samples.r_dot, samples.xi, "xi", 3, bins, gamma_m,
                      gamma_dot_m)
@@ -108,10 +105,8 @@ def interval_bias(traj: Trajectory, samples: IntervalSamples, bins: BinIndex, n_
     bin of the thinned recording cannot be fitted), with the variance of that third (the
     thinned samples are half of the others: nearly nested fits).
 
-    Without noise the 3-link reference gait's ``x`` displacement is off by ``a + c Δt²``
-    (−3.38 / −1.70 / −1.03 / −0.86 ×10⁻³ at 32 / 64 / 128 / 256 samples per cycle, README
-    "Is the displacement standard error honest?"): one-sample differences and logarithms of
-    a path that curves within the sample. ``full``: the plain fit of ``samples`` in ``bins``
+    Without noise a fit's ``Â`` is off by ``a + c Δt²``: one-sample differences and
+    logarithms of a path that curves within the sample. ``full``: the plain fit of ``samples`` in ``bins``
     where the caller has it (computed here otherwise); ``opts``: the solver's options."""
     half = Trajectory(t=traj.t[::2], pose=traj.pose[..., ::2, :],
                       r=traj.r[..., ::2, :]).with_fields(phase=traj.phase[..., ::2])
@@ -337,8 +332,7 @@ class _DerivativeBias:
 def derivative_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: IntervalSamples,
                                bins: BinIndex, gamma_m: Tensor, gamma_dot_m: Tensor, *,
                                order: int, pool: bool, steps: int | None = None,
-                               offsets: OneSampleOffsets | None = None,
-                               correlation: bool = False, **opts
+                               offsets: OneSampleOffsets | None = None, **opts
                                ) -> tuple[ConnectionFit, Tensor]:
     """The tied ``∂Â/∂r`` (:func:`tie_connection_derivative`) with the bins' bias removed.
 
@@ -377,11 +371,10 @@ def derivative_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: In
         corrected = dataclasses.replace(fit, dA=fit.dA - bias_dA, b=fit.b - bias_b)
         tied = tie_connection_derivative(corrected, gamma_m, gamma_dot_m, **tie)
     tied = tie_connection_derivative(corrected, gamma_m, gamma_dot_m,
-                                     **{**tie, "consistency": True}, correlation=correlation)
+                                     **{**tie, "consistency": True})
     shift = tied.dA - first.dA
     # the bias left after the correction, taken as the part of its square the pooled choice
-    # assumes (RESIDUAL_BIAS_FRACTION; without it the squared errors were 2-4.8 times the
-    # squared standard errors at ω = 0 on seeds 5-6, with it 0.3-1.8)
+    # assumes (RESIDUAL_BIAS_FRACTION)
     se = (tied.se_dA.square() + RESIDUAL_BIAS_FRACTION * shift.square()).sqrt()
     return dataclasses.replace(fit, dA=tied.dA, se_dA=se, corr_dA=tied.corr_dA), shift
 
@@ -389,33 +382,24 @@ def derivative_bias_correction(fit: ConnectionFit, traj: Trajectory, samples: In
 def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: IntervalSamples,
                               bins: BinIndex, gamma_m: Tensor, gamma_dot_m: Tensor, *,
                               order: int, pool: bool,
-                              offsets: OneSampleOffsets | None = None,
-                              joint_weights: bool = False, correlation: bool = False, **opts
+                              offsets: OneSampleOffsets | None = None, **opts
                               ) -> tuple[ConnectionFit, tuple[Tensor, Tensor]]:
     """The tied ``∂Â/∂r`` (:func:`tie_connection_derivative`) with the bins' bias of its
     sources allowed for in their variances instead of removed (for data with measurement
     noise, where :func:`derivative_bias_correction` is not applied).
 
     Under noise ``b̂`` keeps part of the bins' bias (the chosen filter spans up to a quarter
-    cycle and the windows widen): on the 3-link reference gait at ω = 0.005-0.01 its squared
-    errors were 3.2-5.2 times its squared standard errors, two thirds of that a bias across
-    seeds, while its errors' correlation with the direct estimate's was 0.13-0.31 (Monte
-    Carlo over seeds 20-31; README, the tied ``∂Â/∂r``). The bias of ``b̂`` and of the
-    direct estimate is computed once from the smooth model (:class:`_DerivativeBias`, about
-    the uncorrected tie), and :data:`RESIDUAL_BIAS_FRACTION` times its square is added to
-    their variances before they are tied (the bias taken to remain, as the pooled choice
-    assumes for ``Â``): these weigh the sources. The tie's bands take the direct estimate's
-    variance with the full square instead (:data:`_DIRECT_BIAS_SHARE`, on the joint
-    covariance, which the tie's sandwich uses; the tied ``∂Â/∂r`` itself is unchanged):
-    across the same seeds the model's bias of the direct estimate was under-predicted
-    (the actual squared bias 1.15 / 0.65 times the modelled one at ω = 0.01 / 0.005 on the
-    reference gait, b̂'s 0.62 / 0.49), and only the direct estimate holds the across-cycle
-    entries. (With ``joint_weights`` the joint covariance also weighs them; without
-    ``fit.cov_b_dA`` the bands are the weights' own.)
+    cycle and the windows widen). The bias of ``b̂`` and of the direct estimate is computed
+    once from the smooth model (:class:`_DerivativeBias`, about the uncorrected tie), and
+    :data:`RESIDUAL_BIAS_FRACTION` times its square is added to their variances before they
+    are tied (the bias taken to remain, as the pooled choice assumes for ``Â``): these weigh
+    the sources. The tie's bands take the direct estimate's variance with
+    :data:`_DIRECT_BIAS_SHARE` times the square instead (on the joint covariance
+    ``fit.cov_b_dA``, which the tie's sandwich uses; the tied ``∂Â/∂r`` itself is
+    unchanged): only the direct estimate holds the across-cycle entries. Without
+    ``fit.cov_b_dA`` the bands are the weights' own.
 
-    Args: as :func:`derivative_bias_correction` (no ``steps``); ``joint_weights`` as in
-        :func:`tie_connection_derivative` (with ``fit.cov_b_dA``, to which the bias's share
-        is added too).
+    Args: as :func:`derivative_bias_correction` (no ``steps``).
 
     Returns:
         the fit with ``dA`` and ``se_dA`` tied (other fields unchanged, ``b̂``'s standard
@@ -423,7 +407,7 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
         for.
     """
     one = one_sample_offsets(traj, gamma_m) if offsets is None else offsets
-    tie = dict(order=order, window=bins.window, kernel=bins.kernel, joint_weights=joint_weights)
+    tie = dict(order=order, window=bins.window, kernel=bins.kernel)
     # the bias model's series keep the harmonics that stand out of the independent tie's
     # standard errors (as before the joint covariance: the same bias, bit for bit)
     first = tie_connection_derivative(dataclasses.replace(fit, cov_b_dA=None), gamma_m,
@@ -440,33 +424,28 @@ def derivative_bias_allowance(fit: ConnectionFit, traj: Trajectory, samples: Int
         fit, se_dA=(fit.se_dA.square() + RESIDUAL_BIAS_FRACTION * bias[0].square()).sqrt(),
         se_b=(fit.se_b.square() + RESIDUAL_BIAS_FRACTION * bias[1].square()).sqrt(),
         cov_b_dA=cov)
-    tied = tie_connection_derivative(widened, gamma_m, gamma_dot_m, **tie,
-                                     correlation=correlation)
+    tied = tie_connection_derivative(widened, gamma_m, gamma_dot_m, **tie)
     return dataclasses.replace(fit, dA=tied.dA, se_dA=tied.se_dA, corr_dA=tied.corr_dA), bias
 
 
+#: the part ``λ`` of a bias correction's square taken to remain after it: the pooled choice
+#: scores a candidate ``V + V⁺ + λ‖B‖²`` (``NoiseAwareRegression._chosen_fit``), and the
+#: tied ``∂Â/∂r``'s standard errors and weights add ``λ`` times the squared correction or
+#: modelled bias
 RESIDUAL_BIAS_FRACTION = 0.5
 
 
 #: the share of the direct ``∂Â/∂r``'s squared modelled bias (:class:`_DerivativeBias`) that
 #: the tie's bands take as remaining (:func:`derivative_bias_allowance`; its weights take
-#: ``RESIDUAL_BIAS_FRACTION``). A Monte Carlo over seeds 20-31 (3-link reference gait,
-#: pooled 4 x 30) put the actual squared bias of the direct estimate (its mean error over the
-#: seeds against the exact Jacobian) at 1.15 / 0.65 times the modelled one at ω = 0.01 /
-#: 0.005 (b̂'s at 0.62 / 0.49, so half stays for b̂); no other value was tried
+#: ``RESIDUAL_BIAS_FRACTION``)
 _DIRECT_BIAS_SHARE = 1.0
 
 
 #: the bias correction's model (:func:`bin_bias_correction`): the Fourier order of its
-#: ``Â`` and ``∂Â/∂r`` and the fixed-point steps. Set on seed 5 (3-link reference gait,
-#: pooled 4 x 30 cycles, ω = 0 and 0.002, intervals 1-24, windows 1-4): order 12 (the fit's
-#: own) diverged at ω = 0.002 (its phase derivative amplifies the noisy high harmonics),
-#: 4 and 6 converged (ω = 0.002, h = 8, window 2: 3.63 -> 2.80 % with 6); a second step
-#: gains most of what the fixed point gains (ω = 0: 2.92 -> 1.51 -> 0.98 % ... 0.72 % at
-#: four) and more steps diverge where the bias is large (windows of 4 spacings)
+#: ``Â`` and ``∂Â/∂r`` and the fixed-point steps. Lower than the fit's own order: the
+#: correction enters through the model's phase derivative, which amplifies noisy high
+#: harmonics; more steps diverge where the bias is large (wide windows)
 _BIAS_ORDER = 6
-
-
 _BIAS_STEPS = 2
 
 
@@ -479,9 +458,5 @@ _BIAS_HARMONIC_Z = 4.0
 
 #: ... and harmonics above this one need (k / _BIAS_HARMONIC_SCALE)² times more: the model
 #: enters the correction through its phase derivative (harmonic k weighted by k), and a noisy
-#: high harmonic, amplified so, spoils the correction of the low ones. Seeds 5-8, 3-link
-#: reference gait, pooled: with the same threshold for all harmonics the correction made
-#: ω = 0.005 worse than none (7.16 % against 6.72 %, mean; ω = 0.002: 2.76 % against 4.03 %);
-#: with this scale 2 it gave 5.37 % at ω = 0.005 and 3.18 % at ω = 0.002 (3: 5.0 % at 0.002);
-#: ω = 0.01 10.1 % either way (none: 11.8 %)
+#: high harmonic, amplified so, spoils the correction of the low ones
 _BIAS_HARMONIC_SCALE = 2.0

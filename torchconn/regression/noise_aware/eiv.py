@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from typing import Literal
 
 import torch
 from torch import Tensor
@@ -129,7 +128,7 @@ def noise_aware_regression(
     delta_max: float | None = None,
     ridge: float = 0.0,
     on_ill_conditioned: str = "raise",
-    joint_covariance: Literal["solver", "robust"] | None = None,
+    joint_covariance: bool = False,
     ridge_connection: bool = True,
     cycles: Tensor | None = None,
 ) -> ConnectionFit:
@@ -144,13 +143,10 @@ def noise_aware_regression(
         delta_max, ridge, on_ill_conditioned, ridge_connection: as in
             :func:`~torchconn.regression.connection_regression`.
         joint_covariance: also the joint covariance of each bin's ``b̂`` and direct
-            ``∂Â/∂r`` (``cov_b_dA``, for the tie): ``"solver"`` the sandwich whose diagonal
-            gives the standard errors (:func:`~torchconn.regression._wls.sandwich_correlation`
-            times them, overlap inflation included); ``"robust"`` from the rows' own scores
-            (:func:`~torchconn.regression._wls.score_covariance`: heteroscedastic, with the
-            correction's share of each row, :func:`eiv_row_correction`, and rows up to ``h``
-            samples apart correlated; no overlap inflation, which it replaces). The fit's
-            other fields are the same bit for bit.
+            ``∂Â/∂r`` (``cov_b_dA``, for the tie): the sandwich whose diagonal gives the
+            standard errors (:func:`~torchconn.regression._wls.sandwich_correlation` times
+            them, overlap inflation included). The fit's other fields are the same bit for
+            bit. Default False.
         cycles: ``(..., N)`` int64, the whole cycle each sample belongs to (e.g.
             :func:`interval_cycles`), numbered from 0 within the batch element: also each
             cycle's share of the error of ``Â`` (``influence_A``, ``(..., M, 3, d, C)``,
@@ -163,7 +159,7 @@ def noise_aware_regression(
     Returns:
         :class:`~torchconn.regression.ConnectionFit`. The standard errors are the solver's
         (rows independent) times ``√κ`` for the rows' overlap (:func:`overlap_inflation`; 1
-        for the box filter, whose errors measured 0.9-1.1 times its squared standard errors).
+        for the box filter).
     """
     fn = "noise_aware_regression"
     s = _wls.prepare(fn, samples.r, samples.r_dot, samples.xi, "xi", 3, bins, gamma_m,
@@ -191,22 +187,14 @@ def noise_aware_regression(
     kappa = overlap_inflation(bins, samples.h, samples.kernel).to(sol.se).reshape(-1, 1, 1)
     se = sol.se * kappa.sqrt()  # (B·M, P, K)
     cov = None
-    if joint_covariance is not None:
+    if joint_covariance:
         # b̂'s columns δ and the direct estimate's δ̇⊗δ (connection_design's order)
         columns = torch.cat([torch.arange(1, 1 + d, device=s.r.device),
                              torch.arange(1 + 2 * d, p, device=s.r.device)])
-        if joint_covariance == "solver":
-            corr = _wls.sandwich_correlation(s, design_blocks, sol, columns, delta_max=delta_max,
-                                             correction=correction, unpenalised=free)
-            se_c = se[:, columns].mT  # (B·M, K, c)
-            cov = corr.unsqueeze(1) * (se_c.unsqueeze(-1) * se_c.unsqueeze(-2))
-        elif joint_covariance == "robust":
-            cov = _wls.score_covariance(s, design_blocks, sol, columns, lags=samples.h,
-                                        delta_max=delta_max, correction=correction,
-                                        row_correction=row_correction, unpenalised=free)
-        else:
-            raise ValueError(f"{fn}: joint_covariance must be None, 'solver' or 'robust', got "
-                             f"{joint_covariance!r}")
+        corr = _wls.sandwich_correlation(s, design_blocks, sol, columns, delta_max=delta_max,
+                                         correction=correction, unpenalised=free)
+        se_c = se[:, columns].mT  # (B·M, K, c)
+        cov = corr.unsqueeze(1) * (se_c.unsqueeze(-1) * se_c.unsqueeze(-2))
         cov = cov.reshape(s.batch_shape + (m,) + cov.shape[1:])
     influence = None
     if cycles is not None:

@@ -52,7 +52,7 @@ __all__ = ["NoiseAwareRegression"]
 
 
 #: standard errors the joints' mean noise variance must stand above 0 for
-#: :meth:`NoiseAwareRegression.noise_setup` to correct for it (README "Noise estimates")
+#: :meth:`NoiseAwareRegression.noise_setup` to correct for it
 _NOISE_MIN_Z = 2.0
 
 
@@ -119,12 +119,7 @@ _CANDIDATE_WINDOWS = (1.0, 2.0, 3.0, 4.0)
 
 
 #: every pair of these multiples of ``h0`` and the windows above is a candidate, scored ``V +
-#: V⁺ + λ‖B‖²`` with ``λ = RESIDUAL_BIAS_FRACTION`` (``V⁺`` added later, on seeds 5-8; see
-#: ``_chosen_fit``). Set on seeds 5 and 6 (3-/5-link circle, 3-link reference, 5-link smaller
-#: circle, ω = 0.002; intervals 2-24 and windows 1-4): λ = 0.5 and 1 chose fits whose mean Â
-#: error was 2.30 and 2.33 % (the best of the grid: 2.23 %), λ = 0.1-0.25 2.90-2.94 % (wide
-#: windows on the curved gait), λ = 2 2.55 %, λ = 0 (variance alone) 4.08 %; the correction
-#: made longer intervals pay on the 5-link (h = 16-24 at ω = 0.002)
+#: V⁺ + λ‖B‖²`` with ``λ = RESIDUAL_BIAS_FRACTION`` (see ``_chosen_fit``)
 _CORRECTED_INTERVAL_MULTIPLES = (1.5, 2.0, 3.0, 4.0, 6.0)
 
 
@@ -188,17 +183,13 @@ class NoiseAwareRegression(TubeRegression):
             per batch element and joint from the data (:func:`estimate_noise`).
         noise_floor: the noise fit's process floor: ``"flat"`` (default), or ``"low_rate"``:
             the fitted cycle's harmonics spread by phase noise (:func:`phase_noise_floor`)
-            where``"low_rate"``: ``"gait"`` where the gait's harmonics reach
-            the noise fit's top band (32 or fewer samples per cycle; their phase-noise tails
-            fill it and drive the flat floor's ``σ̂²`` below 0), ``"flat"`` elsewhere, bit for
-            bit (README "Few samples per cycle"). ``"normal"``: the joint increments projected
+            where the gait's harmonics reach the noise fit's top band (32 or fewer samples per
+            cycle; their phase-noise tails fill it and drive the flat floor's ``σ̂²`` below
+            0), ``"flat"`` elsewhere, bit for bit. ``"normal"``: the joint increments projected
             out of the fitted cycle's first derivatives at each sample's phase
             (:func:`normal_increments`), which takes out the phase noise and the phase
             estimate's errors, fitted over ``[0.1, 0.5]`` cycles per sample with a flat floor;
-            with two joints (the 3-link) ``"flat"`` bit for bit. Held out at 64 samples per
-            cycle, ω = 0.002 (seeds 100-119): the 9-link reference gait's ``ω̂`` within 20 % in
-            20 of 20 pooled recordings (flat: 11), and clean recordings called noisy 3 of 320
-            against 12 (5-/9-link, seeds 60-79; README "Noise estimates"). Either way the test
+            with two joints (the 3-link) ``"flat"`` bit for bit. Either way the test
             for noise of the joints' mean takes their shared phase noise into account
             (:attr:`NoiseEstimate.correlation`, from the fitted cycle).
 
@@ -209,7 +200,7 @@ class NoiseAwareRegression(TubeRegression):
     joint covariance in the bands), a pooled fit's series of ``Â`` shrunk harmonic by
     harmonic with ``ĉ, b̂`` re-estimated to it, and a pooled fit keeps ``Â``'s sampling factor
     and, without detected noise, its bias allowance (docs/validation/deleted-options.md lists
-    the variants these replaced and what was measured).
+    the variants these replaced).
     """
 
     velocity_interval: int | None = option(None, ge=1)
@@ -237,7 +228,7 @@ class NoiseAwareRegression(TubeRegression):
                                               noise_var=var)
         # b̂ and ∂Â/∂r's joint covariance, for the tie: only for groups with detected noise
         # (elsewhere the tie takes the two as independent, and scatter_fits leaves it NaN)
-        joint = {"joint_covariance": "solver"}
+        joint = {"joint_covariance": True}
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
         flat = flatten_batch(traj)
@@ -469,16 +460,13 @@ class NoiseAwareRegression(TubeRegression):
             # standard errors too where the rows' overlap does not inflate them (κ = 1)
             plain = rerun if chosen.view.h == 1 or chosen.view.kernel == "box" else None
             # the bias of the Â delivered: the bins' bias correction and the blend have moved
-            # it from the plain fit (by -1.1e-4 of the clean 5-link's x displacement, the
-            # part of the second order's change it had already removed)
+            # it from the plain fit
             tube, tube_var = offset_bias(chosen.view, bins, gamma_m, gamma_dot_m, first=plain,
                                          estimate=fit.A, **opts)
             step, step_var = interval_bias(traj, chosen.view, bins, self.n_bins, chosen.windows,
                                            self.kernel, gamma_m, gamma_dot_m, full=plain,
                                            **opts)
-            # one allowance: on the looked-at sets (1000, 3000, 42000, 7000) its effect on
-            # the x displacement is 0.88-0.99 of the 3-link's error and 0.23-1.16 of the
-            # 5-link's (measured from the plain fit: 0.82-0.91 and 0.92-2.09)
+            # one allowance: the two parts summed, shrunk by how far they stand out of noise
             fit = dataclasses.replace(fit, bias_allowance_A=resolved_bias(
                 torch.nan_to_num(tube) + torch.nan_to_num(step),
                 torch.nan_to_num(tube_var) + torch.nan_to_num(step_var)))
@@ -508,7 +496,7 @@ class NoiseAwareRegression(TubeRegression):
         cycles = interval_cycles(traj.phase, chosen.view.h, pool=True)
         raw = noise_aware_regression(
             chosen.view, bins, gamma_m, gamma_dot_m, chosen.noise_var,
-            joint_covariance="solver" if joint else None, cycles=cycles, **opts)
+            joint_covariance=joint, cycles=cycles, **opts)
         if joint:
             fit = dataclasses.replace(fit, cov_b_dA=rescaled_covariance(
                 raw.cov_b_dA, (raw.se_b, raw.se_dA), (fit.se_b, fit.se_dA)))
@@ -524,11 +512,8 @@ class NoiseAwareRegression(TubeRegression):
         Not under noise: the correction's regression of the model's body velocity runs on
         the recorded samples without the errors-in-variables fix (the model target carries
         the regressors' own noise, unlike the recorded target), so its ``∂Â/∂r`` is
-        attenuated and the correction carries that into the estimate. Measured on seeds 5-6
-        (3-/5-link circle and reference gaits, pooled, ω = 0.002-0.01) it was worse than the
-        tie alone in 19 of 24 cells (5-link circle ω = 0.01, seed 5: 781 % against 619 %),
-        while at ω = 0 it takes the 3-link reference gait from 15 % (tie alone) to 5 %.
-        Under noise the same bias is instead allowed for in the tie's weights and bands
+        attenuated and the correction carries that into the estimate. Under noise the same
+        bias is instead allowed for in the tie's weights and bands
         (:func:`derivative_bias_allowance`)."""
         if chosen.view is not None:
             bins = assign_bins(chosen.view.phase, self.n_bins, window=chosen.windows,

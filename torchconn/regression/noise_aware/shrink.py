@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Literal
 
 import torch
 from torch import Tensor
@@ -104,13 +103,8 @@ def harmonic_noise(series, se: Tensor, window: float | Tensor, kernel: str, *,
 
 
 #: :func:`blend_fits` keeps the corrected estimate only where it differs from the smoothed one
-#: by more than this many times its own variance. Re-set on seed 5 after the standard errors
-#: were calibrated for the rows' overlap (:func:`overlap_inflation`), one model per trial
-#: (3 trials x 30 cycles, 64 samples per cycle, 3-/5-/9-link circle and reference gaits,
-#: ω = 0.002-0.01, 18 cells; mean Â error): 1.5 was never worse than the smoothed estimate and
-#: better than 2 in 11 cells (3-link circle ω = 0.01: 24.0 % against 28.4 %, the smoothed 37.7
-#: %), equal in the rest; 1 (the plain Stein rule) was better still in 14 cells but worse than
-#: the smoothed estimate in one (9-link reference ω = 0.005: 34.2 % against 33.3 %)
+#: by more than this many times its own variance (1: the plain Stein rule; more guards
+#: against the corrected estimate's heavy tails in nearly noise-dominated bins)
 _BLEND_VARIANCE_FACTOR = 1.5
 
 
@@ -118,22 +112,12 @@ _BLEND_VARIANCE_FACTOR = 1.5
 #: power_k)`` with this ``c`` (``NoiseAwareRegression._a_series``; ``noise_k`` the bins'
 #: noise expectation, :func:`harmonic_noise`). Under noise the bins' errors are mostly
 #: variance, and a harmonic near its noise adds more of it than of the connection; ``c = 1`` is
-#: the estimated Wiener factor. Set on seeds 5-8 (3-/5-link circle and 0.7-circle or reference
-#: gaits, pooled 4 x 30 cycles, ω = 0-0.01, 64 cells; sum of the mean Â errors, all harmonics
-#: 72.2 %): c = 1 59.4 % and c = 0.5 62.3 % (worse than all harmonics in 3 / 2 cells, by at most
-#: 0.006 points), keeping the harmonics above 1 / 1.5 / 2 times their noise 67.7 / 62.9 / 60.0 %.
-#: It gains most on short recordings, and the convergence slope of ``Â``'s error with cycles
-#: (3-link circle, ω = 0.002, seeds 0-1, 10 / 30 / 90 cycles; issue 12 asks ≤ −0.35) was −0.43
-#: with all harmonics, −0.34 with c = 1, −0.32 keeping those above 2, −0.37 with c = 0.5.
-#: The factor was one per harmonic (power and noise summed over all entries) until the pooled
-#: 9-link's displacement over a cycle was found 1.5-2.6x further off with it than with the
-#: plain series; it is now one per harmonic and row of ``Â`` (same c, not re-tuned; README)
+#: the estimated Wiener factor. One factor per harmonic and row of ``Â`` (:func:`shrink_series`)
 _SERIES_SHRINK = 0.5
 
 
 def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
-               variance_factor: float = _BLEND_VARIANCE_FACTOR,
-               covariance: Literal["shift", "interpolated"] = "shift"
+               variance_factor: float = _BLEND_VARIANCE_FACTOR
                ) -> tuple[ConnectionFit, Tensor]:
     """The noise-corrected estimate shrunk towards the smoothed one where the data cannot tell
     them apart (a positive-part Stein combination).
@@ -156,27 +140,21 @@ def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
     The standard errors ``(1 − w) se_s + w se_c`` bound the combination's variance but leave
     out the smoothed estimate's attenuation, of which it keeps a ``1 − w`` share. The joint
     covariance of ``b̂`` and the direct ``∂Â/∂r`` (``corrected.cov_b_dA``, which only the
-    tie's bands use) is rescaled to those standard errors and, with ``covariance="shift"``,
-    the shift the shrink makes is allowed for on its diagonal: per entry
-    ``(1 − w)² (β̂_c − β̂_s)² · max(1 − (V + V_s) / D², 0)`` (``V_s`` the smoothed estimate's
-    ``Σ se_s²``), the shift's square times the block's share of ``D²`` beyond the two
-    estimates' noise: ``D² − V − V_s`` estimates the smoothed estimate's squared bias
-    ``‖E β̂_s − β‖²``, whose ``1 − w`` share the combination keeps (README "The tied
-    ``∂Â/∂r``'s bands at ω = 0.01": the full square, or without ``V_s``, over-widened the
-    bands on the 3-link circle). ``"interpolated"``: without it (the previous version).
+    tie's bands use) is rescaled to those standard errors, and the shift the shrink makes is
+    allowed for on its diagonal: per entry ``(1 − w)² (β̂_c − β̂_s)² · max(1 − (V + V_s) / D²,
+    0)`` (``V_s`` the smoothed estimate's ``Σ se_s²``), the shift's square times the block's
+    share of ``D²`` beyond the two estimates' noise: ``D² − V − V_s`` estimates the smoothed
+    estimate's squared bias ``‖E β̂_s − β‖²``, whose ``1 − w`` share the combination keeps.
 
     Args:
         smoothed, corrected: fits of the same bins, batch dims ``...``.
-        variance_factor, covariance: as above.
+        variance_factor: as above.
 
     Returns:
         the combined :class:`~torchconn.regression.ConnectionFit` (fields other than the four
         blocks, their standard errors and ``cov_b_dA`` are the corrected fit's) and
         ``w (..., 4)`` for ``c, b, A, ∂A/∂r``.
     """
-    if covariance not in ("shift", "interpolated"):
-        raise ValueError(f"blend_fits: covariance must be 'shift' or 'interpolated', got "
-                         f"{covariance!r}")
     out, weights, shifts = {}, [], {}
     for name in ("c", "b", "A", "dA"):
         est_s, est_c = getattr(smoothed, name), getattr(corrected, name)
@@ -202,8 +180,7 @@ def blend_fits(smoothed: ConnectionFit, corrected: ConnectionFit, *,
     if cov is not None:
         cov = rescaled_covariance(cov, (corrected.se_b, corrected.se_dA),
                                    (out["se_b"], out["se_dA"]))
-        if covariance == "shift":
-            cov = cov + torch.diag_embed(torch.cat([shifts["b"], shifts["dA"].flatten(-2)], -1))
+        cov = cov + torch.diag_embed(torch.cat([shifts["b"], shifts["dA"].flatten(-2)], -1))
     return dataclasses.replace(corrected, **out, cov_b_dA=cov), torch.stack(weights, -1)
 
 
