@@ -46,11 +46,8 @@ __all__ = ["VELOCITY_KERNELS", "VELOCITY_KERNEL", "MAX_INTERVAL_CYCLES", "interv
 VELOCITY_KERNELS = ("box", "triangle")
 
 
-#: the filter of :func:`interval_samples` (and so of :class:`NoiseAwareRegression`): measured
-#: on seed 5 (3-/5-link circle, 3-link reference and 5-link wave gaits, pooled 4 x 30 cycles,
-#: ω = 0.005-0.01, the best of intervals 8-24 and windows 2-4 for each) the triangle's Â error
-#: was 0.61-0.90 times the box's (5-link circle ω = 0.01: 10.6 % vs 17.3 %); a Hann window was
-#: no better than the triangle (0.97-1.08 times)
+#: the filter of :func:`interval_samples` (and so of
+#: :class:`~torchconn.regression.noise_aware.NoiseAwareRegression`)
 VELOCITY_KERNEL = "triangle"
 
 
@@ -183,9 +180,7 @@ def overlap_inflation(bins: BinIndex, h: int, kernel: str = VELOCITY_KERNEL) -> 
     ``w_k`` then have ``κ = 1 + 2 Σ_{l≥1} [ρ_u(l) ρ_a(l) / (ρ_u(0) ρ_a(0))] c(l)`` with
     ``c(l) = Σ_k w_k w_{k+l} / Σ_k w_k²`` (the bin's own run of consecutive rows). For the box
     ``ρ_a`` vanishes at every lag ``0 < l < h`` and ``ρ_u(h) = 0``, so ``κ = 1``; the triangle
-    at ``h = 8-24`` gives 2.4-7. Measured against the swimmer's exact connection (seed 5,
-    3-/5-link, ω = 0.005-0.01, ``h`` 8-24, windows 1-4) the squared errors are 0.75-1.3 times
-    the variance with ``κ`` where the bias is small (2-9 times without).
+    at ``h = 8-24`` gives 2.4-7.
     """
     batch = tuple(bins.batch_shape)
     m = bins.n_bins
@@ -230,9 +225,7 @@ def interval_cycles(phase: Tensor, h: int, *, pool: bool = False) -> Tensor:
 _INTERVAL_NOISE_FRACTION = 0.05
 
 
-#: longest velocity interval, as a fraction of a cycle. The triangle filter's error grows
-#: more slowly with the interval than the box's; seed 5 (pooled, ω = 0.01) chose 24-32 of 126
-#: samples per cycle
+#: longest velocity interval, as a fraction of a cycle
 MAX_INTERVAL_CYCLES = 1 / 4
 
 

@@ -51,18 +51,14 @@ _LOWEST_FREQUENCY = 0.025
 #: fitted above it, in every channel and in the mean over the element's channels.
 #: Contamination (the gait's harmonics spread by phase noise) is an excess at low
 #: frequencies; a step that deviates by chance and is left out biases the fit, so the
-#: threshold trades the two: on random walks observed with white noise (640-3780 samples)
-#: 3 overestimated σ² by up to 13 %, 3.5 by up to 8-11 % and 4 by 3 %, while on the 9-link
-#: reference gait at 64 samples per cycle (seeds 0-1, 4 x 30 cycles) per-channel tests alone
-#: let in enough contamination to find 0-0.8 of ω ≤ 0.005; with the test of the channels'
-#: mean it found 0.83-0.97
+#: threshold trades the two; the test of the channels' mean stops the band sooner on a gait's
+#: harmonics, which raise every joint a little
 _BAND_Z = 3.5
 
 
 #: the standard error of σ² treats the multitaper ordinates of the band as independent
-#: periodogram ordinates; with the band chosen from the same data the spread of
-#: (σ̂² − σ²)/SE was 1.07-1.15 on random walks with white noise (200 records each), so the
-#: standard errors are widened by this factor
+#: periodogram ordinates; the band is chosen from the same data, so the standard errors are
+#: widened by this factor
 _SE_FACTOR = 1.1
 
 
@@ -101,8 +97,7 @@ class NoiseEstimate:
         (clean data: the estimate is then only the periodogram's scatter). ``channels``: one
         level for all channels as well (their mean, tested as a whole, broadcast to ``C``):
         joints tracked by one rig share its noise, and a per-channel test keeps the estimates
-        of weakly resolved channels that came out high (measured: one 9-link trial at
-        ω = 0.002, two of eight joints kept at 1.75-1.95 ω)."""
+        of weakly resolved channels that came out high."""
         mean, se = self.pooled_mean(n_batch_dims, channels=channels, correlated=correlated)
         return torch.where(mean > min_z * se, mean, torch.zeros_like(mean))
 
@@ -175,9 +170,8 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             ordinates of the top band near the gait's harmonics are left out of the fit
             (:func:`_off_harmonics`; at 32 or fewer samples per cycle they fall there); with
             ``floor="gait"`` the process floor is not flat but :func:`phase_noise_floor`'s
-            shape (the gait's harmonics spread by phase noise as large as the channels' own;
-            measured at 64 samples per cycle on the 3-link reference gait, a flat floor found
-            0.46 of ω = 0.002), and the result's ``correlation`` holds the channels' shared
+            shape (the gait's harmonics spread by phase noise as large as the channels' own),
+            and the result's ``correlation`` holds the channels' shared
             phase noise (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
         floor: with a ``cycle``, ``"flat"`` (default, as ``NoiseAwareRegression``'s
             ``noise_floor``) keeps the process floor flat and uses the cycle only for
@@ -189,7 +183,7 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             the span of the cycle's first derivatives (:func:`normal_increments`), fitted
             with a flat floor: the
             phase noise, which moves every channel along the cycle's tangent, is projected
-            out, and with it the lines' tilt of the band (README "Noise estimates"); the band
+            out, and with it the lines' tilt of the band; the band
             is fixed, ``[0.1, 0.5]`` unless ``band`` is given (:data:`_NORMAL_BAND_LOW`). The
             channels then share one measurement variance (a rig's: the projection mixes them),
             and ``correlation`` is the projected channels' (:func:`_normal_correlation`).
@@ -336,10 +330,7 @@ def _channel_correlation(cycle: FourierSeries, q2: Tensor, sigma2: Tensor,
     covariance at phase ``φ`` is ``C(φ) = q²_0 (I + γ'γ'ᵀ) + 2 diag(σ²)`` (``q²_0`` the shape
     offset's own floor, ``σ²`` the measurement noise at lag 0). A band estimate of ``σ²`` is a
     quadratic form in the increments with a kernel short beside the cycle, so two channels'
-    estimates correlate by ``⟨C_cc'²⟩ / √(⟨C_cc²⟩ ⟨C_c'c'²⟩)`` (means over the cycle). Measured
-    on clean 3-link reference-gait recordings: the two joints' estimates correlated by 0.36
-    (this formula: 0.32), and their mean, tested with independent standard errors, was called
-    noise in 15 % of 4 × 30-cycle recordings (its z had spread 1.25)."""
+    estimates correlate by ``⟨C_cc'²⟩ / √(⟨C_cc²⟩ ⟨C_c'c'²⟩)`` (means over the cycle)."""
     phi = torch.arange(_CORRELATION_GRID, dtype=q2.dtype, device=q2.device) * (
         2 * math.pi / _CORRELATION_GRID)
     slope = cycle.derivative()(phi).to(q2)  # γ'(φ), (..., P, C)
@@ -361,28 +352,22 @@ def _channel_correlation(cycle: FourierSeries, q2: Tensor, sigma2: Tensor,
 #: ``J = min(_NORMAL_SPAN, d // 2)`` derivatives. A phase error ``e`` moves a sample along the
 #: cycle by ``γ'e − γ''e²/2 + …`` seen from the estimated point: the tangent alone
 #: leaves ``e γ''`` (the curvature times the error, which the error's diffusion spreads over the
-#: band); with ``γ', …, γ^(J)`` out the error enters at order ``e^J``. Tuned on the 9-link
-#: reference gait at 64 samples per cycle (seeds 80-89, ω = 0.002): the band's contamination
-#: per unit of ω² at 0.15-0.25 cycles per sample 7.6 / 2.0 / 0.34 / 0.06 for J = 1 / 2 / 3 / 4,
-#: σ̂²/ω² −0.92 / 0.13 / 0.82 / 1.18 (J = 6: 1.28, fewer channels left)
+#: band); with ``γ', …, γ^(J)`` out the error enters at order ``e^J``
 _NORMAL_SPAN = 4
 
 
 #: the normal projection's band (cycles per sample; to Nyquist), fixed: the band rule's own
 #: selection (a step that deviates low by chance is kept, one that deviates high stops the
-#: band) raised σ̂² by about 0.1 ω² on the projected channels, whose floor is flat to the band's
-#: edge (9-link circle and reference gait at 64 samples per cycle, seeds 80-99, clean: pooled
-#: recordings called noisy 15 of 80 with the rule, 2 with [0.1, 0.5]; 0.05: 8). Above 0.1 the
-#: phase estimate's errors left after the projection stay below 3 % of ω = 0.002's rise there
+#: band) biases σ̂² high on the projected channels, whose floor is flat to the band's edge;
+#: above 0.1 the phase estimate's errors left after the projection are small against the
+#: measurement noise's rise
 _NORMAL_BAND_LOW = 0.1
 
 
 #: harmonics of the fitted cycle whose power (summed over the channels) is below this
 #: fraction of the cycle's do not shape the frame: they are the fit's estimation noise
-#: (circles: ≤ 3·10⁻⁵, pooled 4 x 30 cycles), which the derivatives amplify by ``k^j`` into
-#: directions that follow the data's own deviations (9-link circle: σ̂²/ω² 1.23 with them,
-#: 1.12 without; its true-phase value 1.12). The 9-link reference gait carries 1.7·10⁻³ and more
-#: at harmonics 1-5
+#: (fractions of 10⁻⁵ on circles), which the derivatives amplify by ``k^j`` into directions
+#: that follow the data's own deviations
 _FRAME_POWER = 1e-3
 
 
@@ -394,9 +379,8 @@ _NEW_DIRECTION = 1e-2
 def normal_span(d: int) -> int:
     """How many derivatives ``γ', …, γ^(J)`` of the cycle :func:`normal_increments` projects
     out of ``d`` channels: ``J = min(4, d // 2)``, 0 for ``d ≤ 2``: with two channels the
-    one normal left carries the phase estimate's own errors (measured on the 3-link at 64
-    samples per cycle: σ̂² 0.6 ω² = 0.002² too high on clean circles, and the reference gait's
-    band cut at 0.15 cycles per sample), and :func:`estimate_noise` keeps the flat floor."""
+    one normal left carries the phase estimate's own errors, and :func:`estimate_noise` keeps
+    the flat floor."""
     return min(_NORMAL_SPAN, d // 2) if d > 2 else 0
 
 
@@ -648,11 +632,8 @@ def _off_harmonics(f: Tensor, cycle: FourierSeries, samples_per_cycle: Tensor | 
 
     Below about 32 samples per cycle the gait's harmonics fall into the top band, where the
     noise fit takes their power for noise: a line near Nyquist rises there as ``σ²``'s column
-    does (3-link reference gait at 10 samples per cycle, clean: σ̂ 0.12 rad, Â 38 % off; fixed
-    here). Not fixed: the lines' phase-noise tails beside the cores, which at 8 samples per
-    cycle still read as noise and at 12-20 drive ``σ̂²`` below 0 (ω = 0.005: none detected;
-    ``floor="low_rate"`` models them, but on the 3-link reference gait ω = 0.005 is then only
-    0.2-0.5 standard errors of ``σ̂²`` in 3 × 20 cycles: README "Few samples per cycle").
+    does. Not left out: the lines' phase-noise tails beside the cores, which at few samples
+    per cycle read as noise or drive ``σ̂²`` below 0 (``floor="low_rate"`` models them).
     At 32 or more samples per cycle an order-8 cycle's harmonics stay at or below 0.25 (at 64
     or more below it: nothing is left out)."""
     coeffs = cycle.coeffs.to(f)
