@@ -16,8 +16,10 @@ squared standard error, summed; 1 = honest), overall and in the rotation row, an
 - ``narrower``: the bands with the change of the tied estimate at the window one step narrower
   (same interval) allowed for, ``se² + Δ²``, and ``Δ²``'s size over ``se²``.
 
-The tie's inputs are read by wrapping :func:`~torchconn.regression.noise_aware.derivative_bias_allowance`
-for the duration of a fit (restored after; the estimates are not touched).
+The tie's inputs are read by wrapping
+:func:`~torchconn.regression.noise_aware.bias.derivative_bias_allowance` (as
+:mod:`~torchconn.regression.noise_aware.regression` calls it) for the duration of a fit
+(restored after; the estimates are not touched).
 
 Run by hand (seconds per recording)::
 
@@ -36,8 +38,9 @@ import torch
 from accuracy import recording
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, NoiseAwareRegression
-from torchconn.regression import noise_aware
 from torchconn.regression.binning import kernel_weight
+from torchconn.regression.noise_aware import bias
+from torchconn.regression.noise_aware import regression as noise_aware
 from torchconn.regression.tied import cycle_tangent, tie_connection_derivative
 
 
@@ -88,7 +91,7 @@ def contributions(seen: dict, system: NLinkSwimmer) -> dict:
     """Each source's error carried through the tie (its weights as the fit's), ``(M, 3, d, d)``."""
     fit, (bias_da, bias_b) = seen["fit"], seen["bias"]
     g, gd = seen["gamma_m"], seen["gamma_dot_m"]
-    share = noise_aware._RESIDUAL_BIAS_FRACTION
+    share = bias.RESIDUAL_BIAS_FRACTION
     weighed = dataclasses.replace(
         fit, se_dA=(fit.se_dA.square() + share * bias_da.square()).sqrt(),
         se_b=(fit.se_b.square() + share * bias_b.square()).sqrt(), cov_b_dA=None)
@@ -114,7 +117,7 @@ def across(seen: dict, system: NLinkSwimmer) -> tuple[float, float, float]:
     nn = (n[:, :, None] * n[:, None, :]).flatten(-2)  # (M, 4): vec(n nᵀ)
     err = ((fit.dA - system.connection_jacobian(g)).flatten(-2) * nn[:, None]).sum(-1)
     var = torch.einsum("ma,mkab,mb->mk", nn, fit.cov_b_dA[..., 2:, 2:], nn)
-    share = noise_aware._DIRECT_BIAS_SHARE
+    share = bias._DIRECT_BIAS_SHARE
     with_bias = var + share * torch.einsum("ma,mka->mk", nn.square(), bias_da.flatten(-2).square())
     modelled = (bias_da.flatten(-2) * nn[:, None]).sum(-1)
     corr = float(torch.nn.functional.cosine_similarity(err.flatten(), modelled.flatten(), 0))

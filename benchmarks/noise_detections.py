@@ -1,11 +1,11 @@
 """How often the noise test calls recordings noisy: clean recordings (false detections) and
 recordings at a given ω (detections, and the level found): flat floor, gait-shaped floor and
 the increments projected out of the cycle's first derivatives at each sample's estimated phase
-(``normal``; the 3-link's is ``flat``'s, :func:`~torchconn.regression.noise_aware.normal_span`).
+(``normal``; the 3-link's is ``flat``'s, :func:`~torchconn.noise.normal_span`).
 
 Recordings from the paper's SDE (α = 0.05, η = 0.025; ``benchmarks/accuracy.py``'s gaits),
 ``R`` recordings per cell, each either ``pooled`` (4 trials × 30 cycles) or ``single`` (one
-trial of 10 cycles). Per trial :func:`torchconn.regression.noise_aware.estimate_noise` runs on
+trial of 10 cycles). Per trial :func:`torchconn.noise.estimate_noise` runs on
 the joint angles with the trial's estimated cycle and samples per cycle (as
 ``benchmarks/noise_estimate.py``'s gait column); per recording the joints' mean ``σ̂²`` over
 its trials is tested against 2 standard errors with the joints' correlation
@@ -31,9 +31,9 @@ import torch
 from accuracy import gait_for  # beside this file
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, observe, simulate
+from torchconn.noise import NoiseEstimate, estimate_noise
 from torchconn.phase.limit_cycle import phase_rate
 from torchconn.regression.estimator import prepare
-from torchconn.regression.noise_aware import NoiseEstimate, estimate_noise
 
 ETA = 0.025
 #: recording kinds: (trials, cycles)

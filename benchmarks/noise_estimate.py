@@ -1,5 +1,5 @@
 """Motion-capture noise estimates against the simulator's known ω: the previous estimator and
-:func:`torchconn.regression.noise_aware.estimate_noise`, across links, gaits, sampling rates,
+:func:`torchconn.noise.estimate_noise`, across links, gaits, sampling rates,
 recording lengths, noise levels and drop-outs.
 
 Recordings from the paper's SDE (α = 0.05, η = 0.025; ``benchmarks/accuracy.py``'s gaits)
@@ -52,10 +52,10 @@ import torch
 from accuracy import gait_for  # beside this file
 
 from torchconn import NLinkSwimmer, observe, simulate
+from torchconn.noise import estimate_noise
 from torchconn.phase.limit_cycle import phase_rate
 from torchconn.regression import ConnectionEstimator
 from torchconn.regression.estimator import prepare
-from torchconn.regression.noise_aware import estimate_noise
 
 ETA = 0.025
 #: recording lengths: (trials, cycles)

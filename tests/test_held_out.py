@@ -20,16 +20,17 @@ from torchconn import (
     simulate,
 )
 from torchconn.cycles import cycle_blocks, few_cycles
+from torchconn.noise import IntervalSamples
 from torchconn.physics.gaits import FourierGait
 from torchconn.regression import (
     IllConditionedBinWarning,
     LocalConnectionModel,
     assign_bins,
     connection_regression,
-    noise_aware,
     selection,
 )
-from torchconn.regression.noise_aware import IntervalSamples, noise_aware_regression
+from torchconn.regression.noise_aware import noise_aware_regression
+from torchconn.regression.noise_aware import regression as noise_aware
 from torchconn.regression.selection import PoorHeldOutSkillWarning, complexity, skill
 
 F64 = torch.float64
@@ -140,7 +141,7 @@ def test_the_check_scores_the_noise_aware_fit_as_blended_with_the_smoothed_one(e
     smoothed regression refitted without each block (its own window rule on the other
     blocks) plus the fit's weights times the corrected fit's difference from it. Scoring the
     corrected estimate alone was pessimistic wherever the blend falls back."""
-    from torchconn.regression.tube import _auto_window
+    from torchconn.regression.binning import auto_window
 
     traj, cycle, _ = eight
     reg = NoiseAwareRegression(n_bins=16, fourier_order=4)
@@ -154,7 +155,7 @@ def test_the_check_scores_the_noise_aware_fit_as_blended_with_the_smoothed_one(e
     term = torch.tensor([0] + [1] * d + [2] * d + [3] * d * d)
     # the window rule on the samples outside block 0, as for the corrected fits (the blocks
     # are about equal)
-    window = _auto_window(torch.where(sample_fold == 0, torch.nan, traj.phase), 16,
+    window = auto_window(torch.where(sample_fold == 0, torch.nan, traj.phase), 16,
                           1 + 2 * d + d * d, reg.samples_per_regressor)
     for f in range(3):
         phase = torch.where(sample_fold == f, torch.nan, traj.phase)

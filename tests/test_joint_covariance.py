@@ -18,7 +18,7 @@ import torch
 
 from torchconn.regression import _wls
 from torchconn.regression.binning import assign_bins
-from torchconn.regression.connection import _blocks
+from torchconn.regression.connection import design_blocks
 from torchconn.regression.noise_aware import eiv_correction, eiv_row_correction
 
 F64 = torch.float64
@@ -36,7 +36,7 @@ def _design(n, gen):
     phase = 2 * math.pi * 3 * torch.arange(n, dtype=F64) / n
     r = torch.randn(n, D, generator=gen, dtype=F64)
     r_dot = torch.randn(n, D, generator=gen, dtype=F64)
-    x = torch.cat(_blocks(r, r_dot, torch.ones(n, 1, dtype=F64)), -1)
+    x = torch.cat(design_blocks(r, r_dot, torch.ones(n, 1, dtype=F64)), -1)
     return phase, r, r_dot, x, torch.randn(P, 1, generator=gen, dtype=F64)
 
 
@@ -46,7 +46,7 @@ def _fit(phase, r, r_dot, y, n_bins, window, kernel, ridge=0.0, correction=None)
     bins = assign_bins(phase.expand(y.shape[:2]), n_bins, window=window, kernel=kernel)
     zero = torch.zeros(n_bins, D, dtype=F64)
     s = _wls.prepare("test", r, r_dot, y, "y", 1, bins, zero, zero)
-    sol = _wls.solve(s, _blocks, P, fn="test", delta_max=None, ridge=ridge, min_samples=None,
+    sol = _wls.solve(s, design_blocks, P, fn="test", delta_max=None, ridge=ridge, min_samples=None,
                      max_condition=None, on_ill_conditioned="raise", correction=correction)
     return s, sol
 
@@ -119,7 +119,7 @@ def test_sandwich_correlation_is_the_covariance_of_the_estimates_under_homosceda
         rr, rd = r.expand(n_rep, n, D), r_dot.expand(n_rep, n, D)
         s, sol = _fit(phase, rr, rd, y, 4, window, kernel, ridge)
         assert bool((sol.ridge > 0).all()) == (ridge > 0)
-        got = _wls.sandwich_correlation(s, _blocks, sol, COLUMNS).reshape(n_rep, 4, C, C)
+        got = _wls.sandwich_correlation(s, design_blocks, sol, COLUMNS).reshape(n_rep, 4, C, C)
         # the design is fixed: every replicate's correlation is the same
         torch.testing.assert_close(got, got[:1].expand_as(got), rtol=0, atol=1e-12)
         closed = []
@@ -136,7 +136,7 @@ def test_sandwich_correlation_is_the_covariance_of_the_estimates_under_homosceda
     y = x @ beta + (0.2 + r_dot.square().sum(-1, keepdim=True)) * torch.randn(
         n_rep, n, 1, generator=gen, dtype=F64)
     s, sol = _fit(phase, r.expand(n_rep, n, D), r_dot.expand(n_rep, n, D), y, 4, 1.5, "tricube")
-    got = _wls.sandwich_correlation(s, _blocks, sol, COLUMNS).reshape(n_rep, 4, C, C)[0]
+    got = _wls.sandwich_correlation(s, design_blocks, sol, COLUMNS).reshape(n_rep, 4, C, C)[0]
     emp = _corr(_empirical(sol.coef.reshape(n_rep, 4, P, 1)))
     z = (emp - got) * math.sqrt(n_rep) / (1 - got**2).clamp_min(1e-3)
     assert float(z.abs().max()) > 2 * _Z, float(z.abs().max())
@@ -194,7 +194,7 @@ def test_score_covariance_is_its_closed_form_with_heteroscedastic_and_overlappin
             y = torch.where(ok > 0, y, torch.nan)
         s, sol = _fit(phase, r.expand(n_rep, n, D), r_dot.expand(n_rep, n, D), y[..., None],
                       n_bins, window, kernel, ridge)
-        got = _wls.score_covariance(s, _blocks, sol, COLUMNS, lags=lag).reshape(
+        got = _wls.score_covariance(s, design_blocks, sol, COLUMNS, lags=lag).reshape(
             n_rep, n_bins, C, C)
         sigma = sd[:, None] * sd[None, :] * (moving if lag else torch.eye(n, dtype=F64))
         mats = _bin_matrices(phase, x, n_bins, window, kernel, ridge, ok)
@@ -225,7 +225,7 @@ def test_score_covariance_with_the_correction_is_the_covariance_of_corrected_est
     bits = torch.stack([(torch.arange(n) >> k) & 1 for k in range(4)], -1).to(F64) * 2 - 1
     r, r_dot = bits[:, :D], bits[:, D:]
     phase = 2 * math.pi * 3 * torch.arange(n, dtype=F64) / n
-    x = torch.cat(_blocks(r, r_dot, torch.ones(n, 1, dtype=F64)), -1)
+    x = torch.cat(design_blocks(r, r_dot, torch.ones(n, 1, dtype=F64)), -1)
     beta = torch.randn(P, 1, generator=gen, dtype=F64)
     r_obs = r + sd_r * torch.randn(n_rep, n, D, generator=gen, dtype=F64)
     r_dot_obs = r_dot + sd_r * torch.randn(n_rep, n, D, generator=gen, dtype=F64)
@@ -245,13 +245,13 @@ def test_score_covariance_with_the_correction_is_the_covariance_of_corrected_est
     def mean(cov):
         return cov.reshape(n_rep, n_bins, C, C).mean(0)
 
-    robust = mean(_wls.score_covariance(s, _blocks, sol, COLUMNS, lags=0, correction=correction,
+    robust = mean(_wls.score_covariance(s, design_blocks, sol, COLUMNS, lags=0, correction=correction,
                                         row_correction=row_correction))
     assert _whitened_z(emp, robust, n_rep) < _Z, _whitened_z(emp, robust, n_rep)
-    uncentred = mean(_wls.score_covariance(s, _blocks, sol, COLUMNS, lags=0,
+    uncentred = mean(_wls.score_covariance(s, design_blocks, sol, COLUMNS, lags=0,
                                            correction=correction))
     assert _whitened_z(emp, uncentred, n_rep) > _Z, _whitened_z(emp, uncentred, n_rep)
-    corr = _wls.sandwich_correlation(s, _blocks, sol, COLUMNS, correction=correction)
+    corr = _wls.sandwich_correlation(s, design_blocks, sol, COLUMNS, correction=correction)
     se = sol.se[:, COLUMNS, 0]
     solver = mean(corr * se[:, :, None] * se[:, None, :])
     assert _whitened_z(emp, solver, n_rep) > 2 * _Z, _whitened_z(emp, solver, n_rep)
@@ -277,7 +277,7 @@ def test_cluster_scores_are_each_cycles_share_of_the_error_written_out_per_bin()
         y = torch.where(valid > 0, y, torch.nan)
         s, sol = _fit(phase, r[None], r_dot[None], y[None, :, None], n_bins, 1.5, "tricube",
                       ridge)
-        got = _wls.cluster_scores(s, _blocks, sol, columns, clusters, 12)  # (M, 12, 1, c)
+        got = _wls.cluster_scores(s, design_blocks, sol, columns, clusters, 12)  # (M, 12, 1, c)
         closed = []
         for m, (idx, w, a_inv, xm) in enumerate(
                 _bin_matrices(phase, x, n_bins, 1.5, "tricube", ridge, valid)):
@@ -289,8 +289,8 @@ def test_cluster_scores_are_each_cycles_share_of_the_error_written_out_per_bin()
         torch.testing.assert_close(got[:, :, 0], closed, rtol=1e-9, atol=1e-12)
         total = got.sum(1).abs().max() / got.abs().max()
         assert (float(total) < 1e-9) == (ridge == 0), (ridge, float(total))
-    per_row = _wls.cluster_scores(s, _blocks, sol, columns, torch.arange(n), n)[:, :, 0]
-    robust = _wls.score_covariance(s, _blocks, sol, columns, lags=0)[:, 0]
+    per_row = _wls.cluster_scores(s, design_blocks, sol, columns, torch.arange(n), n)[:, :, 0]
+    robust = _wls.score_covariance(s, design_blocks, sol, columns, lags=0)[:, 0]
     count = (s.weight > 0).sum(-1).to(F64)
     torch.testing.assert_close(per_row.mT @ per_row, robust * ((count - P) / count)[:, None, None],
                                rtol=1e-9, atol=0)
@@ -320,8 +320,8 @@ def test_cluster_scores_with_the_correction_sum_to_zero_over_the_clusters():
     assert bool((sol.eiv_scale == 1).all())
     clusters = torch.div(torch.arange(n), 25, rounding_mode="floor")
     kw = dict(correction=correction)
-    shares = _wls.cluster_scores(s, _blocks, sol, COLUMNS, clusters, 16, **kw,
+    shares = _wls.cluster_scores(s, design_blocks, sol, COLUMNS, clusters, 16, **kw,
                                  row_correction=row_correction)
-    plain = _wls.cluster_scores(s, _blocks, sol, COLUMNS, clusters, 16, **kw)
+    plain = _wls.cluster_scores(s, design_blocks, sol, COLUMNS, clusters, 16, **kw)
     assert float(shares.sum(1).abs().max() / shares.abs().max()) < 1e-9
     assert float(plain.sum(1).abs().max() / plain.abs().max()) > 1e-2

@@ -20,22 +20,21 @@ from torchconn import (
     observe,
     simulate,
 )
-from torchconn.physics.gaits import FourierGait
-from torchconn.regression import IllConditionedBinWarning
-from torchconn.regression.binning import assign_bins
-from torchconn.regression.connection import connection_design, connection_regression
-from torchconn.regression.noise_aware import (
-    eiv_correction,
+from torchconn.noise import (
     estimate_noise,
     interval_cycles,
     interval_noise_gains,
     interval_samples,
-    noise_aware_regression,
-    offset_bias,
     overlap_inflation,
-    sampling_factor,
     velocity_interval_for,
 )
+from torchconn.physics.gaits import FourierGait
+from torchconn.regression import IllConditionedBinWarning
+from torchconn.regression.binning import assign_bins
+from torchconn.regression.connection import connection_design, connection_regression
+from torchconn.regression.noise_aware import eiv_correction, noise_aware_regression
+from torchconn.regression.noise_aware.bias import offset_bias
+from torchconn.regression.noise_aware.eiv import sampling_factor
 from torchconn.regression.selection import COMPLEXITY_GRID, RIDGE_GRID, PoorHeldOutSkillWarning
 
 F64 = torch.float64
@@ -75,7 +74,7 @@ def _fit(traj, method=NoiseAwareRegression, **kw):
 def _corrected_alone(monkeypatch):
     """Make NoiseAwareRegression deliver its corrected estimate alone, not shrunk towards the
     smoothed one (:func:`blend_fits` returns it with weight 1), to look at the correction."""
-    import torchconn.regression.noise_aware as na
+    import torchconn.regression.noise_aware.regression as na
 
     def alone(smoothed, corrected, **kwargs):
         return corrected, torch.ones(corrected.n_samples.shape[:-1] + (4,), dtype=F64)
@@ -192,8 +191,8 @@ def test_phase_noise_floor_is_the_spectrum_of_a_phase_random_walk():
     # per-sample std q (the paper's SDE), γ = 0.8 cos φ + 0.3 sin 3φ at 16 samples per cycle;
     # the increments' mean multitaper spectrum against q² (1 + ⟨γ'²⟩) times the shape, in bands
     # between the lines where the shape is far from flat
+    from torchconn.noise.spectrum import _increment_spectrum, phase_noise_floor
     from torchconn.phase.fourier import FourierSeries
-    from torchconn.regression.noise_aware import _increment_spectrum, phase_noise_floor
 
     g = torch.Generator().manual_seed(3)
     per_cycle, n, reps, q = 16.0, 4000, 200, 0.05
@@ -264,8 +263,8 @@ def test_low_rate_floor_leaves_a_64_per_cycle_fit_bit_for_bit():
 def test_channel_correlation_closed_form_on_a_circle():
     # γ = a (cos φ, sin φ): the increments' covariance q²_0 (I + γ'γ'ᵀ) gives the two joints'
     # σ̂² the correlation ⟨C_12²⟩ / ⟨C_11²⟩ = (a⁴/8) / (1 + a² + 3a⁴/8)
+    from torchconn.noise.spectrum import _channel_correlation
     from torchconn.phase.fourier import FourierSeries
-    from torchconn.regression.noise_aware import _channel_correlation
 
     a, q2_0 = 1.3, 2e-4
     coeffs = torch.zeros(3, 2, dtype=F64)
@@ -361,7 +360,7 @@ def test_clean_recordings_joint_test_counts_the_joints_shared_phase_noise(monkey
     # standard errors it calls noise in as many trials as a standard normal would (2.3 % of
     # 80), and with the threshold set between the two z of the trial whose independent z is
     # highest, that trial is not called noise
-    import torchconn.regression.noise_aware as noise_aware
+    import torchconn.regression.noise_aware.regression as noise_aware
 
     reg = NoiseAwareRegression()
     ce = ConnectionEstimator(regression=reg)
@@ -465,7 +464,7 @@ def test_normal_projection_spectrum_weights_are_exact():
     # white + MA(1) noise projected by a projector that turns along the record: the fit with
     # the projection's weights (P_ii and (P_k P_k+1)_ii) recovers σ² without bias over a fixed
     # band, where the same channels taken as unweighted increments would not
-    from torchconn.regression.noise_aware import _normal_weights, _project_normal
+    from torchconn.noise.spectrum import _normal_weights, _project_normal
 
     omega = 0.01
     x, phase, cycle = _curved_cycle_recording(omega, 60, seed=13)
@@ -485,7 +484,7 @@ def test_normal_projection_spectrum_weights_are_exact():
 
 
 def test_normal_projection_with_two_joints_is_the_flat_floor_and_batch_free():
-    from torchconn.regression.noise_aware import normal_increments, normal_span
+    from torchconn.noise import normal_increments, normal_span
 
     assert [normal_span(d) for d in (1, 2, 3, 4, 8, 12)] == [0, 0, 1, 2, 4, 4]
     prep, cycle = _unpooled_trials([0.0, 0.005])
@@ -520,8 +519,8 @@ def test_normal_projection_names_its_missing_inputs():
 def test_noise_fit_leaves_out_the_gaits_harmonics_in_the_top_band():
     # closed form: the harmonics k/N (folded at Nyquist) of the harmonics the cycle carries,
     # within the tapers' half bandwidth (K + 1) / (2 (n + 1)), and only at f >= 0.25
+    from torchconn.noise.spectrum import _TAPERS, _off_harmonics
     from torchconn.phase.fourier import FourierSeries
-    from torchconn.regression.noise_aware import _TAPERS, _off_harmonics
     coeffs = torch.zeros(17, 2, dtype=F64)  # order 8; harmonics 1, 3 and 5 carried
     coeffs[1, 0], coeffs[2, 1], coeffs[5, 0], coeffs[9, 1] = 1.0, 1.0, 0.2, 0.02
     cycle, n = FourierSeries(coeffs, value_ndim=1), 199
@@ -659,7 +658,7 @@ def test_velocity_interval_from_the_filters_noise_gain():
     for k in range(1, 4):  # the shortest whose noise part is at most 5 % of the process's
         _, g_rate = interval_noise_gains(int(h[k]), 1.0)
         _, g_short = interval_noise_gains(int(h[k]) - 1, 1.0)
-        from torchconn.regression.noise_aware import interval_weights
+        from torchconn.noise import interval_weights
 
         def frac(hh, gr, k=k):
             return float(ratio[k]) / 2 * gr / float(interval_weights(hh).square().sum())
@@ -857,6 +856,7 @@ def test_blend_bands_cover_the_shrink_against_a_monte_carlo(m, tolerance):
     estimated from the block it shrinks, which the bands do not model: over 8 bins (120
     entries of b̂ and ∂Â/∂r) they came out 3.7 % narrow, over 64 bins 0.6 %."""
     from torchconn.regression.noise_aware import blend_fits
+    from torchconn.regression.noise_aware.shrink import rescaled_covariance
 
     gen = torch.Generator().manual_seed(0)
     k, bias = 4000 if m == 8 else 1000, 1.4
@@ -873,16 +873,17 @@ def test_blend_bands_cover_the_shrink_against_a_monte_carlo(m, tolerance):
     cov = torch.eye(n_cov, dtype=F64).expand(corrected.b.shape[:-1] + (n_cov, n_cov))
     corrected = dataclasses.replace(corrected, **noise, cov_b_dA=cov.clone())
     smoothed = batch(_fit_fields(bias, 0.0, m))
-    found, estimates = {}, []
-    for covariance in ("shift", "interpolated"):
-        fit, w = blend_fits(smoothed, corrected, covariance=covariance)
-        assert 0.4 < float(w[:, 3].mean()) < 0.6
-        estimates.append(torch.cat([fit.b.flatten(-2), fit.dA.flatten(-3)], -1))
-        e = estimates[-1].square().sum((1, 2))  # (k,) per element
-        v = fit.cov_b_dA.diagonal(dim1=-2, dim2=-1).sum((1, 2, 3))
+    fit, w = blend_fits(smoothed, corrected)
+    assert 0.4 < float(w[:, 3].mean()) < 0.6
+    e = torch.cat([fit.b.flatten(-2), fit.dA.flatten(-3)], -1).square().sum((1, 2))  # (k,)
+    # the bands with the shift, and the interpolated ones (the covariance rescaled only)
+    interpolated = rescaled_covariance(corrected.cov_b_dA, (corrected.se_b, corrected.se_dA),
+                                       (fit.se_b, fit.se_dA))
+    found = {}
+    for name, cov in (("shift", fit.cov_b_dA), ("interpolated", interpolated)):
+        v = cov.diagonal(dim1=-2, dim2=-1).sum((1, 2, 3))
         ratio = float(e.sum() / v.sum())  # E[e²] / E[se²], and its sampling error
-        found[covariance] = (ratio, float((e - ratio * v).std() / (math.sqrt(k) * v.mean())))
-    assert torch.equal(*estimates)  # only the bands differ
+        found[name] = (ratio, float((e - ratio * v).std() / (math.sqrt(k) * v.mean())))
     ratio, se = found["shift"]
     assert abs(ratio - 1) < tolerance + 3 * se, found
     assert found["interpolated"][0] > 2.5, found
@@ -1153,7 +1154,7 @@ def test_noise_setup_uses_each_trials_own_samples_per_cycle():
 def test_one_noise_level_for_all_joints_of_a_trial():
     """``pooled_variance(channels=True)``: the mean of the joints' variances, tested against
     its own standard error as a whole, for every joint; per trial when nothing is pooled."""
-    from torchconn.regression.noise_aware import NoiseEstimate
+    from torchconn.noise import NoiseEstimate
 
     var = torch.tensor([[4.0, 0.0, 2.0], [0.5, -0.3, 0.1]], dtype=F64)  # (trials, joints)
     se = torch.tensor([[1.0, 1.0, 1.0], [0.2, 0.2, 0.2]], dtype=F64)
@@ -1196,9 +1197,9 @@ def test_bias_correction_removes_the_bins_and_filters_bias_on_a_curved_gait(monk
     # after the correction to be at most √λ times the correction B applied; against the exact
     # connection at the bin centres that bound must hold, and the correction must remove most
     # of the bias along the fitted cycle.
-    import torchconn.regression.noise_aware as na
+    import torchconn.regression.noise_aware.regression as na
     from torchconn.physics.gaits import reference_gait
-    from torchconn.regression.noise_aware import _RESIDUAL_BIAS_FRACTION
+    from torchconn.regression.noise_aware.bias import RESIDUAL_BIAS_FRACTION
 
     seeds = np.arange(4) + 700
     traj = simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025, n_cycles=30,
@@ -1215,7 +1216,7 @@ def test_bias_correction_removes_the_bins_and_filters_bias_on_a_curved_gait(monk
     a_true = NLinkSwimmer(3).connection(bins.gamma)
     residual = float((bins.A - a_true).norm())
     applied = float((bins.A - fits[False].model_.bins.A).norm())
-    assert residual <= math.sqrt(_RESIDUAL_BIAS_FRACTION) * applied, (residual, applied)
+    assert residual <= math.sqrt(RESIDUAL_BIAS_FRACTION) * applied, (residual, applied)
 
 
 @pytest.mark.parametrize("window", [1.0, 1.3, 3.0])
@@ -1228,7 +1229,7 @@ def test_harmonic_noise_of_overlapping_bins_matches_monte_carlo(window):
     # whole number of half spacings (the data-size rule's, on short pooled recordings) raised
     # a RuntimeError here before.
     from torchconn.phase.fourier import fit_fourier
-    from torchconn.regression.noise_aware import _harmonic_noise
+    from torchconn.regression.noise_aware.shrink import harmonic_noise
 
     gen = torch.Generator().manual_seed(3)
     n_rec, n, m = 200, 3000, 48
@@ -1239,7 +1240,7 @@ def test_harmonic_noise_of_overlapping_bins_matches_monte_carlo(window):
     est = ((w * bins.gather(values)).sum(-2) / w.sum(-2)).reshape(n_rec, m, 3, 2)
     se = (bins.weight.square().sum(-1).sqrt() / bins.weight.sum(-1))[..., None, None]
     centres = torch.arange(m, dtype=F64) * 2 * math.pi / m
-    power, noise = _harmonic_noise(fit_fourier(centres, est, 6, value_ndim=2),
+    power, noise = harmonic_noise(fit_fourier(centres, est, 6, value_ndim=2),
                                    se.expand(est.shape), bins.window, bins.kernel)
     ratio = power.mean(0) / noise.mean(0)
     assert ((ratio > 0.85) & (ratio < 1.15)).all(), ratio
@@ -1249,7 +1250,7 @@ def test_branch_and_bound_finds_the_first_candidate_of_least_score():
     """``_least_score`` against scoring everything: the first key in the order with the least
     score (ties included: bounds and scores on a coarse grid), below a given bound or not at
     all, while scoring no candidate whose lower bound already loses."""
-    from torchconn.regression.noise_aware import _least_score
+    from torchconn.regression.noise_aware.regression import _least_score
 
     gen = torch.Generator().manual_seed(0)
     pruned = 0
@@ -1393,7 +1394,7 @@ def test_tied_derivative_takes_the_along_cycle_parts_from_b_and_the_phase_deriva
     # direct error's across-cycle part, |nᵀ E n|, and nothing of the rest (d = 2: one of
     # four entries). Its standard errors are never above the direct estimate's (GLS adds
     # information).
-    from torchconn.regression.noise_aware import tie_connection_derivative
+    from torchconn.regression.tied import tie_connection_derivative
 
     gen = torch.Generator().manual_seed(11)
     gamma, tangent, a, d_true, b_true, _, _ = _tie_inputs(gen, 1)
@@ -1418,7 +1419,7 @@ def test_tied_derivative_bands_cover_its_errors_under_noise(window):
     # real bins of white noise), the squared errors of the tied ∂Â/∂r over 200 records are
     # the squared standard errors: the ratio is 1 within its sampling spread (~3 %), and the
     # tie is more precise than the direct estimate.
-    from torchconn.regression.noise_aware import tie_connection_derivative
+    from torchconn.regression.tied import tie_connection_derivative
 
     gen = torch.Generator().manual_seed(5)
     gamma, tangent, d_true, se_d, fit = _noisy_tie_records(gen, 200, window)
@@ -1436,7 +1437,7 @@ def test_tied_derivative_correlation_is_its_errors_correlation():
     # nearby gait's displacement integrates) is the one the returned correlation gives, within
     # its sampling spread, and far below the entries-independent one. The estimate and its
     # standard errors are the same bit for bit with and without the correlation.
-    from torchconn.regression.noise_aware import tie_connection_derivative
+    from torchconn.regression.tied import tie_connection_derivative
 
     gen = torch.Generator().manual_seed(17)
     n_rec, window = 400, 1.0
@@ -1472,10 +1473,10 @@ def test_tied_derivative_on_the_curved_reference_gait_without_noise(monkeypatch)
     # and bias-corrected from the model, it must (1) beat the direct estimate by half (the
     # change matters, the test can fail), and (2) keep within the bound its bands assume: the
     # bias left after the correction at most √λ times the correction applied to the tie
-    # (λ = _RESIDUAL_BIAS_FRACTION, as for Â), against the exact Jacobian at the bin centres.
-    import torchconn.regression.noise_aware as na
+    # (λ = RESIDUAL_BIAS_FRACTION, as for Â), against the exact Jacobian at the bin centres.
+    import torchconn.regression.noise_aware.bias as na
     from torchconn.physics.gaits import reference_gait
-    from torchconn.regression.noise_aware import _RESIDUAL_BIAS_FRACTION
+    from torchconn.regression.noise_aware.bias import RESIDUAL_BIAS_FRACTION
 
     ties = []  # the first tie: of the direct estimate as fitted, before the correction
     original = na.tie_connection_derivative
@@ -1502,7 +1503,7 @@ def test_tied_derivative_on_the_curved_reference_gait_without_noise(monkeypatch)
     true = NLinkSwimmer(3).connection_jacobian(bins.gamma)
     residual = float((on.bins.dA - true).norm())
     applied = float((on.bins.dA - tie_only).norm())
-    assert residual <= math.sqrt(_RESIDUAL_BIAS_FRACTION) * applied, (residual, applied)
+    assert residual <= math.sqrt(RESIDUAL_BIAS_FRACTION) * applied, (residual, applied)
 
 
 def test_tied_derivative_bands_under_noise_on_the_curved_reference_gait():
@@ -1534,7 +1535,7 @@ def test_tied_derivative_bands_take_the_direct_estimates_full_modelled_bias(monk
     # the joint covariance the tie's sandwich uses): the ratio must lie within [0.5, 2.0]
     # (1.67 here; 2.13 against 2.63 on seeds 710-713) where the half square's does not; the
     # tied estimate is the same bit for bit and every standard error at least as wide.
-    import torchconn.regression.noise_aware as na
+    import torchconn.regression.noise_aware.bias as na
     from torchconn.physics.gaits import reference_gait
 
     seeds = np.arange(4) + 700
@@ -1543,7 +1544,7 @@ def test_tied_derivative_bands_take_the_direct_estimates_full_modelled_bias(monk
                      samples_per_cycle=DT_SAMPLES, seeds=seeds)
     traj = observe(clean, 0.01, seeds=seeds)
     full = _fit(traj).model_
-    monkeypatch.setattr(na, "_DIRECT_BIAS_SHARE", na._RESIDUAL_BIAS_FRACTION)
+    monkeypatch.setattr(na, "_DIRECT_BIAS_SHARE", na.RESIDUAL_BIAS_FRACTION)
     half = _fit(traj).model_
     assert full.meta["derivative"] == "tied, bias allowed for"
     assert torch.equal(full.bins.dA, half.bins.dA)
@@ -1561,7 +1562,7 @@ def test_the_tie_starts_from_the_direct_estimate_and_leaves_the_other_terms(clea
                                                                              monkeypatch):
     # the tie takes the direct ∂Â/∂r as its input and leaves ĉ, b̂, Â (and their standard
     # errors) as they were fitted, bit for bit
-    import torchconn.regression.noise_aware as na
+    import torchconn.regression.noise_aware.bias as na
 
     inputs = []
     original = na.tie_connection_derivative
@@ -1635,7 +1636,7 @@ def test_a_pooled_shrink_per_row_keeps_the_9_links_displacement():
     (10 %)."""
     from torchconn.phase.fourier import fit_fourier
     from torchconn.physics.gaits import evaluate
-    from torchconn.regression.noise_aware import _SERIES_SHRINK, _harmonic_noise
+    from torchconn.regression.noise_aware.shrink import _SERIES_SHRINK, harmonic_noise
 
     coeffs = torch.zeros(3, 8, dtype=F64)  # benchmarks/accuracy.py's circle gait, 9-link
     lag = 2 * math.pi * torch.arange(8, dtype=F64) / 8
@@ -1647,7 +1648,7 @@ def test_a_pooled_shrink_per_row_keeps_the_9_links_displacement():
     model = est.model_
     assert torch.tensor(model.meta["A_harmonic_factors"]).shape == (13, 3)
     plain = fit_fourier(model.bins.phase, model.bins.A, 12, value_ndim=2)
-    power, noise = _harmonic_noise(plain, model.bins.A_se, model.meta["window"],
+    power, noise = harmonic_noise(plain, model.bins.A_se, model.meta["window"],
                                    est.regression_.kernel)  # (13,): summed over the entries
     factor = (1 - _SERIES_SHRINK * noise / power).clamp(0, 1)
     factor[0] = 1
@@ -1741,7 +1742,7 @@ def test_tied_derivative_takes_b_and_the_direct_estimate_with_their_joint_covari
     # ~3 %), with the same estimate as the independent tie, whose ratio falls outside; and
     # weighed by it (joint_weights, generalised least squares) honest bands too and an error
     # no larger.
-    from torchconn.regression.noise_aware import tie_connection_derivative
+    from torchconn.regression.tied import tie_connection_derivative
 
     gen = torch.Generator().manual_seed(8)
     n_rec, d = 200, 2
@@ -1798,7 +1799,7 @@ def test_the_tie_design_product_is_the_full_sum_over_its_rows():
 def _joint_weighted_tie(fit, gamma, rate, window, idx, covariance=True):
     """The joint-weighted tie (order 12, tricube bins) of batch elements ``idx`` of ``fit``
     (without its joint covariance unless ``covariance``)."""
-    from torchconn.regression.noise_aware import tie_connection_derivative
+    from torchconn.regression.tied import tie_connection_derivative
 
     part = dataclasses.replace(fit, **{f.name: getattr(fit, f.name)[idx]
                                        for f in dataclasses.fields(fit)
@@ -1817,7 +1818,7 @@ def test_the_joint_weighted_tie_of_a_batch_element_is_its_own_bit_for_bit():
     # joint covariance (NaN: no noise detected) and must be tied as with none at all (None),
     # and where the covariance is not positive definite the independent weights apply; the
     # others must differ from the independent tie (the weights do act).
-    from torchconn.regression.noise_aware import tie_connection_derivative
+    from torchconn.regression.tied import tie_connection_derivative
 
     gen = torch.Generator().manual_seed(5)
     n, m = 4, 48
@@ -1956,7 +1957,8 @@ def test_offsets_refitted_with_a_held_are_the_bins_least_squares_at_that_a(noise
     the noise σ²g_r of δ (g_r the filter's gain) removed from Σwδδᵀ, and from the δ-(δ̇⊗δ)
     block the part Σwδ̇_i σ²g_r [j = k] it adds, which enters with ∂Â/∂r held (the
     δ-δ̇ block has none: the two noises are uncorrelated)."""
-    from torchconn.regression.noise_aware import IntervalSamples, offset_gain, offsets_at
+    from torchconn.noise import IntervalSamples
+    from torchconn.regression.noise_aware import offset_gain, offsets_at
 
     gen = torch.Generator().manual_seed(11)
     d, n, m = 2, 3000, 12
@@ -2113,17 +2115,17 @@ def test_clean_bias_allowance_is_that_of_the_delivered_a(clean30, monkeypatch):
     """A clean pooled fit's allowance is the bias of the ``Â`` it delivers (which the bins' bias
     correction has moved from the plain fit), not of the plain fit: ``offset_bias`` is asked
     for the delivered ``Â``'s change, and the allowance is the resolved sum of the two parts."""
-    from torchconn.regression import noise_aware
+    from torchconn.regression.noise_aware import bias, regression
 
     seen = {}
 
     def spy(name):
-        original = getattr(noise_aware, name)
+        original = getattr(regression, name)
 
         def wrapped(*args, **kw):
             seen[name] = (args, kw, original(*args, **kw))
             return seen[name][2]
-        monkeypatch.setattr(noise_aware, name, wrapped)
+        monkeypatch.setattr(regression, name, wrapped)
 
     spy("offset_bias")
     spy("interval_bias")
@@ -2132,16 +2134,16 @@ def test_clean_bias_allowance_is_that_of_the_delivered_a(clean30, monkeypatch):
     _, _, (step, step_var) = seen["interval_bias"]
     assert torch.equal(kw["estimate"], model.bins.A)
     # the plain fit's change differs from it by the plain fit's move, which is not 0
-    plain_tube, plain_var = noise_aware.offset_bias(*args, **{**kw, "estimate": None})
+    plain_tube, plain_var = bias.offset_bias(*args, **{**kw, "estimate": None})
     samples, bins, gamma_m, gamma_dot_m = args
-    plain = noise_aware.connection_regression(samples.r, samples.r_dot, samples.xi, bins,
-                                              gamma_m, gamma_dot_m)
+    plain = connection_regression(samples.r, samples.r_dot, samples.xi, bins, gamma_m,
+                                  gamma_dot_m)
     moved = plain.A - model.bins.A
     torch.testing.assert_close(plain_tube - tube, moved, rtol=1e-9, atol=1e-15)
     assert torch.equal(plain_var, tube_var)
     assert float(moved.abs().max()) > 0.05 * float(tube.abs().max())
-    expected = noise_aware._resolved(torch.nan_to_num(tube) + torch.nan_to_num(step),
-                                     torch.nan_to_num(tube_var) + torch.nan_to_num(step_var))
+    expected = bias.resolved_bias(torch.nan_to_num(tube) + torch.nan_to_num(step),
+                                  torch.nan_to_num(tube_var) + torch.nan_to_num(step_var))
     assert torch.equal(model.bins.A_bias_allowance, expected)
 
 

@@ -52,11 +52,11 @@ from scipy import stats
 from torch import Tensor
 
 from .._options import Options, option
+from ..noise import estimate_noise
 from ..phase.smoothing import smooth_trajectory, unwrap
 from ..physics.effects import REGISTRY, Effect, get_effect
 from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
-from ..regression.noise_aware import estimate_noise
 from ..trajectory import Trajectory
 from .confounding import principal_cosine, separating_experiments, signature_collinearity
 from .fitting import EffectFit, Problem, cycle_stats, fit_effects, fourier_columns, paired_gain
@@ -478,7 +478,7 @@ def _twin_bias(job: _Job, fit: EffectFit, max_cycles: float = 8.0,
     shapes of the first trial (up to ``max_cycles`` cycles), integrated on SE(2) with four times
     finer steps than the forward model and observed through the recording's own smoother, with
     white observation noise at the level estimated in the recording
-    (:func:`~torchconn.regression.noise_aware.estimate_noise`, per pose and shape channel) on
+    (:func:`~torchconn.noise.estimate_noise`, per pose and shape channel) on
     its poses and on the shapes that drive its forward model. The refit shows what the time
     stepping, the smoothing and the errors in variables (noisy shapes drive the forward model,
     which attenuates a fitted joint bias) do to the estimate. The noise comes in ``n_pairs``

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from .. import _checks
 
-__all__ = ["BinIndex", "assign_bins", "KERNELS"]
+__all__ = ["BinIndex", "assign_bins", "KERNELS", "auto_window", "auto_windows"]
 
 #: weight kernels on the scaled distance ``s = |φ − φ_m| / (window · 2π/M)`` in ``[0, 1]``
 KERNELS = ("box", "tricube", "epanechnikov")
@@ -159,3 +159,22 @@ def assign_bins(
     weight = torch.where(filled, kernel_weight(s, kernel), 0.0)
     return BinIndex(index=index, weight=weight, count=count, n_bins=m_bins, n_points=n,
                     window=float(window), kernel=kernel)
+
+
+def auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
+    """Half-width (in bin spacings) holding ``per_regressor`` samples per regressor on average
+    in the batch element with the fewest finite samples (the widest of
+    :func:`auto_windows`)."""
+    return float(auto_windows(phase, n_bins, n_regressors, per_regressor).max())
+
+
+def auto_windows(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float
+                 ) -> Tensor:
+    """Per batch element of ``phase (..., N)``: the half-width ``(...)`` (in bin spacings,
+    float64) holding ``per_regressor`` samples per regressor on average in its windows; at
+    least 1, at most a quarter cycle (a window must stay local for the first-order model to
+    hold). Each element's width depends on its own samples only."""
+    per_spacing = torch.isfinite(phase).sum(-1).to(torch.float64) / n_bins
+    # a tricube window of half-width w spacings carries the weight of ~1.2 w spacings
+    window = per_regressor * n_regressors / (1.2 * per_spacing)
+    return window.clamp(1.0, n_bins / 4)

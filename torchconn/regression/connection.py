@@ -19,7 +19,8 @@ from torch import Tensor
 from . import _wls
 from .binning import BinIndex
 
-__all__ = ["ConnectionFit", "connection_regression", "connection_design"]
+__all__ = ["ConnectionFit", "connection_regression", "connection_design", "design_blocks",
+           "fit_from_solution", "ridge_exemptions"]
 
 
 @dataclass(frozen=True)
@@ -102,7 +103,7 @@ def connection_design(delta: Tensor, delta_dot: Tensor) -> Tensor:
 
     Column ``1 + 2d + i·d + j`` is ``δ̇_i δ_j``; its coefficient estimates ``∂Aᵏ_i/∂r_j``.
     """
-    return torch.cat(_blocks(delta, delta_dot, torch.ones_like(delta[..., :1])), -1)
+    return torch.cat(design_blocks(delta, delta_dot, torch.ones_like(delta[..., :1])), -1)
 
 
 def unpenalised_columns(d: int, device=None) -> Tensor:
@@ -124,7 +125,7 @@ def ridge_exemptions(d: int, ridge_connection: bool, device=None) -> Tensor | No
     return None if ridge_connection else unpenalised_columns(d, device)
 
 
-def _blocks(delta: Tensor, delta_dot: Tensor, row_scale: Tensor) -> list[Tensor]:
+def design_blocks(delta: Tensor, delta_dot: Tensor, row_scale: Tensor) -> list[Tensor]:
     """The column blocks of ``row_scale · [1, δ, δ̇, δ̇⊗δ]``, scaled through the small factors."""
     scaled_dot = row_scale * delta_dot
     cross = (scaled_dot.unsqueeze(-1) * delta.unsqueeze(-2)).flatten(-2)
@@ -184,11 +185,11 @@ def connection_regression(
     s = _wls.prepare(fn, r, r_dot, xi, "xi", 3, bins, gamma_m, gamma_dot_m)
     d = s.r.shape[-1]
     p = 1 + 2 * d + d * d
-    sol = _wls.solve(s, _blocks, p, fn=fn, delta_max=delta_max, ridge=ridge,
+    sol = _wls.solve(s, design_blocks, p, fn=fn, delta_max=delta_max, ridge=ridge,
                      min_samples=min_samples, max_condition=max_condition,
                      on_ill_conditioned=on_ill_conditioned, standard_errors=standard_errors,
                      unpenalised=ridge_exemptions(d, ridge_connection, s.r.device))
-    return _connection_fit(sol.unflatten(s.batch_shape, s.n_bins), d)
+    return fit_from_solution(sol.unflatten(s.batch_shape, s.n_bins), d)
 
 
 def split_coefficients(coef: Tensor, d: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -202,7 +203,7 @@ def split_coefficients(coef: Tensor, d: int) -> tuple[Tensor, Tensor, Tensor, Te
     return c, b, a, da
 
 
-def _connection_fit(sol: _wls.Solution, d: int) -> ConnectionFit:
+def fit_from_solution(sol: _wls.Solution, d: int) -> ConnectionFit:
     """Name the coefficients of an unflattened solution ``(..., M, P, 3)`` of the design
     ``[1, δ, δ̇, δ̇⊗δ]``."""
     c, b, a, da = split_coefficients(sol.coef, d)

@@ -692,7 +692,7 @@ def _cycles_in_errors(traj: Trajectory, regression: Regression, complexity: str)
 def _cycles_note(traj: Trajectory, regression: Regression, alone: bool = False) -> str:
     """The recording's cycles per trial against those the bins' window rule needs: a window
     holds ``samples_per_regressor`` samples per regressor and spans at most half a cycle
-    (:func:`~torchconn.regression.tube._auto_window`; a tricube window of half a cycle
+    (:func:`~torchconn.regression.binning.auto_window`; a tricube window of half a cycle
     carries the weight of 0.3 cycles), so ``P`` regressors per bin need
     ``P · samples_per_regressor / 0.3`` samples per trial; ``alone``: also those of the
     connection alone (``1 + d`` regressors), which ``complexity="auto"`` tried in its place."""

@@ -76,7 +76,7 @@ class BinEstimates:
         A_bias_allowance: ``(..., M, 3, d)`` an allowance for the bias of ``Â``: the tube's
             second order (``Â`` absorbs ``½∂²A/∂r² : E[δδᵀ]``,
             :func:`~torchconn.regression.noise_aware.offset_bias`) and the sampling
-            interval's (:func:`~torchconn.regression.noise_aware.interval_bias`), summed: not
+            interval's (:func:`~torchconn.regression.noise_aware.bias.interval_bias`), summed: not
             in ``A_se``; nearby-gait draws add it as one error shared by entries and bins.
             None where not estimated (recordings with detected measurement noise, unpooled
             fits).

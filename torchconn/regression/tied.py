@@ -22,10 +22,11 @@ from ..phase.fourier import fit_fourier
 from .binning import kernel_weight
 from .connection import ConnectionFit
 
-__all__ = ["tie_connection_derivative", "phase_derivative_operator", "cycle_tangent"]
+__all__ = ["tie_connection_derivative", "phase_derivative_operator", "cycle_tangent",
+           "window_correlation", "lag_correlations"]
 
 
-def _window_correlation(window: float, kernel: str, device=None) -> tuple[Tensor, Tensor]:
+def window_correlation(window: float, kernel: str, device=None) -> tuple[Tensor, Tensor]:
     """Integer lags ``s (L,)`` (bin spacings, ``|s| ≤ ⌈2·window⌉``) and the correlation
     ``ρ(s) (L,)`` of the estimation errors of two bins ``s`` spacings apart: the overlap of
     their windows, ``∫K(x)K(x − s)dx / ∫K²`` (float64)."""
@@ -55,17 +56,17 @@ def phase_derivative_operator(n_bins: int, order: int, *, dtype=torch.float64,
     return fit_fourier(centres, eye, order, value_ndim=1).derivative()(centres)
 
 
-def _lag_correlations(window: Tensor, kernel: str, *, dtype=torch.float64, device=None
+def lag_correlations(window: Tensor, kernel: str, *, dtype=torch.float64, device=None
                       ) -> tuple[list[int], Tensor]:
     """Integer lags ``(L,)`` (bin spacings, symmetric about 0) and the correlation ``ρ (..., L)``
-    of two bins' estimation errors at each lag (:func:`_window_correlation`) for bins of
+    of two bins' estimation errors at each lag (:func:`window_correlation`) for bins of
     half-width ``window (...)`` (0 beyond a window's own reach)."""
     widths = window.to(torch.float64)
     reach = math.ceil(2 * float(widths.max()))
     lags = list(range(-reach, reach + 1))
     rho = torch.zeros(widths.shape + (len(lags),), dtype=dtype, device=device)
     for w in torch.unique(widths).tolist():  # few distinct windows
-        own, values = _window_correlation(w, kernel, device)
+        own, values = window_correlation(w, kernel, device)
         row = torch.zeros(len(lags), dtype=dtype, device=device)
         row[[lag + reach for lag in own.long().tolist()]] = values.to(dtype)
         rho[widths.to(rho.device) == w] = row
@@ -161,7 +162,7 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
 
     ``dÂ/dφ`` is the derivative of the order-``order`` Fourier series of ``Â`` (the model's
     own, :func:`phase_derivative_operator`), and its variance is propagated through that
-    series from the bins' standard errors and their correlation (:func:`_window_correlation`):
+    series from the bins' standard errors and their correlation (:func:`window_correlation`):
     the derivative amplifies harmonic ``k`` by ``k``, and under noise the weights follow.
 
     Args:
@@ -210,7 +211,7 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     # var(Σ_n op[m, n] Â_n) = Σ_n Σ_s op[m, n] op[m, n + s] ρ(s) se_n se_{n+s}, per entry
     weighted = op[:, :, None, None] * s0.unsqueeze(-4)  # (..., M, M, 3, d)
     widths = torch.as_tensor(window, dtype=torch.float64, device=a.device)
-    lags, rho = _lag_correlations(widths.expand(a.shape[:-3]), kernel,
+    lags, rho = lag_correlations(widths.expand(a.shape[:-3]), kernel,
                                   **opts)
     var_slope = torch.zeros_like(slope)
     for i, lag in enumerate(lags):

@@ -23,7 +23,7 @@ from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import LimitCycle
 from ..phase.phaser import held_out_order, whole_cycle_weights
 from ..trajectory import Trajectory, pool_batch
-from .binning import assign_bins
+from .binning import assign_bins, auto_window
 from .connection import connection_regression
 from .model import BinEstimates, LocalConnectionModel
 
@@ -150,8 +150,8 @@ class TubeRegression(Regression):
                     ridge_connection=self.ridge_connection)
 
         def bins_for(n_regressors: int):
-            window = self.window or _auto_window(phase, M, n_regressors,
-                                                 self.samples_per_regressor)
+            window = self.window or auto_window(phase, M, n_regressors,
+                                                self.samples_per_regressor)
             return assign_bins(phase, M, window=window, kernel=self.kernel), window
 
         fit, window, connection_meta = self._connection_fit(
@@ -262,22 +262,3 @@ def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:
     width of the tube the data covered (``(d,)`` as a list, for the JSON-able ``meta``)."""
     delta = (r - gamma).reshape(-1, r.shape[-1])
     return [float(v) for v in delta.pow(2).nanmean(0).sqrt()]
-
-
-def _auto_window(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float) -> float:
-    """Half-width (in bin spacings) holding ``per_regressor`` samples per regressor on average
-    in the batch element with the fewest finite samples (the widest of
-    :func:`_auto_windows`)."""
-    return float(_auto_windows(phase, n_bins, n_regressors, per_regressor).max())
-
-
-def _auto_windows(phase: Tensor, n_bins: int, n_regressors: int, per_regressor: float
-                  ) -> Tensor:
-    """Per batch element of ``phase (..., N)``: the half-width ``(...)`` (in bin spacings,
-    float64) holding ``per_regressor`` samples per regressor on average in its windows; at
-    least 1, at most a quarter cycle (a window must stay local for the first-order model to
-    hold). Each element's width depends on its own samples only."""
-    per_spacing = torch.isfinite(phase).sum(-1).to(torch.float64) / n_bins
-    # a tricube window of half-width w spacings carries the weight of ~1.2 w spacings
-    window = per_regressor * n_regressors / (1.2 * per_spacing)
-    return window.clamp(1.0, n_bins / 4)

@@ -21,12 +21,12 @@ import torch
 from torch import Tensor, nn
 
 from ..._options import option
+from ...noise import estimate_noise, interval_samples
 from ...phase.fourier import fit_fourier
 from ...phase.limit_cycle import LimitCycle
 from ...phase.smoothing import recorded_span
 from ...trajectory import Trajectory, over_spans, span_bounds
 from ..model import LocalConnectionModel
-from ..noise_aware import estimate_noise, interval_samples
 from .base import MetricEstimator
 from .noise import power_noise_variance
 from .tied import (

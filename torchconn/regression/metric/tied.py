@@ -230,7 +230,7 @@ def tied_metric_regression(
         offset: ``(..., N, d)`` ``δ = r̄ − γ(φ)``, the interval's offset from the cycle at its
             own phase; velocity: ``(..., N, d)`` ``v``; power: ``(..., N)``; phase: ``(..., N)``
             unwrapped (one-sample intervals of
-            :func:`~torchconn.regression.noise_aware.interval_samples`). Samples with any NaN
+            :func:`~torchconn.noise.interval_samples`). Samples with any NaN
             are excluded.
         phase_m: ``(M,)`` phases at which to report (bin centres).
         gamma_dot_m: ``(..., M, d)`` ``γ̇`` there, for ``M̂γ̇`` and the on-cycle power.

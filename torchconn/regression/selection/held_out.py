@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from .. import _wls
-from ..connection import _blocks, ridge_exemptions
+from ..connection import design_blocks, ridge_exemptions
 
 __all__ = ["leave_blocks_out"]
 
@@ -105,7 +105,7 @@ def _block_sums(s: _wls.BinnedSamples, sel: slice, block: Tensor, n_blocks: int,
     The rows are sorted by block, so every block's sum is one batched product over its own
     rows (padded to the largest block): about one pass over the data, not ``F``."""
     n_max = s.rows.shape[1]
-    xy, w = _wls._chunk_design(s, sel, _blocks, delta_max)
+    xy, w = _wls._chunk_design(s, sel, design_blocks, delta_max)
     width = xy.shape[-1]
     lab = block[s.rows[sel]]
     lab = torch.where((w > 0) & (lab >= 0), lab, n_blocks)  # n_blocks: in no sum

@@ -26,22 +26,17 @@ from torch import Tensor
 
 from ... import _linalg
 from ...cycles import cycle_blocks, cycle_index
+from ...noise import VELOCITY_KERNEL, interval_noise_gains, interval_view
 from ...phase.fourier import FourierSeries, fit_fourier, fourier_design
 from ...phase.limit_cycle import LimitCycle
 from ...trajectory import Trajectory, pool_batch
 from .. import _wls
-from ..binning import assign_bins
+from ..binning import assign_bins, auto_window
 from ..connection import split_coefficients, unpenalised_columns
 from ..diagnostics import RegressionDiagnostics
 from ..model import LocalConnectionModel
-from ..noise_aware import (
-    VELOCITY_KERNEL,
-    NoiseAwareRegression,
-    eiv_correction,
-    interval_noise_gains,
-    interval_view,
-)
-from ..tube import Regression, TubeRegression, _auto_window, intercept_series
+from ..noise_aware import NoiseAwareRegression, eiv_correction
+from ..tube import Regression, TubeRegression, intercept_series
 from .held_out import leave_blocks_out
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "COMPONENTS", "RegressionView",
@@ -550,11 +545,11 @@ def _fold_windows(regression: Regression, diag: RegressionDiagnostics, phase: Te
         return regression.window
     train = torch.where(fold == 0, torch.nan, phase)
     if not isinstance(regression, NoiseAwareRegression):
-        return _auto_window(train, regression.n_bins, 1 + 2 * d + d * d,
+        return auto_window(train, regression.n_bins, 1 + 2 * d + d * d,
                             regression.samples_per_regressor)
     ratio = torch.as_tensor(diag.noise_ratio, dtype=torch.float64, device=phase.device)
     if train.ndim == 1:  # pooled: the window the fit chose, widened as fewer cycles need
-        return max(float(diag.window), _auto_window(train, regression.n_bins,
+        return max(float(diag.window), auto_window(train, regression.n_bins,
                                                        1 + 2 * d + d * d,
                                                        regression.samples_per_regressor))
     return regression.element_windows(train.reshape(-1, train.shape[-1]), d,
@@ -602,7 +597,7 @@ def _interval_noise(diag: RegressionDiagnostics, batch: tuple, dt: float, **kw
                     ) -> tuple[Tensor, Tensor]:
     """Noise variances ``(*batch, d)`` of ``δ`` and ``δ̇`` in a noise-aware fit's interval
     samples, from its diagnostics (noise level, velocity interval and filter; the gains of
-    :func:`~torchconn.regression.noise_aware.interval_noise_gains`)."""
+    :func:`~torchconn.noise.interval_noise_gains`)."""
     sigma2 = torch.as_tensor(diag.noise_r, **kw).square()
     sigma2 = sigma2.expand(batch + sigma2.shape[-1:])
     h = torch.as_tensor(diag.velocity_interval, device=kw.get("device")).expand(batch)
