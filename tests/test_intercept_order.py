@@ -9,7 +9,8 @@ import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, TiedMetric, TubeRegression, simulate
 from torchconn.evaluation.models import error_summary, reference_models
-from torchconn.phase import held_out_order, whole_cycle_weights
+from torchconn.cycles import whole_cycle_weights
+from torchconn.phase import held_out_order
 from torchconn.phase.fourier import FourierSeries, fit_fourier
 from torchconn.physics.gaits import reference_gait
 

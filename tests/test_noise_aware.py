@@ -22,7 +22,6 @@ from torchconn import (
 )
 from torchconn.noise import (
     estimate_noise,
-    interval_cycles,
     interval_noise_gains,
     interval_samples,
     overlap_inflation,
@@ -2055,20 +2054,6 @@ def test_sampling_factor_keeps_the_standard_errors_and_the_cycles_correlation():
     ok = torch.ones_like(se, dtype=torch.bool)
     ok[0, 1, 0] = ok[2, 0, 1] = False
     torch.testing.assert_close(var[ok], se[ok].square(), rtol=1e-9, atol=0)
-
-
-def test_interval_cycles_number_whole_cycles_per_trial_and_through_a_pool():
-    # two trials, 3 and 2 cycles from different starting phases, one wrapped: an interval
-    # takes its first sample's cycle; pooled, the second trial's cycles follow the first's
-    k = torch.arange(31, dtype=F64)
-    phase = torch.stack([0.5 + k * (2 * math.pi / 9.7),  # cycles start at k = 0, 10, 20
-                         torch.remainder(4.0 + k * (2 * math.pi / 14.7), 2 * math.pi)])  # 0, 15
-    cyc = interval_cycles(phase, 2)
-    assert cyc.shape == (2, 29)
-    assert cyc[0].tolist() == [j // 10 for j in range(29)]
-    assert cyc[1].tolist() == [j // 15 for j in range(29)]
-    assert interval_cycles(phase, 2, pool=True).tolist() == cyc[0].tolist() + (
-        cyc[1] + 3).tolist()
 
 
 def test_offset_bias_is_the_first_order_fits_error_on_a_second_order_connection():

@@ -33,11 +33,12 @@ from scipy import stats
 from torch import Tensor
 
 from .. import _linalg
+from ..cycles import rank_blocks
 from ..physics.effects import Effect, get_effect
 from .forward import ForwardModel
 
 __all__ = ["CycleStats", "EffectFit", "fit_effects", "cycle_stats", "fourier_columns",
-           "paired_gain", "fold_of_cycles"]
+           "paired_gain"]
 
 #: the name of the least-squares normal matrix in error messages
 _NORMAL = "the effect fit's normal matrix"
@@ -97,18 +98,6 @@ class CycleStats:
             return rho.clone()
         _, steps = self.held_out()
         return rho + (J * steps[row_fold]).sum(-1)
-
-
-def fold_of_cycles(cycle_trial: Tensor, cycle_index: Tensor, n_folds: int) -> Tensor:
-    """Blocks of whole, contiguous cycles: within each trial, the cycles in time order are split
-    into ``n_folds`` consecutive blocks; fold ``k`` is the ``k``-th block of every trial."""
-    fold = torch.zeros_like(cycle_trial)
-    for b in torch.unique(cycle_trial).tolist():
-        sel = torch.nonzero(cycle_trial == b).flatten()
-        order = sel[torch.argsort(cycle_index[sel])]
-        n = order.numel()
-        fold[order] = (torch.arange(n, device=fold.device) * n_folds) // max(n, 1)
-    return fold
 
 
 def cycle_stats(rho: Tensor, J: Tensor, cycle: Tensor, n_cycles: int, fold: Tensor) -> CycleStats:
@@ -212,7 +201,7 @@ class Problem:
         self.cycle = cyc.repeat_interleave(3)  # rows ordered sample-major, component-minor
         self.n_cycles = m.n_cycles
         n_folds = max(2, min(n_folds, int(torch.bincount(m.cycle_trial).min())))
-        self.fold = fold_of_cycles(m.cycle_trial, m.cycle_index, n_folds)
+        self.fold = rank_blocks(m.cycle_trial, m.cycle_index, n_folds)
         self.n_folds = n_folds
         self._twist_cache = None  # (key, primal twist) of the last evaluation
 

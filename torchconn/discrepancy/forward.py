@@ -41,6 +41,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import Tensor
 
+from ..cycles import present_cycles
 from ..io.preflight import CYCLE_RULES
 from ..phase.phaser import Phaser, estimate_phase
 from ..phase.smoothing import (
@@ -237,7 +238,8 @@ def prepare_measurement(
 
     kernel = _smoothing_kernels(pose, dt)
     mask = _usable_mask(finite, (kernel.shape[-1] - 1) // 2)
-    cycle, trials, index = _number_cycles(phase, mask)
+    # cycles of fewer than 4 usable samples are dropped from mask
+    cycle, trials, index = present_cycles(phase, mask, origin="mask", min_samples=4)
     _check_whole_cycles(phase, mask, min_cycles)
 
     heading = sm.pose[..., 2]
@@ -325,32 +327,6 @@ def _usable_mask(finite: Tensor, half_width: int) -> Tensor:
     return finite & (idx >= (first + margin)[:, None]) & (idx <= (last - margin)[:, None])
 
 
-def _number_cycles(phase: Tensor, mask: Tensor) -> tuple[Tensor, list[int], list[int]]:
-    """Cycles: whole turns of the phase from each trial's first usable sample, numbered over
-    all trials. Returns the cycle of each sample ``(B, T)`` (-1 where unusable), and each
-    cycle's trial and index within it. Cycles of fewer than 4 usable samples are dropped from
-    ``mask`` (in place)."""
-    B = phase.shape[0]
-    ph0 = torch.stack([phase[b][mask[b]][0] if mask[b].any() else phase[b, 0]
-                       for b in range(B)])
-    local = torch.floor((phase - ph0[:, None]) / (2 * math.pi)).long()
-    local = torch.where(mask, local, torch.full_like(local, -1))
-    cycle = torch.full_like(local, -1)
-    trials, index, nxt = [], [], 0
-    for b in range(B):
-        ids = torch.unique(local[b][mask[b]])
-        for k in ids.tolist():
-            sel = mask[b] & (local[b] == k)
-            if int(sel.sum()) < 4:
-                mask[b] &= ~sel
-                continue
-            cycle[b][sel] = nxt
-            trials.append(b)
-            index.append(k)
-            nxt += 1
-    return cycle, trials, index
-
-
 def _check_whole_cycles(phase: Tensor, mask: Tensor, min_cycles: float) -> None:
     """Refuse a recording whose usable samples span fewer than ``min_cycles`` whole cycles in
     total (partial ones at the ends still serve as data)."""
@@ -408,16 +384,7 @@ def measurement_from_clean(t: Tensor, pose: Tensor, r: Tensor, phase: Tensor, ke
         raise ValueError(f"a simulated experiment of {T} samples is too short for the smoothing "
                          f"kernel (half-width {W})")
     mask = ((idx >= margin) & (idx < T - margin)).expand(B, T).clone()
-    local = torch.floor((phase - phase[:, :1]) / (2 * math.pi)).long()
-    cycle = torch.full_like(local, -1)
-    trials, index, nxt = [], [], 0
-    for b in range(B):
-        for k in torch.unique(local[b][mask[b]]).tolist():
-            sel = mask[b] & (local[b] == k)
-            cycle[b][sel] = nxt
-            trials.append(b)
-            index.append(k)
-            nxt += 1
+    cycle, trials, index = present_cycles(phase, mask)
     pose = torch.cat([pose[..., :2], unwrap(pose[..., 2], dim=-1)[..., None]], -1)
     heading = pose[..., 2] if heading is None else heading.expand(B, T)
     m = Measurement(

@@ -9,7 +9,6 @@ from .intervals import (
     VELOCITY_KERNELS,
     IntervalSamples,
     flatten_batch,
-    interval_cycles,
     interval_noise_gains,
     interval_samples,
     interval_view,
@@ -36,6 +35,6 @@ __all__ = [
     "bridge_gaps", "KERNEL_CHUNK",
     "VELOCITY_KERNELS", "VELOCITY_KERNEL", "MAX_INTERVAL_CYCLES", "interval_weights",
     "IntervalSamples", "interval_noise_gains", "interval_samples", "overlap_inflation",
-    "interval_cycles", "noise_ratio", "velocity_interval_for", "flatten_batch",
+    "noise_ratio", "velocity_interval_for", "flatten_batch",
     "intervals_by_h", "take_intervals", "pooled_view", "interval_view",
 ]

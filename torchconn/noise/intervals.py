@@ -21,16 +21,14 @@ from the noise ratio (:func:`noise_ratio`).
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
 
-from ..phase.smoothing import unwrap
 from ..physics import se2
-from ..trajectory import Trajectory, pool_batch, span_bounds
+from ..trajectory import Trajectory, pool_batch
 from .spectrum import KERNEL_CHUNK
 
 if TYPE_CHECKING:
@@ -38,7 +36,7 @@ if TYPE_CHECKING:
 
 __all__ = ["VELOCITY_KERNELS", "VELOCITY_KERNEL", "MAX_INTERVAL_CYCLES", "interval_weights",
            "IntervalSamples", "interval_noise_gains", "interval_samples", "overlap_inflation",
-           "interval_cycles", "noise_ratio", "velocity_interval_for", "flatten_batch",
+           "noise_ratio", "velocity_interval_for", "flatten_batch",
            "intervals_by_h", "take_intervals", "pooled_view", "interval_view"]
 
 
@@ -199,23 +197,6 @@ def overlap_inflation(bins: BinIndex, h: int, kernel: str = VELOCITY_KERNEL) -> 
         if r != 0:
             kappa = kappa + 2 * r * (dense[:, :-lag] * dense[:, lag:]).sum(-1) / norm
     return kappa.clamp_min(1e-3).reshape(batch + (m,))
-
-
-def interval_cycles(phase: Tensor, h: int, *, pool: bool = False) -> Tensor:
-    """The whole cycle of each interval sample ``(..., T − h)`` (int64) of a recording of
-    ``phase (..., T)`` (unwrapped, or wrapped: it is unwrapped here): that of the interval's
-    first sample, ``⌊(φ_k − φ_0) / 2π⌋`` (``φ_0`` the element's first finite phase), numbered
-    from 0 per batch element, or with ``pool`` through the elements in turn (the trials of a
-    pooled fit: ``(N·(T − h),)``, in the order of :func:`~torchconn.trajectory.pool_batch`)."""
-    ph = unwrap(phase)
-    first = ph.gather(-1, span_bounds(torch.isfinite(ph))[0].unsqueeze(-1))
-    cyc = torch.floor((ph[..., :-h] - first) / (2 * math.pi))
-    cyc = torch.nan_to_num(cyc, nan=0.0).clamp_min(0).to(torch.int64)
-    if not pool:
-        return cyc
-    cyc = cyc.reshape(-1, cyc.shape[-1])
-    count = cyc.amax(-1) + 1
-    return (cyc + (torch.cumsum(count, 0) - count)[:, None]).reshape(-1)
 
 
 # ------------------------------------------------------------------------ the regression stage

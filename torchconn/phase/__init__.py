@@ -21,7 +21,6 @@ from .phaser import (
     held_out_order,
     hilbert_phase_pc1,
     protophase,
-    whole_cycle_weights,
 )
 from .smoothing import (
     RTSSmoother,
@@ -39,7 +38,7 @@ __all__ = [
     "FourierSeries", "fit_fourier", "fourier_design",
     "LimitCycle", "fit_limit_cycle", "phase_rate",
     "analytic_signal", "protophase", "correction_series", "correction_order",
-    "held_out_order", "whole_cycle_weights", "PhaseAmbiguityWarning",
+    "held_out_order", "PhaseAmbiguityWarning",
     "estimate_phase", "hilbert_phase_pc1", "circular_rms",
     "rts_smooth", "unwrap", "body_velocity", "smooth_trajectory", "noise_parameters",
 ]

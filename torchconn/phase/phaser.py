@@ -45,6 +45,7 @@ from torch import Tensor
 
 from .. import _checks, _linalg
 from .._options import Options, option
+from ..cycles import block_masks, cycle_blocks, whole_cycle_weights
 from ..io.preflight import CYCLE_RULES, MIN_PERIODICITY, periodicity
 from .fourier import FourierSeries, fit_fourier, fourier_design
 from .smoothing import unwrap
@@ -59,7 +60,6 @@ __all__ = [
     "correction_order",
     "held_out_order",
     "highest_order",
-    "whole_cycle_weights",
     "estimate_phase",
     "hilbert_phase_pc1",
     "circular_rms",
@@ -96,8 +96,9 @@ def correction_series(theta: Tensor, order: int, weights: Tensor | None = None) 
         theta: protophases ``(..., T)`` (wrapped or not) of samples taken uniformly in time.
         order: number of harmonics ``K`` kept (0 gives no correction).
         weights: optional ``(..., T)`` sample weights for the averages ``S_k = <e^{-ikθ}>``.
-            Averaging over a whole number of cycles (see :func:`whole_cycle_weights`) avoids
-            the ``O(1 / cycles)`` bias a trailing partial cycle puts into every ``S_k``.
+            Averaging over a whole number of cycles (see
+            :func:`~torchconn.cycles.whole_cycle_weights`) avoids the ``O(1 / cycles)`` bias a
+            trailing partial cycle puts into every ``S_k``.
 
     Returns:
         scalar :class:`~torchconn.phase.fourier.FourierSeries` of order ``K``, batch ``(...)``.
@@ -112,22 +113,6 @@ def correction_series(theta: Tensor, order: int, weights: Tensor | None = None) 
     return FourierSeries(rate, 0).integral()
 
 
-def whole_cycle_weights(theta: Tensor) -> Tensor:
-    """Weights selecting a whole number of cycles of an unwrapped phase ``(..., T)``.
-
-    The window is centred in the record and spans ``floor(cycles)`` cycles of ``theta``; each
-    sample weighs the fraction of its sampling cell ``[t, t+1)`` inside the window, so the
-    weighted mean of a periodic function of ``theta`` is its cycle average.
-    """
-    T = theta.shape[-1]
-    mono, start, n = _window(theta)
-    levels = torch.stack([start, start + 2 * math.pi * n], -1)  # (..., 2)
-    a, b = _crossing(mono, levels).unbind(-1)
-    t = torch.arange(T, dtype=theta.dtype, device=theta.device)
-    cell = torch.minimum(t + 1, b[..., None]) - torch.maximum(t, a[..., None])
-    return cell.clamp(0.0, 1.0)
-
-
 def correction_order(theta: Tensor, weights: Tensor, max_order: int | Tensor,
                      folds: int = 5) -> Tensor:
     """Correction order chosen by cross-validation over blocks of whole cycles.
@@ -139,8 +124,8 @@ def correction_order(theta: Tensor, weights: Tensor, max_order: int | Tensor,
 
     Args:
         theta: protophases ``(..., T)`` (wrapped or not) of samples taken uniformly in time.
-        weights: ``(..., T)`` whole-cycle weights (:func:`whole_cycle_weights` of the unwrapped
-            protophase); blocks are formed from the cycles they cover.
+        weights: ``(..., T)`` whole-cycle weights (:func:`~torchconn.cycles.whole_cycle_weights`
+            of the unwrapped protophase); blocks are formed from the cycles they cover.
         max_order: largest order considered (``>= 1``): an integer, or ``(...)`` integers, one
             per batch element.
         folds: number of blocks; a record with fewer whole cycles has one cycle per block
@@ -178,8 +163,8 @@ def held_out_order(theta: Tensor, weights: Tensor, values: Tensor | None,
 
     Args:
         theta: unwrapped phases ``(..., T)`` of samples taken uniformly in time.
-        weights: ``(..., T)`` whole-cycle weights (:func:`whole_cycle_weights`); 0 drops a
-            sample (e.g. NaN values).
+        weights: ``(..., T)`` whole-cycle weights
+            (:func:`~torchconn.cycles.whole_cycle_weights`); 0 drops a sample (e.g. NaN values).
         values: ``(..., T, C)`` channels whose errors add up, or None for the values 1.
         max_order: largest order considered: an integer or ``(...)`` integers.
         folds: number of blocks (a record with fewer whole cycles has one cycle per block).
@@ -193,7 +178,8 @@ def held_out_order(theta: Tensor, weights: Tensor, values: Tensor | None,
         ``(...)`` int64 orders in ``[lowest, max_order]`` (without the pooled dims).
     """
     limit = torch.as_tensor(max_order, device=theta.device)
-    wb = weights[..., :, None] * _blocks(theta, folds).to(weights)  # (..., T, F)
+    blocks = block_masks(cycle_blocks(theta, folds, span="centred"), folds)
+    wb = weights[..., :, None] * blocks.to(weights)  # (..., T, F)
     k = torch.arange(lowest, int(limit.max()) + 1, dtype=theta.dtype, device=theta.device)
     e = torch.polar(torch.ones_like(theta[..., None] * k), -theta[..., None] * k)  # (..., T, K)
     if values is None:
@@ -214,38 +200,6 @@ def held_out_order(theta: Tensor, weights: Tensor, values: Tensor | None,
         score = score.sum(tuple(range(n_pooled)))
     score = torch.where(k <= limit[..., None], score, torch.full_like(score, math.inf))
     return score.argmin(-1) + lowest
-
-
-def _blocks(theta: Tensor, folds: int) -> Tensor:
-    """``(..., T, folds)`` bool: which of ``folds`` contiguous blocks of whole cycles of
-    :func:`whole_cycle_weights`'s window each sample of the unwrapped phase ``theta (..., T)``
-    falls in, set per batch element (samples outside the window go to the first or last block
-    and carry zero whole-cycle weight; a record with fewer cycles than blocks leaves some
-    empty)."""
-    mono, start, n = _window(theta)
-    cycle = torch.floor((mono - start[..., None]) / (2 * math.pi))  # whole cycles since start
-    fold = torch.floor(cycle * folds / n[..., None]).clamp(0, folds - 1).long()
-    return fold[..., None] == torch.arange(folds, device=theta.device)
-
-
-def _window(theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The centred window of whole cycles of an unwrapped phase ``theta (..., T)``: its running
-    maximum ``(..., T)`` (tolerating small backward steps of noisy phases), the window's start
-    ``(...)`` and its number of whole cycles ``(...)`` (at least 1)."""
-    mono = torch.cummax(theta, dim=-1).values
-    total = (mono[..., -1] - mono[..., 0]) / (2 * math.pi)
-    n = total.floor().clamp_min(1.0)
-    start = mono[..., 0] + math.pi * (total - n).clamp_min(0.0)
-    return mono, start, n
-
-
-def _crossing(mono: Tensor, levels: Tensor) -> Tensor:
-    """Fractional sample positions where non-decreasing ``mono (..., T)`` reaches ``levels``."""
-    T = mono.shape[-1]
-    i = torch.searchsorted(mono.contiguous(), levels.contiguous()).clamp(1, T - 1)
-    lo, hi = mono.gather(-1, i - 1), mono.gather(-1, i)
-    frac = ((levels - lo) / (hi - lo).clamp_min(1e-300)).clamp(0.0, 1.0)
-    return (i - 1).to(mono.dtype) + frac
 
 
 def circular_rms(estimate: Tensor, truth: Tensor, dim: int = -1) -> Tensor:
@@ -737,7 +691,7 @@ def _phase_noise_variance(u: Tensor, R: Tensor, prior: Tensor, keep: Tensor,
     """
     # blocks of whole cycles along the channels' mean unwrapped protophase
     rough = (theta - theta[..., :1]).mul(keep[..., None]).sum(-2) / keep.sum(-1, keepdim=True)
-    block = _blocks(rough, _BLOCKS).to(u.real.dtype)  # (..., T, F)
+    block = block_masks(cycle_blocks(rough, _BLOCKS, span="centred"), _BLOCKS).to(u.real.dtype)
     count = block.sum(-2)  # (..., F)
     Rb = (u.mH[..., None, :, :] * block.mT[..., :, None, :]) @ u[..., None, :, :]
     Rb = Rb / count.clamp_min(1)[..., None, None]  # (..., F, C, C)

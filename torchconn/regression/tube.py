@@ -19,9 +19,10 @@ import torch
 from torch import Tensor
 
 from .._options import Options, option
+from ..cycles import whole_cycle_phase
 from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import LimitCycle
-from ..phase.phaser import held_out_order, whole_cycle_weights
+from ..phase.phaser import held_out_order
 from ..trajectory import Trajectory, pool_batch
 from .binning import assign_bins, auto_window
 from .connection import connection_regression
@@ -205,7 +206,7 @@ class TubeRegression(Regression):
         device = traj.r.device
         if self.intercept_order != "auto":
             return torch.full(batch, self.intercept_order, dtype=torch.long, device=device)
-        theta, weights = _unwrapped_cycles(traj.phase)
+        theta, weights = whole_cycle_phase(traj.phase)
         chosen = held_out_order(theta, weights, traj.smoothed.xi, (self.n_bins - 1) // 2,
                                 n_pooled=traj.phase.ndim - 1 if pool else 0)
         return chosen.clamp_min(self.fourier_order)
@@ -244,17 +245,6 @@ def intercept_series(centres: Tensor, values: Tensor, order: int, intercept_orde
     padded[..., :2 * order + 1, :] = base.coeffs
     keep_base = (intercept_order <= order).reshape(intercept_order.shape + (1, 1))
     return FourierSeries(torch.where(keep_base, padded, high.coeffs), 1)
-
-
-def _unwrapped_cycles(phase: Tensor) -> tuple[Tensor, Tensor]:
-    """A prepared trajectory's phase ``(..., T)`` as :func:`~torchconn.phase.held_out_order`
-    wants it: non-decreasing (NaN drop-outs filled with the phase before them) and the
-    whole-cycle weights, 0 at the drop-outs."""
-    finite = torch.isfinite(phase)
-    filled = torch.cummax(torch.where(finite, phase, -math.inf), dim=-1).values
-    first = torch.where(finite, phase, math.inf).amin(-1, keepdim=True)
-    filled = torch.where(torch.isfinite(filled), filled, first)
-    return filled, whole_cycle_weights(filled) * finite.to(phase.dtype)
 
 
 def _tube_rms(r: Tensor, gamma: Tensor) -> list[float]:

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from ..._options import option
+from ...cycles import trials_apart
 from ...noise import estimate_noise, interval_samples
 from ...phase.fourier import fit_fourier
 from ...phase.limit_cycle import LimitCycle
@@ -209,10 +210,7 @@ def _interval_rows(traj: Trajectory, cycle: LimitCycle, pool: bool
     power = nn.functional.pad(traj.power[..., :-1].to(v), (0, 1), value=nan)
     if not pool:
         return offset, v, power, phase
-    span = float(torch.nan_to_num(phase).abs().amax()) + 4 * math.pi
-    trial = torch.arange(math.prod(phase.shape[:-1]), dtype=phase.dtype, device=phase.device)
-    phase = phase + (2 * math.pi * math.ceil(span / (2 * math.pi)) * trial).reshape(
-        phase.shape[:-1] + (1,))
+    phase = trials_apart(phase)
     # each trial's recorded rows only: a shorter trial's padding would move the rows after it
     # in the pooled sequence (and so the blocks of the noise's standard error)
     recorded = recorded_span(traj)

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from ... import _linalg
+from ...cycles import cycle_blocks, cycle_index
 from ...phase.fourier import fourier_design
 from .. import _wls
 from .normal import (
@@ -484,13 +485,12 @@ def _tied_fit(
                          second_order)
 
     # whole cycles of phase: the clusters of the standard errors and the held-out blocks
-    cyc = torch.floor(ph / (2 * math.pi))
-    cyc = torch.where(valid, cyc, torch.inf)
-    cyc = cyc - cyc.amin(-1, keepdim=True)
-    cyc = torch.where(valid, cyc, 0.0).to(torch.int64)
+    # (cycles start at the multiples of 2π; a missing row is in cycle 0 and block 0)
+    valid_ph = torch.where(valid, ph, torch.nan)
+    cyc = cycle_index(valid_ph, False, origin="grid", missing="first")
     n_c = int(cyc.max()) + 1 if cyc.numel() else 1
     folds = _ORDER_FOLDS if held_out_order else 1
-    fold = torch.div(cyc * folds, cyc.amax(-1, keepdim=True) + 1, rounding_mode="floor")
+    fold = cycle_blocks(valid_ph, folds, origin="grid").clamp_min(0)
 
     # normal equations and the noise's contributions per block of cycles, over row chunks
     n = ph.shape[-1]

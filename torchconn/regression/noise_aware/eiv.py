@@ -148,7 +148,7 @@ def noise_aware_regression(
             them, overlap inflation included). The fit's other fields are the same bit for
             bit. Default False.
         cycles: ``(..., N)`` int64, the whole cycle each sample belongs to (e.g.
-            :func:`interval_cycles`), numbered from 0 within the batch element: also each
+            :func:`~torchconn.cycles.cycle_index`), numbered from 0 within the batch element: also each
             cycle's share of the error of ``Â`` (``influence_A``, ``(..., M, 3, d, C)``,
             :func:`~torchconn.regression._wls.cluster_scores` with the rows' noise
             correction): rows of one cycle are correlated (the filter's overlap, the phase

@@ -13,12 +13,12 @@ import torch
 from torch import Tensor
 
 from ..._options import option
+from ...cycles import cycle_index
 from ...noise.intervals import (
     MAX_INTERVAL_CYCLES,
     VELOCITY_KERNEL,
     IntervalSamples,
     flatten_batch,
-    interval_cycles,
     interval_samples,
     intervals_by_h,
     noise_ratio,
@@ -28,6 +28,7 @@ from ...noise.intervals import (
 )
 from ...noise.spectrum import estimate_noise
 from ...phase.limit_cycle import phase_rate
+from ...phase.smoothing import unwrap
 from ...trajectory import Trajectory
 from ..binning import BinIndex, assign_bins, auto_window, auto_windows
 from ..connection import ConnectionFit
@@ -493,7 +494,9 @@ class NoiseAwareRegression(TubeRegression):
         ``sampling_factor`` holding each whole cycle's share of the error of ``Â``
         (``influence_A``, ``(M, 3, d, C)``)."""
         bins = self._bins(chosen.view, chosen.windows)
-        cycles = interval_cycles(traj.phase, chosen.view.h, pool=True)
+        # an interval's cycle is its first sample's; the trials' cycles follow each other
+        cycles = cycle_index(unwrap(traj.phase)[..., :-chosen.view.h], True, origin="first",
+                             missing="first", offset="cumulative")
         raw = noise_aware_regression(
             chosen.view, bins, gamma_m, gamma_dot_m, chosen.noise_var,
             joint_covariance=joint, cycles=cycles, **opts)
