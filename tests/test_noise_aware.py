@@ -1739,9 +1739,7 @@ def test_tied_derivative_takes_b_and_the_direct_estimate_with_their_joint_covari
     # known joint covariance (the inverse normal matrix of a design of correlated columns),
     # over 200 records: the tie given that covariance (cov_b_dA) must have honest bands,
     # squared error over squared standard error within 0.85-1.15 (its sampling spread is
-    # ~3 %), with the same estimate as the independent tie, whose ratio falls outside; and
-    # weighed by it (joint_weights, generalised least squares) honest bands too and an error
-    # no larger.
+    # ~3 %), with the same estimate as the independent tie, whose ratio falls outside.
     from torchconn.regression.tied import tie_connection_derivative
 
     gen = torch.Generator().manual_seed(8)
@@ -1766,7 +1764,6 @@ def test_tied_derivative_takes_b_and_the_direct_estimate_with_their_joint_covari
     tie = dict(window=2.0, kernel="tricube", consistency=False)
     joint_fit = dataclasses.replace(fit, cov_b_dA=cov.expand(n_rec, m, 3, c, c))
     joint = tie_connection_derivative(joint_fit, gamma, tangent, 12, **tie)
-    weighed = tie_connection_derivative(joint_fit, gamma, tangent, 12, joint_weights=True, **tie)
     alone = tie_connection_derivative(fit, gamma, tangent, 12, **tie)
 
     def ratio(tied):
@@ -1775,86 +1772,6 @@ def test_tied_derivative_takes_b_and_the_direct_estimate_with_their_joint_covari
     assert torch.equal(joint.dA, alone.dA)
     assert 0.85 < ratio(joint) < 1.15, (ratio(joint), ratio(alone))
     assert not 0.85 < ratio(alone) < 1.15, (ratio(joint), ratio(alone))
-    assert 0.85 < ratio(weighed) < 1.15, ratio(weighed)
-    assert float((weighed.dA - d_true).square().sum()) <= float((alone.dA - d_true).square().sum())
-
-
-def test_the_tie_design_product_is_the_full_sum_over_its_rows():
-    # x H by H's two nonzeros per column (the joint-weighted tie's products) against the dense
-    # H (_tie_design): equal to a matrix product to rounding, and bit for bit the elementwise
-    # sum over all d + d² rows of H (what the tie summed before, materialising (c, c, d²)).
-    from torchconn.regression.tied import _tie_design, _times_tie_design
-
-    gen = torch.Generator().manual_seed(4)
-    for d in (2, 3, 8):
-        c = d + d * d
-        rate = torch.randn(5, 6, d, generator=gen, dtype=F64)
-        x = torch.randn(5, 6, 3, 7, c, generator=gen, dtype=F64)
-        design = _tie_design(rate).unsqueeze(-3)  # (5, 6, 1, c, d²)
-        product = _times_tie_design(x, rate)
-        torch.testing.assert_close(product, x @ design, rtol=1e-13, atol=1e-13)
-        assert torch.equal(product, (x.unsqueeze(-1) * design.unsqueeze(-3)).sum(-2)), d
-
-
-def _joint_weighted_tie(fit, gamma, rate, window, idx, covariance=True):
-    """The joint-weighted tie (order 12, tricube bins) of batch elements ``idx`` of ``fit``
-    (without its joint covariance unless ``covariance``)."""
-    from torchconn.regression.tied import tie_connection_derivative
-
-    part = dataclasses.replace(fit, **{f.name: getattr(fit, f.name)[idx]
-                                       for f in dataclasses.fields(fit)
-                                       if getattr(fit, f.name) is not None})
-    if not covariance:
-        part = dataclasses.replace(part, cov_b_dA=None)
-    return tie_connection_derivative(part, gamma[idx], rate[idx], 12, window=window[idx],
-                                     kernel="tricube", joint_weights=True)
-
-
-def test_the_joint_weighted_tie_of_a_batch_element_is_its_own_bit_for_bit():
-    # joint_weights: b̂ and the direct ∂Â/∂r weighed by the inverse of their joint covariance.
-    # Each batch element's tied ∂Â/∂r and its standard errors must be the same bit for bit
-    # alone as beside other elements, in any order (an unpooled fit's elements are tied
-    # together), at the 3- and 9-link's sizes (d = 2, 8; 48 bins). One element carries no
-    # joint covariance (NaN: no noise detected) and must be tied as with none at all (None),
-    # and where the covariance is not positive definite the independent weights apply; the
-    # others must differ from the independent tie (the weights do act).
-    from torchconn.regression.tied import tie_connection_derivative
-
-    gen = torch.Generator().manual_seed(5)
-    n, m = 4, 48
-    for d in (2, 8):
-        c = d + d * d
-        phi = torch.arange(m, dtype=F64) * 2 * math.pi / m
-        axes = torch.randn(n, 1, 2, d, generator=gen, dtype=F64)
-        gamma = axes[..., 0, :] * phi.cos()[:, None] + axes[..., 1, :] * phi.sin()[:, None]
-        rate = axes[..., 1, :] * phi.cos()[:, None] - axes[..., 0, :] * phi.sin()[:, None]
-        root = torch.randn(n, m, 3, c, c, generator=gen, dtype=F64) / math.sqrt(c)
-        cov = root @ root.mT + 0.05 * torch.eye(c, dtype=F64)
-        sd = cov.diagonal(0, -2, -1).sqrt()
-        fit = _tie_fit(torch.randn(n, m, 3, d, generator=gen, dtype=F64),
-                       torch.randn(n, m, 3, d, generator=gen, dtype=F64),
-                       torch.randn(n, m, 3, d, d, generator=gen, dtype=F64),
-                       0.1 + torch.rand(n, m, 3, d, generator=gen, dtype=F64),
-                       sd[..., :d], sd[..., d:].unflatten(-1, (d, d)))
-        cov[0] = float("nan")
-        cov[1, 3, 2] = 0.0  # not positive definite
-        fit = dataclasses.replace(fit, cov_b_dA=cov)
-        window = torch.tensor([2.0, 2.5, 3.0, 2.0], dtype=F64)
-        inputs = (fit, gamma, rate, window)
-        full = _joint_weighted_tie(*inputs, torch.arange(n))
-        for idx in ([0], [1], [2], [3], [3, 1, 0], [2, 0]):
-            part = _joint_weighted_tie(*inputs, torch.tensor(idx))
-            assert torch.equal(part.dA, full.dA[idx]), (d, idx)
-            assert torch.equal(part.se_dA, full.se_dA[idx]), (d, idx)
-        without = _joint_weighted_tie(*inputs, torch.tensor([0]), covariance=False)
-        assert torch.equal(without.dA, full.dA[:1]) and torch.equal(without.se_dA,
-                                                                     full.se_dA[:1])
-        independent = tie_connection_derivative(dataclasses.replace(fit, cov_b_dA=None), gamma,
-                                                rate, 12, window=window, kernel="tricube")
-        same = (independent.dA == full.dA).flatten(-2).all(-1)  # (n, M, 3)
-        expected = torch.zeros_like(same)
-        expected[0] = expected[1, 3, 2] = True
-        assert torch.equal(same, expected), d
 
 
 def test_tied_derivative_bands_under_noise_take_the_joint_covariance_on_the_5_link():
