@@ -148,7 +148,7 @@ def sample_models(
     one error shared by all entries and bins (``s · M_bias``, ``s`` standard normal per draw):
     drawn entry by entry, it would spread the on-cycle power that the gait pins down. Likewise
     the sampling noise of that bias estimate, where ``M_se`` holds it
-    (``bins.M_change_factor``, ``order_bias="posterior"``), is drawn from its
+    (``bins.M_change_factor``), is drawn from its
     covariance across entries and bins, and so is the fit's own sampling noise where the
     model keeps its factor (``bins.M_sampling_factor``): drawn entry by entry it spread the
     on-cycle power that the gait pins down (the cost's standard error 7-30 times its error

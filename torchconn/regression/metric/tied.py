@@ -75,14 +75,12 @@ class MetricFit:
             ``order_bias`` only): the change of ``M̂`` at two more harmonics of ``M(φ)``.
         se_bias_M: ``(..., M, d, d)`` that change's own standard error (its sampling noise,
             from the two fits' joint cluster-robust covariance; ``order_bias`` only). Where it
-            is as large as ``bias_M`` the change does not resolve the bias; with
-            ``order_bias="posterior"`` its variance is in ``se_M`` (with ``"dropped"`` only
-            where the held-out order is below the order given).
+            is as large as ``bias_M`` the change does not resolve the bias; its variance is
+            in ``se_M``.
         change_factor_M: ``(..., M, d, d, R)`` a factor of the part of the covariance of
             ``M̂`` that is that change's sampling covariance, across entries *and* phases
             (``Σ_r F[..., r] ⊗ F[..., r]``; its diagonal is the change's variance in ``se_M``):
-            with ``order_bias="posterior"`` (``"dropped"``: zero where nothing was dropped);
-            None otherwise. ``R`` is at most the number of cycles; directions whose variance
+            with ``order_bias``; None otherwise. ``R`` is at most the number of cycles; directions whose variance
             is below ``1e-14`` of the largest are left out.
         sampling_factor_M: ``(..., M, d, d, R)`` a factor of ``M̂``'s own sampling covariance
             (the cluster-robust sandwich's, before any bias allowance) across entries *and*
@@ -136,9 +134,6 @@ _ORDER_FOLDS = 5
 #: (``order_bias``): the change of ``M̂`` from order ``K`` to ``K + 2`` is taken as ``M̂``'s bias
 #: (the higher harmonics' leakage into the off-cycle directions).
 _BIAS_ORDER_STEP = 2
-#: ``order_bias`` values: none, the change's square, the change's square and its own variance
-#: everywhere, or that variance only where the held-out order dropped harmonics
-_ORDER_BIAS = (False, True, "posterior", "dropped")
 
 
 def tied_metric_n_coef(d: int, order: int, derivative_order: int | None,
@@ -184,7 +179,7 @@ def tied_metric_regression(
     second_order: SecondOrder = None,
     noise_variance: Tensor | None = None,
     held_out_order: bool = False,
-    order_bias: bool | Literal["posterior", "dropped"] = False,
+    order_bias: bool = False,
     min_samples_per_coef: float = 3.0,
     max_condition: float | None = None,
 ) -> MetricFit:
@@ -246,18 +241,12 @@ def tied_metric_regression(
             ``order``); False: ``order``.
         order_bias: widen the bands by the model's bias, estimated as the change of ``M̂`` when
             ``M(φ)`` gets two more harmonics (one more fit, at each element's order + 2): its
-            outer product is added to the covariance of ``M̂`` (``MetricFit.bias_M``; the
-            estimates are unchanged). Without it, on clean data the bands see only the
-            residuals' scatter, not the leakage of the truncated harmonics. Where that fit
-            fails (too few samples), a warning and no widening.
-            ``"posterior"``: the change's own sampling covariance is added as well (the mean
-            squared bias given the change, under a flat prior on the bias), for where the
-            change is as noisy as the bias it estimates: where the held-out order drops
-            harmonics under noise, the change is taken on the harmonics the choice found
-            indistinguishable from noise, and comes out small when the noise cancelled them.
-            ``"dropped"``: that variance added only to the batch elements whose held-out order
-            is below ``order`` (the selection effect), the change's square alone elsewhere.
-            The estimator uses ``"posterior"``.
+            outer product and its own sampling covariance (the mean squared bias given the
+            change, under a flat prior on the bias) are added to the covariance of ``M̂``
+            (``MetricFit.bias_M``, ``se_bias_M``; the estimates are unchanged). Without it,
+            on clean data the bands see only the residuals' scatter, not the leakage of the
+            truncated harmonics. Where that fit fails (too few samples), a warning and no
+            widening. Default False; the estimator's metric stage uses True.
         min_samples_per_coef: fewest valid samples per coefficient.
         max_condition: largest condition number of the equilibrated normal matrix (default
             1e12 in float64).
@@ -303,7 +292,7 @@ def tied_metric_coefficients(
     second_order: SecondOrder = None,
     noise_variance: Tensor | None = None,
     held_out_order: bool = False,
-    order_bias: bool | Literal["posterior", "dropped"] = False,
+    order_bias: bool = False,
     offset_bias: SecondOrder = None,
     min_samples_per_coef: float = 3.0,
     max_condition: float | None = None,
@@ -325,9 +314,9 @@ def tied_metric_coefficients(
         if value not in _SECOND_ORDERS:
             raise ValueError(f"tied_metric_regression: {name} must be one of "
                              f"{_SECOND_ORDERS}, got {value!r}")
-    if not (isinstance(order_bias, bool) or order_bias in _ORDER_BIAS):
-        raise ValueError(f"tied_metric_regression: order_bias must be one of {_ORDER_BIAS}, "
-                         f"got {order_bias!r}")
+    if not isinstance(order_bias, bool):
+        raise TypeError(f"tied_metric_regression: order_bias must be True or False, "
+                        f"got {order_bias!r}")
     opts = dict(derivative_order=derivative_order, second_order=second_order,
                 noise_variance=noise_variance,
                 min_samples_per_coef=min_samples_per_coef, max_condition=max_condition)
@@ -363,7 +352,7 @@ def tied_metric_coefficients(
               - m_series(fit.influence, fit.max_order))  # (..., C, W q)
     change = m_series(richer.coef, richer.max_order) - m_series(fit.coef, fit.max_order)
     return replace(fit, order_change=change.unflatten(-1, (wide, q)),
-                   order_change_spread=spread, order_bias=order_bias)
+                   order_change_spread=spread)
 
 
 def _with_offset_change(fit: TiedMetricCoefficients, offset: Tensor, velocity: Tensor,
@@ -635,7 +624,7 @@ class TiedMetricCoefficients:
             taken as its bias; None without the allowance. order_change_spread: ``(..., C, W
             q)`` (``W = 2(max_order+2)+1``) each cycle's share of that change's error, from the
             two fits' joint influence (``order_change_cov = spreadᵀ spread``, the change's own
-            sampling covariance). order_bias: the rule of the allowance (``order_bias``).
+            sampling covariance).
         offset_change: ``(..., 2·max_order+1, q)`` the change of ``M(φ)``'s series
             coefficients when the second-order offset term is fitted too (``offset_bias``),
             taken as the tube's second-order bias; None without it.
@@ -656,7 +645,6 @@ class TiedMetricCoefficients:
     influence: Tensor
     order_change: Tensor | None = None
     order_change_spread: Tensor | None = None
-    order_bias: bool | str = False
     offset_change: Tensor | None = None
 
     @property
@@ -713,14 +701,9 @@ def _tied_at(fit: TiedMetricCoefficients, phase_m: Tensor, gd: Tensor) -> Metric
             -1, (n_w, q)).unflatten(-3, (n_w, q)), wide)  # (..., M, q, q)
         se_bias_m = cov_change.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
         cov_m = cov_m + bias_m.unsqueeze(-1) * bias_m.unsqueeze(-2)
-        if fit.order_bias == "posterior":
-            cov_m = cov_m + cov_change
-            factor_m = _bin_factor(fit.order_change_spread, wide, d)
-        elif fit.order_bias == "dropped":  # where the choice fell below the order given
-            dropped = (chosen < order)[..., None, None, None]
-            cov_m = torch.where(dropped, cov_m + cov_change, cov_m)
-            factor_m = _bin_factor(fit.order_change_spread, wide, d)
-            factor_m = torch.where(dropped[..., None], factor_m, 0.0)
+        # and the change's own sampling covariance (the mean squared bias given the change)
+        cov_m = cov_m + cov_change
+        factor_m = _bin_factor(fit.order_change_spread, wide, d)
     se_m = cov_m.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
     d_m = se_d = None
     if derivative_order is not None:
