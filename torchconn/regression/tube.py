@@ -66,8 +66,7 @@ class TubeRegression(Regression):
             recording's phase-averaged body velocity has harmonics above it that hold up on
             held-out blocks of whole cycles (:func:`~torchconn.phase.held_out_order`, at most
             (M−1)/2, per batch element; ``model.meta["intercept_order"]``); an integer fixes
-            it; None: ``fourier_order``. Measured on the 9-link reference gait at 0.25η: the
-            intercept truncated at order 12 doubled the model's error (README, "Accuracy").
+            it; None: ``fourier_order``.
         window: half-width of a bin's phase window in units of the bin spacing (0.5: each
             sample in exactly one bin; larger: overlapping windows, more samples per bin).
             None (default) sizes it from the data: wide enough that a window holds about
@@ -79,14 +78,11 @@ class TubeRegression(Regression):
         ridge: Tikhonov penalty on the scaled regressors (0: ordinary least squares).
         ridge_connection: the ridge (given, added for ill-conditioned bins, or chosen by
             :func:`~torchconn.regression.skill.select_complexity`) also penalises ``A``'s
-            columns (default, the previous behaviour); False: only those of ``b`` and
-            ``∂A/∂r`` (:func:`~torchconn.regression.connection.unpenalised_columns`). Chosen
-            by held-out prediction, a ridge on ``A`` shrank it at video rates (one trial,
-            32 samples per cycle, ω = 0.005: Â 79 % off at scale 0.23; False: 12.8 %); False
-            is better for ``Â`` wherever the complexity is chosen (README "The ridge and Â")
-            but predicts v_x on the later cycles of short recordings worse (losses to the
-            phase average 6 -> 18 of 360 components), so it is not the default.
-            :class:`~torchconn.regression.estimator.ConnectionEstimator` chooses and fits its
+            columns (default); False: only those of ``b`` and ``∂A/∂r``
+            (:func:`~torchconn.regression.connection.unpenalised_columns`): a ridge on ``A``
+            shrinks ``Â`` towards 0, while one on ``b`` and ``∂A/∂r`` alone can forecast the
+            body velocity worse. :class:`~torchconn.regression.estimator.ConnectionEstimator`
+            chooses and fits its
             connection (``model_``) with False wherever the ridge it chose would penalise
             ``A``, and keeps the penalised fit for its forecasts (``forecast_model_``).
         on_ill_conditioned: what to do with bins with too few samples or a rank-deficient
