@@ -15,7 +15,7 @@ optimizer=…)``::
 
 Swapping a stage is a keyword argument; a new method is a new subclass of the stage's base
 (:class:`~torchconn.phase.smoothing.Smoother`, :class:`~torchconn.phase.phaser.PhaseEstimator`,
-:class:`~torchconn.phase.limit_cycle.CycleEstimator`, :class:`~torchconn.regression.tube.Regression`,
+:class:`~torchconn.phase.limit_cycle.CycleEstimator`, :class:`~torchconn.regression.base.Regression`,
 :class:`~torchconn.regression.metric.MetricEstimator`).
 ``get_params`` / ``set_params`` follow scikit-learn (``regression__n_bins`` keys), so
 ``sklearn.base.clone`` and grid searches work without torchconn depending on scikit-learn.
@@ -46,10 +46,11 @@ from ..phase.smoothing import RTSSmoother, Smoother
 from ..trajectory import Trajectory, for_estimation, power_problem
 from . import selection
 from ._wls import IllConditionedBinWarning
+from .base import Regression, check_bin_count
 from .metric import FittedMetric, MetricEstimator, TiedMetric
 from .model import LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
-from .tube import Regression, TubeRegression, check_bin_count
+from .tube import TubeRegression
 
 __all__ = [
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
@@ -122,7 +123,8 @@ class ConnectionEstimator:
       with: every row estimated, and where the complexity was chosen by held-out error among
       ridges that shrink ``Â``, the complexity chosen and fitted the same way with
       ``Â`` unpenalised (the full model of ``regression.replace(ridge_connection=False)``;
-      its settings in ``meta["settings"]``). Where it differs from ``forecast_model_``, ``meta["forecast_model"]`` says how;
+      its settings in ``meta["settings"]``). Where it differs from ``forecast_model_``,
+      ``meta["forecast_model"]`` says how;
     - ``forecast_model_``: the model :meth:`predict`, :meth:`score`, :meth:`cross_validate`
       and the held-out check use: the fit of ``regression_`` (the chosen ridge on ``Â`` too)
       with the components ``complexity_`` gave to the phase average or the connection alone

@@ -5,12 +5,11 @@ velocity around the cycle (eq. ``advancedregression``, :func:`connection_regress
 interpolates the per-bin estimates by Fourier series in phase into a
 :class:`~torchconn.regression.model.LocalConnectionModel`; the metric is a stage of its own
 (:mod:`torchconn.regression.metric`). Other regression methods derive from
-:class:`Regression` and slot into ``ConnectionEstimator(regression=…)``.
+:class:`~torchconn.regression.base.Regression` and slot into ``ConnectionEstimator(regression=…)``.
 """
 
 from __future__ import annotations
 
-import abc
 import math
 from dataclasses import asdict, dataclass
 from typing import Literal
@@ -18,37 +17,17 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .._options import Options, option
+from .._options import option
 from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import LimitCycle
 from ..phase.phaser import held_out_order, whole_cycle_weights
 from ..trajectory import Trajectory, pool_batch
+from .base import Regression, check_bin_count
 from .binning import assign_bins, auto_window
 from .connection import connection_regression
 from .model import BinEstimates, LocalConnectionModel
 
-__all__ = ["Regression", "TubeRegression", "check_bin_count"]
-
-
-def check_bin_count(n_bins: int, n_samples: int, where: str) -> None:
-    """Refuse more phase bins than the recording's ``n_samples`` samples (``ValueError``
-    naming ``where``): every bin needs samples of its own, and the bins' series grow as
-    ``n_bins²``."""
-    if n_bins > n_samples:
-        raise ValueError(
-            f"{where}: n_bins = {n_bins} is more than the {n_samples} samples of the recording: "
-            "every phase bin needs samples of its own; use fewer bins (regression__n_bins; "
-            "torchconn-fit --n-bins, estimator.regression.n_bins)")
-
-
-class Regression(Options, abc.ABC):
-    """Base of the estimator's regression stage: ``fit(traj, cycle, pool=...) -> model``."""
-
-    @abc.abstractmethod
-    def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False
-            ) -> LocalConnectionModel:
-        """The local model of a prepared trajectory (``smoothed`` and ``phase`` set) around
-        ``cycle``: batch dims ``...`` of ``traj``, or none when ``pool``."""
+__all__ = ["TubeRegression"]
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -80,8 +80,8 @@ class MetricFit:
         change_factor_M: ``(..., M, d, d, R)`` a factor of the part of the covariance of
             ``M̂`` that is that change's sampling covariance, across entries *and* phases
             (``Σ_r F[..., r] ⊗ F[..., r]``; its diagonal is the change's variance in ``se_M``):
-            with ``order_bias``; None otherwise. ``R`` is at most the number of cycles; directions whose variance
-            is below ``1e-14`` of the largest are left out.
+            with ``order_bias``; None otherwise. ``R`` is at most the number of cycles;
+            directions whose variance is below ``1e-14`` of the largest are left out.
         sampling_factor_M: ``(..., M, d, d, R)`` a factor of ``M̂``'s own sampling covariance
             (the cluster-robust sandwich's, before any bias allowance) across entries *and*
             phases, from each cycle's share of the error (``TiedMetricCoefficients.influence``)
