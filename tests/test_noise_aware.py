@@ -178,7 +178,7 @@ def test_noise_estimate_across_links_gaits_and_sampling(n_links, gait, per_cycle
                      samples_per_cycle=per_cycle, seeds=seeds)
     for omega in (0.0, 0.002, 0.005, 0.01):
         traj = observe(clean, omega, seeds=seeds)
-        for est in (estimate_noise(traj.r), _gait_noise(traj)):  # flat and gait floors
+        for est in (estimate_noise(traj.r), _gait_noise(traj)):  # without and with the cycle
             rig = est.pooled_variance(1)  # (d,)
             if omega == 0:
                 assert float(rig.mean().sqrt()) < 0.001
@@ -216,10 +216,12 @@ def test_phase_noise_floor_is_the_spectrum_of_a_phase_random_walk():
     assert abs(float(observed[top].mean() / (far * shape[top].mean())) - 1) < 0.04
 
 
-def test_low_rate_floor_is_the_gait_floor_only_where_the_harmonics_reach_the_top_band():
-    # one batch of two records of the same order-8 gait, at 16 and 64 samples per cycle: the
-    # "low_rate" floor gives the 16-per-cycle element the gait floor's estimate and the
-    # 64-per-cycle element the flat floor's, bit for bit, and the two floors differ there
+def test_low_rate_floor_shapes_only_where_the_harmonics_reach_the_top_band():
+    # one batch of two records of the same order-8 gait, at 16 and 64 samples per cycle, with
+    # measurement noise of std 0.01: the "low_rate" floor gives the 64-per-cycle element the
+    # flat floor's estimate, bit for bit; at 16 per cycle the gait's lines fill the top band,
+    # the flat floor's fit is thrown off by their tails (σ̂² off by many times the true
+    # 1e-4), and the shaped floor finds the true variance within its standard errors
     from torchconn.phase.fourier import FourierSeries
 
     g = torch.Generator().manual_seed(5)
@@ -234,12 +236,17 @@ def test_low_rate_floor_is_the_gait_floor_only_where_the_harmonics_reach_the_top
     x = cycle(phi) + torch.cumsum(q * torch.randn(2, n + 1, 2, generator=g, dtype=F64), -2)
     x = x + 0.01 * torch.randn(x.shape, generator=g, dtype=F64)
     est = {floor: estimate_noise(x, cycle=cycle, samples_per_cycle=per_cycle, floor=floor)
-           for floor in ("flat", "gait", "low_rate")}
+           for floor in ("flat", "low_rate")}
     for name in ("variance", "variance_se", "process", "band_low", "correlation"):
-        low, gait, flat = (getattr(est[k], name) for k in ("low_rate", "gait", "flat"))
-        assert torch.equal(low[0], gait[0]) and torch.equal(low[1], flat[1]), name
-    assert not torch.equal(est["gait"].variance[0], est["flat"].variance[0])
-    with pytest.raises(ValueError, match="floor must be 'gait', 'flat', 'low_rate' or 'normal'"):
+        low, flat = (getattr(est[k], name) for k in ("low_rate", "flat"))
+        assert torch.equal(low[1], flat[1]), name
+    true = 0.01**2
+    assert bool(((est["flat"].variance[0] - true).abs() > 20 * true).all()), (
+        est["flat"].variance[0])
+    low = est["low_rate"]
+    assert bool(((low.variance[0] - true).abs() < 4 * low.variance_se[0]).all()), (
+        low.variance[0], low.variance_se[0])
+    with pytest.raises(ValueError, match="floor must be 'flat', 'low_rate' or 'normal'"):
         estimate_noise(x, cycle=cycle, samples_per_cycle=per_cycle, floor="shaped")
 
 
@@ -291,8 +298,7 @@ def test_channel_correlation_matches_monte_carlo_and_widens_the_joint_test():
     phi = torch.cumsum(2 * math.pi / per_cycle
                        + q * torch.randn(reps, n + 1, generator=g, dtype=F64), -1)
     delta = torch.cumsum(q * torch.randn(reps, n + 1, 2, generator=g, dtype=F64), -2)
-    est = estimate_noise(cycle(phi) + delta, cycle=cycle, samples_per_cycle=per_cycle,
-                         floor="gait")
+    est = estimate_noise(cycle(phi) + delta, cycle=cycle, samples_per_cycle=per_cycle)
     model = float(est.correlation[:, 0, 1].mean())
     empirical = float(torch.corrcoef(est.variance.T)[0, 1])
     assert model > 0.4  # far from independent joints (measured 0.57, empirical 0.59)
@@ -318,11 +324,11 @@ def test_noise_estimate_names_a_bad_cycle():
         estimate_noise(x, cycle=FourierSeries(torch.zeros(3, 2, dtype=F64), value_ndim=1))
 
 
-def _gait_noise(traj, floor="gait"):
+def _gait_noise(traj, floor="low_rate"):
     """:func:`estimate_noise` of the shapes with each trial's estimated cycle (as
-    ``NoiseAwareRegression`` unpooled: its floor shaped by the gait, as with
-    ``noise_floor="low_rate"`` at few samples per cycle, or ``floor="flat"``, the default,
-    which uses the cycle for the joints' correlation)."""
+    ``NoiseAwareRegression`` unpooled: with ``noise_floor="low_rate"``, its floor shaped by
+    the gait at few samples per cycle, or ``floor="flat"``, the default, which uses the
+    cycle for the joints' correlation)."""
     from torchconn.phase.limit_cycle import phase_rate
 
     est = ConnectionEstimator()
@@ -373,43 +379,6 @@ def test_clean_recordings_joint_test_counts_the_joints_shared_phase_noise(monkey
     monkeypatch.setattr(noise_aware, "_NOISE_MIN_Z", between)
     called = reg.noise_setup(prep, pool=False, gamma_m=gamma_m)[0][:, 0] > 0
     assert not bool(called[top]) and torch.equal(called, z > between)
-
-
-def _curved_gait_at_64(n_links, n_recordings, seed0):
-    """``n_recordings`` x 4 trials x 30 cycles of the reference gait at 64 samples per cycle
-    (the paper sweep's sampling), noise-free."""
-    from torchconn.physics.gaits import reference_gait
-
-    seeds = np.arange(4 * n_recordings) + seed0
-    return simulate(NLinkSwimmer(n_links), reference_gait(f"{n_links}link"), eta=0.025,
-                    n_cycles=30, samples_per_cycle=64, seeds=seeds), seeds
-
-
-def _pooled_ratio(est, omega):
-    """``√(mean σ̂²) / ω`` over every trial and joint, and the mean's standard error over ω²."""
-    mean, se = est.pooled_mean(est.variance.ndim - 1, channels=True)
-    return math.sqrt(max(float(mean[0]), 0)) / omega, float(se[0]) / omega**2
-
-
-@pytest.mark.parametrize("n_links", [3, 9])
-def test_noise_estimate_at_64_samples_per_cycle_on_curved_gaits(n_links):
-    # the issue's check where the flat floor failed: the reference gaits at 64 samples per
-    # cycle, ω = 0.002 (the rise at Nyquist is 10-20 % of the floor, which the gait's lines,
-    # spread by the phase noise, tilt). One 4 x 30-cycle recording resolves σ² only to about
-    # 0.5 ω² (3-link) / 0.2 ω² (9-link) here, so the check pools six (seeds not tuned on)
-    clean, seeds = _curved_gait_at_64(n_links, 6, 7000)
-    ratio, se = _pooled_ratio(_gait_noise(observe(clean, 0.002, seeds=seeds)), 0.002)
-    assert abs(ratio - 1) < 0.2, (ratio, se)
-    flat, _ = _pooled_ratio(estimate_noise(observe(clean, 0.002, seeds=seeds).r), 0.002)
-    clean_est = _gait_noise(observe(clean, 0.0, seeds=seeds))
-    mean, se0 = clean_est.pooled_mean(clean_est.variance.ndim - 1, channels=True)
-    assert float(mean[0]) < 2 * float(se0[0])  # nothing resolved on clean data
-    assert math.sqrt(max(float(mean[0]), 0)) < 0.001
-    # honest standard errors at ω = 0.005 (mean of (σ̂² − ω²)/SE near 0, spread near 1)
-    est = _gait_noise(observe(clean, 0.005, seeds=seeds))
-    z = ((est.variance - 0.005**2) / est.variance_se).flatten()
-    assert abs(float(z.mean())) < 0.5 and 0.6 < float(z.std()) < 1.4, (z.mean(), z.std())
-    print(f"{n_links}-link: gait floor {ratio:.2f}, flat floor {flat:.2f} of ω = 0.002")
 
 
 def _curved_cycle_recording(omega, n_trials, seed, n_samples=1920, per_cycle=64):
