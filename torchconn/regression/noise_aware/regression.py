@@ -574,7 +574,8 @@ class NoiseAwareRegression(TubeRegression):
         ``pool``); with ``noise_floor="low_rate"`` the noise fit's process floor follows the
         gait's harmonics where they reach the top band (:func:`phase_noise_floor`); with any
         floor it correlates the joints' estimates (their shared phase noise,
-        :attr:`NoiseEstimate.correlation`) in the test of their mean for noise. None: a flat floor, joints taken as independent.
+        :attr:`NoiseEstimate.correlation`) in the test of their mean for noise. None: a flat
+        floor, joints taken as independent.
 
         Unpooled, each batch element's are its own: its samples per cycle (which set the
         longest interval and place the gait's harmonics) come from its own phase rate and its
