@@ -1,5 +1,5 @@
 """How often the noise test calls recordings noisy: clean recordings (false detections) and
-recordings at a given ω (detections, and the level found): flat floor, gait-shaped floor and
+recordings at a given ω (detections, and the level found): flat floor, low-rate gait-shaped floor and
 the increments projected out of the cycle's first derivatives at each sample's estimated phase
 (``normal``; the 3-link's is ``flat``'s, :func:`~torchconn.noise.normal_span`).
 
@@ -93,8 +93,8 @@ def main(argv=None) -> int:
     p.add_argument("--gaits", nargs="+", default=["circle", "reference"])
     p.add_argument("--per-cycle", type=int, nargs="+", default=[64, 126])
     p.add_argument("--kinds", nargs="+", default=list(KINDS), choices=list(KINDS))
-    p.add_argument("--floors", nargs="+", default=["flat", "gait", "normal"],
-                   help="flat, gait or normal; FLOOR@F fits the band [F, 0.5] (e.g. flat@0.1)")
+    p.add_argument("--floors", nargs="+", default=["flat", "low_rate", "normal"],
+                   help="flat, low_rate or normal; FLOOR@F fits the band [F, 0.5] (e.g. flat@0.1)")
     p.add_argument("--omega", type=float, default=0.0)
     p.add_argument("--first", type=int, default=60, help="first recording's seed block")
     p.add_argument("--recordings", type=int, default=20)

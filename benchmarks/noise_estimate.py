@@ -113,7 +113,7 @@ def gait_noise(traj):
     cycle = ConnectionEstimator().cycle.fit(prep, pool=False)
     per_cycle = 2 * math.pi / (phase_rate(prep.phase, traj.dt) * traj.dt)
     return estimate_noise(traj.r, cycle=cycle.gamma, samples_per_cycle=per_cycle,
-                          floor="gait")
+                          floor="low_rate")
 
 
 def run_cell(n_links: int, gait: str, per_cycle: int, length: str, omegas, *, seed: int,

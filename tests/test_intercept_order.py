@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, TiedMetric, TubeRegression, simulate
-from torchconn.evaluation.models import error_summary, reference_models
 from torchconn.cycles import whole_cycle_weights
+from torchconn.evaluation.models import error_summary, reference_models
 from torchconn.phase import held_out_order
 from torchconn.phase.fourier import FourierSeries, fit_fourier
 from torchconn.physics.gaits import reference_gait

@@ -134,7 +134,7 @@ class NoiseEstimate:
 def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
                    angular: Tensor | None = None, cycle: FourierSeries | None = None,
                    samples_per_cycle: Tensor | float | None = None,
-                   floor: Literal["flat", "gait", "low_rate", "normal"] = "flat",
+                   floor: Literal["flat", "low_rate", "normal"] = "flat",
                    phase: Tensor | None = None) -> NoiseEstimate:
     """Measurement noise of every channel of ``x (..., T, C)``, separated from process noise.
 
@@ -168,18 +168,17 @@ def estimate_noise(x: Tensor, *, band: tuple[float, float] | None = None,
             channel follows, ``γ(φ)`` with values ``(C,)`` and coefficients broadcastable to
             ``(..., 2K+1, C)``, with ``samples_per_cycle`` (float or ``(...)``): the
             ordinates of the top band near the gait's harmonics are left out of the fit
-            (:func:`_off_harmonics`; at 32 or fewer samples per cycle they fall there); with
-            ``floor="gait"`` the process floor is not flat but :func:`phase_noise_floor`'s
-            shape (the gait's harmonics spread by phase noise as large as the channels' own),
-            and the result's ``correlation`` holds the channels' shared
-            phase noise (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
+            (:func:`_off_harmonics`; at 32 or fewer samples per cycle they fall there), and
+            the result's ``correlation`` holds the channels' shared phase noise
+            (:func:`_channel_correlation`) for :meth:`NoiseEstimate.pooled_mean`.
         floor: with a ``cycle``, ``"flat"`` (default, as ``NoiseAwareRegression``'s
             ``noise_floor``) keeps the process floor flat and uses the cycle only for
-            ``correlation``; ``"gait"`` shapes the floor as above; ``"low_rate"`` shapes it
-            only for the batch elements whose gait's harmonics reach the top band (where
-            :func:`_off_harmonics` leaves ordinates out: at 32 or fewer samples per cycle for
-            an order-8 cycle, where the lines' tails fill the band) and keeps the others'
-            flat, bit for bit. ``"normal"`` (needs ``phase``): the increments projected out of
+            ``correlation``; ``"low_rate"`` gives the batch elements whose gait's harmonics
+            reach the top band (where :func:`_off_harmonics` leaves ordinates out: at 32 or
+            fewer samples per cycle for an order-8 cycle, where the lines' tails fill the
+            band) :func:`phase_noise_floor`'s shape of the process floor (the gait's
+            harmonics spread by phase noise as large as the channels' own) and keeps the
+            others' flat, bit for bit. ``"normal"`` (needs ``phase``): the increments projected out of
             the span of the cycle's first derivatives (:func:`normal_increments`), fitted
             with a flat floor: the
             phase noise, which moves every channel along the cycle's tangent, is projected
@@ -246,9 +245,9 @@ def _estimate_noise(x: Tensor, *, band, angular, cycle, samples_per_cycle, floor
         bridged = torch.diff(bridge_gaps(x), dim=-2)
         if angular is not None:
             bridged = torch.where(angular.to(x.device), se2.wrap_angle(bridged), bridged)
-    if floor not in ("gait", "flat", "low_rate", "normal"):
-        raise ValueError(f"estimate_noise: floor must be 'gait', 'flat', 'low_rate' or "
-                         f"'normal', got {floor!r}")
+    if floor not in ("flat", "low_rate", "normal"):
+        raise ValueError(f"estimate_noise: floor must be 'flat', 'low_rate' or 'normal', "
+                         f"got {floor!r}")
     if floor == "normal" and (cycle is None or phase is None):
         raise ValueError("estimate_noise: floor='normal' projects the increments on the "
                          "cycle's normal space at every sample's phase: pass cycle= (with "
@@ -262,8 +261,7 @@ def _estimate_noise(x: Tensor, *, band, angular, cycle, samples_per_cycle, floor
             raise ValueError(f"estimate_noise: cycle must be a FourierSeries with values "
                              f"(C,) = ({x.shape[-1]},) like x's channels, got value shape "
                              f"{tuple(cycle.value_shape)}")
-        shape = None if floor in ("flat", "normal") else (cycle, samples_per_cycle,
-                                                           floor == "low_rate")
+        shape = (cycle, samples_per_cycle) if floor == "low_rate" else None
     weights = None
     if floor == "normal" and normal_span(x.shape[-1]) == 0:
         floor = "flat"  # two channels: nothing to project on (normal_span)
@@ -524,12 +522,12 @@ def bridge_gaps(x: Tensor) -> Tensor:
 
 
 def _increment_spectrum(u: Tensor, bridged: Tensor | None = None,
-                        shape: tuple[FourierSeries, Tensor | float, bool] | None = None,
+                        shape: tuple[FourierSeries, Tensor | float] | None = None,
                         weights: tuple[Tensor, Tensor] | None = None) -> _Spectrum:
     """:class:`_Spectrum` of increments ``u (..., n, C)`` (NaN where missing); ``shape``:
-    None (a flat process floor) or ``(cycle, samples_per_cycle, low_rate)`` for
-    :func:`phase_noise_floor`'s floor (with ``low_rate`` only for the batch elements whose
-    gait's harmonics reach the top band, :func:`_off_harmonics`; flat for the others).
+    None (a flat process floor) or ``(cycle, samples_per_cycle)`` for
+    :func:`phase_noise_floor`'s floor for the batch elements whose gait's harmonics reach the
+    top band (:func:`_off_harmonics`; flat for the others).
 
     Zeros in place of missing increments would spread the gait's strong lines over the whole
     spectrum (a random mask leaks a line's power everywhere), so the spectrum is taken of
@@ -569,11 +567,11 @@ def _increment_spectrum(u: Tensor, bridged: Tensor | None = None,
     cos = torch.cos(2 * math.pi * f)[:, None]
     floor = s0
     if shape is not None:
-        cycle, per_cycle, low_rate = shape
+        cycle, per_cycle = shape
         gait = phase_noise_floor(f, cycle, per_cycle, n=n)  # (..., F, C)
-        if low_rate:  # (..., 1, 1): a harmonic in the top band (ordinates left out there)
-            reach = (_off_harmonics(f, cycle, per_cycle, n) == 0).any(-2, keepdim=True)
-            gait = torch.where(reach, gait, 1.0)
+        # (..., 1, 1): a harmonic in the top band (ordinates left out there)
+        reach = (_off_harmonics(f, cycle, per_cycle, n) == 0).any(-2, keepdim=True)
+        gait = torch.where(reach, gait, 1.0)
         floor = s0 * gait
     x0, x1 = torch.broadcast_tensors(floor, 2 * s0 - 2 * cos * s1)
     return _Spectrum(power=power, x0=x0.expand(power.shape), x1=x1.expand(power.shape),

@@ -29,6 +29,7 @@ garbage estimate. Missing samples are NaN and are excluded automatically.
 from __future__ import annotations
 
 from ._wls import IllConditionedBinWarning
+from .base import Regression
 from .binning import KERNELS, BinIndex, assign_bins
 from .connection import ConnectionFit, connection_design, connection_regression
 from .estimator import (
@@ -51,7 +52,7 @@ from .metric import (
 from .model import BinEstimates, LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
 from .tied import tie_connection_derivative
-from .tube import Regression, TubeRegression
+from .tube import TubeRegression
 
 __all__ = [
     "assign_bins", "BinIndex", "KERNELS",

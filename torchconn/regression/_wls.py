@@ -28,9 +28,8 @@ __all__ = ["IllConditionedBinWarning"]
 #: blocks of row_scale · X, X (b, n, P) (scaling the small factors saves a pass over X)
 Design = Callable[[Tensor, Tensor, Tensor], list[Tensor]]
 
-#: bytes of design matrix built at once; bounds memory and keeps each chunk's design hot in
-#: cache between forming XᵀWX and the residuals (measured faster than one huge chunk; 8 MiB
-#: measured faster than 16 and than 2 on a loaded machine, one thread).
+#: bytes of design matrix built at once on a CPU; bounds memory and keeps each chunk's design
+#: hot in cache between forming XᵀWX and the residuals.
 _CHUNK_BYTES = 8 * 2**20
 #: the same budget on an accelerator (CUDA): there a chunk is a few kernel launches, and a
 #: chunk of a few bins leaves the device idle between launches, so chunks are as large as
@@ -203,7 +202,7 @@ def _guarded_correction(gram: Tensor, corr: Tensor) -> tuple[Tensor, Tensor]:
     ``λ < _MAX_CORRECTION`` exactly when ``_MAX_CORRECTION · gram − corr`` is positive definite,
     so one Cholesky factorisation per bin settles the usual case (``κ = 1``); ``λ`` itself (a
     triangular inverse, two products and a symmetric eigensolver, ~10x the cost) is computed
-    only for the bins that fail it (1.6 % of a 9-link noise-aware fit's bins, measured).
+    only for the bins that fail it.
     """
     diag = gram.diagonal(dim1=-2, dim2=-1)
     # equilibrate and decouple all-zero columns so that the factorisation exists
@@ -300,8 +299,8 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
 
     # condition of the equilibrated A_s = D⁻¹AD⁻¹, with L_s⁻¹ = L⁻¹D:
     # κ₁(A_s) ≤ ‖A_s‖₁ ‖L_s⁻¹‖₁ ‖L_s⁻¹‖∞, an upper bound exact for an orthogonal design
-    # (matrix-vector products as multiply-sum: a bmm per small matrix costs more on CPU, and
-    # torch.linalg.vector_norm was measured ~3x slower than abs + sum here)
+    # (matrix-vector products as multiply-sum, norms as abs + sum: cheaper on CPU for small
+    # matrices than a bmm or torch.linalg.vector_norm)
     inv_scale = 1 / scale
     a_norm = ((gram.abs() * inv_scale.unsqueeze(-2)).sum(-1) * inv_scale).amax(-1)
     l_abs = l_inv.abs()
@@ -395,13 +394,9 @@ def score_covariance(s: BinnedSamples, design: Design, sol: Solution, columns: T
     What it estimates (tests/test_joint_covariance.py): for fixed regressors its expectation
     is ``A⁻¹ (Σ_{|i−j| ≤ lags} w_i w_j x_i x_jᵀ E[ê_i ê_j]) A⁻¹ · n/(n − P)`` with the
     residuals ``ê = (I − H)(Xβ + e)`` (with a ridge they carry its bias), an HC1 estimate:
-    the covariance of the estimates where every row has the same leverage (shown with the
-    correction too, against a Monte Carlo), but biased low where leverages differ. Measured
-    on 60-180 rows of ``P = 9`` random regressors: variances 0.77-0.98 of the true ones under
-    homoscedastic errors, 0.53-1.05 (mean 0.75-0.78) where the errors grow with the
-    leverage; scaling each row's score by ``(1 − h_t)^(−1/2)`` instead (HC2) gives 1.000 for
-    0/1 weights and 0.73-1.18 (mean 0.90-0.93) there (closed forms, not adopted: not measured
-    on fits). Rows more than ``lags`` samples apart are taken as uncorrelated.
+    the covariance of the estimates where every row has the same leverage (with the
+    correction too), but biased low where leverages differ (docs/validation/ gives its
+    coverage). Rows more than ``lags`` samples apart are taken as uncorrelated.
     """
     p = sol.coef.shape[-2]
     out = []
@@ -571,10 +566,8 @@ def _triangular_inverse(chol: Tensor) -> Tensor:
 
     torch's triangular solve against the identity costs ``P³`` (it does not know that the
     right side is triangular) and runs one matrix at a time; the split halves that work and
-    moves the rest into two batched matmuls. Measured per matrix, one thread, timed alone:
-    P = 81 39 -> 28 µs (load ~7) and 41 -> 35 µs (load ~18), P = 49 10 -> 6.5 µs; slower
-    below P ≈ 40 (P = 36: 3.5 -> 4.2 µs), and deeper splits were slower at P = 81. A triangular
-    inverse is ~2x cheaper on CPU than cholesky_inverse.
+    moves the rest into two batched matmuls (used from ``P = 48``; below it, one solve). A
+    triangular inverse is cheaper on CPU than cholesky_inverse.
     """
     p = chol.shape[-1]
     eye = torch.eye(p, dtype=chol.dtype, device=chol.device)

@@ -110,8 +110,7 @@ def unpenalised_columns(d: int, device=None) -> Tensor:
     """``(1 + 2d + d²,)`` bool: the columns of :func:`connection_design` that a ridge leaves
     unpenalised besides the intercept, ``δ̇`` (``Â``'s). A ridge pulls coefficients towards 0;
     on ``Â`` that is the attenuation the noise correction removes (Â, not its offsets, is
-    what the fit is for), and chosen by held-out prediction it shrank ``Â`` to 0.23 of the
-    connection (README "Few samples per cycle"); it still regularises ``b̂`` and ``∂Â/∂r``
+    what the fit is for); it still regularises ``b̂`` and ``∂Â/∂r``
     (``TubeRegression(ridge_connection=False)``)."""
     mask = torch.zeros(1 + 2 * d + d * d, dtype=torch.bool, device=device)
     mask[1 + d:1 + 2 * d] = True

@@ -15,7 +15,7 @@ optimizer=…)``::
 
 Swapping a stage is a keyword argument; a new method is a new subclass of the stage's base
 (:class:`~torchconn.phase.smoothing.Smoother`, :class:`~torchconn.phase.phaser.PhaseEstimator`,
-:class:`~torchconn.phase.limit_cycle.CycleEstimator`, :class:`~torchconn.regression.tube.Regression`,
+:class:`~torchconn.phase.limit_cycle.CycleEstimator`, :class:`~torchconn.regression.base.Regression`,
 :class:`~torchconn.regression.metric.MetricEstimator`).
 ``get_params`` / ``set_params`` follow scikit-learn (``regression__n_bins`` keys), so
 ``sklearn.base.clone`` and grid searches work without torchconn depending on scikit-learn.
@@ -46,10 +46,11 @@ from ..phase.smoothing import RTSSmoother, Smoother
 from ..trajectory import Trajectory, for_estimation, power_problem
 from . import selection
 from ._wls import IllConditionedBinWarning
+from .base import Regression, check_bin_count
 from .metric import FittedMetric, MetricEstimator, TiedMetric
 from .model import LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
-from .tube import Regression, TubeRegression, check_bin_count
+from .tube import TubeRegression
 
 __all__ = [
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
@@ -122,16 +123,14 @@ class ConnectionEstimator:
       with: every row estimated, and where the complexity was chosen by held-out error among
       ridges that shrink ``Â``, the complexity chosen and fitted the same way with
       ``Â`` unpenalised (the full model of ``regression.replace(ridge_connection=False)``;
-      its settings in ``meta["settings"]``; README "The connection delivered, the forecasts
-      kept"). Where it differs from ``forecast_model_``, ``meta["forecast_model"]`` says how;
+      its settings in ``meta["settings"]``). Where it differs from ``forecast_model_``,
+      ``meta["forecast_model"]`` says how;
     - ``forecast_model_``: the model :meth:`predict`, :meth:`score`, :meth:`cross_validate`
       and the held-out check use: the fit of ``regression_`` (the chosen ridge on ``Â`` too)
       with the components ``complexity_`` gave to the phase average or the connection alone
       predicted so. It is ``model_`` itself where nothing was shrunk or zeroed (no complexity
       chosen, as on long recordings and with ``complexity="fixed"``; or no ridge chosen and
-      every component's full model kept). On short recordings the shrunk, zeroed model
-      predicts later cycles better (5-link, 3-6 cycles, ω = 0.005: README "Short
-      recordings"), and the unpenalised ``Â`` is closer to the swimmer's;
+      every component's full model kept);
     - ``regression_``: the regression stage fitted for ``forecast_model_`` (``regression``
       with the chosen complexity);
     - ``complexity_``: the :class:`~torchconn.regression.selection.ComplexityChoice` when the
@@ -605,9 +604,7 @@ def _connection_delivered(alone: "selection.ConnectionAlone", given: LocalConnec
     after the given ``regression`` fitted ``given``, or could not: None): ``alone.model``,
     with the metric where ``given`` has one, or where it could not be fitted and
     ``regression`` asks for the metric of a recording with a power channel (a fit at the
-    chosen bins, the metric's coefficients from ``metric``). Measured (README "Few samples per
-    cycle"): 5-link, 10-12 samples per cycle, 7-12 cycles, its ``Â`` was 27-30 % off against
-    the given 48-bin fit's 55-64 % and the chosen bins' full fit's 62 %.
+    chosen bins, the metric's coefficients from ``metric``).
 
     Raises:
         ValueError: the metric asked for cannot be fitted at the chosen bins either.

@@ -16,18 +16,15 @@ in ``δ``); the first-order term ``∂M̂/∂r(φ) · δ`` (``model.dM``) enters
 Uncertainty comes from the model's per-bin standard errors: the bin estimates are redrawn with
 their standard errors -- correlated between neighbouring bins as much as their phase windows
 overlap -- the Fourier series refitted, and the prediction repeated per draw
-(:func:`sample_models`). How far ``γ'`` leaves the data is measured in radii of the tube the data
+(:func:`sample_models`). How far ``γ'`` leaves the data is given in radii of the tube the data
 covered (``meta["tube_rms"]``, the per-joint RMS of the recorded offsets ``δ``).
 
-How honest the displacement's standard error is (README, "Is the displacement standard error
-honest?"): ``Â`` is drawn from its sampling factor across entries and bins (each whole cycle's
-share of its error, ``bins.A_sampling_factor``), so the draws are as narrow along the cycle's
-tangent as the error there (drawn entry by entry they were 1.7-2.4 times too wide along it on
-the clean 3-link), and, without detected noise, with an allowance for the bias of ``Â`` (the
-tube's second order and the sampling interval, ``bins.A_bias_allowance``) drawn as one shared
-error. Held out, mean ``(e/se)²`` 0.31-0.84 on the 3- and 5-link (1 = honest; 0.21-3.07
-before); the clean 5-link's is 0.44 (0.27 while its allowance was measured from the plain fit
-instead of the delivered ``Â``, README "The bias allowance measured from the delivered ``Â``").
+The displacement's standard error: ``Â`` is drawn from its sampling factor across entries and
+bins (each whole cycle's share of its error, ``bins.A_sampling_factor``), so the draws are as
+narrow along the cycle's tangent as the error there, and, without detected noise, with an
+allowance for the bias of ``Â`` (the tube's second order and the sampling interval,
+``bins.A_bias_allowance``) drawn as one shared error. docs/validation/ gives how well these
+standard errors cover the held-out errors.
 """
 
 from __future__ import annotations
@@ -148,11 +145,10 @@ def sample_models(
     one error shared by all entries and bins (``s · M_bias``, ``s`` standard normal per draw):
     drawn entry by entry, it would spread the on-cycle power that the gait pins down. Likewise
     the sampling noise of that bias estimate, where ``M_se`` holds it
-    (``bins.M_change_factor``, ``order_bias="posterior"``), is drawn from its
+    (``bins.M_change_factor``), is drawn from its
     covariance across entries and bins, and so is the fit's own sampling noise where the
-    model keeps its factor (``bins.M_sampling_factor``): drawn entry by entry it spread the
-    on-cycle power that the gait pins down (the cost's standard error 7-30 times its error
-    under noise, README "Is the cost standard error honest?"). The tube's second-order bias
+    model keeps its factor (``bins.M_sampling_factor``): drawn entry by entry it would spread
+    the on-cycle power that the gait pins down. The tube's second-order bias
     (``bins.M_offset_bias``, not in ``M_se``) is added as one more shared error. ``∂M̂/∂r``
     (``model.dM``) is not redrawn (:func:`predict_gait` adds its first-order change of the
     cost whole). The Fourier series are refitted at the model's order. The result has batch
@@ -352,11 +348,8 @@ def _off_cycle_cost(model, phi, r_theta, delta, h, n_steps, cost, n_draws, seed)
     change of the cost when ``M̂(φ)`` gets its first-order term ``∂M̂/∂r(φ) δ`` and ``s``
     standard normal per draw (from ``seed``, apart from :func:`sample_models`' stream).
 
-    The prediction keeps ``M̂(φ)`` on the cycle: the first-order term corrected the 3-link
-    reference gait's cost (its cycle lies 0.02-0.03 rad from the gait: the cost moved up to
-    0.04 %), but overshot on the 9-link's (0.095 rad; ``∂M̂/∂r`` at phase order 1 gave 1.8
-    times the exact term), so only its size enters, as an error (README, "Is the cost
-    standard error honest?")."""
+    The prediction keeps ``M̂(φ)`` on the cycle; the first-order term's size enters only as
+    an error."""
     power = torch.einsum("...i,...ij,...j->...", r_theta, model.metric_at(phi, delta), r_theta)
     change = gauss_cost(power.reshape(power.shape[:-1] + (n_steps, 2)), h) - cost
     gen = torch.Generator(device=model.device).manual_seed(seed + 1)

@@ -52,7 +52,7 @@ class BinEstimates:
             ``order_bias``): one systematic error shared by the entries and bins, not independent
             scatter; None where not estimated.
         M_change_factor: ``(..., M, d, d, R)`` a factor of the part of ``M_se``'s variance that
-            is the sampling noise of that bias estimate (``order_bias="posterior"``):
+            is the sampling noise of that bias estimate (``order_bias``):
             its covariance across entries and bins is ``Σ_r F[..., r] ⊗ F[..., r]``; None
             where that noise is not in ``M_se``.
         dM: ``(..., M, d, d, d)`` the metric's shape derivative ``∂M̂_ij/∂r_k`` at

@@ -1,13 +1,12 @@
 """``∂Â/∂r`` tied to the terms that identify most of it far better.
 
 A bin's regression (:func:`~torchconn.regression.connection_regression`, the noise-aware
-one alike) estimates ``∂A/∂r`` directly from its ``δ̇⊗δ`` columns, the weakest of the design:
-on the curved 3-link reference gait without noise that estimate is 20 % off, under noise
-70-2400 %. Two better-identified estimates hold contractions of it: the offset term ``b̂ =
+one alike) estimates ``∂A/∂r`` directly from its ``δ̇⊗δ`` columns, the weakest of the design.
+Two better-identified estimates hold contractions of it: the offset term ``b̂ =
 ∂A/∂r γ̇`` (on the velocity index) and, along the cycle, the phase derivative of ``Â``
 (``dÂ/dφ = ∂A/∂r γ'``, the chain rule, on the position index). :func:`tie_connection_derivative`
-combines the three by generalised least squares per bin (README, "Accuracy under motion-capture
-noise").
+combines the three by generalised least squares per bin (docs/validation/ holds its accuracy
+under noise).
 """
 
 from __future__ import annotations
@@ -97,27 +96,6 @@ def _coarse(x: Tensor) -> Tensor:
                        exponent.to(x.dtype))
 
 
-def _joint_weights(cov: Tensor | None, w_b: Tensor, w_d: Tensor, b: Tensor, direct: Tensor
-                   ) -> tuple[Tensor, Tensor, Tensor] | None:
-    """The weight matrix ``W (..., M, 3, c, c)`` (``c = d + d²``) of each bin and row's
-    ``(b̂, direct ∂Â/∂r)``, those observations ``(..., M, 3, c)`` and where ``W`` is usable
-    ``(..., M, 3)``: the inverse of their joint covariance ``cov`` (rounded to
-    :data:`_WEIGHT_BITS` first, as the weights are, so an unpooled element's is its own bit
-    for bit). Not usable where ``cov`` is not finite or not positive definite or an
-    independent weight ``w_b, w_d`` is not positive (the tie then takes the independent
-    weights there). None without ``cov``."""
-    if cov is None:
-        return None
-    observed = torch.cat([b, direct.flatten(-2)], -1)
-    finite = (torch.isfinite(cov).all(-1).all(-1)
-              & (torch.cat([w_b, w_d.flatten(-2)], -1) > 0).all(-1))
-    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
-    cov = torch.where(finite[..., None, None], _coarse(cov), eye)
-    chol, info = torch.linalg.cholesky_ex(cov)
-    good = finite & (info == 0)
-    return torch.cholesky_inverse(torch.where(good[..., None, None], chol, eye)), observed, good
-
-
 def _tie_design(gamma_dot_m: Tensor) -> Tensor:
     """``H (..., M, d + d², d²)``: ``(b̂, vec ∂A/∂r) = H vec ∂A/∂r`` per bin and row, ``b̂_j =
     Σ_i D[i, j] γ̇_i`` over the identity (``vec`` row-major, ``(i, j)``)."""
@@ -128,22 +106,10 @@ def _tie_design(gamma_dot_m: Tensor) -> Tensor:
         gamma_dot_m.shape[:-1] + (d * d, d * d))], -2)
 
 
-def _times_tie_design(x: Tensor, gamma_dot_m: Tensor) -> Tensor:
-    """``x H (..., M, K, r, d²)`` for ``x (..., M, K, r, d + d²)`` and the tie's design ``H``
-    (:func:`_tie_design`) of ``gamma_dot_m (..., M, d)``. Each column ``(i, j)`` of ``H`` has
-    two nonzeros, ``γ̇_i`` in row ``j`` and 1 in row ``d + (i, j)``, so the product is
-    ``x[.., j] γ̇_i + x[.., d + (i, j)]``: two elementwise terms, no sum. Bit for bit the
-    elementwise sum over all ``d + d²`` rows (the others add exact zeros), and, unlike a
-    matrix product, the same whatever the batch (each value is computed alone)."""
-    d = gamma_dot_m.shape[-1]
-    rate = gamma_dot_m[..., None, None, :, None]  # γ̇_i (..., M, 1, 1, d, 1)
-    return (x[..., :d].unsqueeze(-2) * rate + x[..., d:].unflatten(-1, (d, d))).flatten(-2)
-
-
 def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: Tensor,
                               order: int, *, window: float | Tensor, kernel: str,
-                              consistency: bool = True, joint_weights: bool = False,
-                              correlation: bool = False) -> ConnectionFit:
+                              consistency: bool = True, correlation: bool = False
+                              ) -> ConnectionFit:
     """``fit`` with ``∂Â/∂r`` tied to the terms that identify most of it far better.
 
     With ``D = ∂Aᵏ/∂r`` at a bin (``D[i, j] = ∂Aᵏ_i/∂r_j``), the bin's other estimates hold
@@ -156,19 +122,17 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     with weights their inverse variances; its standard errors are the solution's. ``b̂`` and
     the direct estimate come from one regression, and their errors are correlated: with
     ``fit.cov_b_dA`` (their joint covariance per bin and row) the solution's variance is
-    taken under it (the sandwich ``N⁻¹HᵀWΣWHN⁻¹`` of the independent weights ``W``), or,
-    with ``joint_weights``, they are weighed by its inverse; ``dÂ/dφ`` (a series through
-    many bins) is taken as independent of both.
+    taken under it (the sandwich ``N⁻¹HᵀWΣWHN⁻¹`` of the independent weights ``W``);
+    ``dÂ/dφ`` (a series through many bins) is taken as independent of both.
 
-    ``dÂ/dφ`` is the derivative of the order-``order`` Fourier series of ``Â`` (the model's
-    own, :func:`phase_derivative_operator`), and its variance is propagated through that
-    series from the bins' standard errors and their correlation (:func:`window_correlation`):
-    the derivative amplifies harmonic ``k`` by ``k``, and under noise the weights follow.
+    ``dÂ/dφ`` is the derivative of ``Â``'s order-``order`` Fourier series
+    (:func:`phase_derivative_operator`), its variance propagated through that series from the
+    bins' standard errors and their correlation (:func:`window_correlation`).
 
     Args:
         fit: per-bin fit ``(..., M, ·)`` (``cov_b_dA``, where given, ``(..., M, 3, d + d²,
-            d + d²)``: not finite or not positive definite in a bin and row, the independent
-            weights are used there).
+            d + d²)``: where not finite in a bin and row, the solution's own variance is
+            used there).
         gamma_m, gamma_dot_m: ``(..., M, d)`` the cycle and ``γ̇ = φ̇ γ'`` at the centres.
         order: the Fourier order of ``Â``'s series.
         window, kernel: the bins' half-width (a number, or ``(...)`` per batch element) and
@@ -178,28 +142,59 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
             the tied solution summed over the bins and rows of each batch element, ``dof``
             their ``2d`` redundant equations per bin and row (the Birge ratio). The bins' bias
             shows as such a disagreement (the phase derivative of ``Â`` is nearly free of it).
-        joint_weights: with ``fit.cov_b_dA``, weigh ``b̂`` and the direct estimate by its
-            inverse (generalised least squares with their correlation) instead of only
-            taking the variance under it. Measured (README, the tied ``∂Â/∂r``): on the
-            3-link circle 1.4 points further to 10.5 closer, up to 3 % further on the 5-link,
-            bands too narrow on the 3-link circle (squared error over squared standard error
-            1.2-3.0), so off.
         correlation: also the correlation of the tied entries of each bin and row
             (``corr_dA``, ``(..., M, 3, d², d²)``, ``vec D`` row-major: entry ``i·d + j`` is
             ``D[i, j]``), from the solution's covariance (the sandwich's where it is taken):
             the tie pins ``D γ̇`` and ``D γ'`` far better than the entries one by one, so the
-            entries' errors are strongly correlated (drawn independently, a 9-link gait's
-            displacement spread 20-100 times its actual error; README "The displacement
-            standard error on the 9-link"). Identity where the normal matrix cannot be
-            factorised. The tied estimate and its standard errors are the same bit for bit.
+            entries' errors are strongly correlated. Identity where the normal matrix cannot
+            be factorised. The tied estimate and its standard errors are the same bit for bit.
 
     Returns:
         the fit with ``dA`` and ``se_dA`` tied (other fields unchanged). Non-finite estimates
         enter with no weight (an element with a NaN bin of ``Â`` is tied to ``b̂`` alone); a
         bin and row whose normal matrix cannot be factorised keeps the direct estimate.
     """
+    d = fit.A.shape[-1]
+    opts = dict(dtype=fit.A.dtype, device=fit.A.device)
+    slope, var_slope, usable = _phase_slope(fit, order, window, kernel)
+    w_d, direct = _inverse_variance(fit.se_dA.square(), fit.dA, True)  # (..., M, 3, d, d)
+    w_b, b = _inverse_variance(fit.se_b.square(), fit.b, True)  # (..., M, 3, d)
+    w_s, slope = _inverse_variance(var_slope, slope, usable[..., None, None, None])
+    tangent = cycle_tangent(gamma_m).expand(gamma_dot_m.shape)
+    normal, rhs, slope_normal = _tie_normal_equations(w_d, direct, w_b, b, w_s, slope,
+                                                      gamma_dot_m, tangent)
+    chol, info = torch.linalg.cholesky_ex(normal)
+    good = (info == 0).unsqueeze(-1)
+    safe = torch.where(good.unsqueeze(-1), chol, torch.eye(d * d, **opts))
+    solution = torch.cholesky_solve(rhs.unsqueeze(-1), safe).squeeze(-1)
+    n_inv = torch.cholesky_inverse(safe)
+    var = torch.diagonal(n_inv, dim1=-2, dim2=-1)
+    cov_full = n_inv if correlation else None  # (..., M, 3, d², d²)
+    if fit.cov_b_dA is not None:
+        var, cov_full = _sandwich(fit.cov_b_dA, n_inv, var, cov_full, w_b, w_d, slope_normal,
+                                  gamma_dot_m)
+    if consistency:
+        fitted = torch.where(good, solution, 0.0).unflatten(-1, (d, d))
+        ratio = _birge_ratio(fitted, (w_d, direct), (w_b, b), (w_s, slope), gamma_dot_m,
+                             tangent)
+        var = var * ratio.clamp_min(1).reshape(ratio.shape + (1, 1, 1))
+    # a normal matrix that cannot be factorised (weights spanning ~1e16) keeps the direct
+    # estimate
+    shape = fit.dA.shape
+    tied = torch.where(good, solution, fit.dA.flatten(-2)).reshape(shape)
+    se = torch.where(good, var.clamp_min(0).sqrt(), fit.se_dA.flatten(-2)).reshape(shape)
+    corr = None if cov_full is None else _correlation_of(cov_full, good)
+    return dataclasses.replace(fit, dA=tied, se_dA=se, corr_dA=corr)
+
+
+def _phase_slope(fit: ConnectionFit, order: int, window: float | Tensor, kernel: str
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+    """``dÂ/dφ`` at the bin centres ``(..., M, 3, d)`` (the order-``order`` series'
+    derivative, :func:`phase_derivative_operator`), its variance (same shape; the bins'
+    standard errors correlated over overlapping windows, :func:`lag_correlations`) and which
+    batch elements ``(...)`` have a finite ``Â`` and ``se_A`` in every bin."""
     a, se_a = fit.A, fit.se_A
-    d, m = a.shape[-1], a.shape[-3]
+    m = a.shape[-3]
     opts = dict(dtype=a.dtype, device=a.device)
     op = phase_derivative_operator(m, order, **opts)
     usable = (torch.isfinite(a) & torch.isfinite(se_a)).flatten(-3).all(-1)  # (...)
@@ -217,17 +212,25 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     for i, lag in enumerate(lags):
         var_slope = var_slope + rho[..., i, None, None, None] * (
             weighted * weighted.roll(-lag, -3)).sum(-3)
-    tangent = cycle_tangent(gamma_m).expand(gamma_dot_m.shape)
-    eye = torch.eye(d, **opts)
+    return slope, var_slope, usable
 
-    def inverse_variance(var: Tensor, value: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
-        ok = ok & torch.isfinite(var) & torch.isfinite(value) & (var > 0)
-        return (_coarse(torch.where(ok, 1 / var.clamp_min(1e-300), 0.0)),
-                torch.where(ok, value, 0.0))
 
-    w_d, direct = inverse_variance(fit.se_dA.square(), fit.dA, True)  # (..., M, 3, d, d)
-    w_b, b = inverse_variance(fit.se_b.square(), fit.b, True)  # (..., M, 3, d)
-    w_s, slope = inverse_variance(var_slope, slope, usable[..., None, None, None])
+def _inverse_variance(var: Tensor, value: Tensor, ok) -> tuple[Tensor, Tensor]:
+    """The weight ``1/var`` (rounded, :func:`_coarse`) and ``value``, both 0 where ``ok`` is
+    false or either is not finite or ``var`` not positive."""
+    ok = ok & torch.isfinite(var) & torch.isfinite(value) & (var > 0)
+    return (_coarse(torch.where(ok, 1 / var.clamp_min(1e-300), 0.0)),
+            torch.where(ok, value, 0.0))
+
+
+def _tie_normal_equations(w_d: Tensor, direct: Tensor, w_b: Tensor, b: Tensor, w_s: Tensor,
+                          slope: Tensor, gamma_dot_m: Tensor, tangent: Tensor
+                          ) -> tuple[Tensor, Tensor, Tensor]:
+    """The tie's normal matrix ``N (..., M, 3, d², d²)`` over ``vec D``, its right-hand side
+    ``(..., M, 3, d²)``, and the part of ``N`` from the phase derivative ``(..., M, 3, d²,
+    d²)``, for the weighted sources (direct, ``b̂``, ``dÂ/dφ``)."""
+    d = gamma_dot_m.shape[-1]
+    eye = torch.eye(d, dtype=w_d.dtype, device=w_d.device)
     # the normal matrix over vec(D), dims (i, j, i', j'): direct (diagonal), + w_b[j] γ̇_i γ̇_i'
     # [j = j'], + w_s[i] γ'_j γ'_j' [i = i']
     velocity = gamma_dot_m.unsqueeze(-2)  # (..., M, 1, d) against the rows k
@@ -237,73 +240,60 @@ def tie_connection_derivative(fit: ConnectionFit, gamma_m: Tensor, gamma_dot_m: 
     slope_normal = (w_s[..., None, None, None] * (t_j * t_q) * eye[:, None, :, None]
                     ).flatten(-4, -3).flatten(-2)  # (..., M, 3, d², d²)
     slope_rhs = ((w_s * slope).unsqueeze(-1) * along.unsqueeze(-2)).flatten(-2)
-    sandwich = fit.cov_b_dA is not None and not joint_weights
     normal = (torch.diag_embed(w_d.flatten(-2)).unflatten(-1, (d, d)).unflatten(-3, (d, d))
               + w_b[..., None, :, None, None] * (v_i * v_l) * eye[:, None, :]
               ).flatten(-4, -3).flatten(-2) + slope_normal
     rhs = ((w_d * direct) + (w_b * b).unsqueeze(-2) * velocity.unsqueeze(-1)
            ).flatten(-2) + slope_rhs
-    joint = _joint_weights(fit.cov_b_dA, w_b, w_d, b, direct) if joint_weights else None
-    if joint is not None:
-        # (b, vec D) = H vec D with H = [γ̇ᵀ ⊗ I (on the velocity index); I], weighed by
-        # the inverse of their joint covariance W: HᵀWH and HᵀW (b, vec D), where W is
-        # usable (elsewhere the independent weights above: a row without a joint covariance,
-        # NaN or None, is tied the same bit for bit). HᵀWH by H's two nonzeros per column
-        # (_times_tie_design), not as sums over all rows of H, which materialised
-        # (..., c, c, d²) and (..., c, d², d²) tensors (0.38 and 0.34 GB per 9-link trial at
-        # 48 bins, d = 8); the same values bit for bit
-        weight, observed, weighed = joint  # weighed (..., M, 3): W usable there
-        w_h = _times_tie_design(weight, gamma_dot_m)  # WH (..., M, 3, c, d²)
-        normal = torch.where(weighed[..., None, None],
-                             _times_tie_design(w_h.mT, gamma_dot_m).mT + slope_normal, normal)
-        rhs = torch.where(weighed[..., None],
-                          (w_h * observed.unsqueeze(-1)).sum(-2) + slope_rhs, rhs)
-    chol, info = torch.linalg.cholesky_ex(normal)
-    good = (info == 0).unsqueeze(-1)
-    safe = torch.where(good.unsqueeze(-1), chol, torch.eye(d * d, **opts))
-    solution = torch.cholesky_solve(rhs.unsqueeze(-1), safe).squeeze(-1)
-    n_inv = torch.cholesky_inverse(safe)
-    var = torch.diagonal(n_inv, dim1=-2, dim2=-1)
-    cov_full = n_inv if correlation else None  # (..., M, 3, d², d²)
-    if sandwich:
-        # the estimate of the independent weights W, its variance under the joint covariance
-        # Σ: N⁻¹ (HᵀWΣWH + the slope's part of N) N⁻¹ (N⁻¹ itself where Σ is not finite)
-        w_ind = torch.cat([w_b, w_d.flatten(-2)], -1)  # (..., M, 3, c)
-        cov = _coarse(fit.cov_b_dA)
-        finite = torch.isfinite(cov).all(-1).all(-1)
-        cov = torch.where(finite[..., None, None], cov, 0.0)
-        # as matrix products: the elementwise sums materialised (..., c, c, d²) and
-        # (..., d², d², d²) tensors, 0.5 GB per trial on the 9-link (d = 8); only the bands
-        # depend on it, and they round with the batch anyway (the solver's row sums)
-        g = w_ind.unsqueeze(-1) * _tie_design(gamma_dot_m).unsqueeze(-3)  # WH (..., c, d²)
-        meat = g.mT @ (cov @ g) + slope_normal  # (..., M, 3, d², d²)
-        var = torch.where(finite.unsqueeze(-1), ((n_inv @ meat) * n_inv).sum(-1), var)
-        if correlation:
-            cov_full = torch.where(finite[..., None, None], n_inv @ meat @ n_inv, n_inv)
-    if consistency:
-        # χ² of the three sources about the tied solution, against its degrees of freedom
-        fitted = torch.where(good, solution, 0.0).unflatten(-1, (d, d))
-        res_b = b - (fitted * velocity.unsqueeze(-1)).sum(-2)
-        chi2 = ((w_d * (direct - fitted).square()).flatten(-2).sum(-1)
-                + (w_b * res_b.square()).sum(-1))
-        if joint is not None:
-            res = torch.cat([res_b, (direct - fitted).flatten(-2)], -1)
-            chi2 = torch.where(weighed, (res.unsqueeze(-1) * weight * res.unsqueeze(-2)).sum(
-                (-2, -1)), chi2)
-        chi2 = chi2 + (w_s * (slope - (fitted * along.unsqueeze(-2)).sum(-1)).square()).sum(-1)
-        n_obs = (w_d > 0).flatten(-2).sum(-1) + (w_b > 0).sum(-1) + (w_s > 0).sum(-1)
-        dof = (n_obs - d * d).clamp_min(0).sum((-2, -1))
-        ratio = torch.where(dof > 0, chi2.sum((-2, -1)) / dof.clamp_min(1), 1.0)
-        var = var * ratio.clamp_min(1).reshape(ratio.shape + (1, 1, 1))
-    # a normal matrix that cannot be factorised (weights spanning ~1e16) keeps the direct
-    # estimate
-    shape = fit.dA.shape
-    tied = torch.where(good, solution, fit.dA.flatten(-2)).reshape(shape)
-    se = torch.where(good, var.clamp_min(0).sqrt(), fit.se_dA.flatten(-2)).reshape(shape)
-    corr = None
-    if correlation:  # (the consistency ratio scales the covariance, not its correlation)
-        sd = torch.diagonal(cov_full, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-        ok = good.unsqueeze(-1) & (sd > 0).unsqueeze(-1) & (sd > 0).unsqueeze(-2)
-        corr = torch.where(ok, cov_full / (sd.unsqueeze(-1) * sd.unsqueeze(-2)).clamp_min(1e-300),
-                           torch.eye(d * d, **opts))
-    return dataclasses.replace(fit, dA=tied, se_dA=se, corr_dA=corr)
+    return normal, rhs, slope_normal
+
+
+def _sandwich(cov_b_dA: Tensor, n_inv: Tensor, var: Tensor, cov_full: Tensor | None,
+              w_b: Tensor, w_d: Tensor, slope_normal: Tensor, gamma_dot_m: Tensor
+              ) -> tuple[Tensor, Tensor | None]:
+    """The tied estimate's variance ``(..., M, 3, d²)`` (and, given ``cov_full``, its
+    covariance) under the joint covariance ``Σ = cov_b_dA`` of ``b̂`` and the direct
+    estimate: ``N⁻¹ (HᵀWΣWH + the slope's part of N) N⁻¹`` with ``W`` the independent
+    weights; ``var`` and ``cov_full`` (``N⁻¹``'s) kept where ``Σ`` is not finite."""
+    w_ind = torch.cat([w_b, w_d.flatten(-2)], -1)  # (..., M, 3, c)
+    cov = _coarse(cov_b_dA)
+    finite = torch.isfinite(cov).all(-1).all(-1)
+    cov = torch.where(finite[..., None, None], cov, 0.0)
+    # as matrix products: the elementwise sums materialised (..., c, c, d²) and
+    # (..., d², d², d²) tensors, 0.5 GB per trial on the 9-link (d = 8); only the bands
+    # depend on it, and they round with the batch anyway (the solver's row sums)
+    g = w_ind.unsqueeze(-1) * _tie_design(gamma_dot_m).unsqueeze(-3)  # WH (..., c, d²)
+    meat = g.mT @ (cov @ g) + slope_normal  # (..., M, 3, d², d²)
+    var = torch.where(finite.unsqueeze(-1), ((n_inv @ meat) * n_inv).sum(-1), var)
+    if cov_full is not None:
+        cov_full = torch.where(finite[..., None, None], n_inv @ meat @ n_inv, n_inv)
+    return var, cov_full
+
+
+def _birge_ratio(fitted: Tensor, direct: tuple[Tensor, Tensor], b: tuple[Tensor, Tensor],
+                 slope: tuple[Tensor, Tensor], gamma_dot_m: Tensor, tangent: Tensor
+                 ) -> Tensor:
+    """``χ²/dof`` ``(...)`` of the three sources (each ``(weight, value)``) about the tied
+    solution ``fitted (..., M, 3, d, d)``, summed over each batch element's bins and rows
+    (1 where there is no redundant equation)."""
+    (w_d, direct), (w_b, b), (w_s, slope) = direct, b, slope
+    d = fitted.shape[-1]
+    velocity, along = gamma_dot_m.unsqueeze(-2), tangent.unsqueeze(-2)
+    res_b = b - (fitted * velocity.unsqueeze(-1)).sum(-2)
+    chi2 = ((w_d * (direct - fitted).square()).flatten(-2).sum(-1)
+            + (w_b * res_b.square()).sum(-1))
+    chi2 = chi2 + (w_s * (slope - (fitted * along.unsqueeze(-2)).sum(-1)).square()).sum(-1)
+    n_obs = (w_d > 0).flatten(-2).sum(-1) + (w_b > 0).sum(-1) + (w_s > 0).sum(-1)
+    dof = (n_obs - d * d).clamp_min(0).sum((-2, -1))
+    return torch.where(dof > 0, chi2.sum((-2, -1)) / dof.clamp_min(1), 1.0)
+
+
+def _correlation_of(cov: Tensor, good: Tensor) -> Tensor:
+    """The correlation ``(..., d², d²)`` of covariance ``cov``; the identity where ``good
+    (..., 1)`` is false or an entry's variance is not positive (the consistency ratio scales
+    the covariance, not its correlation)."""
+    n = cov.shape[-1]
+    sd = torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    ok = good.unsqueeze(-1) & (sd > 0).unsqueeze(-1) & (sd > 0).unsqueeze(-2)
+    return torch.where(ok, cov / (sd.unsqueeze(-1) * sd.unsqueeze(-2)).clamp_min(1e-300),
+                       torch.eye(n, dtype=cov.dtype, device=cov.device))

@@ -5,12 +5,11 @@ velocity around the cycle (eq. ``advancedregression``, :func:`connection_regress
 interpolates the per-bin estimates by Fourier series in phase into a
 :class:`~torchconn.regression.model.LocalConnectionModel`; the metric is a stage of its own
 (:mod:`torchconn.regression.metric`). Other regression methods derive from
-:class:`Regression` and slot into ``ConnectionEstimator(regression=…)``.
+:class:`~torchconn.regression.base.Regression` and slot into ``ConnectionEstimator(regression=…)``.
 """
 
 from __future__ import annotations
 
-import abc
 import math
 from dataclasses import asdict, dataclass
 from typing import Literal
@@ -18,38 +17,18 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .._options import Options, option
+from .._options import option
 from ..cycles import whole_cycle_phase
 from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.limit_cycle import LimitCycle
 from ..phase.phaser import held_out_order
 from ..trajectory import Trajectory, pool_batch
+from .base import Regression, check_bin_count
 from .binning import assign_bins, auto_window
 from .connection import connection_regression
 from .model import BinEstimates, LocalConnectionModel
 
-__all__ = ["Regression", "TubeRegression", "check_bin_count"]
-
-
-def check_bin_count(n_bins: int, n_samples: int, where: str) -> None:
-    """Refuse more phase bins than the recording's ``n_samples`` samples (``ValueError``
-    naming ``where``): every bin needs samples of its own, and the bins' series grow as
-    ``n_bins²``."""
-    if n_bins > n_samples:
-        raise ValueError(
-            f"{where}: n_bins = {n_bins} is more than the {n_samples} samples of the recording: "
-            "every phase bin needs samples of its own; use fewer bins (regression__n_bins; "
-            "torchconn-fit --n-bins, estimator.regression.n_bins)")
-
-
-class Regression(Options, abc.ABC):
-    """Base of the estimator's regression stage: ``fit(traj, cycle, pool=...) -> model``."""
-
-    @abc.abstractmethod
-    def fit(self, traj: Trajectory, cycle: LimitCycle, *, pool: bool = False
-            ) -> LocalConnectionModel:
-        """The local model of a prepared trajectory (``smoothed`` and ``phase`` set) around
-        ``cycle``: batch dims ``...`` of ``traj``, or none when ``pool``."""
+__all__ = ["TubeRegression"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -67,8 +46,7 @@ class TubeRegression(Regression):
             recording's phase-averaged body velocity has harmonics above it that hold up on
             held-out blocks of whole cycles (:func:`~torchconn.phase.held_out_order`, at most
             (M−1)/2, per batch element; ``model.meta["intercept_order"]``); an integer fixes
-            it; None: ``fourier_order``. Measured on the 9-link reference gait at 0.25η: the
-            intercept truncated at order 12 doubled the model's error (README, "Accuracy").
+            it; None: ``fourier_order``.
         window: half-width of a bin's phase window in units of the bin spacing (0.5: each
             sample in exactly one bin; larger: overlapping windows, more samples per bin).
             None (default) sizes it from the data: wide enough that a window holds about
@@ -80,14 +58,11 @@ class TubeRegression(Regression):
         ridge: Tikhonov penalty on the scaled regressors (0: ordinary least squares).
         ridge_connection: the ridge (given, added for ill-conditioned bins, or chosen by
             :func:`~torchconn.regression.skill.select_complexity`) also penalises ``A``'s
-            columns (default, the previous behaviour); False: only those of ``b`` and
-            ``∂A/∂r`` (:func:`~torchconn.regression.connection.unpenalised_columns`). Chosen
-            by held-out prediction, a ridge on ``A`` shrank it at video rates (one trial,
-            32 samples per cycle, ω = 0.005: Â 79 % off at scale 0.23; False: 12.8 %); False
-            is better for ``Â`` wherever the complexity is chosen (README "The ridge and Â")
-            but predicts v_x on the later cycles of short recordings worse (losses to the
-            phase average 6 -> 18 of 360 components), so it is not the default.
-            :class:`~torchconn.regression.estimator.ConnectionEstimator` chooses and fits its
+            columns (default); False: only those of ``b`` and ``∂A/∂r``
+            (:func:`~torchconn.regression.connection.unpenalised_columns`): a ridge on ``A``
+            shrinks ``Â`` towards 0, while one on ``b`` and ``∂A/∂r`` alone can forecast the
+            body velocity worse. :class:`~torchconn.regression.estimator.ConnectionEstimator`
+            chooses and fits its
             connection (``model_``) with False wherever the ridge it chose would penalise
             ``A``, and keeps the penalised fit for its forecasts (``forecast_model_``).
         on_ill_conditioned: what to do with bins with too few samples or a rank-deficient

@@ -113,7 +113,7 @@ class TiedMetric(MetricEstimator):
         fit = tied_metric_coefficients(offset, v, power, phase, **orders,
                                        noise_variance=noise_variance,
                                        held_out_order=self.held_out_order,
-                                       order_bias="posterior", offset_bias=offset_bias,
+                                       order_bias=True, offset_bias=offset_bias,
                                        min_samples_per_coef=MIN_SAMPLES_PER_COEF)
         return FittedMetric(fit, omega2.sqrt().tolist())
 

@@ -76,15 +76,13 @@ class MetricFit:
             ``order_bias`` only): the change of ``M̂`` at two more harmonics of ``M(φ)``.
         se_bias_M: ``(..., M, d, d)`` that change's own standard error (its sampling noise,
             from the two fits' joint cluster-robust covariance; ``order_bias`` only). Where it
-            is as large as ``bias_M`` the change does not resolve the bias; with
-            ``order_bias="posterior"`` its variance is in ``se_M`` (with ``"dropped"`` only
-            where the held-out order is below the order given).
+            is as large as ``bias_M`` the change does not resolve the bias; its variance is
+            in ``se_M``.
         change_factor_M: ``(..., M, d, d, R)`` a factor of the part of the covariance of
             ``M̂`` that is that change's sampling covariance, across entries *and* phases
             (``Σ_r F[..., r] ⊗ F[..., r]``; its diagonal is the change's variance in ``se_M``):
-            with ``order_bias="posterior"`` (``"dropped"``: zero where nothing was dropped);
-            None otherwise. ``R`` is at most the number of cycles; directions whose variance
-            is below ``1e-14`` of the largest are left out.
+            with ``order_bias``; None otherwise. ``R`` is at most the number of cycles;
+            directions whose variance is below ``1e-14`` of the largest are left out.
         sampling_factor_M: ``(..., M, d, d, R)`` a factor of ``M̂``'s own sampling covariance
             (the cluster-robust sandwich's, before any bias allowance) across entries *and*
             phases, from each cycle's share of the error (``TiedMetricCoefficients.influence``)
@@ -137,9 +135,6 @@ _ORDER_FOLDS = 5
 #: (``order_bias``): the change of ``M̂`` from order ``K`` to ``K + 2`` is taken as ``M̂``'s bias
 #: (the higher harmonics' leakage into the off-cycle directions).
 _BIAS_ORDER_STEP = 2
-#: ``order_bias`` values: none, the change's square, the change's square and its own variance
-#: everywhere, or that variance only where the held-out order dropped harmonics
-_ORDER_BIAS = (False, True, "posterior", "dropped")
 
 
 def tied_metric_n_coef(d: int, order: int, derivative_order: int | None,
@@ -185,7 +180,7 @@ def tied_metric_regression(
     second_order: SecondOrder = None,
     noise_variance: Tensor | None = None,
     held_out_order: bool = False,
-    order_bias: bool | Literal["posterior", "dropped"] = False,
+    order_bias: bool = False,
     min_samples_per_coef: float = 3.0,
     max_condition: float | None = None,
 ) -> MetricFit:
@@ -247,18 +242,12 @@ def tied_metric_regression(
             ``order``); False: ``order``.
         order_bias: widen the bands by the model's bias, estimated as the change of ``M̂`` when
             ``M(φ)`` gets two more harmonics (one more fit, at each element's order + 2): its
-            outer product is added to the covariance of ``M̂`` (``MetricFit.bias_M``; the
-            estimates are unchanged). Without it, on clean data the bands see only the
-            residuals' scatter, not the leakage of the truncated harmonics. Where that fit
-            fails (too few samples), a warning and no widening.
-            ``"posterior"``: the change's own sampling covariance is added as well (the mean
-            squared bias given the change, under a flat prior on the bias), for where the
-            change is as noisy as the bias it estimates: where the held-out order drops
-            harmonics under noise, the change is taken on the harmonics the choice found
-            indistinguishable from noise, and comes out small when the noise cancelled them.
-            ``"dropped"``: that variance added only to the batch elements whose held-out order
-            is below ``order`` (the selection effect), the change's square alone elsewhere.
-            The estimator uses ``"posterior"``.
+            outer product and its own sampling covariance (the mean squared bias given the
+            change, under a flat prior on the bias) are added to the covariance of ``M̂``
+            (``MetricFit.bias_M``, ``se_bias_M``; the estimates are unchanged). Without it,
+            on clean data the bands see only the residuals' scatter, not the leakage of the
+            truncated harmonics. Where that fit fails (too few samples), a warning and no
+            widening. Default False; the estimator's metric stage uses True.
         min_samples_per_coef: fewest valid samples per coefficient.
         max_condition: largest condition number of the equilibrated normal matrix (default
             1e12 in float64).
@@ -304,7 +293,7 @@ def tied_metric_coefficients(
     second_order: SecondOrder = None,
     noise_variance: Tensor | None = None,
     held_out_order: bool = False,
-    order_bias: bool | Literal["posterior", "dropped"] = False,
+    order_bias: bool = False,
     offset_bias: SecondOrder = None,
     min_samples_per_coef: float = 3.0,
     max_condition: float | None = None,
@@ -326,9 +315,9 @@ def tied_metric_coefficients(
         if value not in _SECOND_ORDERS:
             raise ValueError(f"tied_metric_regression: {name} must be one of "
                              f"{_SECOND_ORDERS}, got {value!r}")
-    if not (isinstance(order_bias, bool) or order_bias in _ORDER_BIAS):
-        raise ValueError(f"tied_metric_regression: order_bias must be one of {_ORDER_BIAS}, "
-                         f"got {order_bias!r}")
+    if not isinstance(order_bias, bool):
+        raise TypeError(f"tied_metric_regression: order_bias must be True or False, "
+                        f"got {order_bias!r}")
     opts = dict(derivative_order=derivative_order, second_order=second_order,
                 noise_variance=noise_variance,
                 min_samples_per_coef=min_samples_per_coef, max_condition=max_condition)
@@ -364,7 +353,7 @@ def tied_metric_coefficients(
               - m_series(fit.influence, fit.max_order))  # (..., C, W q)
     change = m_series(richer.coef, richer.max_order) - m_series(fit.coef, fit.max_order)
     return replace(fit, order_change=change.unflatten(-1, (wide, q)),
-                   order_change_spread=spread, order_bias=order_bias)
+                   order_change_spread=spread)
 
 
 def _with_offset_change(fit: TiedMetricCoefficients, offset: Tensor, velocity: Tensor,
@@ -432,6 +421,115 @@ def _tied_fit(
     int64 orders of ``M(φ)`` per batch element (at most ``order``, the layout's) instead of
     ``order`` or the held-out choice."""
     fn = "tied_metric_regression"
+    s = _tied_samples(offset, velocity, power, phase, order, derivative_order, second_order,
+                      noise_variance, min_samples_per_coef, fn)
+    if max_condition is None:
+        max_condition = 1e12 if s.dtype == torch.float64 else 1e-2 / torch.finfo(s.dtype).eps
+    # whole cycles of phase: the clusters of the standard errors and the held-out blocks
+    # (cycles start at the multiples of 2π; a missing row is in cycle 0 and block 0)
+    valid_ph = torch.where(s.valid, s.ph, torch.nan)
+    cyc = cycle_index(valid_ph, False, origin="grid", missing="first")
+    n_c = int(cyc.max()) + 1 if cyc.numel() else 1
+    folds = _ORDER_FOLDS if held_out_order else 1
+    fold = cycle_blocks(valid_ph, folds, origin="grid").clamp_min(0)
+    gram, corr_g, rhs, corr_h = _block_normal_equations(s, fold, folds)
+    diag = gram.sum(-3).diagonal(dim1=-2, dim2=-1)
+    inv = torch.where(diag <= 0, 1.0, diag.rsqrt())
+    chosen = torch.full(s.batch, order, dtype=torch.int64, device=s.device)
+    if orders is not None:
+        chosen = orders.to(chosen).expand(s.batch)
+    elif held_out_order:
+        n_fold = torch.stack([(s.valid & (fold == b)).sum(-1) for b in range(folds)], -1)
+        chosen = held_out_orders(gram, corr_g, rhs, corr_h, inv, order, s.q, n_fold)
+    # the harmonics above each element's order are dropped (zero coefficients): the fit is
+    # solved at the size of the batch's largest chosen order (``cols``), and the elements with
+    # a lower one keep their dropped columns as identity rows
+    top = int(chosen.max()) if chosen.numel() else order
+    cols = order_columns(s.p, s.q, top, order, s.device)  # (P',)
+    feature = torch.arange(s.p, device=s.device)[cols] // s.q
+    drop = (feature >= 2 * chosen[..., None] + 1) & (feature < 2 * order + 1)  # (..., P')
+    keep = (~drop).to(s.dtype)
+    both = keep.unsqueeze(-1) * keep.unsqueeze(-2)
+    gram, corr_g = principal(gram.sum(-3), cols) * both, principal(corr_g.sum(-3), cols) * both
+    rhs, corr_h = rhs.sum(-2)[..., cols] * keep, corr_h.sum(-2)[..., cols] * keep
+    inv = inv[..., cols]
+    normal, chol, condition = _checked_normal(s, gram, corr_g, inv, drop, max_condition, fn)
+    applied = normal.applied
+    h = rhs * inv - normal.correction_share(corr_h * inv)
+    beta_r = torch.cholesky_solve(h.unsqueeze(-1), chol)[..., 0] * inv  # (..., P')
+    beta = beta_r.new_zeros(s.batch + (s.p,)).index_copy_(-1, cols, beta_r)
+    if bool((applied < 1).any()):
+        warnings.warn(
+            f"{fn}: in some directions of the metric's coefficients the noise swamps the "
+            "off-cycle excitation (signal fraction of the corrected normal matrix below "
+            f"{float(signal_floor(s.p, s.n_valid).max()):.2g}); the noise correction there "
+            f"was limited to {float(applied.min()):.2g} of its size, so M̂'s weakly excited "
+            "directions are biased towards smaller values", _wls.IllConditionedBinWarning,
+            stacklevel=2)
+    cov, influence, residual = _cluster_sandwich(s, cols, keep, beta_r, chol, inv, cyc, n_c)
+    return TiedMetricCoefficients(
+        coef=beta, cov=cov, order=chosen, condition=condition, noise_correction=applied,
+        max_order=order, derivative_order=derivative_order, second_order=second_order,
+        n_joints=s.d, phase=s.ph, weight=s.w, residual=residual, influence=influence)
+
+
+@dataclass(frozen=True)
+class _TiedSamples:
+    """The checked samples of a tied fit (NaN samples zeroed, weight 0): offsets ``delta``
+    and velocities ``v`` ``(..., N, d)``, power ``y`` and phase ``ph`` ``(..., N)``, which
+    are ``valid`` (bool) and their weight ``w``, ``n_valid (...)``, the velocity noise's
+    variance ``sig (..., d)`` and the model's layout (``p`` coefficients, ``q = d(d+1)/2``)."""
+
+    delta: Tensor
+    v: Tensor
+    y: Tensor
+    ph: Tensor
+    valid: Tensor
+    w: Tensor
+    n_valid: Tensor
+    sig: Tensor
+    order: int
+    derivative_order: int | None
+    second_order: SecondOrder
+    p: int
+
+    @property
+    def batch(self) -> tuple:
+        return tuple(self.delta.shape[:-2])
+
+    @property
+    def d(self) -> int:
+        return self.delta.shape[-1]
+
+    @property
+    def q(self) -> int:
+        return self.d * (self.d + 1) // 2
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.delta.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.delta.device
+
+    def features(self, rows: slice) -> Tensor:
+        """The model's features ``(..., n, g)`` of rows ``rows`` (:func:`_features`)."""
+        return _features(self.ph[..., rows], self.delta[..., rows, :], self.order,
+                         self.derivative_order, self.second_order)
+
+    def quad_indices(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``iu, ju`` (:func:`torch.triu_indices`) and whether each pair is on the diagonal."""
+        iu, ju = torch.triu_indices(self.d, self.d, device=self.device)
+        return iu, ju, (iu == ju).to(self.dtype)
+
+
+def _tied_samples(offset: Tensor, velocity: Tensor, power: Tensor, phase: Tensor, order: int,
+                  derivative_order: int | None, second_order: SecondOrder,
+                  noise_variance: Tensor | None, min_samples_per_coef: float, fn: str
+                  ) -> _TiedSamples:
+    """The samples checked (shapes, orders, ``noise_variance``, enough usable samples for
+    the coefficients: else a ValueError naming the input) as :class:`_TiedSamples`."""
     delta = _wls._check_samples(offset, "offset", None, None, fn)
     batch_n, d = tuple(delta.shape[:-1]), delta.shape[-1]
     v = _wls._check_samples(velocity, "velocity", batch_n, d, fn).to(delta)
@@ -442,9 +540,6 @@ def _tied_fit(
         if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 0):
             raise ValueError(f"{fn}: {name} must be a non-negative int, got {k!r}")
     dtype, dev = delta.dtype, delta.device
-    if max_condition is None:
-        max_condition = 1e12 if dtype == torch.float64 else 1e-2 / torch.finfo(dtype).eps
-    q = d * (d + 1) // 2
     p = tied_metric_n_coef(d, order, derivative_order, second_order)
     sig = delta.new_zeros(batch + (d,))
     if noise_variance is not None:
@@ -458,7 +553,6 @@ def _tied_fit(
             raise ValueError(f"{fn}: noise_variance must be finite and >= 0")
 
     valid = ~(delta.isnan().any(-1) | v.isnan().any(-1) | y.isnan() | ph.isnan())
-    w = valid.to(dtype)
     n_valid = valid.sum(-1)
     fewest = int(n_valid.min()) if n_valid.numel() else 0
     if fewest < min_samples_per_coef * p:
@@ -473,95 +567,76 @@ def _tied_fit(
             "no) fits the connection alone from this recording"
         )
     zero = delta.new_zeros(())
-    delta = torch.where(valid.unsqueeze(-1), delta, zero)
-    v = torch.where(valid.unsqueeze(-1), v, zero)
-    y = torch.where(valid, y, zero)
-    ph = torch.where(valid, ph, zero)
-    iu, ju = torch.triu_indices(d, d, device=dev)
-    on_diag = (iu == ju).to(dtype)
+    return _TiedSamples(
+        delta=torch.where(valid.unsqueeze(-1), delta, zero),
+        v=torch.where(valid.unsqueeze(-1), v, zero), y=torch.where(valid, y, zero),
+        ph=torch.where(valid, ph, zero), valid=valid, w=valid.to(dtype), n_valid=n_valid,
+        sig=sig, order=order, derivative_order=derivative_order, second_order=second_order,
+        p=p)
 
-    def features(rows: slice) -> Tensor:  # (..., n, g)
-        return _features(ph[..., rows], delta[..., rows, :], order, derivative_order,
-                         second_order)
 
-    # whole cycles of phase: the clusters of the standard errors and the held-out blocks
-    # (cycles start at the multiples of 2π; a missing row is in cycle 0 and block 0)
-    valid_ph = torch.where(valid, ph, torch.nan)
-    cyc = cycle_index(valid_ph, False, origin="grid", missing="first")
-    n_c = int(cyc.max()) + 1 if cyc.numel() else 1
-    folds = _ORDER_FOLDS if held_out_order else 1
-    fold = cycle_blocks(valid_ph, folds, origin="grid").clamp_min(0)
 
-    # normal equations and the noise's contributions per block of cycles, over row chunks
-    n = ph.shape[-1]
-    g_n = p // q
-    gram = delta.new_zeros(batch + (folds, p, p))
-    rhs = delta.new_zeros(batch + (folds, p))
-    s2 = delta.new_zeros(batch + (folds, g_n, g_n * d * d))
-    s0 = delta.new_zeros(batch + (folds, g_n, g_n))
-    fy = delta.new_zeros(batch + (folds, g_n))
+
+def _block_normal_equations(s: _TiedSamples, fold: Tensor, folds: int
+                            ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The normal matrix ``(..., B, P, P)``, the noise's contribution to it, the right-hand
+    side ``(..., B, P)`` and the noise's contribution to that, per block ``fold (..., N)`` of
+    ``folds`` blocks of cycles, summed over row chunks."""
+    n, g_n, d = s.ph.shape[-1], s.p // s.q, s.d
+    iu, ju, on_diag = s.quad_indices()
+    gram = s.delta.new_zeros(s.batch + (folds, s.p, s.p))
+    rhs = s.delta.new_zeros(s.batch + (folds, s.p))
+    s2 = s.delta.new_zeros(s.batch + (folds, g_n, g_n * d * d))
+    s0 = s.delta.new_zeros(s.batch + (folds, g_n, g_n))
+    fy = s.delta.new_zeros(s.batch + (folds, g_n))
     for start in range(0, n, _ROW_CHUNK):
         rows = slice(start, min(start + _ROW_CHUNK, n))
-        f = features(rows) * w[..., rows, None]  # zero rows for missing samples
-        vr = v[..., rows, :]
+        f = s.features(rows) * s.w[..., rows, None]  # zero rows for missing samples
+        vr = s.v[..., rows, :]
         quad = vr[..., iu] * vr[..., ju]
         x = (f.unsqueeze(-1) * quad.unsqueeze(-2)).flatten(-2)
         vv = (vr.unsqueeze(-1) * vr.unsqueeze(-2)).flatten(-2)
         fvv = (f.unsqueeze(-1) * vv.unsqueeze(-2)).flatten(-2)
         for b in range(folds):
-            sel = (fold[..., rows, None] == b).to(dtype) if folds > 1 else 1.0
+            sel = (fold[..., rows, None] == b).to(s.dtype) if folds > 1 else 1.0
             if folds > 1 and not bool(sel.any()):
                 continue  # the block has no rows here: its products would be exact zeros
             xb, fb = x * sel, f * sel
             gram[..., b, :, :] += xb.mT @ x
-            rhs[..., b, :] += (xb * y[..., rows, None]).sum(-2)
+            rhs[..., b, :] += (xb * s.y[..., rows, None]).sum(-2)
             s2[..., b, :, :] += fb.mT @ fvv
             s0[..., b, :, :] += fb.mT @ f
-            fy[..., b, :] += (fb * y[..., rows, None]).sum(-2)
-    corr_g, corr_h = noise_terms(s2.unflatten(-1, (g_n, d, d)), s0, fy, sig.unsqueeze(-2), iu,
-                                  ju, on_diag)  # per block
-    diag = gram.sum(-3).diagonal(dim1=-2, dim2=-1)
-    inv = torch.where(diag <= 0, 1.0, diag.rsqrt())
-    chosen = torch.full(batch, order, dtype=torch.int64, device=dev)
-    if orders is not None:
-        chosen = orders.to(chosen).expand(batch)
-    elif held_out_order:
-        n_fold = torch.stack([(valid & (fold == b)).sum(-1) for b in range(folds)], -1)
-        chosen = held_out_orders(gram, corr_g, rhs, corr_h, inv, order, q, n_fold)
-    # the harmonics above each element's order are dropped (zero coefficients): the fit is
-    # solved at the size of the batch's largest chosen order (``cols``), and the elements with
-    # a lower one keep their dropped columns as identity rows
-    top = int(chosen.max()) if chosen.numel() else order
-    cols = order_columns(p, q, top, order, dev)  # (P',)
-    p_r = cols.numel()
-    feature = torch.arange(p, device=dev)[cols] // q
-    drop = (feature >= 2 * chosen[..., None] + 1) & (feature < 2 * order + 1)  # (..., P')
-    keep = (~drop).to(dtype)
-    both = keep.unsqueeze(-1) * keep.unsqueeze(-2)
-    gram, corr_g = principal(gram.sum(-3), cols) * both, principal(corr_g.sum(-3), cols) * both
-    rhs, corr_h = rhs.sum(-2)[..., cols] * keep, corr_h.sum(-2)[..., cols] * keep
-    inv = inv[..., cols]
+            fy[..., b, :] += (fb * s.y[..., rows, None]).sum(-2)
+    corr_g, corr_h = noise_terms(s2.unflatten(-1, (g_n, d, d)), s0, fy, s.sig.unsqueeze(-2),
+                                  iu, ju, on_diag)  # per block
+    return gram, corr_g, rhs, corr_h
 
+
+def _checked_normal(s: _TiedSamples, gram: Tensor, corr_g: Tensor, inv: Tensor, drop: Tensor,
+                    max_condition: float, fn: str) -> tuple[CorrectedNormal, Tensor, Tensor]:
+    """The equilibrated, noise-corrected normal matrix of the kept columns (scales ``inv
+    (..., P')``; ``drop`` the columns left out per element), its Cholesky factor and its
+    condition number ``(...)``; a ValueError where that exceeds ``max_condition`` (the data do not identify
+    the metric)."""
+    p_r = gram.shape[-1]
     dead = gram.diagonal(dim1=-2, dim2=-1) <= 0
-    eye = torch.eye(p_r, dtype=dtype, device=dev)
     scale = inv.unsqueeze(-1) * inv.unsqueeze(-2)
-    floor = signal_floor(p, n_valid)
-    normal = CorrectedNormal.of(gram * scale + torch.diag_embed(dead.to(dtype)),
-                                 corr_g * scale, floor)
-    chol, applied, ok = normal.cholesky(), normal.applied, normal.ok
+    normal = CorrectedNormal.of(gram * scale + torch.diag_embed(dead.to(s.dtype)),
+                                 corr_g * scale, signal_floor(s.p, s.n_valid))
+    chol, ok = normal.cholesky(), normal.ok
     ev = _linalg.eigvalsh(chol @ chol.mT, "the metric's normal matrix")
     lo, hi = ev[..., 0], ev[..., -1]
-    if p_r < p:  # the left-out columns' identity rows, as in the layout of ``order``
+    if p_r < s.p:  # the left-out columns' identity rows, as in the layout of ``order``
         lo, hi = lo.clamp(max=1.0), hi.clamp(min=1.0)
     condition = torch.where(~ok | (dead & ~drop).any(-1) | (lo <= 0), torch.inf,
-                            hi / lo.clamp(min=torch.finfo(dtype).tiny))
+                            hi / lo.clamp(min=torch.finfo(s.dtype).tiny))
     bad = ~(condition <= max_condition)
     if bool(bad.any()):
-        where = [tuple(i) for i in torch.nonzero(bad).tolist()][:5] if batch else []
+        where = [tuple(i) for i in torch.nonzero(bad).tolist()][:5] if s.batch else []
         raise ValueError(
             f"{fn}: the data do not identify the metric"
             + (f" (batch elements {where})" if where else "")
-            + f": the normal matrix of its P = {p} coefficients has condition number "
+            + f": the normal matrix of its P = {s.p} coefficients has condition number "
               f"{float(condition.max()):.3g} > {max_condition:.3g}. The shape velocity must vary "
               "in every direction of shape space at every phase (noise on the gait over many "
               "cycles); a gait without noise, a joint held fixed or too few cycles leave M "
@@ -569,48 +644,45 @@ def _tied_fit(
               "(derivative_order=None), record more varied data, or fit the connection alone "
               "(metric__enabled=False; torchconn-fit: --metric no)"
         )
-    h = rhs * inv - normal.correction_share(corr_h * inv)
-    beta_r = torch.cholesky_solve(h.unsqueeze(-1), chol)[..., 0] * inv  # (..., P')
-    beta = beta_r.new_zeros(batch + (p,)).index_copy_(-1, cols, beta_r)
-    if bool((applied < 1).any()):
-        warnings.warn(
-            f"{fn}: in some directions of the metric's coefficients the noise swamps the "
-            "off-cycle excitation (signal fraction of the corrected normal matrix below "
-            f"{float(floor.max()):.2g}); the noise correction there was limited to "
-            f"{float(applied.min()):.2g} of its size, so M̂'s weakly excited directions are "
-            "biased towards smaller values", _wls.IllConditionedBinWarning, stacklevel=2)
+    return normal, chol, condition
 
-    # cluster-robust sandwich over whole cycles, on the corrected regressors
-    sums = delta.new_zeros(batch + (n_c, p_r))
+
+def _cluster_sandwich(s: _TiedSamples, cols: Tensor, keep: Tensor, beta_r: Tensor,
+                      chol: Tensor, inv: Tensor, cyc: Tensor, n_c: int
+                      ) -> tuple[Tensor, Tensor, Tensor]:
+    """The coefficients' cluster-robust covariance over whole cycles ``(..., P, P)`` (on the
+    corrected regressors), each cycle's share of their error ``(..., C, P)`` (``cov =
+    influenceᵀ influence``) and the samples' weighted power residuals ``(..., N)``, for the
+    solution ``beta_r (..., P')`` of the columns ``cols``."""
+    n, q, p_r = s.ph.shape[-1], s.q, cols.numel()
+    iu, ju, on_diag = s.quad_indices()
+    sums = s.delta.new_zeros(s.batch + (n_c, p_r))
     kept_features = cols[::q] // q  # the features of the columns solved for
     resids = []
     for start in range(0, n, _ROW_CHUNK):
         rows = slice(start, min(start + _ROW_CHUNK, n))
-        f = features(rows)[..., kept_features] * w[..., rows, None]
-        vr = v[..., rows, :]
-        quad = vr[..., iu] * vr[..., ju] - sig[..., None, iu] * on_diag
+        f = s.features(rows)[..., kept_features] * s.w[..., rows, None]
+        vr = s.v[..., rows, :]
+        quad = vr[..., iu] * vr[..., ju] - s.sig[..., None, iu] * on_diag
         x = (f.unsqueeze(-1) * quad.unsqueeze(-2)).flatten(-2)  # (..., n, P')
-        resid = (y[..., rows] - (x @ beta_r.unsqueeze(-1))[..., 0]) * w[..., rows]
+        resid = (s.y[..., rows] - (x @ beta_r.unsqueeze(-1))[..., 0]) * s.w[..., rows]
         sums.scatter_add_(-2, cyc[..., rows, None].expand(x.shape), x * resid.unsqueeze(-1))
         resids.append(resid)
     sums = sums * keep.unsqueeze(-2)
-    n_clusters = (sums.abs().sum(-1) > 0).sum(-1).to(dtype)
+    n_clusters = (sums.abs().sum(-1) > 0).sum(-1).to(s.dtype)
     meat = (sums.mT @ sums) * (n_clusters / (n_clusters - 1).clamp(min=1))[..., None, None]
+    eye = torch.eye(p_r, dtype=s.dtype, device=s.device)
     l_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
     g_inv = (l_inv.mT @ l_inv) * inv.unsqueeze(-1) * inv.unsqueeze(-2)
     cov_r = g_inv @ meat @ g_inv
-    cov = cov_r.new_zeros(batch + (p, p))
+    cov = cov_r.new_zeros(s.batch + (s.p, s.p))
     cov[..., cols[:, None], cols] = cov_r
     # each cycle's share of the coefficients' error: cov = influenceᵀ influence
     influence_r = (sums @ g_inv) * (n_clusters / (n_clusters - 1).clamp(min=1)).sqrt()[
         ..., None, None]
-    influence = influence_r.new_zeros(batch + (n_c, p)).index_copy_(-1, cols, influence_r)
-    return TiedMetricCoefficients(
-        coef=beta, cov=cov, order=chosen, condition=condition, noise_correction=applied,
-        max_order=order, derivative_order=derivative_order, second_order=second_order,
-        n_joints=d, phase=ph, weight=w,
-        residual=torch.cat(resids, -1) if resids else ph.new_zeros(ph.shape),
-        influence=influence)
+    influence = influence_r.new_zeros(s.batch + (n_c, s.p)).index_copy_(-1, cols, influence_r)
+    residual = torch.cat(resids, -1) if resids else s.ph.new_zeros(s.ph.shape)
+    return cov, influence, residual
 
 
 @dataclass(frozen=True)
@@ -635,7 +707,7 @@ class TiedMetricCoefficients:
             taken as its bias; None without the allowance. order_change_spread: ``(..., C, W
             q)`` (``W = 2(max_order+2)+1``) each cycle's share of that change's error, from the
             two fits' joint influence (``order_change_cov = spreadᵀ spread``, the change's own
-            sampling covariance). order_bias: the rule of the allowance (``order_bias``).
+            sampling covariance).
         offset_change: ``(..., 2·max_order+1, q)`` the change of ``M(φ)``'s series
             coefficients when the second-order offset term is fitted too (``offset_bias``),
             taken as the tube's second-order bias; None without it.
@@ -656,7 +728,6 @@ class TiedMetricCoefficients:
     influence: Tensor
     order_change: Tensor | None = None
     order_change_spread: Tensor | None = None
-    order_bias: bool | str = False
     offset_change: Tensor | None = None
 
     @property
@@ -713,14 +784,9 @@ def _tied_at(fit: TiedMetricCoefficients, phase_m: Tensor, gd: Tensor) -> Metric
             -1, (n_w, q)).unflatten(-3, (n_w, q)), wide)  # (..., M, q, q)
         se_bias_m = cov_change.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
         cov_m = cov_m + bias_m.unsqueeze(-1) * bias_m.unsqueeze(-2)
-        if fit.order_bias == "posterior":
-            cov_m = cov_m + cov_change
-            factor_m = _bin_factor(fit.order_change_spread, wide, d)
-        elif fit.order_bias == "dropped":  # where the choice fell below the order given
-            dropped = (chosen < order)[..., None, None, None]
-            cov_m = torch.where(dropped, cov_m + cov_change, cov_m)
-            factor_m = _bin_factor(fit.order_change_spread, wide, d)
-            factor_m = torch.where(dropped[..., None], factor_m, 0.0)
+        # and the change's own sampling covariance (the mean squared bias given the change)
+        cov_m = cov_m + cov_change
+        factor_m = _bin_factor(fit.order_change_spread, wide, d)
     se_m = cov_m.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
     d_m = se_d = None
     if derivative_order is not None:

@@ -574,10 +574,11 @@ class NoiseAwareRegression(TubeRegression):
         (``(d,)`` and scalars when ``pool``: the trials share one rig).
 
         ``gamma_m``: the limit cycle at the bin centres, ``(..., M, d)`` (``(M, d)`` when
-        ``pool``); with ``noise_floor="gait"`` the noise fit's process floor follows the
-        gait's harmonics (:func:`phase_noise_floor`); with either floor it correlates the
-        joints' estimates (their shared phase noise, :attr:`NoiseEstimate.correlation`) in
-        the test of their mean for noise. None: a flat floor, joints taken as independent.
+        ``pool``); with ``noise_floor="low_rate"`` the noise fit's process floor follows the
+        gait's harmonics where they reach the top band (:func:`phase_noise_floor`); with any
+        floor it correlates the joints' estimates (their shared phase noise,
+        :attr:`NoiseEstimate.correlation`) in the test of their mean for noise. None: a flat
+        floor, joints taken as independent.
 
         Unpooled, each batch element's are its own: its samples per cycle (which set the
         longest interval and place the gait's harmonics) come from its own phase rate and its
@@ -589,7 +590,7 @@ class NoiseAwareRegression(TubeRegression):
         cycle = cycle_series(gamma_m) if gamma_m is not None else None
         # (..., d), each element on its own; the cycle also correlates the joints' estimates
         # (their shared phase noise) for the joint test below, with either floor
-        # the normal projection needs the cycle; without one the floor is flat, as "gait"'s
+        # the normal projection needs the cycle; without one the floor is flat
         floor = "flat" if cycle is None and self.noise_floor == "normal" else self.noise_floor
         noise = estimate_noise(traj.r, band=band, cycle=cycle, floor=floor,
                                samples_per_cycle=None if cycle is None else per_trial,

@@ -23,9 +23,9 @@ from ...cycles import FALLBACK_CYCLES, cycle_blocks, cycle_index, few_cycles
 from ...phase.limit_cycle import LimitCycle
 from ...trajectory import Trajectory, pool_batch
 from .._wls import IllConditionedBinWarning
+from ..base import Regression
 from ..connection import split_coefficients
 from ..model import LocalConnectionModel
-from ..tube import Regression
 from .skill import (
     COMPONENTS,
     PoorHeldOutSkillWarning,

@@ -31,12 +31,13 @@ from ...phase.fourier import FourierSeries, fit_fourier, fourier_design
 from ...phase.limit_cycle import LimitCycle
 from ...trajectory import Trajectory, pool_batch
 from .. import _wls
+from ..base import Regression
 from ..binning import assign_bins, auto_window
 from ..connection import split_coefficients, unpenalised_columns
 from ..diagnostics import RegressionDiagnostics
 from ..model import LocalConnectionModel
 from ..noise_aware import NoiseAwareRegression, eiv_correction
-from ..tube import Regression, TubeRegression, intercept_series
+from ..tube import TubeRegression, intercept_series
 from .held_out import leave_blocks_out
 
 __all__ = ["Skill", "PoorHeldOutSkillWarning", "COMPONENTS", "RegressionView",
