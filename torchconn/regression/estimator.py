@@ -43,13 +43,15 @@ from ..io.preflight import MAX_GAP_CYCLES, preflight
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
-from ..trajectory import Trajectory, for_estimation, power_problem
+from ..cycles import cycle_blocks
+from ..trajectory import Trajectory, for_estimation, pool_batch, power_problem
 from . import selection
 from ._wls import IllConditionedBinWarning
 from .base import Regression, check_bin_count
 from .metric import FittedMetric, MetricEstimator, TiedMetric
 from .model import LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
+from .reference import PhysicsReference, default_frame, fit_reference
 from .tube import TubeRegression
 
 __all__ = [
@@ -142,7 +144,17 @@ class ConnectionEstimator:
       ``∂A/∂r`` are 0 there, ``A`` kept);
     - ``held_out_skill_``: the held-out :class:`~torchconn.regression.selection.Skill` of the
       check, of ``forecast_model_`` (None when ``held_out_folds=0`` or the regression is not
-      a built-in one).
+      a built-in one), each block of cycles left out in turn (interleaved blocks); beside
+      the phase average and the template, the physics reference (``r2_physics``, fitted
+      without each block) and zero (``r2_zero``);
+    - ``forward_skill_``: the same check on the last block of cycles alone, from the fit
+      without it (every training cycle earlier): a forward-in-time split (None likewise);
+    - ``reference_``: the physics reference
+      (:class:`~torchconn.regression.reference.PhysicsReference`: the viscous swimmer of
+      ``d + 1`` links in :func:`~torchconn.regression.reference.default_frame`, or in
+      ``trajectory.meta["frame"]`` where the recording names its frame) with its drag ratio
+      fitted to the whole recording as the regression sees it; fitted where the held-out
+      check runs, else on the first :meth:`score` (None until then).
 
     Example::
 
@@ -283,7 +295,7 @@ class ConnectionEstimator:
         given = _Given(self.regression, _with_metric(connection, metric))
         if given.model is not None:
             few = bool(selection.few_cycles(traj.phase, self.pool).any())
-            given.held, given.full = self._held_out(
+            given.held, given.forward, given.full = self._held_out(
                 traj, cycle, given.regression, given.model,
                 terms=self.complexity == "auto" and few)
         for candidate in (self._as_given, self._by_held_out, self._alone, self._unchecked):
@@ -300,7 +312,7 @@ class ConnectionEstimator:
                 (given.held.worse_than_phase_average | given.held.unscored[..., None]
                  | ~given.full).any()):
             return None  # the given complexity overfits this recording
-        return _Outcome(given.regression, given.model, given.held)
+        return _Outcome(given.regression, given.model, given.held, forward=given.forward)
 
     def _by_held_out(self, traj, cycle, metric, given: _Given) -> _Outcome | None:
         """Candidate 2: the complexity chosen by held-out error, fitted; None with ``"auto"``
@@ -313,8 +325,8 @@ class ConnectionEstimator:
             given.error = err
             return None
         model = _refit(chosen, given.regression, given.model, traj, cycle, self.pool, metric)
-        held = self._held_out(traj, cycle, chosen, model, choice)[0]
-        return _Outcome(chosen, model, held, choice, free)
+        held, forward, _ = self._held_out(traj, cycle, chosen, model, choice)
+        return _Outcome(chosen, model, held, choice, free, forward=forward)
 
     def _alone(self, traj, cycle, metric, given: _Given) -> _Outcome | None:
         """Candidate 3: the connection alone (``1 + d`` regressors per bin), which the check
@@ -326,7 +338,7 @@ class ConnectionEstimator:
         delivered = _connection_delivered(alone, given.model, given.regression, traj, cycle,
                                           self.pool, metric)
         return _Outcome(alone.regression, alone.model, alone.held_out, alone.choice,
-                        delivered=delivered)
+                        delivered=delivered, forward=alone.forward)
 
     def _unchecked(self, traj, cycle, metric, given: _Given) -> _Outcome:
         """Candidate 4: the given fit unchecked; on few cycles the simpler model is presumed
@@ -335,7 +347,8 @@ class ConnectionEstimator:
             raise given.error
         choice = selection.unchecked_choice(given.held, given.regression,
                                             selection.few_cycles(traj.phase, self.pool))
-        return _Outcome(given.regression, given.model, given.held, choice, searched=True)
+        return _Outcome(given.regression, given.model, given.held, choice, searched=True,
+                        forward=given.forward)
 
     def _deliver(self, traj: Trajectory, fitted_phaser: PhaseEstimator | None,
                  cycle: LimitCycle, outcome: _Outcome, metric) -> None:
@@ -359,7 +372,9 @@ class ConnectionEstimator:
             if unshrunk is None else _fit(unshrunk, traj, cycle, self.pool, metric)
         self.trajectory_, self.phaser_, self.limit_cycle_ = traj, fitted_phaser, cycle
         self.regression_, self.complexity_ = regression, choice
-        self.held_out_skill_ = outcome.held
+        self.held_out_skill_, self.forward_skill_, self.reference_ = outcome.held, None, None
+        if outcome.held is not None:
+            self._baselines(traj, view, outcome)
         self.forecast_model_ = _with_settings(forecast, estimator_settings(self, regression))
         self.model_ = self.forecast_model_
         if forecast is not connection:
@@ -369,6 +384,41 @@ class ConnectionEstimator:
         if outcome.held is not None:
             selection.warn_if_poor(outcome.held, stacklevel=4, choice=choice,
                                    searched=outcome.searched)
+
+    def _baselines(self, traj: Trajectory, view: "selection.RegressionView",
+                   outcome: _Outcome) -> None:
+        """The physics reference fitted to the whole recording (``reference_``) and without
+        each block of cycles, scored beside the held-out check's model (``r2_physics`` of
+        ``held_out_skill_`` and ``forward_skill_``); ``view``: the samples the outcome's
+        regression fitted (pooled as the fit)."""
+        unflat = selection.regression_view(traj, outcome.regression, outcome.model,
+                                           pool=self.pool, flatten=False)
+        fold = cycle_blocks(unflat.phase, self.held_out_folds)
+        fold = pool_batch(fold, 0) if self.pool else fold
+        frame = self._reference_frame(traj)
+        folds = self.held_out_folds
+        references = selection.fold_references(view, fold, folds, self.pool, frame=frame)
+        self.held_out_skill_ = selection.with_physics(outcome.held, view, fold, references)
+        if outcome.forward is not None:
+            self.forward_skill_ = selection.with_physics(outcome.forward, view, fold,
+                                                         references, (folds - 1,))
+        self.reference_ = fit_reference(view.r, view.r_dot, view.xi, frame=frame,
+                                        pool=self.pool)
+
+    @staticmethod
+    def _reference_frame(traj: Trajectory) -> str:
+        """The body frame of the recording's velocities: ``traj.meta["frame"]`` where it
+        says, else :func:`~torchconn.regression.reference.default_frame`."""
+        return (traj.meta or {}).get("frame") or default_frame(traj.shape_dim + 1)
+
+    def _reference(self) -> PhysicsReference:
+        """``reference_``, fitted to the training recording's view on first use."""
+        if getattr(self, "reference_", None) is None:
+            view = selection.regression_view(self.trajectory_, self.regression_,
+                                             self.forecast_model_, pool=self.pool)
+            self.reference_ = fit_reference(view.r, view.r_dot, view.xi, pool=self.pool,
+                                            frame=self._reference_frame(self.trajectory_))
+        return self.reference_
 
     def _fit_metric(self, traj: Trajectory, cycle: LimitCycle
                     ) -> tuple[MetricEstimator, FittedMetric] | None:
@@ -417,30 +467,33 @@ class ConnectionEstimator:
                 return None
 
     def _held_out(self, traj, cycle, regression, model, choice=None, terms=False
-                  ) -> tuple[selection.Skill | None, Tensor]:
+                  ) -> tuple[selection.Skill | None, selection.Skill | None, Tensor]:
         """The held-out check's skill (downdated fits; the components ``choice`` gave to the
-        phase average or the connection alone predicted so), or None when it is off; and
-        ``(..., 3)`` True where the full model is the one to keep (``terms``:
-        :func:`~torchconn.regression.selection.checked_terms`; else all True)."""
+        phase average or the connection alone predicted so) and its forward one (the last
+        block), or None, None when it is off; and ``(..., 3)`` True where the full model is
+        the one to keep (``terms``: :func:`~torchconn.regression.selection.checked_terms`;
+        else all True)."""
         every = torch.ones(3, dtype=torch.bool, device=model.device)
         if not self.held_out_folds or not selection.downdates(regression):
-            return None, every
+            return None, None, every
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedBinWarning)
             if terms and choice is None:
                 return selection.checked_terms(traj, cycle, regression, model, pool=self.pool,
                                            n_folds=self.held_out_folds)
             fallback, conn = _masks(choice, model.device)
-            return selection.cross_validate(traj, cycle, regression, pool=self.pool,
-                                        n_folds=self.held_out_folds, model=model,
-                                        phase_averaged=fallback, connection_only=conn), every
+            return (*selection.held_out_checks(
+                traj, cycle, regression, pool=self.pool, n_folds=self.held_out_folds,
+                model=model, phase_averaged=fallback, connection_only=conn), every)
 
     # ------------------------------------------------------------------ held-out skill
     def score(self, traj: Trajectory, phase: Tensor | None = None) -> selection.Skill:
         """Skill of ``forecast_model_`` on recordings ``traj`` the fit did not see, beside the
-        phase-averaged velocity of the training data and the template ``ĉ(φ) = Â(γ)γ̇`` of the
-        connection ``model_`` (:class:`~torchconn.regression.selection.Skill`; the forecasting
-        model's own ``ĉ`` is the phase average where a component falls back to it).
+        phase-averaged velocity of the training data, the template ``ĉ(φ) = Â(γ)γ̇`` of the
+        connection ``model_``, the physics reference fitted to the training data
+        (``reference_``) and zero (:class:`~torchconn.regression.selection.Skill`; the
+        forecasting model's own ``ĉ`` is the phase average where a component falls back to
+        it).
 
         The target is the observed velocity the way the regression sees it. ``traj`` is
         phased with the fitted phaser (same origin) unless ``phase`` is given.
@@ -448,17 +501,22 @@ class ConnectionEstimator:
         model = self._fitted()
         traj = self._prepare_new(traj, phase)
         view = selection.regression_view(traj, self.regression_, model, pool=self.pool)
-        return selection.skill.skill(model, self.phase_average_, view, template=self.model_)
+        return selection.skill.skill(model, self.phase_average_, view, template=self.model_,
+                                     reference=self._reference())
 
-    def cross_validate(self, n_folds: int = 3) -> selection.Skill:
+    def cross_validate(self, n_folds: int = 3, *, forward: bool = False) -> selection.Skill:
         """Held-out skill of ``forecast_model_``'s regression on the training recordings over
-        ``n_folds`` blocks of whole cycles (:func:`~torchconn.regression.selection.cross_validate`)."""
+        ``n_folds`` blocks of whole cycles (:func:`~torchconn.regression.selection.cross_validate`),
+        beside the physics reference fitted without each block and zero; ``forward``: the
+        last block alone, fitted on the earlier ones."""
         model = self._fitted()
         fallback, conn = _masks(self.complexity_, model.device)
         return selection.cross_validate(
             self.trajectory_, self.limit_cycle_, self.regression_, pool=self.pool,
             n_folds=n_folds, model=model, phase_averaged=fallback, connection_only=conn,
-            connection_regressed=getattr(self.complexity_, "connection_regressed", False))
+            connection_regressed=getattr(self.complexity_, "connection_regressed", False),
+            forward=forward, reference="swimmer",
+            frame=self._reference_frame(self.trajectory_))
 
     def check_held_out(self, n_folds: int = 3) -> selection.Skill:
         """:meth:`cross_validate`, warning (:class:`~torchconn.regression.selection.
@@ -548,6 +606,7 @@ class _Given:
     held: "selection.Skill | None" = None
     full: Tensor | None = None
     error: ValueError | None = None
+    forward: "selection.Skill | None" = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -555,8 +614,8 @@ class _Outcome:
     """A selection candidate's result: the regression fitted for the forecasts and its
     ``model``, the held-out skill, the complexity ``choice`` (None: as given), ``free`` the
     connection's regression where it differs (``Â`` unpenalised), ``delivered`` the
-    connection where it is not the forecasts' fit, and ``searched``: the search ran and no
-    candidate could be scored."""
+    connection where it is not the forecasts' fit, ``searched``: the search ran and no
+    candidate could be scored, and ``forward``: the held-out skill on the last block."""
 
     regression: Regression
     model: LocalConnectionModel
@@ -565,6 +624,7 @@ class _Outcome:
     free: Regression | None = None
     delivered: LocalConnectionModel | None = None
     searched: bool = False
+    forward: "selection.Skill | None" = None
 
 
 def _with_metric(model: LocalConnectionModel | None,

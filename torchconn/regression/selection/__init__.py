@@ -2,7 +2,8 @@
 
 - :mod:`~torchconn.regression.selection.skill` -- :class:`Skill`, the held-out ``R²`` of a
   fitted model against the phase-averaged velocity and the template, on contiguous blocks of
-  whole cycles (:func:`cross_validate`); :func:`regression_view`, the samples as a regression
+  whole cycles, interleaved or forward in time (:func:`cross_validate`), beside the physics
+  reference and zero; :func:`regression_view`, the samples as a regression
   sees them. (Its function :func:`~torchconn.regression.selection.skill.skill` is not
   re-exported here: ``selection.skill`` is the module.)
 - :mod:`~torchconn.regression.selection.complexity` -- :func:`select_complexity`, the bins,
@@ -42,16 +43,20 @@ from .skill import (
     Skill,
     cross_validate,
     downdates,
+    fold_references,
+    held_out_checks,
     phase_average,
     phase_average_orders,
     regression_view,
     with_phase_average,
+    with_physics,
 )
 
 __all__ = [
     "Skill", "PoorHeldOutSkillWarning", "COMPONENTS", "RegressionView", "regression_view",
     "phase_average", "phase_average_orders", "cross_validate", "downdates",
-    "with_phase_average", "leave_blocks_out",
+    "with_phase_average", "leave_blocks_out", "held_out_checks", "fold_references",
+    "with_physics",
     "ComplexityChoice", "ConnectionAlone", "COMPLEXITY_GRID", "RIDGE_GRID", "RIDGE_MIN_GAIN",
     "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
     "select_complexity", "select_complexities", "select_connection_alone",

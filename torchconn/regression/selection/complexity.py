@@ -247,17 +247,20 @@ def _warn_against_baseline(held: Skill, stacklevel: int, choice: ComplexityChoic
 
 def checked_terms(traj: Trajectory, cycle: LimitCycle, regression: Regression,
                   model: LocalConnectionModel, *, pool: bool, n_folds: int = 3
-                  ) -> tuple[Skill, Tensor]:
+                  ) -> tuple[Skill, Skill, Tensor]:
     """The held-out check of a fit at a given complexity, from one set of fold fits:
-    :func:`cross_validate`'s skill, and ``(..., 3)`` True where :func:`_choose_terms` keeps
-    the full model (False: the phase average or the connection alone predicts that
-    component better held out, and :func:`select_complexity` should choose)."""
+    :func:`cross_validate`'s skill, its forward one (the last block, ``forward=True``), and
+    ``(..., 3)`` True where :func:`_choose_terms` keeps the full model (False: the phase
+    average or the connection alone predicts that component better held out, and
+    :func:`select_complexity` should choose)."""
     reg, models, view, fold, cycles = fold_models(traj, cycle, regression, model, pool=pool,
                                                    n_folds=n_folds, refit=False)
     (held, gaps), (_, gaps_conn) = variant_scores(models, view, fold, reg, traj.dt, pool,
                                                    cycles, noise_corrected=False)
+    forward = score_folds(models, view, fold, reg, traj.dt, pool, False,
+                          folds=(n_folds - 1,))[0]
     fallback, conn = _choose_terms(gaps, gaps_conn, few_cycles(traj.phase, pool))
-    return held, ~(fallback | conn)
+    return held, forward, ~(fallback | conn)
 
 
 @dataclass(frozen=True)
@@ -275,6 +278,7 @@ class ConnectionAlone:
             ``δ`` and ``δ̇⊗δ`` 0).
         held_out: the held-out :class:`Skill` of the forecasts so chosen (each fold's
             connection alone, its phase-averaged components predicted by the phase average).
+        forward: the same on the last block alone, fitted on the earlier ones.
     """
 
     regression: Regression
@@ -282,6 +286,7 @@ class ConnectionAlone:
     model: LocalConnectionModel
     coef: Tensor
     held_out: Skill
+    forward: Skill | None = None
 
 
 def connection_alone_model(model: LocalConnectionModel, coef: Tensor, order: int
@@ -349,8 +354,9 @@ def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Reg
         raise ValueError("select_connection_alone: no candidate could be fitted on "
                          f"{n_folds - 1} of {n_folds} blocks of cycles ({failures[0]})")
     loss, base, model, models, view, flat_fold, fallback = best
-    held = score_folds(models, view, flat_fold, base, traj.dt, pool, False,
-                        phase_averaged=fallback)[0]
+    held, forward = (score_folds(models, view, flat_fold, base, traj.dt, pool, False,
+                                 phase_averaged=fallback, folds=folds)[0]
+                     for folds in (None, (n_folds - 1,)))
     # the whole recording, fitted as the folds were: every sample in block 1 of 2, and the
     # fit without block 0 (empty) taken
     unflat = regression_view(traj, base, model, pool=pool, flatten=False)
@@ -369,7 +375,7 @@ def select_connection_alone(traj: Trajectory, cycle: LimitCycle, regression: Reg
     return ConnectionAlone(regression.replace(n_bins=base.n_bins,
                                               fourier_order=base.fourier_order, ridge=0.0),
                            choice, connection_alone_model(model, coef, base.fourier_order), coef,
-                           held)
+                           held, forward)
 
 
 def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,

@@ -1,4 +1,4 @@
-"""Held-out skill of a fitted local model against two baselines.
+"""Held-out skill of a fitted local model against its baselines.
 
 The skill is ``R² = 1 − SSE/SST`` per body-velocity component against the observed velocity
 the way the regression sees it (:func:`regression_view`: raw interval differences for
@@ -7,7 +7,10 @@ the way the regression sees it (:func:`regression_view`: raw interval difference
 
 - the phase-averaged velocity of the training data (a Fourier series in phase of the observed
   velocity, ignoring the shape), and
-- the template ``ĉ(φ) = Â(γ)γ̇``, the model on the cycle.
+- the template ``ĉ(φ) = Â(γ)γ̇``, the model on the cycle;
+- the physics reference (:mod:`~torchconn.regression.reference`: the viscous N-link swimmer,
+  its drag ratio fitted to the training samples), where asked for;
+- zero body velocity.
 
 Held-out blocks are contiguous whole cycles of every trial (:mod:`torchconn.cycles`), so
 nothing is random and a choice made on them is reproducible. The fits without each block come
@@ -37,6 +40,7 @@ from ..connection import split_coefficients, unpenalised_columns
 from ..diagnostics import RegressionDiagnostics
 from ..model import LocalConnectionModel
 from ..noise_aware import NoiseAwareRegression, eiv_correction
+from ..reference import PhysicsReference, fit_reference
 from ..tube import TubeRegression, intercept_series
 from .held_out import leave_blocks_out
 
@@ -44,7 +48,8 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "COMPONENTS", "RegressionView",
            "regression_view", "phase_average", "phase_average_orders", "skill",
            "cross_validate", "with_phase_average", "downdates", "held_out_coefficients",
            "blended_held_out", "with_coefficients", "connection_columns", "fold_models",
-           "score_folds", "variant_scores"]
+           "score_folds", "variant_scores", "held_out_checks", "fold_references",
+           "with_physics"]
 
 #: the body-velocity components, in the order of the last axis of ξ
 COMPONENTS = ("v_x", "v_y", "omega")
@@ -56,19 +61,26 @@ class PoorHeldOutSkillWarning(UserWarning):
 
 @dataclass(frozen=True)
 class Skill:
-    """Skill ``R²`` per component ``(v_x, v_y, ω)`` of a model and of two baselines.
+    """Skill ``R²`` per component ``(v_x, v_y, ω)`` of a model and of its baselines.
 
     Attributes:
         r2: ``(..., 3)`` the fitted model ``ĉ + b̂δ + Âδ̇ + ∂Â/∂r (δ̇⊗δ)``.
         r2_phase_average: ``(..., 3)`` the training data's phase-averaged velocity.
         r2_template: ``(..., 3)`` the template ``ĉ(φ) = Â(γ)γ̇``.
         n_samples: ``(...)`` samples scored.
+        r2_physics: ``(..., 3)`` the physics reference
+            (:class:`~torchconn.regression.reference.PhysicsReference`) with its parameters
+            fitted to the training samples; None where it was not scored.
+        r2_zero: ``(..., 3)`` zero body velocity, ``1 − Σy²/SST`` (negative unless the scored
+            samples' mean is 0).
     """
 
     r2: Tensor
     r2_phase_average: Tensor
     r2_template: Tensor
     n_samples: Tensor
+    r2_physics: Tensor | None = None
+    r2_zero: Tensor | None = None
 
     @property
     def unscored(self) -> Tensor:
@@ -235,12 +247,17 @@ def phase_average_orders(view: RegressionView, max_order: int, pool: bool, n_fol
 
 
 def skill(model: LocalConnectionModel, baseline, view: RegressionView,
-          template: LocalConnectionModel | None = None) -> Skill:
+          template: LocalConnectionModel | None = None,
+          reference: PhysicsReference | None = None) -> Skill:
     """:class:`Skill` of ``model`` and ``baseline`` (a phase-averaged velocity) on ``view``;
     the template is ``ĉ`` of ``template`` (default ``model``): a forecasting model whose
     component falls back to the phase average has that for its ``ĉ`` there, so pass the
-    connection it came from."""
-    return _from_sums(*_sums(model, baseline, view, None, template=template)[0][:6])
+    connection it came from. ``reference``: a fitted physics reference scored beside them
+    (``r2_physics``; its batch dims the view's, or none)."""
+    out = _from_sums(*_sums(model, baseline, view, None, template=template)[0][:6])
+    if reference is None:
+        return out
+    return with_physics(out, view, torch.zeros_like(view.phase, dtype=torch.long), [reference])
 
 
 def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
@@ -248,7 +265,8 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
                    model: LocalConnectionModel | None = None, refit: bool = False,
                    phase_averaged: Tensor | None = None,
                    connection_only: Tensor | None = None,
-                   connection_regressed: bool = False) -> Skill:
+                   connection_regressed: bool = False, forward: bool = False,
+                   reference: str | None = None, frame: str | None = None) -> Skill:
     """Held-out skill over ``n_folds`` contiguous blocks of whole cycles of every trial.
 
     Each block in turn is left out of the regression and scored; the phase and the limit
@@ -280,21 +298,90 @@ def cross_validate(traj: Trajectory, cycle: LimitCycle, regression: Regression, 
     held-out error on noisy inputs favours models shrunk towards 0 (the attenuation the
     noise-aware regression removes).
 
+    ``forward``: score only the last block, from the fit without it (every cycle it was fitted
+    on comes earlier): a forward-in-time split, beside the phase average of the earlier
+    blocks. ``reference``: a family of :data:`~torchconn.regression.reference.FAMILIES`
+    (e.g. ``"swimmer"``) scored beside the model (``r2_physics``), its parameters fitted
+    without each scored block (:func:`fold_references`; ``frame`` its body frame, default
+    :func:`~torchconn.regression.reference.default_frame`); None: not scored.
+
     Raises:
         ValueError: ``refit`` and a block that cannot be fitted (the solver's message). The
             downdated fits never raise: a bin that cannot be fitted without a block predicts
             NaN, and the skill of that trial is NaN (see :attr:`Skill.unscored`).
     """
+    reg, models, view, fold, _ = _checked_fold_models(
+        traj, cycle, regression, model, pool, n_folds, refit, connection_regressed)
+    folds = (n_folds - 1,) if forward else None
+    references = None if reference is None else fold_references(
+        view, fold, n_folds, pool, family=reference, frame=frame, folds=folds)
+    return score_folds(models, view, fold, reg, traj.dt, pool, noise_corrected,
+                       phase_averaged, connection_only, folds=folds, references=references)[0]
+
+
+def held_out_checks(traj: Trajectory, cycle: LimitCycle, regression: Regression, *,
+                    pool: bool, n_folds: int = 3, model: LocalConnectionModel | None = None,
+                    phase_averaged: Tensor | None = None,
+                    connection_only: Tensor | None = None,
+                    connection_regressed: bool = False) -> tuple[Skill, Skill]:
+    """:func:`cross_validate`'s interleaved skill and its forward one (``forward=True``)
+    from one set of fits without each block (no physics reference: :func:`with_physics`
+    adds it)."""
+    reg, models, view, fold, _ = _checked_fold_models(
+        traj, cycle, regression, model, pool, n_folds, False, connection_regressed)
+    return tuple(score_folds(models, view, fold, reg, traj.dt, pool, False, phase_averaged,
+                             connection_only, folds=folds)[0]
+                 for folds in (None, (n_folds - 1,)))
+
+
+def _checked_fold_models(traj, cycle, regression, model, pool, n_folds, refit,
+                         connection_regressed):
+    """:func:`fold_models` after checking :func:`cross_validate`'s arguments."""
     if isinstance(n_folds, bool) or not isinstance(n_folds, int) or n_folds < 2:
         raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
     if connection_regressed and (refit or not downdates(regression)):
         raise ValueError("cross_validate: connection_regressed needs the downdated fits of a "
                          "TubeRegression or NoiseAwareRegression (refit=False)")
-    reg, models, view, fold, _ = fold_models(traj, cycle, regression, model, pool=pool,
-                                             n_folds=n_folds, refit=refit,
-                                             connection_regressed=connection_regressed)
-    return score_folds(models, view, fold, reg, traj.dt, pool, noise_corrected,
-                       phase_averaged, connection_only)[0]
+    return fold_models(traj, cycle, regression, model, pool=pool, n_folds=n_folds,
+                       refit=refit, connection_regressed=connection_regressed)
+
+
+def fold_references(view: RegressionView, fold: Tensor, n_folds: int, pool: bool, *,
+                    family: str = "swimmer", frame: str | None = None,
+                    folds=None) -> list[PhysicsReference | None]:
+    """Per block ``f`` (those in ``folds``, default all ``n_folds``; None at the others) the
+    physics reference :func:`~torchconn.regression.reference.fit_reference` fitted to the
+    samples of ``view`` outside block ``f`` (and with a finite phase); ``fold``: the
+    samples' blocks as :func:`score_folds` takes them; ``pool``: one parameter set for all
+    trials (else one per trial). None also where a block's training samples are too few."""
+    out: list[PhysicsReference | None] = [None] * n_folds
+    for f in range(n_folds) if folds is None else folds:
+        train = (fold != f) & torch.isfinite(view.phase)
+        r = torch.where(train[..., None], view.r, torch.nan)
+        try:
+            out[f] = fit_reference(r, view.r_dot, view.xi, family=family, frame=frame,
+                                   pool=pool)
+        except ValueError as err:
+            if "usable samples" not in str(err):
+                raise
+    return out
+
+
+def with_physics(result: Skill, view: RegressionView, fold: Tensor,
+                 references, folds=None) -> Skill:
+    """``result`` (scored on the blocks ``folds`` of ``view``, default all; ``fold`` as
+    :func:`score_folds` takes it) with ``r2_physics``: ``references[f]``'s prediction scored
+    on block ``f`` (a reference that is None scores NaN), summed over the blocks."""
+    sse = sy = syy = n = 0.0
+    for f in range(len(references)) if folds is None else folds:
+        ok, _, r, r_dot, y = _scored(view, fold == f)
+        w = ok.to(y.dtype)[..., None]
+        ref = references[f]
+        pred = torch.full_like(y, torch.nan) if ref is None else ref.predict(r, r_dot)
+        sse = sse + ((y - pred).square() * w).sum(-2)
+        sy, syy, n = sy + (y * w).sum(-2), syy + (y.square() * w).sum(-2), n + w.sum(-2)
+    sst = syy - sy.square() / n
+    return dataclasses.replace(result, r2_physics=1 - sse / sst)
 
 
 def fold_models(traj, cycle, regression, model, *, pool, n_folds, refit,
@@ -340,7 +427,8 @@ def variant_scores(models, view: RegressionView, fold: Tensor, reg: Regression, 
 def score_folds(models, view: RegressionView, fold: Tensor, reg: Regression, dt: float, pool: bool,
                  noise_corrected: bool, phase_averaged: Tensor | None = None,
                  connection_only: Tensor | None = None,
-                 cycle: Tensor | None = None) -> tuple[Skill, Tensor | None]:
+                 cycle: Tensor | None = None, folds=None,
+                 references=None) -> tuple[Skill, Tensor | None]:
     """:class:`Skill` of ``models[f]`` on block ``f`` of ``view``, summed over the blocks,
     beside the phase-averaged velocity of the other blocks (noise-corrected as asked); with
     ``cycle`` (:func:`cycle_index`) also, per held-out cycle, the ``SSE`` of the model
@@ -348,10 +436,14 @@ def score_folds(models, view: RegressionView, fold: Tensor, reg: Regression, dt:
     observed: the model's error on the noisy inputs, what a user's held-out data show.
 
     ``phase_averaged``: ``(..., 3)`` components each fold's model predicts by that baseline;
-    ``connection_only``: ``(..., 3)`` components whose ``b̂`` and ``∂Â/∂r`` rows it zeroes."""
+    ``connection_only``: ``(..., 3)`` components whose ``b̂`` and ``∂Â/∂r`` rows it zeroes.
+    ``folds``: the blocks scored (default all; ``(len(models) − 1,)``: the last, a forward
+    split). ``references``: per block the physics reference fitted without it
+    (:func:`fold_references`), scored as ``r2_physics`` (:func:`with_physics`)."""
     sums, gaps = [], []
     n_cycles = None if cycle is None else int(cycle.amax()) + 1
-    for f, fold_model in enumerate(models):
+    for f in range(len(models)) if folds is None else folds:
+        fold_model = models[f]
         train = torch.where(fold != f, view.phase, torch.nan)
         # on a few cycles at video rates the other blocks may hold fewer samples than the
         # model's order needs: the baseline then takes the highest order they determine
@@ -373,7 +465,10 @@ def score_folds(models, view: RegressionView, fold: Tensor, reg: Regression, dt:
     per_cycle = None
     if cycle is not None:  # (..., C, 3, 2): the model's SSE minus the phase average's, its
         per_cycle = torch.stack([sum(g[0] for g in gaps), sum(g[1] for g in gaps)], -1)
-    return _from_sums(total[0] - total[6], *total[1:6]), per_cycle
+    result = _from_sums(total[0] - total[6], *total[1:6])
+    if references is not None:
+        result = with_physics(result, view, fold, references, folds)
+    return result, per_cycle
 
 
 def _scored(view: RegressionView, mask: Tensor | None):
@@ -673,4 +768,4 @@ def _trial_index(flat: int, batch_shape: torch.Size) -> str:
 def _from_sums(sse_model, sse_base, sse_template, sy, syy, n) -> Skill:
     sst = syy - sy.square() / n[..., None]
     return Skill(r2=1 - sse_model / sst, r2_phase_average=1 - sse_base / sst,
-                 r2_template=1 - sse_template / sst, n_samples=n)
+                 r2_template=1 - sse_template / sst, n_samples=n, r2_zero=1 - syy / sst)
