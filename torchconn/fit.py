@@ -269,6 +269,8 @@ def main(argv: list[str] | None = None) -> int:
         with OutputFolder(args.out, command=PROG) as folder:
             rec, traj, check = _read_checked(args, conv, given, known, swimmer, estimator, say)
             traj = traj.to(device)  # read and checked on the CPU, moved once
+            # the frame of the velocities, for the physics reference
+            traj = traj.with_fields(meta={**traj.meta, "frame": swimmer.frame})
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", PoorHeldOutSkillWarning)  # reported below
                 est = estimator.fit(traj)
@@ -366,6 +368,15 @@ def _sidecar(args, estimator, est, rec, traj, check, known, model, forecast) -> 
                             est.complexity_.connection_only)}),
         "held_out_skill": (None if held_out is None
                            else _skill_summary(held_out, est.held_out_folds)),
+        # per component the model's held-out R² and its three baselines', on interleaved
+        # blocks of cycles and on the last block fitted on the earlier ones
+        "held_out": None if held_out is None else {
+            "folds": est.held_out_folds,
+            "interleaved": _baselines_summary(held_out),
+            "forward": (None if est.forward_skill_ is None
+                        else _baselines_summary(est.forward_skill_))},
+        "reference": (None if est.reference_ is None
+                      else {**est.reference_.describe(), "n_links": est.reference_.n_links}),
     }
 
 
@@ -434,15 +445,26 @@ def _report_forecast(model, say) -> None:
 
 
 def _report_held_out(est, say) -> None:
-    """Print the held-out R² of the forecasting model and its baselines, and a warning where
-    bins cannot be scored, the model loses to the phase average, or nothing has skill."""
-    held_out, folds = est.held_out_skill_, est.held_out_folds
-    say(f"held-out R² (v_x, v_y, omega) of the forecasting model, each of {folds} "
-        "blocks of whole cycles left out in turn:")
-    for name, r2 in (("model", held_out.r2),
-                     ("phase-averaged velocity", held_out.r2_phase_average),
-                     ("template", held_out.r2_template)):
-        say(f"  {name:>24}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
+    """Print the held-out R² of the forecasting model and its baselines (on interleaved
+    blocks of cycles, and on the later cycles fitted on the earlier ones), and a warning
+    where bins cannot be scored, the model loses to the phase average, or nothing has
+    skill."""
+    held_out, folds, ref = est.held_out_skill_, est.held_out_folds, est.reference_
+    say("held-out R² (v_x, v_y, omega) of the forecasting model and its baselines; "
+        f"physics reference: the {ref.n_links}-link viscous swimmer (resistive-force "
+        f"theory, {ref.frame} frame), {_parameters(ref)} fitted to the whole recording "
+        "and refitted without the cycles scored:")
+    for title, skill in ((f"held-out cycles (interleaved blocks, each of {folds} left out "
+                          "in turn)", held_out),
+                         (f"later cycles (fit on the earlier ones: the last of {folds} "
+                          "blocks)", est.forward_skill_)):
+        if skill is None:
+            continue
+        say(f"  {title}:")
+        for name, r2 in (("model", skill.r2), ("phase-averaged velocity", skill.r2_phase_average),
+                         ("physics reference", skill.r2_physics), ("zero", skill.r2_zero),
+                         ("template", skill.r2_template)):
+            say(f"    {name:>23}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
     if bool(held_out.unscored.any()):
         print("WARNING: some phase bins cannot be fitted when a block of cycles is "
               "left out: the model has too many coefficients for this recording "
@@ -461,6 +483,24 @@ def _report_held_out(est, say) -> None:
               f"{held_out.without_skill_names()}: not predictable from the gait's "
               "phase and shape on this recording (noise, or a motion the shape "
               "changes do not drive: a flow, a tether, contact)")
+
+
+def _parameters(ref) -> str:
+    """The reference's fitted parameters in words, e.g. ``drag ratio 2.31`` (per trial where
+    there are several)."""
+    return ", ".join(f"{name.replace('_', ' ')} "
+                     + ", ".join(f"{v:.3g}" for v in value.reshape(-1).tolist())
+                     for name, value in ref.parameters.items())
+
+
+def _baselines_summary(skill) -> dict:
+    """Per component (v_x, v_y, omega) the R² of the model, the phase average, the physics
+    reference and zero (None where not scored): a number for pooled trials, else a nested
+    list shaped like the trials."""
+    columns = (("model", skill.r2), ("phase_average", skill.r2_phase_average),
+               ("physics", skill.r2_physics), ("zero", skill.r2_zero))
+    return {name: {key: None if r2 is None else r2[..., k].tolist() for key, r2 in columns}
+            for k, name in enumerate(COMPONENTS)}
 
 
 def _skill_summary(skill, n_folds: int) -> dict:

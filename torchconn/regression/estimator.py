@@ -39,11 +39,11 @@ from torch import Tensor
 
 from .. import _checks
 from .._checks import unknown_keys_message
+from ..cycles import cycle_blocks
 from ..io.preflight import MAX_GAP_CYCLES, preflight
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
 from ..phase.smoothing import RTSSmoother, Smoother
-from ..cycles import cycle_blocks
 from ..trajectory import Trajectory, for_estimation, pool_batch, power_problem
 from . import selection
 from ._wls import IllConditionedBinWarning
