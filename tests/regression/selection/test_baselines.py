@@ -9,7 +9,6 @@ import pytest
 import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, TubeRegression, simulate
-from torchconn.cycles import cycle_blocks
 from torchconn.fit import main
 from torchconn.io.trajectory_files import write_csv
 from torchconn.phase.fourier import fit_fourier
