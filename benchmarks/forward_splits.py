@@ -44,7 +44,7 @@ the delivered forecast's ``R²`` against ``max(phase avg, RFT fit k)`` per compo
 ``PASS`` where it is at least that minus 0.02 on every component and above 0 on ``ω`` (issue
 33's target), else ``FAIL``.
 
-Run by hand (about 10 minutes on a loaded 2-core machine; ``--quick`` about 2)::
+Run by hand (about 4 minutes on a loaded 2-core machine, one thread; ``--quick`` about 1)::
 
     python benchmarks/forward_splits.py --data DIR
     python benchmarks/forward_splits.py --data DIR --quick
