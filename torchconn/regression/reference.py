@@ -33,7 +33,11 @@ from ..physics.systems.base import LocomotionSystem
 from ..physics.systems.swimmer import NLinkSwimmer
 from .model import LocalConnectionModel
 
-__all__ = ["ReferenceFamily", "FAMILIES", "PhysicsReference", "fit_reference", "default_frame"]
+__all__ = ["ReferenceFamily", "FAMILIES", "PhysicsReference", "fit_reference", "default_frame",
+           "LOCAL_ORDER"]
+
+#: the least Fourier order of a reference's local model (:meth:`PhysicsReference.local_model`)
+LOCAL_ORDER = 12
 
 
 @dataclass(frozen=True)
@@ -109,30 +113,35 @@ class PhysicsReference:
             system, _element(r, i, r.shape[:-2]), _element(r_dot, i, r.shape[:-2])))
 
     def local_model(self, model: LocalConnectionModel) -> LocalConnectionModel:
-        """The reference's first-order model around ``model``'s cycle, at its bins and Fourier
-        orders: ``c = A(γ)γ̇``, ``b = (∂A/∂r)γ̇``, ``A(γ)``, ``∂A/∂r(γ)`` (no metric), so that
-        ``predict`` of the two models differs only where the data differ from the physics."""
-        bins = model.bins
-        batch = bins.gamma.shape[:-2]
+        """The reference's first-order model around ``model``'s cycle: ``c = A(γ)γ̇``,
+        ``b = (∂A/∂r)γ̇``, ``A(γ)``, ``∂A/∂r(γ)`` (no metric), so that ``predict`` of the two
+        models differs only where the data differ from the physics. The series have order
+        :data:`LOCAL_ORDER` or ``model``'s, whichever is higher, fitted to the reference on a
+        grid of phases (not limited by the model's bins)."""
+        order = max(LOCAL_ORDER, model.c.order, model.b.order, model.A.order, model.dA.order)
+        phase = torch.arange(4 * order + 4, dtype=model.c.coeffs.dtype,
+                             device=model.device) * (2 * math.pi / (4 * order + 4))
+        batch = model.batch_shape
+        grid = phase.expand(tuple(batch) + phase.shape)
+        gamma_all, gamma_dot_all = model.gamma_at(grid), model.gamma_dot_at(grid)
 
         def expand(system, i):
-            gamma, gamma_dot = _element(bins.gamma, i, batch), _element(bins.gamma_dot, i, batch)
+            gamma, gamma_dot = _element(gamma_all, i, batch), _element(gamma_dot_all, i, batch)
             a, jac = system.connection(gamma), system.connection_jacobian(gamma)
             c = (a @ gamma_dot.unsqueeze(-1)).squeeze(-1)
             b = torch.einsum("...kij,...i->...kj", jac, gamma_dot)
             return torch.cat([c, b.flatten(-2), a.flatten(-2), jac.flatten(-3)], -1)
 
         d = model.shape_dim
-        values = _per_element(self, batch, expand)  # (..., M, 3 + 3d + 3d + 3d²)
+        values = _per_element(self, batch, expand)  # (..., G, 3 + 3d + 3d + 3d²)
         c, b, a, jac = values.split([3, 3 * d, 3 * d, 3 * d * d], -1)
 
-        def series(x: Tensor, shape: tuple, order: int):
-            return fit_fourier(bins.phase, x.unflatten(-1, shape), order, value_ndim=len(shape))
+        def series(x: Tensor, shape: tuple):
+            return fit_fourier(phase, x.unflatten(-1, shape), order, value_ndim=len(shape))
 
         return dataclasses.replace(
-            model, c=series(c, (3,), model.c.order), b=series(b, (3, d), model.b.order),
-            A=series(a, (3, d), model.A.order), dA=series(jac, (3, d, d), model.dA.order),
-            dA_fit=None, M=None, dM=None,
+            model, c=series(c, (3,)), b=series(b, (3, d)), A=series(a, (3, d)),
+            dA=series(jac, (3, d, d)), dA_fit=None, M=None, dM=None,
             meta={**(model.meta or {}), "reference": self.describe()})
 
     def describe(self) -> dict:

@@ -21,7 +21,7 @@ from ...phase.fourier import FourierSeries
 from ..model import LocalConnectionModel
 from .complexity import lower_by
 
-__all__ = ["PRIOR_Z", "PRIOR_MARGIN", "prior_weights", "blend"]
+__all__ = ["PRIOR_Z", "PRIOR_MARGIN", "prior_weights", "blend", "blended_r2"]
 
 #: standard errors (of the sum over held-out cycles of the per-cycle change of squared error)
 #: by which the blend must beat the fitted model for its weight to be kept
@@ -87,3 +87,21 @@ def blend(model: LocalConnectionModel, reference: LocalConnectionModel, weight: 
         A=mixed(model.A, reference.A), dA=dA,
         dA_fit=None if model.dA_fit is None else mixed(model.dA_fit, reference.dA),
         meta={**(model.meta or {}), "prior_weight": weight.tolist()})
+
+
+def blended_r2(y: Tensor, fitted: Tensor, reference: Tensor, weight: Tensor,
+               mask: Tensor | None = None) -> Tensor:
+    """``(..., 3)`` the ``R²`` of the blend ``fitted + w·(reference − fitted)`` (arguments as
+    :func:`prior_weights`'s, ``weight (..., 3)``) over the scored samples (and ``mask
+    (..., N)``, where given): the held-out skill of the shrunk forecasts."""
+    ok = torch.isfinite(y) & torch.isfinite(fitted)
+    if mask is not None:
+        ok &= mask.unsqueeze(-1)
+    pred = fitted + torch.where(torch.isfinite(reference), weight.unsqueeze(-2)
+                                * (reference - fitted), 0.0)
+    w = ok.to(y.dtype)
+    y0 = torch.where(ok, y, 0.0)
+    n = w.sum(-2)
+    sst = (y0.square() * w).sum(-2) - (y0 * w).sum(-2).square() / n
+    return 1 - (torch.where(ok, y - pred, 0.0).square()).sum(-2) / sst
+
