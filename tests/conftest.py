@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -5,13 +7,25 @@ import torch
 # keeps timings steady on a shared 2-core machine.
 torch.set_num_threads(1)
 
-#: the numerics test modules (factorisations, regressions, smoothing, phase): marked
-#: ``numerics`` and run again on MKL's AVX2 code path by tests/test_mkl_code_paths.py
-NUMERICS = {"test_linalg", "test_metric", "test_fourier", "test_smoothing", "test_phase",
-            "test_regression", "test_held_out", "test_limit_cycle", "test_scipy_crosschecks"}
+TESTS = Path(__file__).resolve().parent
+
+#: the numerics test files (factorisations, regressions, smoothing, phase), as paths under
+#: tests/: marked ``numerics`` and run again on MKL's AVX2 code path by tests/test_mkl_code_paths.py
+NUMERICS = {
+    "test_linalg.py",
+    "test_scipy_crosschecks.py",
+    "phase/test_fourier.py",
+    "phase/test_smoothing.py",
+    "phase/test_phaser.py",
+    "phase/test_limit_cycle.py",
+    "regression/test_connection.py",
+    "regression/metric/test_tied.py",
+    "regression/selection/test_held_out.py",
+}
 
 
 def pytest_collection_modifyitems(items):
     for item in items:
-        if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in NUMERICS:
+        path = item.path.resolve()
+        if path.is_relative_to(TESTS) and path.relative_to(TESTS).as_posix() in NUMERICS:
             item.add_marker(pytest.mark.numerics)

@@ -32,7 +32,7 @@ from torchconn.sweep.runner import run_sweep
 from torchconn.sweep.store import read_table
 from torchconn.testing.tracking import render_keypoints
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAUSE = "TORCHCONN_TEST_WRITE_PAUSE"
 FIT = ["--links", "3", "--no-figures", "--metric", "no"]
 TINY = """

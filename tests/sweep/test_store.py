@@ -16,7 +16,7 @@ from torchconn.sweep.config import load_config
 from torchconn.sweep.experiment import experiment_cells
 from torchconn.sweep.runner import run_sweep
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TINY = """
 name = "tiny"
 seed = 11

@@ -23,7 +23,7 @@ from torchconn.simulation.observe import observe
 from torchconn.testing.tracking import render_keypoints
 from torchconn.trajectory import Trajectory
 
-SAMPLES = Path(__file__).parent / "data" / "tracking"
+SAMPLES = Path(__file__).resolve().parents[1] / "data" / "tracking"
 NAMES = ("snout", "mid", "tail")
 F, K = 5, 3
 _f, _k = np.arange(F)[:, None], np.arange(K)[None, :]
@@ -296,7 +296,7 @@ def test_command_line_errors_have_no_traceback(tmp_path):
     (tmp_path / "fish.xyz").write_text("1,2\n")
     proc = subprocess.run([sys.executable, "-m", "torchconn.convert", str(tmp_path / "fish.xyz"),
                            "--links", "3", "--out", str(tmp_path / "out")],
-                          capture_output=True, text=True, cwd=Path(__file__).parents[1])
+                          capture_output=True, text=True, cwd=Path(__file__).parents[2])
     assert proc.returncode == 2
     assert "fish.xyz" in proc.stderr and "Traceback" not in proc.stderr
 

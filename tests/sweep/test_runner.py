@@ -11,7 +11,7 @@ from torchconn.sweep import experiment as experiment_module
 from torchconn.sweep.config import load_config
 from torchconn.sweep.runner import cell_fingerprint, run_sweep
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SMALL = ["--cycles", "8", "--trials", "2", "--quiet"]
 RESULT_COLUMNS = {"system", "noise_kind", "level", "trial", "model", "component", "metric",
                   "value"}
