@@ -24,12 +24,14 @@ from torchconn.fit import main as fit_main
 from torchconn.io.trajectory_files import read_csv, write_csv
 from torchconn.phase.fourier import FourierSeries
 from torchconn.phase.phaser import Phaser, highest_order
-from torchconn.physics.gaits import FourierGait, reference_gait
+from torchconn.physics.gaits import reference_gait
 from torchconn.regression.estimator import ConnectionEstimator
 from torchconn.regression.model import LocalConnectionModel
 from torchconn.regression.noise_aware import NoiseAwareRegression
 from torchconn.simulation.observe import observe
 from torchconn.trajectory import Trajectory, pad_trials, span_groups
+
+from .recordings import wave_gait
 
 F64 = torch.float64
 SPC = 12  # samples per cycle: a video rate
@@ -39,16 +41,9 @@ GAPS = ({(0, 3)}, {(5 * SPC + 1, 5 * SPC + 5)}, {(7 * SPC, 7 * SPC + 4), (-2, No
 PHI = torch.linspace(0, 2 * math.pi, 49, dtype=F64)[:-1]
 
 
-def _wave(n_joints: int = 4, radius: float = 0.7) -> FourierGait:
-    coeffs = torch.zeros(3, n_joints, dtype=F64)
-    lag = torch.arange(n_joints, dtype=F64) * (2 * math.pi / 4)
-    coeffs[1], coeffs[2] = radius * torch.cos(lag), radius * torch.sin(lag)
-    return FourierGait(coeffs)
-
-
 def _recording(k: int, seed: int):
     seeds = [seed + k]
-    traj = simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=CYCLES[k],
+    traj = simulate(NLinkSwimmer(5), wave_gait(), eta=0.025, n_cycles=CYCLES[k],
                     samples_per_cycle=SPC, seeds=seeds)
     traj = observe(traj, 0.005, dropout=0.02, seeds=seeds)
     pose, r, power = traj.pose.clone(), traj.r.clone(), traj.power.clone()

@@ -9,6 +9,8 @@ import torch
 
 from torchconn.phase.fourier import FourierSeries, fit_fourier, fourier_design, fourier_on_grid
 
+from .common import periodic_signal
+
 DT = torch.float64
 
 
@@ -165,3 +167,14 @@ def test_fourier_on_grid_is_the_least_squares_fit(value_shape):
         torch.testing.assert_close(fast.coeffs, slow.coeffs, rtol=0, atol=1e-13)
     with pytest.raises(ValueError, match="order 32 needs more than 64 grid samples"):
         fourier_on_grid(values, n // 2, value_ndim=len(value_shape))
+
+
+def test_truncated_zeroes_the_harmonics_above_each_elements_order():
+    phi = torch.linspace(0, 2 * math.pi, 48, dtype=torch.float64)[:-1]
+    values = torch.stack([periodic_signal(phi, (1, 4, 7)), periodic_signal(phi, (1, 4, 7))]).unsqueeze(-1)
+    series = fit_fourier(phi, values, 10, value_ndim=1)
+    cut = series.truncated(torch.tensor([4, 10]))
+    low = fit_fourier(phi, values, 4, value_ndim=1)
+    torch.testing.assert_close(cut(phi)[0], low(phi)[0])  # equispaced: truncation = refit
+    torch.testing.assert_close(cut(phi)[1], values[1])
+    assert isinstance(cut, FourierSeries) and cut.order == 10

@@ -1,5 +1,6 @@
 """The estimator end to end: exact on the toy, convergent on the swimmer, zero mean error."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -7,7 +8,8 @@ import pytest
 import torch
 
 from torchconn import AffineConnectionSystem, NLinkSwimmer, TiedMetric, Trajectory
-from torchconn.evaluation.models import phase_bin_errors, reference_models
+from torchconn.evaluation.models import error_summary, phase_bin_errors, reference_models
+from torchconn.phase.fourier import fit_fourier
 from torchconn.phase.limit_cycle import SelfConsistentCycle
 from torchconn.physics.gaits import FourierGait, reference_gait
 from torchconn.regression.estimator import ConnectionEstimator
@@ -226,3 +228,37 @@ def test_a_gap_the_phase_cannot_cross_is_named():
         ConnectionEstimator(complexity="fixed").fit(gapped)
     est = ConnectionEstimator(complexity="fixed").fit(gapped.slice_time(0, 8 * spc))
     assert float(est.trajectory_.phase[..., -1] - est.trajectory_.phase[..., 0]) > 6 * math.pi
+
+
+def _errors(name, seeds, eta_factor):
+    """x RMS error of the default model against the simulator's ``A(r)ṙ`` on the same smoothed
+    shapes, and of the same model with its intercept at ``fourier_order``."""
+    system = NLinkSwimmer(int(name[0]))
+    traj = simulate(system, reference_gait(name), eta=0.025 * eta_factor, alpha=0.05,
+                    n_cycles=30, samples_per_cycle=64, substeps=8, seeds=seeds)
+    est = ConnectionEstimator(regression=TubeRegression(), complexity="fixed",
+                              metric=TiedMetric(enabled=False),
+                              held_out_folds=0).fit(traj)
+    model = est.model_
+    fixed = dataclasses.replace(model, c=fit_fourier(model.bins.phase, model.bins.c, 12,
+                                                     value_ndim=1))
+
+    def error(m):
+        preds = reference_models(system, m, est.trajectory_)
+        return error_summary(preds["data_driven"], preds["ground_truth"])[0][..., 0]
+
+    return model.meta["intercept_order"], error(model), error(fixed)
+
+
+def test_the_9link_intercept_gets_the_harmonics_its_body_velocity_has():
+    """The 9-link reference gait's on-cycle body velocity has harmonics above 12: the chosen
+    intercept order is higher and the model's error against the simulator's own body velocity
+    (A(r)ṙ on the same smoothed shapes) falls; the 3-link's stays at the given order, so its
+    model is the one of order 12."""
+    seeds = np.array([[311, 312]])
+    orders, err, err_fixed = _errors("9link", seeds, 0.25)
+    assert all(k > 12 for k in orders[0])
+    assert bool((err < 0.75 * err_fixed).all()), (err, err_fixed)
+    orders3, err3, err3_fixed = _errors("3link", seeds, 1.0)
+    assert orders3 == [[12, 12]]
+    torch.testing.assert_close(err3, err3_fixed, rtol=1e-12, atol=0)

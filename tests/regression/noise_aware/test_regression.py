@@ -37,6 +37,8 @@ from torchconn.regression.noise_aware.bias import offset_bias
 from torchconn.regression.noise_aware.eiv import sampling_factor
 from torchconn.regression.selection import COMPLEXITY_GRID, RIDGE_GRID, PoorHeldOutSkillWarning
 
+from ...recordings import wave_gait
+
 F64 = torch.float64
 DT_SAMPLES = 126  # samples per cycle: Δt ≈ 0.05 as in the measurements
 
@@ -757,13 +759,6 @@ def test_error_falls_with_data_at_omega_0p002():
     assert slope <= -0.35, (errs, slope)
 
 
-def _wave(radius=0.7):
-    coeffs = torch.zeros(3, 4, dtype=F64)
-    lag = torch.arange(4, dtype=F64) * (math.pi / 2)
-    coeffs[1], coeffs[2] = radius * torch.cos(lag), radius * torch.sin(lag)
-    return FourierGait(coeffs)
-
-
 def test_held_out_skill_beats_the_baselines_on_a_long_recording(clean30):
     traj = _recording(0.002, clean=clean30)
     est = _fit(traj)
@@ -783,7 +778,7 @@ def test_held_out_skill_beats_the_baselines_on_a_long_recording(clean30):
 def test_overfitting_a_short_recording_is_reported_and_complexity_from_cv_stops_it():
     # a short real-like recording: 5-link, 6 cycles, omega = 0.005; fit on 60 %, score the rest
     seeds = np.array([11])
-    six = observe(simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=6,
+    six = observe(simulate(NLinkSwimmer(5), wave_gait(), eta=0.025, n_cycles=6,
                            samples_per_cycle=DT_SAMPLES, seeds=seeds), 0.005, seeds=seeds)
     cut = int(0.6 * six.n_samples)
     train, test = six.slice_time(0, cut), six.slice_time(cut, six.n_samples)
@@ -1865,7 +1860,7 @@ def test_tied_derivative_bands_under_noise_take_the_joint_covariance_on_the_5_li
     # covariance the ratio must lie within [0.5, 1.5] (1.17 here).
     seeds = np.arange(4) + 700
     system = NLinkSwimmer(5)
-    clean = simulate(system, _wave(0.9), eta=0.025, n_cycles=30,
+    clean = simulate(system, wave_gait(radius=0.9), eta=0.025, n_cycles=30,
                      samples_per_cycle=DT_SAMPLES, seeds=seeds)
     traj = observe(clean, 0.01, seeds=seeds)
     on = _fit(traj).model_

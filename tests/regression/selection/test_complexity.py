@@ -9,7 +9,6 @@ import pytest
 import torch
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, Phaser, observe, simulate
-from torchconn.physics.gaits import FourierGait
 from torchconn.regression import (
     IllConditionedBinWarning,
     TubeRegression,
@@ -18,21 +17,16 @@ from torchconn.regression import (
 )
 from torchconn.regression.selection import PoorHeldOutSkillWarning, complexity, skill
 
+from ...recordings import wave_gait
+
 F64 = torch.float64
 SPC = 10  # samples per cycle: 50 fps video of a 5 Hz tail beat
-
-
-def _wave(n_joints: int = 4, radius: float = 0.7) -> FourierGait:
-    coeffs = torch.zeros(3, n_joints, dtype=F64)
-    lag = torch.arange(n_joints, dtype=F64) * (2 * math.pi / max(n_joints, 4))
-    coeffs[1], coeffs[2] = radius * torch.cos(lag), radius * torch.sin(lag)
-    return FourierGait(coeffs)
 
 
 def _recording(n_cycles: int, seed: int, spc: int = SPC):
     """One 5-link trial, ω = 0.005, the simulator's fine step as at 126 samples per cycle."""
     seeds = np.array([seed])
-    clean = simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=n_cycles,
+    clean = simulate(NLinkSwimmer(5), wave_gait(), eta=0.025, n_cycles=n_cycles,
                      samples_per_cycle=spc, substeps=2 * math.ceil(504 / spc), seeds=seeds)
     return observe(clean, 0.005, seeds=seeds).with_fields(power=None)
 

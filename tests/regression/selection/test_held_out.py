@@ -21,7 +21,6 @@ from torchconn import (
 )
 from torchconn.cycles import cycle_blocks, few_cycles
 from torchconn.noise import IntervalSamples
-from torchconn.physics.gaits import FourierGait
 from torchconn.regression import (
     IllConditionedBinWarning,
     LocalConnectionModel,
@@ -33,21 +32,16 @@ from torchconn.regression.noise_aware import noise_aware_regression
 from torchconn.regression.noise_aware import regression as noise_aware
 from torchconn.regression.selection import PoorHeldOutSkillWarning, complexity, skill
 
+from ...recordings import wave_gait
+
 F64 = torch.float64
 SPC = 126  # samples per cycle (Δt ≈ 0.05)
-
-
-def _wave(n_joints: int = 4, radius: float = 0.7) -> FourierGait:
-    coeffs = torch.zeros(3, n_joints, dtype=F64)
-    lag = torch.arange(n_joints, dtype=F64) * (2 * math.pi / max(n_joints, 4))
-    coeffs[1], coeffs[2] = radius * torch.cos(lag), radius * torch.sin(lag)
-    return FourierGait(coeffs)
 
 
 def _recording(n_cycles: int, n_trials: int = 1, omega: float = 0.005, seed: int = 0,
                n_links: int = 5):
     seeds = np.arange(n_trials) + 100 * seed
-    clean = simulate(NLinkSwimmer(n_links), _wave(n_links - 1), eta=0.025, n_cycles=n_cycles,
+    clean = simulate(NLinkSwimmer(n_links), wave_gait(n_links - 1), eta=0.025, n_cycles=n_cycles,
                      samples_per_cycle=SPC, seeds=seeds)
     return observe(clean, omega, seeds=seeds)
 
@@ -709,7 +703,7 @@ def test_an_unchecked_fit_on_many_cycles_advises_more_data_not_the_search_it_ran
 
     monkeypatch.setattr(selection, "select_connection_alone", unscored)
     seeds = np.array([1000])
-    clean = simulate(NLinkSwimmer(5), _wave(), eta=0.025, n_cycles=10, samples_per_cycle=10,
+    clean = simulate(NLinkSwimmer(5), wave_gait(), eta=0.025, n_cycles=10, samples_per_cycle=10,
                      seeds=seeds)
     traj = observe(clean, 0.005, seeds=seeds).with_fields(power=None)
     with warnings.catch_warnings(record=True) as caught:
