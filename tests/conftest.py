@@ -1,7 +1,19 @@
+"""Shared set-up: one intra-op thread, the ``numerics`` marker, and recordings that tests in
+several folders use."""
+
+from __future__ import annotations
+
+import math
 from pathlib import Path
 
 import pytest
 import torch
+
+from torchconn import NLinkSwimmer, simulate
+from torchconn.io.trajectory_files import write_csv
+from torchconn.simulation.observe import observe
+
+from .recordings import wave_gait
 
 # The suite is made of small batched tensor ops, for which one intra-op thread is fastest and
 # keeps timings steady on a shared 2-core machine.
@@ -29,3 +41,33 @@ def pytest_collection_modifyitems(items):
         path = item.path.resolve()
         if path.is_relative_to(TESTS) and path.relative_to(TESTS).as_posix() in NUMERICS:
             item.add_marker(pytest.mark.numerics)
+
+
+SPC = 12  # samples per cycle: a video rate
+CYCLES = (9, 14, 20)
+#: lost runs (first sample, end) of each recording, beside 2 % scattered drop-outs
+GAPS = ({(0, 3)}, {(5 * SPC + 1, 5 * SPC + 5)}, {(7 * SPC, 7 * SPC + 4), (-2, None)})
+
+
+def _recording(k: int, seed: int):
+    seeds = [seed + k]
+    traj = simulate(NLinkSwimmer(5), wave_gait(), eta=0.025, n_cycles=CYCLES[k],
+                    samples_per_cycle=SPC, seeds=seeds)
+    traj = observe(traj, 0.005, dropout=0.02, seeds=seeds)
+    pose, r, power = traj.pose.clone(), traj.r.clone(), traj.power.clone()
+    for a, b in GAPS[k]:
+        pose[:, a:b] = r[:, a:b] = power[:, a:b] = math.nan
+    return traj.with_fields(pose=pose, r=r, power=power, truth=None)
+
+
+def _files(directory, seed: int = 0) -> list:
+    return [write_csv(_recording(k, seed), directory / f"tank{k}.csv") for k in range(3)]
+
+
+@pytest.fixture(scope="module")
+def unequal_recordings(tmp_path_factory):
+    """Three simulated 5-link recordings at a video rate (12 samples per cycle) of 9, 14 and 20
+    cycles, each with its own pattern of lost samples (its first samples, a run in the middle,
+    its last samples, scattered drop-outs), in one CSV each: read together they are NaN-padded
+    to the longest on one grid."""
+    return _files(tmp_path_factory.mktemp("tank"))

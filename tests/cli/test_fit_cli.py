@@ -1,7 +1,11 @@
 """``python -m torchconn.fit`` on CSV recordings in the trajectory file format."""
 
+from __future__ import annotations
+
 import csv
 import json
+import math
+import warnings
 
 import numpy as np
 import pytest
@@ -9,10 +13,14 @@ import torch
 
 from torchconn import NLinkSwimmer, simulate
 from torchconn.fit import main
-from torchconn.io.trajectory_files import write_csv
+from torchconn.fit import main as fit_main
+from torchconn.io.trajectory_files import read_csv, write_csv
 from torchconn.physics.gaits import reference_gait
+from torchconn.regression.estimator import ConnectionEstimator
 from torchconn.regression.model import LocalConnectionModel
 from torchconn.simulation.observe import observe
+
+from ..recordings import five_link_a_error
 
 
 @pytest.fixture(scope="module")
@@ -279,3 +287,33 @@ def test_more_bins_than_samples_is_refused_before_any_allocation(recording, tmp_
                      "100000", "--complexity", complexity, "--no-figures"]) == 2
         err = capsys.readouterr().err
         assert "n_bins = 100000 is more than the" in err and "--n-bins" in err
+
+
+F64 = torch.float64
+
+
+PHI = torch.linspace(0, 2 * math.pi, 49, dtype=F64)[:-1]
+
+
+def test_the_command_fits_recordings_of_different_lengths(unequal_recordings, tmp_path, capsys):
+    # the reported crash: 'stack expects each tensor to be equal size' from the phase stage
+    out = tmp_path / "pooled"
+    assert fit_main([str(f) for f in unequal_recordings] + ["--links", "5", "--out", str(out),
+                                               "--no-figures"]) == 0
+    assert "3 trial(s)" in capsys.readouterr().out
+    model = LocalConnectionModel.load(out / "model.npz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        api = ConnectionEstimator(pool=True).fit(read_csv(unequal_recordings)).model_
+    # the command's default is the pooled fit of the API
+    torch.testing.assert_close(model.connection(PHI), api.connection(PHI), rtol=0, atol=1e-12)
+    # one model per trial: the command writes one model, so it is run on each file
+    for k in (0, 2):  # the shortest, its first samples lost; the longest, its last
+        out = tmp_path / f"trial{k}"
+        assert fit_main([str(unequal_recordings[k]), "--links", "5", "--out", str(out), "--no-figures",
+                         "--metric", "no", "--set", "estimator.pool=false"]) == 2
+        assert "estimator.pool = false" in capsys.readouterr().err and not out.exists()
+        assert fit_main([str(unequal_recordings[k]), "--links", "5", "--out", str(out), "--no-figures",
+                         "--metric", "no"]) == 0
+        model = LocalConnectionModel.load(out / "model.npz")
+        assert model.batch_shape == () and float(five_link_a_error(model)) < 0.45

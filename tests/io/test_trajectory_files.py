@@ -11,13 +11,7 @@ import pytest
 import torch
 
 from torchconn import AffineConnectionSystem, SmoothedState, Trajectory
-from torchconn.io.trajectory_files import (
-    count_cycles,
-    load_npz,
-    read_csv,
-    save_npz,
-    write_csv,
-)
+from torchconn.io.trajectory_files import count_cycles, load_npz, read_csv, save_npz, write_csv
 from torchconn.physics.gaits import FourierGait
 from torchconn.simulation.observe import observe
 from torchconn.simulation.rollout import simulate
@@ -248,3 +242,18 @@ def test_count_cycles(traj):
     # simulated data: 3 cycles per trial (with drop-outs and noise)
     assert torch.allclose(count_cycles(traj.r), torch.full((2, 3), 3.0, dtype=torch.float64),
                           atol=0.25)
+
+
+SPC = 12  # samples per cycle: a video rate
+
+
+CYCLES = (9, 14, 20)
+
+
+def test_recordings_of_different_lengths_read_as_one_padded_batch(unequal_recordings):
+    traj = read_csv(unequal_recordings)
+    lengths = [CYCLES[k] * SPC for k in range(3)]
+    assert traj.n_samples == max(lengths)
+    assert [t["n_samples"] for t in traj.meta["trials"]] == lengths
+    for k, n in enumerate(lengths):  # NaN after each trial's end
+        assert torch.isnan(traj.r[k, n:]).all() and torch.isfinite(traj.r[k, n - 3]).any()

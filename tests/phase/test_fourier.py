@@ -178,3 +178,17 @@ def test_truncated_zeroes_the_harmonics_above_each_elements_order():
     torch.testing.assert_close(cut(phi)[0], low(phi)[0])  # equispaced: truncation = refit
     torch.testing.assert_close(cut(phi)[1], values[1])
     assert isinstance(cut, FourierSeries) and cut.order == 10
+
+
+F64 = torch.float64
+
+
+PHI = torch.linspace(0, 2 * math.pi, 49, dtype=F64)[:-1]
+
+
+def test_fourier_series_padded_is_the_same_function():
+    g = torch.Generator().manual_seed(1)
+    s = FourierSeries(torch.randn(2, 7, 3, generator=g, dtype=F64), 1)
+    p = s.padded(6)
+    assert p.coeffs.shape == (2, 13, 3) and s.padded(2) is s
+    torch.testing.assert_close(p(PHI), s(PHI), rtol=0, atol=1e-14)

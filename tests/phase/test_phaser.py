@@ -21,6 +21,7 @@ from torchconn.phase.phaser import (
     circular_rms,
     correction_series,
     estimate_phase,
+    highest_order,
     hilbert_phase_pc1,
     protophase,
 )
@@ -439,3 +440,45 @@ def test_held_out_order_keeps_the_harmonics_the_data_resolve():
     assert bool((pure <= 2).all())  # noise alone: (nearly) nothing above the mean
     pooled = held_out_order(theta, w, values, 20, n_pooled=1)
     assert pooled.shape == () and 9 <= int(pooled) <= 13
+
+
+F64 = torch.float64
+
+
+PHI = torch.linspace(0, 2 * math.pi, 49, dtype=F64)[:-1]
+
+
+def test_phase_models_of_different_orders_stack_and_transform():
+    # two trials at 10 and 20 samples per cycle on one grid, of different lengths: their
+    # 'auto' orders are capped at 4 and 9, so their correction series differ in size
+    g = torch.Generator().manual_seed(0)
+    t = torch.arange(400, dtype=F64)
+    x = torch.full((2, 400, 2), math.nan, dtype=F64)
+    for k, (spc, n) in enumerate(((10, 250), (20, 400))):
+        p = 2 * math.pi * t[:n] / spc
+        x[k, :n] = torch.stack([torch.cos(p + 0.3 * torch.sin(p)), torch.sin(p)], -1)
+        x[k, :n] += 0.01 * torch.randn(n, 2, generator=g, dtype=F64)
+    fitted = Phaser().fit(x)
+    assert fitted.model_.correction.order == 9
+    for k, n in enumerate((250, 400)):
+        alone = Phaser().fit(x[k, :n])
+        torch.testing.assert_close(fitted.phase_[k, :n], alone.phase_, rtol=0, atol=0)
+        # zero-padded to the batch's highest order: the same function
+        torch.testing.assert_close(fitted.model_.correction(PHI)[k],
+                                   alone.model_.correction(PHI), rtol=0, atol=1e-14)
+    assert torch.isnan(fitted.phase_[0, 250:]).all()
+    torch.testing.assert_close(fitted.transform(x), fitted.phase_, rtol=0, atol=1e-10,
+                               equal_nan=True)
+
+
+@pytest.mark.parametrize("spc", [9.5, 10.0, 10.4, 11.0, 12.0, 15.0])
+def test_auto_never_considers_an_order_an_explicit_order_refuses(spc):
+    t = torch.arange(int(12 * spc), dtype=F64)
+    p = 2 * math.pi * t / spc
+    x = torch.stack([torch.cos(p + 0.3 * torch.sin(p)), torch.sin(p), torch.cos(p + 2.0)], -1)
+    cap = Phaser().fit(x).model_.correction.order  # 'auto' stores its series at its cap
+    Phaser(order=cap).fit(x)
+    with pytest.raises(ValueError, match=f"order={cap + 1} is too high"):
+        Phaser(order=cap + 1).fit(x)
+    # the rule 2K + 1 <= samples per cycle, on a count of the cycles within 1 %
+    assert int(highest_order(0.99 * spc)) <= cap <= int(highest_order(1.01 * spc))
