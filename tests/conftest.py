@@ -14,6 +14,7 @@ from torchconn.io.trajectory_files import write_csv
 from torchconn.simulation.observe import observe
 
 from .recordings import wave_gait
+from .regression.common import clean_circle_trials
 
 # The suite is made of small batched tensor ops, for which one intra-op thread is fastest and
 # keeps timings steady on a shared 2-core machine.
@@ -21,25 +22,32 @@ torch.set_num_threads(1)
 
 TESTS = Path(__file__).resolve().parent
 
-#: the numerics test files (factorisations, regressions, smoothing, phase), as paths under
-#: tests/: marked ``numerics`` and run again on MKL's AVX2 code path by tests/test_mkl_code_paths.py
+#: the numerics tests (factorisations, regressions, smoothing, phase), as paths under tests/: a
+#: file, or a folder ending in "/" for every file under it. Marked ``numerics`` and run again on
+#: MKL's AVX2 code path by tests/test_mkl_code_paths.py.
 NUMERICS = {
     "test_linalg.py",
     "test_scipy_crosschecks.py",
-    "phase/test_fourier.py",
-    "phase/test_smoothing.py",
-    "phase/test_phaser.py",
-    "phase/test_limit_cycle.py",
+    "phase/",
+    "regression/metric/",
+    "regression/selection/",
+    "regression/test_binning.py",
     "regression/test_connection.py",
-    "regression/metric/test_tied.py",
-    "regression/selection/test_held_out.py",
+    "regression/test_diagnostics.py",
 }
+
+
+def _is_numerics(path: Path) -> bool:
+    if not path.is_relative_to(TESTS):
+        return False
+    name = path.relative_to(TESTS).as_posix()
+    return any(name == entry or (entry.endswith("/") and name.startswith(entry))
+               for entry in NUMERICS)
 
 
 def pytest_collection_modifyitems(items):
     for item in items:
-        path = item.path.resolve()
-        if path.is_relative_to(TESTS) and path.relative_to(TESTS).as_posix() in NUMERICS:
+        if _is_numerics(item.path.resolve()):
             item.add_marker(pytest.mark.numerics)
 
 
@@ -71,3 +79,9 @@ def unequal_recordings(tmp_path_factory):
     its last samples, scattered drop-outs), in one CSV each: read together they are NaN-padded
     to the longest on one grid."""
     return _files(tmp_path_factory.mktemp("tank"))
+
+
+@pytest.fixture(scope="module")
+def clean30():
+    """4 trials x 30 cycles of the 3-link on a circle, noise-free."""
+    return clean_circle_trials()

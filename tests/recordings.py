@@ -7,7 +7,8 @@ import math
 import torch
 from torch import Tensor
 
-from torchconn import NLinkSwimmer
+from torchconn import ConnectionEstimator, NLinkSwimmer
+from torchconn.noise import estimate_noise
 from torchconn.physics.gaits import FourierGait
 from torchconn.regression.model import LocalConnectionModel
 
@@ -32,3 +33,17 @@ def five_link_a_error(model: LocalConnectionModel) -> Tensor:
     truth = NLinkSwimmer(5).connection(model.gamma_at(PHI))
     a = model.connection(PHI)
     return ((a - truth).square().sum((-3, -2, -1)) / truth.square().sum((-3, -2, -1))).sqrt()
+
+
+def gait_noise(traj, floor="gait"):
+    """:func:`estimate_noise` of the shapes with each trial's estimated cycle (as
+    ``NoiseAwareRegression`` unpooled: its floor shaped by the gait, as with
+    ``noise_floor="low_rate"`` at few samples per cycle, or ``floor="flat"``, the default,
+    which uses the cycle for the joints' correlation)."""
+    from torchconn.phase.limit_cycle import phase_rate
+
+    est = ConnectionEstimator()
+    prep = est.prepare(traj)
+    cycle = est.cycle.fit(prep)
+    per_cycle = 2 * math.pi / (phase_rate(prep.phase, prep.dt) * prep.dt)
+    return estimate_noise(traj.r, cycle=cycle.gamma, samples_per_cycle=per_cycle, floor=floor)

@@ -10,76 +10,12 @@ import pytest
 import torch
 
 from torchconn.physics.systems import AffineConnectionSystem, NLinkSwimmer
-from torchconn.regression import (
-    IllConditionedBinWarning,
-    assign_bins,
-    connection_regression,
-)
-from torchconn.testing.paper_metric import metric_regression
+from torchconn.regression import IllConditionedBinWarning, assign_bins, connection_regression
+from torchconn.regression.connection import connection_design
+
+from .common import circle, cycle_at_centres, reference_fit, reference_rows, tube_samples
 
 F64 = torch.float64
-
-
-# ----------------------------------------------------------------------------- helpers
-def circle(phi: torch.Tensor, d: int, radius: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
-    """A circle of ``radius`` in the first two joints (others 0) and its φ-derivative."""
-    g = torch.zeros(phi.shape + (d,), dtype=F64)
-    gd = torch.zeros(phi.shape + (d,), dtype=F64)
-    g[..., 0], g[..., 1] = radius * torch.cos(phi), radius * torch.sin(phi)
-    gd[..., 0], gd[..., 1] = -radius * torch.sin(phi), radius * torch.cos(phi)
-    return g, gd
-
-
-def tube_samples(batch, n, d, *, sigma=0.1, sigma_dot=0.1, seed=0, cycles=20):
-    """Phases uniform over many cycles, ``r = γ(φ) + δ``, ``ṙ = γ'(φ) + δ̇``."""
-    gen = torch.Generator().manual_seed(seed)
-    phi = torch.rand(batch + (n,), generator=gen, dtype=F64) * (2 * math.pi * cycles)
-    g, gd = circle(phi, d)
-    r = g + sigma * torch.randn(batch + (n, d), generator=gen, dtype=F64)
-    r_dot = gd + sigma_dot * torch.randn(batch + (n, d), generator=gen, dtype=F64)
-    return phi, r, r_dot, gen
-
-
-def cycle_at_centres(n_bins: int, d: int):
-    phi_m = torch.arange(n_bins, dtype=F64) * (2 * math.pi / n_bins)
-    return circle(phi_m, d)
-
-
-# ----------------------------------------------------------------------------- binning
-def test_assign_bins_matches_brute_force():
-    gen = torch.Generator().manual_seed(1)
-    phase = (torch.rand(2, 3, 300, generator=gen, dtype=F64) - 0.3) * 40  # negative, many cycles
-    phase[0, 1, ::7] = torch.nan
-    m = 7
-    for window, kernel in [(0.5, "box"), (0.8, "tricube"), (1.3, "epanechnikov")]:
-        bins = assign_bins(phase, m, window=window, kernel=kernel)
-        assert bins.index.shape == (2, 3, m, bins.max_count)
-        assert bins.max_count == int(bins.count.max())
-        h = 2 * math.pi / m
-        ph = phase.numpy()
-        for idx in np.ndindex(2, 3):
-            for k in range(m):
-                off = np.remainder(ph[idx] - k * h + math.pi, 2 * math.pi) - math.pi
-                inside = np.flatnonzero((off >= -window * h) & (off < window * h))
-                got = bins.index[idx + (k,)][: bins.count[idx + (k,)]].numpy()
-                assert sorted(got.tolist()) == inside.tolist()
-                s = np.abs(off[got]) / (window * h)
-                want = {"box": np.ones_like(s), "tricube": (1 - s**3) ** 3,
-                        "epanechnikov": 1 - s**2}[kernel]
-                np.testing.assert_allclose(bins.weight[idx + (k,)][: len(got)].numpy(), want,
-                                           atol=1e-12)
-                assert (bins.weight[idx + (k,)][len(got):] == 0).all()
-        if window == 0.5:  # a partition: every finite sample in exactly one bin
-            assert (bins.count.sum(-1) == torch.isfinite(phase).sum(-1)).all()
-
-
-def test_assign_bins_validates():
-    with pytest.raises(ValueError, match="window"):
-        assign_bins(torch.zeros(10, dtype=F64), 4, window=2.0)
-    with pytest.raises(ValueError, match="kernel"):
-        assign_bins(torch.zeros(10, dtype=F64), 4, kernel="gauss")
-    with pytest.raises(ValueError, match="inf"):
-        assign_bins(torch.tensor([0.0, math.inf], dtype=F64), 4)
 
 
 # ----------------------------------------------------------------------------- connection
@@ -110,28 +46,6 @@ def test_connection_exact_for_affine_toy(d):
     torch.testing.assert_close(per_batch.A, fit.A, atol=1e-12, rtol=0)
 
 
-def _reference_rows(bins, b, m, *arrays):
-    """The weighted rows of bin ``m`` of batch element ``b`` as numpy arrays."""
-    k = int(bins.count[b, m])
-    idx = bins.index[b, m, :k].numpy()
-    w = bins.weight[b, m, :k].numpy()
-    keep = w > 0
-    return (w[keep],) + tuple(a[b].numpy()[idx[keep]] for a in arrays)
-
-
-def _reference_fit(x, y, w):
-    """lstsq on √w-weighted rows, and the sandwich standard errors with the effective dof."""
-    sw = np.sqrt(w)[:, None]
-    beta = np.linalg.lstsq(sw * x, sw * y, rcond=None)[0]
-    a = x.T @ (w[:, None] * x)
-    g2 = x.T @ ((w**2)[:, None] * x)
-    a_inv = np.linalg.inv(a)
-    dof = w.sum() - np.trace(a_inv @ g2)
-    sigma2 = (w[:, None] * (y - x @ beta) ** 2).sum(0) / dof
-    cov = a_inv @ g2 @ a_inv
-    return beta, np.sqrt(np.outer(np.diag(cov), sigma2))
-
-
 @pytest.mark.parametrize("window, kernel", [(0.5, "box"), (0.75, "tricube")])
 def test_connection_matches_per_bin_lstsq(window, kernel):
     d = 2
@@ -145,11 +59,11 @@ def test_connection_matches_per_bin_lstsq(window, kernel):
     fit = connection_regression(r, r_dot, xi, bins, g_m, gd_m)
     for b in range(2):
         for m in range(6):
-            w, rr, rd, y = _reference_rows(bins, b, m, r, r_dot, xi)
+            w, rr, rd, y = reference_rows(bins, b, m, r, r_dot, xi)
             delta, delta_dot = rr - g_m[m].numpy(), rd - gd_m[m].numpy()
             cross = np.einsum("ni,nj->nij", delta_dot, delta).reshape(len(w), d * d)
             x = np.concatenate([np.ones((len(w), 1)), delta, delta_dot, cross], 1)
-            beta, se = _reference_fit(x, y, w)
+            beta, se = reference_fit(x, y, w)
             got = fit.coef[b, m].numpy()
             assert np.abs(got - beta).max() <= 1e-10 * np.abs(beta).max()
             np.testing.assert_allclose(fit.se_coef[b, m].numpy(), se, rtol=1e-8)
@@ -171,13 +85,13 @@ def test_connection_matches_lstsq_at_many_regressors(kernel):
     fit = connection_regression(r, r_dot, xi, bins, g_m, gd_m, delta_max=0.3)
     for b in range(2):
         for m in range(4):
-            w, rr, rd, y = _reference_rows(bins, b, m, r, r_dot, xi)
+            w, rr, rd, y = reference_rows(bins, b, m, r, r_dot, xi)
             delta, delta_dot = rr - g_m[m].numpy(), rd - gd_m[m].numpy()
             keep = (np.linalg.norm(delta, axis=1) < 0.3) & np.isfinite(y).all(1)
             w, y, delta, delta_dot = w[keep], y[keep], delta[keep], delta_dot[keep]
             cross = np.einsum("ni,nj->nij", delta_dot, delta).reshape(len(w), d * d)
             x = np.concatenate([np.ones((len(w), 1)), delta, delta_dot, cross], 1)
-            beta, se = _reference_fit(x, y, w)
+            beta, se = reference_fit(x, y, w)
             assert np.abs(fit.coef[b, m].numpy() - beta).max() <= 1e-10 * np.abs(beta).max()
             np.testing.assert_allclose(fit.se_coef[b, m].numpy(), se, rtol=1e-8)
             np.testing.assert_allclose(
@@ -219,7 +133,7 @@ def test_delta_max_and_condition():
 
     # the reported condition bounds κ₁ of the equilibrated normal matrix from above, tightly
     for m in range(6):
-        w, rr, rd = _reference_rows(bins, 0, m, r, r_dot)
+        w, rr, rd = reference_rows(bins, 0, m, r, r_dot)
         de, dd = rr - g_m[m].numpy(), rd - gd_m[m].numpy()
         keep = np.linalg.norm(de, axis=1) < 0.2
         de, dd = de[keep], dd[keep]
@@ -375,80 +289,6 @@ def test_swimmer_error_is_second_order_in_tube_width():
     assert float(err[0]) < 1e-3
 
 
-# ----------------------------------------------------------------------------- metric
-def affine_metric(d: int, seed: int = 0):
-    """``M(r) = M0 + Σ_k M1[..., k] r_k``: symmetric, positive definite near the cycle."""
-    gen = torch.Generator().manual_seed(seed)
-    q = torch.randn(d, d, generator=gen, dtype=F64)
-    m0 = q @ q.T + d * torch.eye(d, dtype=F64)
-    m1 = 0.3 * torch.randn(d, d, d, generator=gen, dtype=F64)
-    m1 = (m1 + m1.transpose(0, 1)) / 2  # [i, j, k] = ∂M_ij/∂r_k
-
-    def metric(r):
-        return m0 + torch.einsum("ijk,...k->...ij", m1, r)
-
-    return metric, m1
-
-
-@pytest.mark.parametrize("d", [2, 3])
-def test_metric_exact_for_affine_metric(d):
-    metric, m1 = affine_metric(d, seed=d)
-    phi, r, r_dot, _ = tube_samples((2,), 4000, d, seed=20 + d)
-    power = torch.einsum("...i,...ij,...j->...", r_dot, metric(r), r_dot)
-    bins = assign_bins(phi, 6)
-    g_m, gd_m = cycle_at_centres(6, d)
-    fit = metric_regression(r, r_dot, power, bins, g_m, gd_m)
-    assert fit.dM is not None  # enough samples: the derivative block is fitted by default
-    torch.testing.assert_close(fit.M, metric(g_m).expand_as(fit.M), atol=1e-8, rtol=0)
-    torch.testing.assert_close(fit.dM, m1.expand_as(fit.dM), atol=1e-8, rtol=0)
-    p_cycle = torch.einsum("mi,mij,mj->m", gd_m, metric(g_m), gd_m)
-    torch.testing.assert_close(fit.power_on_cycle, p_cycle.expand_as(fit.power_on_cycle),
-                               atol=1e-8, rtol=0)
-    assert torch.equal(fit.M, fit.M.mT) and fit.se_M.shape == fit.M.shape
-
-
-def test_metric_constant_without_derivative():
-    d = 3
-    system = AffineConnectionSystem.random(d, seed=9)
-    phi, r, r_dot, _ = tube_samples((), 1200, d, seed=9)
-    power = system.power(r, r_dot)
-    g_m, gd_m = cycle_at_centres(8, d)
-    bins = assign_bins(phi, 8)
-    fit = metric_regression(r, r_dot, power, bins, g_m, gd_m, with_metric_derivative=False)
-    assert fit.dM is None and fit.se_dM is None
-    torch.testing.assert_close(fit.M, system.metric(g_m), atol=1e-8, rtol=0)
-    # automatic choice: too few samples per bin for the 3rd-order block in d = 8 → left out
-    phi8, r8, rd8, _ = tube_samples((), 1200, 8, seed=9)
-    fit8 = metric_regression(r8, rd8, (rd8**2).sum(-1), assign_bins(phi8, 8),
-                             *cycle_at_centres(8, 8))
-    assert fit8.dM is None
-    torch.testing.assert_close(fit8.M, torch.eye(8, dtype=F64).expand_as(fit8.M), atol=1e-8,
-                               rtol=0)
-
-
-def test_metric_matches_per_bin_lstsq():
-    d = 2
-    metric, _ = affine_metric(d, seed=1)
-    phi, r, r_dot, gen = tube_samples((2,), 1500, d, seed=12)
-    power = torch.einsum("...i,...ij,...j->...", r_dot, metric(r), r_dot) \
-        + 0.05 * torch.randn(2, 1500, generator=gen, dtype=F64) + 0.2 * r[..., 0] ** 2
-    bins = assign_bins(phi, 5, window=0.7, kernel="epanechnikov")
-    g_m, gd_m = cycle_at_centres(5, d)
-    fit = metric_regression(r, r_dot, power, bins, g_m, gd_m, with_metric_derivative=True)
-    iu = np.triu_indices(d)
-    for b in range(2):
-        for m in range(5):
-            w, rr, rd, y = _reference_rows(bins, b, m, r, r_dot, power.unsqueeze(-1))
-            de, dd = rr - g_m[m].numpy(), rd - gd_m[m].numpy()
-            quad = dd[:, iu[0]] * dd[:, iu[1]]
-            x = np.concatenate([np.ones((len(w), 1)), dd, quad, de,
-                                np.einsum("nk,nj->nkj", de, dd).reshape(len(w), -1),
-                                np.einsum("nk,nq->nkq", de, quad).reshape(len(w), -1)], 1)
-            beta, se = _reference_fit(x, y, w)
-            assert np.abs(fit.coef[b, m].numpy() - beta[:, 0]).max() <= 1e-10 * np.abs(beta).max()
-            np.testing.assert_allclose(fit.se_coef[b, m].numpy(), se[:, 0], rtol=1e-8)
-
-
 def _collinear_data(d=2, n=3000, seed=6):
     """Bins whose ``δ₂`` is ``0.5 δ₁`` up to 1e-8 (ill-conditioned; the ridge policy fixes
     them) and 1e-3 noise on the body velocity, kernel weights."""
@@ -498,3 +338,32 @@ def test_coefficients_alone_are_the_full_solvers_bit_for_bit(case):
         assert bool((alone.ridge > 0).any())  # the ridge path ran
     if case == "sparse_warn":
         assert bool(alone.A.isnan().any()) and bool(alone.A.isfinite().any())
+
+
+def test_the_ridge_can_leave_the_connection_unpenalised():
+    # the solver's ridge against its closed form: (XᵀX + λ D) β = Xᵀy with D the diagonal of
+    # XᵀX on every column but the intercept and Â's (δ̇); without the exemption Â shrinks
+    from torchconn.regression import _wls
+    from torchconn.regression.connection import unpenalised_columns
+
+    gen = torch.Generator().manual_seed(3)
+    d, n = 2, 400
+    x = connection_design(0.1 * torch.randn(n, d, generator=gen, dtype=F64),
+                          0.3 * torch.randn(n, d, generator=gen, dtype=F64))
+    beta_true = torch.randn(x.shape[-1], 3, generator=gen, dtype=F64)
+    y = x @ beta_true + 0.05 * torch.randn(n, 3, generator=gen, dtype=F64)
+    gram, rhs = x.T @ x, x.T @ y
+    free = unpenalised_columns(d)
+    assert free.tolist() == [False] * 3 + [True] * 2 + [False] * 4
+    lam = 1.0
+    chol, failed, _, _ = _wls.ridge_cholesky(gram.clone()[None], lam, free)
+    beta = torch.cholesky_solve(rhs[None], chol)[0]
+    pen = torch.where(free, 0.0, lam * gram.diagonal())
+    pen[0] = 0
+    assert not bool(failed.any())
+    assert torch.allclose(beta, torch.linalg.solve(gram + torch.diag(pen), rhs), atol=1e-12)
+    a = slice(1 + d, 1 + 2 * d)
+    assert torch.allclose(beta[a], beta_true[a], atol=0.05)  # Â as without a ridge
+    chol_all, _, _, _ = _wls.ridge_cholesky(gram.clone()[None], lam)  # every column
+    shrunk = torch.cholesky_solve(rhs[None], chol_all)[0]
+    assert float(shrunk[a].norm()) < 0.8 * float(beta_true[a].norm())
