@@ -4,12 +4,17 @@ several folders use."""
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-from torchconn import NLinkSwimmer, simulate
+from torchconn import ConnectionEstimator, NLinkSwimmer, simulate
+from torchconn.improve import (
+    circle_gait,
+)
 from torchconn.io.trajectory_files import write_csv
 from torchconn.simulation.observe import observe
 
@@ -85,3 +90,15 @@ def unequal_recordings(tmp_path_factory):
 def clean30():
     """4 trials x 30 cycles of the 3-link on a circle, noise-free."""
     return clean_circle_trials()
+
+
+@pytest.fixture(scope="module")
+def fitted_3link():
+    """A pooled model of the 3-link on a circle of radius 0.5 (4 trials x 20 cycles, clean)."""
+    system = NLinkSwimmer(3)
+    traj = simulate(system, circle_gait(2, 0.5), eta=0.025, n_cycles=20, seeds=np.arange(4) + 50)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        no_power = traj.with_fields(power=None)
+        est = ConnectionEstimator(pool=True).fit(no_power)
+    return system, traj, est.model_

@@ -47,3 +47,12 @@ def gait_noise(traj, floor="gait"):
     cycle = est.cycle.fit(prep)
     per_cycle = 2 * math.pi / (phase_rate(prep.phase, prep.dt) * prep.dt)
     return estimate_noise(traj.r, cycle=cycle.gamma, samples_per_cycle=per_cycle, floor=floor)
+
+
+def wobbled_gait(base: FourierGait, eps: float) -> FourierGait:
+    """``base`` plus a change of size ``eps`` in harmonics 1 and 2 (within the tube's order)."""
+    c = torch.cat([base.coeffs, torch.zeros(max(5 - base.coeffs.shape[0], 0), 2,
+                                            dtype=torch.float64)])
+    c[1] += eps * torch.tensor([0.6, -0.3], dtype=torch.float64)
+    c[4] += eps * torch.tensor([0.5, 0.4], dtype=torch.float64)
+    return FourierGait(c)
