@@ -1,11 +1,14 @@
 """The Trajectory container: validation, batch indexing, time slicing."""
 
+from __future__ import annotations
+
 import numpy as np
 import pytest
 import torch
 
 from torchconn import NLinkSwimmer, Trajectory, simulate
 from torchconn.physics.gaits import reference_gait
+from torchconn.trajectory import pad_trials, span_groups
 
 
 @pytest.fixture(scope="module")
@@ -41,3 +44,17 @@ def test_validation_names_the_field():
         Trajectory(t=t ** 1.1, pose=torch.zeros(10, 3), r=torch.zeros(10, 2))
     with pytest.raises(ValueError, match="strictly increasing"):
         Trajectory(t=-t, pose=torch.zeros(10, 3), r=torch.zeros(10, 2))
+
+
+def test_pad_trials_and_span_groups():
+    a, b = torch.ones(3, 2), torch.full((5, 2), 2.0)
+    x = pad_trials([a, b])
+    assert x.shape == (2, 5, 2) and torch.isnan(x[0, 3:]).all() and torch.equal(x[1], b)
+    assert pad_trials([a], 4).shape == (1, 4, 2)
+    with pytest.raises(ValueError, match="shorter than the longest"):
+        pad_trials([a, b], 4)
+    with pytest.raises(ValueError, match="trial 1 has shape"):
+        pad_trials([a, torch.ones(3, 3)])
+    valid = torch.tensor([[0, 1, 1, 0], [1, 1, 1, 1], [0, 1, 1, 0], [0, 0, 0, 0]], dtype=bool)
+    groups = {(a, b): rows.tolist() for rows, a, b in span_groups(valid)}
+    assert groups == {(1, 3): [0, 2], (0, 4): [1, 3]}

@@ -2,8 +2,8 @@
 
 On a CPU with AVX-512, MKL takes its AVX-512 kernels by default; ``MKL_ENABLE_INSTRUCTIONS=AVX2``
 selects the AVX2 ones, which round differently and converge differently on hard matrices. The
-suite itself runs on the default path; this test runs the ``numerics`` tests (marked in
-conftest.py) again on the other one, in a subprocess. By hand::
+suite itself runs on the default path; this test runs the ``numerics`` tests (marked by path
+in tests/conftest.py) again on the other one, in a subprocess. By hand::
 
     MKL_ENABLE_INSTRUCTIONS=AVX2 python -m pytest -q -m "numerics and not slow"
 """
