@@ -374,10 +374,7 @@ def _sidecar(args, estimator, est, rec, traj, check, known, model, forecast) -> 
             "folds": est.held_out_folds,
             "interleaved": _baselines_summary(held_out),
             "forward": (None if est.forward_skill_ is None
-                        else _baselines_summary(est.forward_skill_)),
-            # per component the forecasts' share of the physics reference (0: the model)
-            "prior_weight": (None if est.prior_weight_ is None
-                             else est.prior_weight_.tolist())},
+                        else _baselines_summary(est.forward_skill_))},
         "reference": (None if est.reference_ is None
                       else {**est.reference_.describe(), "n_links": est.reference_.n_links}),
     }
@@ -468,14 +465,6 @@ def _report_held_out(est, say) -> None:
                          ("physics reference", skill.r2_physics), ("zero", skill.r2_zero),
                          ("template", skill.r2_template)):
             say(f"    {name:>23}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
-    weight = est.prior_weight_
-    if weight is not None and bool((weight > 0).any()):
-        shrunk = [f"{name} {float(w):.0%}" for name, w in zip(
-            COMPONENTS, weight.reshape(-1, 3).amax(0).tolist(), strict=True) if w > 0]
-        say("physics prior: the forecasts lean towards the physics reference where it "
-            "predicts held-out cycles better (share of the reference: " + ", ".join(shrunk)
-            + "); the model R² above are of these forecasts, the connection (Â) is as "
-            "estimated")
     if bool(held_out.unscored.any()):
         print("WARNING: some phase bins cannot be fitted when a block of cycles is "
               "left out: the model has too many coefficients for this recording "

@@ -373,29 +373,24 @@ class ConnectionEstimator:
         self.trajectory_, self.phaser_, self.limit_cycle_ = traj, fitted_phaser, cycle
         self.regression_, self.complexity_ = regression, choice
         self.held_out_skill_, self.forward_skill_, self.reference_ = outcome.held, None, None
-        self.prior_weight_ = None
         if outcome.held is not None:
-            references, fold = self._baselines(traj, view, outcome)
-            forecast, connection = self._with_prior(traj, cycle, view, outcome, forecast,
-                                                    connection, references, fold)
+            self._baselines(traj, view, outcome)
         self.forecast_model_ = _with_settings(forecast, estimator_settings(self, regression))
         self.model_ = self.forecast_model_
         if forecast is not connection:
             self.model_ = _with_settings(connection,
                                          estimator_settings(self, unshrunk or regression),
-                                         forecast_model=_forecast_meta(choice, regression,
-                                                                        self.prior_weight_))
+                                         forecast_model=_forecast_meta(choice, regression))
         if outcome.held is not None:
             selection.warn_if_poor(outcome.held, stacklevel=4, choice=choice,
                                    searched=outcome.searched)
 
     def _baselines(self, traj: Trajectory, view: "selection.RegressionView",
-                   outcome: _Outcome) -> tuple[list, Tensor]:
+                   outcome: _Outcome) -> None:
         """The physics reference fitted to the whole recording (``reference_``) and without
         each block of cycles, scored beside the held-out check's model (``r2_physics`` of
         ``held_out_skill_`` and ``forward_skill_``); ``view``: the samples the outcome's
-        regression fitted (pooled as the fit). Returns the references without each block
-        and the samples' blocks."""
+        regression fitted (pooled as the fit)."""
         unflat = selection.regression_view(traj, outcome.regression, outcome.model,
                                            pool=self.pool, flatten=False)
         fold = cycle_blocks(unflat.phase, self.held_out_folds)
@@ -409,41 +404,6 @@ class ConnectionEstimator:
                                                          references, (folds - 1,))
         self.reference_ = fit_reference(view.r, view.r_dot, view.xi, frame=frame,
                                         pool=self.pool)
-        return references, fold
-
-    def _with_prior(self, traj: Trajectory, cycle: LimitCycle,
-                    view: "selection.RegressionView", outcome: _Outcome,
-                    forecast: LocalConnectionModel, connection: LocalConnectionModel,
-                    references: list, fold: Tensor
-                    ) -> tuple[LocalConnectionModel, LocalConnectionModel]:
-        """The forecasting model shrunk towards the physics reference
-        (:mod:`~torchconn.regression.selection.prior`): per component the weight that
-        minimises the held-out squared error of the blend of the forecasts' fits without
-        each block with the references fitted without it, kept where it clearly lowers it
-        (``prior_weight_``, ``(..., 3)``: 0 model, 1 the physics reference). The connection
-        ``model_`` is kept as estimated."""
-        choice = outcome.choice
-        models = selection.fold_models(
-            traj, cycle, outcome.regression, outcome.model, pool=self.pool,
-            n_folds=self.held_out_folds, refit=False,
-            connection_regressed=choice is not None and choice.connection_regressed)
-        fitted, physics = selection.held_out_predictions(
-            models[1], view, fold, outcome.regression, *_masks(choice, outcome.model.device),
-            references=references)
-        weight = selection.prior_weights(view.xi, fitted, physics, models[4].reshape(
-            view.phase.shape))
-        self.prior_weight_ = weight
-        if not bool((weight > 0).any()):
-            return forecast, connection
-        # the checks' skill is of the forecasts delivered: the blend, held out
-        self.held_out_skill_ = dataclasses.replace(
-            self.held_out_skill_, r2=selection.blended_r2(view.xi, fitted, physics, weight))
-        if self.forward_skill_ is not None:
-            self.forward_skill_ = dataclasses.replace(
-                self.forward_skill_, r2=selection.blended_r2(
-                    view.xi, fitted, physics, weight, fold == self.held_out_folds - 1))
-        return selection.blend(forecast, self.reference_.local_model(forecast), weight), \
-            connection
 
     @staticmethod
     def _reference_frame(traj: Trajectory) -> str:
@@ -718,26 +678,20 @@ def _connection_delivered(alone: "selection.ConnectionAlone", given: LocalConnec
     return selection.connection_alone_model(fitted, alone.coef, alone.regression.fourier_order)
 
 
-def _forecast_meta(choice: "selection.ComplexityChoice | None", regression: Regression,
-                   prior_weight: Tensor | None = None) -> dict:
+def _forecast_meta(choice: "selection.ComplexityChoice", regression: Regression) -> dict:
     """How the forecasting model (the fit of ``regression``, with ``choice``'s components
-    zeroed, shrunk towards the physics reference by ``prior_weight``) differs from the
-    connection model (``meta["forecast_model"]`` of ``model_``; JSON-ready): its bins and
-    Fourier order, the ridge it puts on ``Â`` (0: none), the components it predicts by the
-    phase average or by the connection alone (nested lists of bools shaped like the model's
-    batch dims x 3, or None) and the prior's weight per component (or None)."""
+    zeroed) differs from the connection model (``meta["forecast_model"]`` of ``model_``;
+    JSON-ready): its bins and Fourier order, the ridge it puts on ``Â`` (0: none) and the
+    components it predicts by the phase average or by the connection alone (nested lists of
+    bools shaped like the model's batch dims x 3, or None)."""
     def listed(mask, names):
-        return None if choice is None or not names else selection.nested_list(mask)
+        return None if not names else selection.nested_list(mask)
 
     penalised = getattr(regression, "ridge_connection", False)
-    shrunk = prior_weight is not None and bool((prior_weight > 0).any())
     return {"n_bins": regression.n_bins, "fourier_order": regression.fourier_order,
             "A_ridge": float(regression.ridge) if penalised else 0.0,
-            "phase_averaged": listed(choice and choice.phase_averaged,
-                                     choice and choice.phase_averaged_names()),
-            "connection_only": listed(choice and choice.connection_only,
-                                      choice and choice.connection_only_names()),
-            "prior_weight": prior_weight.tolist() if shrunk else None}
+            "phase_averaged": listed(choice.phase_averaged, choice.phase_averaged_names()),
+            "connection_only": listed(choice.connection_only, choice.connection_only_names())}
 
 
 def _with_settings(model: LocalConnectionModel, settings: dict, **meta: Any

@@ -38,6 +38,10 @@ __all__ = ["ReferenceFamily", "FAMILIES", "PhysicsReference", "fit_reference", "
 
 #: the least Fourier order of a reference's local model (:meth:`PhysicsReference.local_model`)
 LOCAL_ORDER = 12
+#: the most samples a fit evaluates (more are thinned evenly)
+MAX_ROWS = 1500
+#: points of the coarse log-scale grid a one-parameter fit starts from
+GRID_POINTS = 13
 
 
 @dataclass(frozen=True)
@@ -103,8 +107,10 @@ class PhysicsReference:
         family = FAMILIES[self.family]
         flat = {k: v.reshape(-1) for k, v in self.parameters.items()}
         n = max(1, math.prod(self.batch_shape))
-        return [family.build(self.n_links, self.frame, **{k: float(v[i]) for k, v in flat.items()})
-                for i in range(n)]
+        with torch.device(next(iter(flat.values())).device):  # the system's own tensors
+            return [family.build(self.n_links, self.frame,
+                                 **{k: float(v[i]) for k, v in flat.items()})
+                    for i in range(n)]
 
     def predict(self, r: Tensor, r_dot: Tensor) -> Tensor:
         """Body velocity ``A(r)ṙ`` of samples ``r, r_dot (..., N, d)`` (batch dims ``...`` the
@@ -179,7 +185,8 @@ def fit_reference(r: Tensor, r_dot: Tensor, xi: Tensor, *, family: str = "swimme
     rows = [(r, r_dot, xi)] if pool else [
         tuple(_element(x, i, batch) for x in (r, r_dot, xi)) for i in range(math.prod(batch))]
     fitted = np.array([_fit_one(spec, n_links, frame, *row) for row in rows])  # (B, P)
-    parameters = {name: torch.as_tensor(fitted[:, k], dtype=torch.float64).reshape(batch)
+    parameters = {name: torch.tensor(fitted[:, k].tolist(), dtype=torch.float64,
+                                     device=r.device).reshape(batch)
                   for k, (name, _, _) in enumerate(spec.parameters)}
     return PhysicsReference(family, frame, n_links, parameters)
 
@@ -194,23 +201,27 @@ def _fit_one(spec: ReferenceFamily, n_links: int, frame: str, r: Tensor, r_dot: 
         raise ValueError(f"fit_reference: {int(ok.sum())} usable samples; the {spec.name} "
                          "reference needs at least 2")
     r, r_dot, xi = r[ok], r_dot[ok], xi[ok]
+    # evenly spread rows bound the cost of each evaluation (a few parameters, many rows)
+    step = -(-r.shape[0] // MAX_ROWS)
+    r, r_dot, xi = r[::step], r_dot[::step], xi[::step]
     sst = (xi - xi.mean(0)).square().sum(0).clamp_min(torch.finfo(xi.dtype).tiny)
 
     def loss(log_p: np.ndarray) -> float:
         values = {name: math.exp(v) for (name, _, _), v in zip(spec.parameters, log_p,
                                                                 strict=True)}
-        system = spec.build(n_links, frame, **values)
+        with torch.device(r.device):  # the system's own tensors
+            system = spec.build(n_links, frame, **values)
         sse = (xi - system.body_velocity(r, r_dot)).square().sum(0)
         return float((sse / sst).mean())
 
     bounds = [(math.log(lo), math.log(hi)) for _, lo, hi in spec.parameters]
     if len(bounds) == 1:
         # a coarse grid first (the loss need not be unimodal), then a bounded refinement
-        grid = np.linspace(*bounds[0], 25)
+        grid = np.linspace(*bounds[0], GRID_POINTS)
         best = int(np.argmin([loss(np.array([g])) for g in grid]))
         lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
         res = optimize.minimize_scalar(lambda v: loss(np.array([v])), bounds=(lo, hi),
-                                       method="bounded", options={"xatol": 1e-4})
+                                       method="bounded", options={"xatol": 1e-3})
         return [math.exp(float(res.x))]
     start = np.array([0.5 * (lo + hi) for lo, hi in bounds])
     res = optimize.minimize(loss, start, method="L-BFGS-B", bounds=bounds)
