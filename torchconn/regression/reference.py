@@ -25,7 +25,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy import optimize
 from torch import Tensor
 
 from ..phase.fourier import fit_fourier
@@ -195,6 +194,8 @@ def _fit_one(spec: ReferenceFamily, n_links: int, frame: str, r: Tensor, r_dot: 
              xi: Tensor) -> list[float]:
     """The parameters of ``spec`` minimising the normalised squared error on one set of
     samples (any batch dims, all pooled)."""
+    from scipy import optimize  # lazy: scipy.optimize costs 0.3 s at import, needed only here
+
     r, r_dot, xi = (x.reshape(-1, x.shape[-1]).to(torch.float64) for x in (r, r_dot, xi))
     ok = torch.isfinite(r).all(-1) & torch.isfinite(r_dot).all(-1) & torch.isfinite(xi).all(-1)
     if int(ok.sum()) < 2:
