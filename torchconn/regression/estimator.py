@@ -402,8 +402,7 @@ class ConnectionEstimator:
         if outcome.forward is not None:
             self.forward_skill_ = selection.with_physics(outcome.forward, view, fold,
                                                          references, (folds - 1,))
-        self.reference_ = fit_reference(view.r, view.r_dot, view.xi, frame=frame,
-                                        pool=self.pool)
+        self.reference_ = self._fit_reference(traj, view)
 
     @staticmethod
     def _reference_frame(traj: Trajectory) -> str:
@@ -411,13 +410,18 @@ class ConnectionEstimator:
         says, else :func:`~torchconn.regression.reference.default_frame`."""
         return (traj.meta or {}).get("frame") or default_frame(traj.shape_dim + 1)
 
+    def _fit_reference(self, traj: Trajectory, view: "selection.RegressionView"
+                       ) -> PhysicsReference:
+        """The physics reference fitted to ``view``, the samples of ``traj`` the regression
+        fitted (pooled as the fit), in the recording's frame."""
+        return fit_reference(view.r, view.r_dot, view.xi, pool=self.pool,
+                             frame=self._reference_frame(traj))
+
     def _reference(self) -> PhysicsReference:
         """``reference_``, fitted to the training recording's view on first use."""
         if getattr(self, "reference_", None) is None:
-            view = selection.regression_view(self.trajectory_, self.regression_,
-                                             self.forecast_model_, pool=self.pool)
-            self.reference_ = fit_reference(view.r, view.r_dot, view.xi, pool=self.pool,
-                                            frame=self._reference_frame(self.trajectory_))
+            self.reference_ = self._fit_reference(self.trajectory_, selection.regression_view(
+                self.trajectory_, self.regression_, self.forecast_model_, pool=self.pool))
         return self.reference_
 
     def _fit_metric(self, traj: Trajectory, cycle: LimitCycle

@@ -89,6 +89,19 @@ def test_five_link_metric_gamma_dot_at_high_noise():
     assert all(abs(w / 0.005 - 1) < 0.1 for w in noise)
 
 
+def _metric_bands(system, b):
+    """The 3-link's 95 % bands of M̂ against the swimmer's M at the bins: the fraction of
+    entries they hold, their median half-width and M̂'s error, both relative to |M|."""
+    m_true = system.metric(b.gamma)
+    iu, ju = torch.triu_indices(2, 2)
+    inside = ((b.M - m_true).abs() <= 1.96 * b.M_se)[:, iu, ju].double().mean()
+    norm = m_true.square().sum((-1, -2)).sqrt()[:, None]
+    width = float((1.96 * b.M_se[:, iu, ju] / norm).median())
+    err = float(((b.M - m_true)[:, iu, ju].square().sum(-1).mean() / norm.square().mean()).sqrt())
+    print(f"coverage {float(inside):.2f}; median half-width {width:.3f} of |M|, error {err:.3f}")
+    return inside, width, err
+
+
 def test_metric_bands_cover_the_truth_on_clean_data():
     """3-link Tam–Hosoi gait without motion-capture noise (4 trials x 30 cycles, 64 samples per
     cycle; seeds used neither to tune nor to report the bias allowance): what remains of the
@@ -100,13 +113,7 @@ def test_metric_bands_cover_the_truth_on_clean_data():
     traj = simulate(system, reference_gait("3link"), eta=0.025, alpha=0.05, n_cycles=30,
                     samples_per_cycle=64, seeds=seeds)
     b = _fit(traj).model_.bins
-    m_true = system.metric(b.gamma)
-    iu, ju = torch.triu_indices(2, 2)
-    inside = ((b.M - m_true).abs() <= 1.96 * b.M_se)[:, iu, ju].double().mean()
-    norm = m_true.square().sum((-1, -2)).sqrt()[:, None]
-    width = float((1.96 * b.M_se[:, iu, ju] / norm).median())
-    err = float(((b.M - m_true)[:, iu, ju].square().sum(-1).mean() / norm.square().mean()).sqrt())
-    print(f"coverage {float(inside):.2f}; median half-width {width:.3f} of |M|, error {err:.3f}")
+    inside, width, err = _metric_bands(system, b)
     assert inside >= 0.75
     assert width < 2 * err  # honest, not uselessly wide
 
@@ -165,13 +172,7 @@ def test_posterior_bands_hold_the_truth_where_the_held_out_order_drops_harmonics
     model = _fit(traj).model_
     b = model.bins
     assert model.meta["metric_order"] == 4  # harmonics dropped: the case tested
-    m_true = system.metric(b.gamma)
-    iu, ju = torch.triu_indices(2, 2)
-    inside = ((b.M - m_true).abs() <= 1.96 * b.M_se)[:, iu, ju].double().mean()
-    norm = m_true.square().sum((-1, -2)).sqrt()[:, None]
-    width = float((1.96 * b.M_se[:, iu, ju] / norm).median())
-    err = float(((b.M - m_true)[:, iu, ju].square().sum(-1).mean() / norm.square().mean()).sqrt())
-    print(f"coverage {float(inside):.2f}; median half-width {width:.3f} of |M|, error {err:.3f}")
+    inside, width, err = _metric_bands(system, b)
     assert inside >= 0.9
     assert width < 2 * err  # honest, not uselessly wide
     # the cost of the recorded gait: the correlated draw keeps its standard error from
