@@ -58,6 +58,7 @@ from .regression.estimator import (
     estimator_settings,
 )
 from .regression.model import LocalConnectionModel
+from .regression.reference import FAMILIES
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 from .regression.selection import COMPONENTS, PoorHeldOutSkillWarning, nested_list
 
@@ -105,7 +106,7 @@ _FLAGS = {"n_bins": ("regression", "n_bins"), "fourier_order": ("regression", "f
 
 #: the estimator's stage names: ``--set regression.kernel=box`` means ``estimator.regression…``
 _STAGE_KEYS = ("smoother", "phaser", "cycle", "regression", "pool", "complexity",
-               "held_out_folds")
+               "held_out_folds", "prior")
 
 
 def _phase_order(text: str) -> int | str:
@@ -126,6 +127,8 @@ def build_estimator(args, table: dict | None) -> ConnectionEstimator:
         table["complexity"] = args.complexity
     if args.folds is not None:
         table["held_out_folds"] = args.folds
+    if args.prior is not None:
+        table["prior"] = None if args.prior == "none" else args.prior
     if args.regression is not None:
         table["regression"] = {**table.get("regression", {}), "method": args.regression}
     if args.metric is not None:  # auto: fit the metric when there is a power column
@@ -188,6 +191,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--folds", type=int,
                    help="blocks of whole cycles for the held-out check and the complexity "
                    "choice (estimator.held_out_folds, default 3; 0 skips the check)")
+    p.add_argument("--prior", choices=(*FAMILIES, "none"),
+                   help="the physics reference the forecasts may lean on where it predicts "
+                   "held-out cycles better, and the baseline reported beside the model: "
+                   "swimmer (default), the viscous N-link swimmer with its drag ratio fitted; "
+                   "none: no prior (estimator.prior)")
     p.add_argument("--metric", choices=("auto", "yes", "no"),
                    help="estimate the dissipation metric: auto (default) when the files have a "
                    "power column, yes to require one, no never")
@@ -374,7 +382,10 @@ def _sidecar(args, estimator, est, rec, traj, check, known, model, forecast) -> 
             "folds": est.held_out_folds,
             "interleaved": _baselines_summary(held_out),
             "forward": (None if est.forward_skill_ is None
-                        else _baselines_summary(est.forward_skill_))},
+                        else _baselines_summary(est.forward_skill_)),
+            # per component the forecasts' share of the physics reference (0: the model)
+            "prior_weight": (None if est.prior_weight_ is None
+                             else est.prior_weight_.tolist())},
         "reference": (None if est.reference_ is None
                       else {**est.reference_.describe(), "n_links": est.reference_.n_links}),
     }
@@ -465,6 +476,14 @@ def _report_held_out(est, say) -> None:
                          ("physics reference", skill.r2_physics), ("zero", skill.r2_zero),
                          ("template", skill.r2_template)):
             say(f"    {name:>23}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
+    weight = est.prior_weight_
+    if weight is not None and bool((weight > 0).any()):
+        shrunk = [f"{name} {float(w):.0%}" for name, w in zip(
+            COMPONENTS, weight.reshape(-1, 3).amax(0).tolist(), strict=True) if w > 0]
+        say("physics prior: the forecasts lean towards the physics reference where it "
+            "predicts held-out cycles better (share of the reference: " + ", ".join(shrunk)
+            + "); the model R² above are of these forecasts, the connection (Â) is as "
+            "estimated")
     if bool(held_out.unscored.any()):
         print("WARNING: some phase bins cannot be fitted when a block of cycles is "
               "left out: the model has too many coefficients for this recording "

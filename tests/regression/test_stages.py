@@ -125,7 +125,7 @@ def test_get_and_set_params_follow_scikit_learn_without_it():
     est = ConnectionEstimator(regression=TubeRegression(n_bins=24, fourier_order=6), pool=True)
     shallow = est.get_params(deep=False)
     assert set(shallow) == {"smoother", "phaser", "cycle", "regression", "metric", "pool",
-                            "complexity", "held_out_folds"}
+                            "complexity", "held_out_folds", "prior"}
     deep = est.get_params(deep=True)
     assert deep["regression__n_bins"] == 24 and deep["phaser__order"] == "auto"
     assert deep["smoother__order"] == 2 and deep["cycle__order"] == 8 and deep["pool"] is True
@@ -145,6 +145,9 @@ def test_get_and_set_params_follow_scikit_learn_without_it():
     assert est.get_params() == rebuilt.get_params()  # a refused call changes nothing
     with pytest.raises(ValueError, match="held_out_folds must be 0 .* or an integer >= 2, got 1"):
         est.set_params(held_out_folds=1)
+    with pytest.raises(ValueError, match=r"prior must be None .* \(swimmer\), got 'rft'"):
+        est.set_params(prior="rft")
+    assert est.set_params(prior=None).prior is None
     with pytest.raises(ValueError, match="complexity must be one of"):
         estimator_from_settings({"complexity": "auto-ish"})
     assert "n_bins=32" in repr(est) and "Phaser(order=4" in repr(est)

@@ -51,7 +51,7 @@ from .base import Regression, check_bin_count
 from .metric import FittedMetric, MetricEstimator, TiedMetric
 from .model import LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
-from .reference import PhysicsReference, default_frame, fit_reference
+from .reference import FAMILIES, PhysicsReference, default_frame, fit_reference
 from .tube import TubeRegression
 
 __all__ = [
@@ -70,7 +70,7 @@ STAGES: dict[str, tuple[type, dict[str, type]]] = {
 }
 
 #: the estimator's own options besides its stages (settings-table keys beside the stages)
-OPTIONS = ("pool", "complexity", "held_out_folds")
+OPTIONS = ("pool", "complexity", "held_out_folds", "prior")
 #: how the regression's complexity (bins, Fourier order, ridge) is set; see ConnectionEstimator
 COMPLEXITY = ("auto", "fixed", "cv")
 
@@ -112,6 +112,14 @@ class ConnectionEstimator:
             where the model predicts held-out cycles worse than their phase-averaged velocity.
             The fits without each block come from downdating the bins' normal equations
             (:mod:`~torchconn.regression.held_out`), not from refits.
+        prior: the physics reference family (a name in
+            :data:`~torchconn.regression.reference.FAMILIES`; default the viscous N-link
+            swimmer) fitted as a baseline and used as the forecasts' prior: per component the
+            forecasts are shrunk towards the fitted reference by the weight that minimises
+            their error on held-out cycles, kept only where it lowers that error clearly
+            (:mod:`~torchconn.regression.selection.prior`; ``prior_weight_``). It acts on
+            short recordings, where the reference predicts held-out cycles better, and
+            leaves long ones as fitted. None: no prior (the swimmer is still the baseline).
 
     scikit-learn manners: the constructor only stores its arguments, :meth:`fit` returns
     ``self``, fitted attributes end in ``_``:
@@ -154,7 +162,10 @@ class ConnectionEstimator:
       ``d + 1`` links in :func:`~torchconn.regression.reference.default_frame`, or in
       ``trajectory.meta["frame"]`` where the recording names its frame) with its drag ratio
       fitted to the whole recording as the regression sees it; fitted where the held-out
-      check runs, else on the first :meth:`score` (None until then).
+      check runs, else on the first :meth:`score` (None until then);
+    - ``prior_weight_``: ``(..., 3)`` the share of the physics reference in each component of
+      ``forecast_model_`` (0: the fitted model alone, 1: the reference alone), or None where
+      the held-out check is off or ``prior`` is None.
 
     Example::
 
@@ -176,6 +187,7 @@ class ConnectionEstimator:
         pool: bool = False,
         complexity: str = "auto",
         held_out_folds: int = 3,
+        prior: str | None = "swimmer",
     ):
         self.smoother = smoother
         self.phaser = phaser
@@ -185,6 +197,7 @@ class ConnectionEstimator:
         self.pool = pool
         self.complexity = complexity
         self.held_out_folds = held_out_folds
+        self.prior = prior
         _check_arguments(**self.get_params(deep=False))
 
     # ------------------------------------------------------------------ scikit-learn params
@@ -373,36 +386,83 @@ class ConnectionEstimator:
         self.trajectory_, self.phaser_, self.limit_cycle_ = traj, fitted_phaser, cycle
         self.regression_, self.complexity_ = regression, choice
         self.held_out_skill_, self.forward_skill_, self.reference_ = outcome.held, None, None
+        self.prior_weight_ = None
         if outcome.held is not None:
-            self._baselines(traj, view, outcome)
+            references, fold = self._baselines(traj, view, outcome)
+        if outcome.held is not None and self.prior is not None:
+            forecast, connection = self._with_prior(traj, cycle, view, outcome, forecast,
+                                                    connection, references, fold)
         self.forecast_model_ = _with_settings(forecast, estimator_settings(self, regression))
         self.model_ = self.forecast_model_
         if forecast is not connection:
             self.model_ = _with_settings(connection,
                                          estimator_settings(self, unshrunk or regression),
-                                         forecast_model=_forecast_meta(choice, regression))
+                                         forecast_model=_forecast_meta(choice, regression,
+                                                                        self.prior_weight_))
         if outcome.held is not None:
             selection.warn_if_poor(outcome.held, stacklevel=4, choice=choice,
                                    searched=outcome.searched)
 
     def _baselines(self, traj: Trajectory, view: "selection.RegressionView",
-                   outcome: _Outcome) -> None:
+                   outcome: _Outcome) -> tuple[list, Tensor]:
         """The physics reference fitted to the whole recording (``reference_``) and without
         each block of cycles, scored beside the held-out check's model (``r2_physics`` of
         ``held_out_skill_`` and ``forward_skill_``); ``view``: the samples the outcome's
-        regression fitted (pooled as the fit)."""
+        regression fitted (pooled as the fit). Returns the references without each block
+        and the samples' blocks."""
         unflat = selection.regression_view(traj, outcome.regression, outcome.model,
                                            pool=self.pool, flatten=False)
         fold = cycle_blocks(unflat.phase, self.held_out_folds)
         fold = pool_batch(fold, 0) if self.pool else fold
         frame = self._reference_frame(traj)
         folds = self.held_out_folds
-        references = selection.fold_references(view, fold, folds, self.pool, frame=frame)
+        references = selection.fold_references(view, fold, folds, self.pool, frame=frame,
+                                               family=self._family)
         self.held_out_skill_ = selection.with_physics(outcome.held, view, fold, references)
         if outcome.forward is not None:
             self.forward_skill_ = selection.with_physics(outcome.forward, view, fold,
                                                          references, (folds - 1,))
         self.reference_ = self._fit_reference(traj, view)
+        return references, fold
+
+    def _with_prior(self, traj: Trajectory, cycle: LimitCycle,
+                    view: "selection.RegressionView", outcome: _Outcome,
+                    forecast: LocalConnectionModel, connection: LocalConnectionModel,
+                    references: list, fold: Tensor
+                    ) -> tuple[LocalConnectionModel, LocalConnectionModel]:
+        """The forecasting model shrunk towards the physics reference
+        (:mod:`~torchconn.regression.selection.prior`): per component the weight that
+        minimises the held-out squared error of the blend of the forecasts' fits without
+        each block with the references fitted without it, kept where it clearly lowers it
+        (``prior_weight_``, ``(..., 3)``: 0 model, 1 the physics reference), and 1 where the
+        reference predicts better than that blend on every held-out block and on the forward
+        one (:func:`~torchconn.regression.selection.prior.forward_checked`). The connection
+        ``model_`` is kept as estimated."""
+        choice = outcome.choice
+        models = selection.fold_models(
+            traj, cycle, outcome.regression, outcome.model, pool=self.pool,
+            n_folds=self.held_out_folds, refit=False,
+            connection_regressed=choice is not None and choice.connection_regressed)
+        fitted, physics = selection.held_out_predictions(
+            models[1], view, fold, outcome.regression, *_masks(choice, outcome.model.device),
+            references=references)
+        weight = selection.prior_weights(view.xi, fitted, physics, models[4].reshape(
+            view.phase.shape))
+        forward = fold == self.held_out_folds - 1
+        if self.forward_skill_ is not None:
+            weight = selection.forward_checked(weight, view.xi, fitted, physics, forward)
+        self.prior_weight_ = weight
+        if not bool((weight > 0).any()):
+            return forecast, connection
+        # the checks' skill is of the forecasts delivered: the blend, held out
+        self.held_out_skill_ = dataclasses.replace(
+            self.held_out_skill_, r2=selection.blended_r2(view.xi, fitted, physics, weight))
+        if self.forward_skill_ is not None:
+            self.forward_skill_ = dataclasses.replace(
+                self.forward_skill_, r2=selection.blended_r2(
+                    view.xi, fitted, physics, weight, forward))
+        return selection.blend(forecast, self.reference_.local_model(forecast), weight), \
+            connection
 
     @staticmethod
     def _reference_frame(traj: Trajectory) -> str:
@@ -413,9 +473,14 @@ class ConnectionEstimator:
     def _fit_reference(self, traj: Trajectory, view: "selection.RegressionView"
                        ) -> PhysicsReference:
         """The physics reference fitted to ``view``, the samples of ``traj`` the regression
-        fitted (pooled as the fit), in the recording's frame."""
+        fitted (pooled as the fit), in the recording's frame: of the family ``prior`` (the
+        swimmer where it is None)."""
         return fit_reference(view.r, view.r_dot, view.xi, pool=self.pool,
-                             frame=self._reference_frame(traj))
+                             family=self._family, frame=self._reference_frame(traj))
+
+    @property
+    def _family(self) -> str:
+        return self.prior or "swimmer"
 
     def _reference(self) -> PhysicsReference:
         """``reference_``, fitted to the training recording's view on first use."""
@@ -512,14 +577,15 @@ class ConnectionEstimator:
         """Held-out skill of ``forecast_model_``'s regression on the training recordings over
         ``n_folds`` blocks of whole cycles (:func:`~torchconn.regression.selection.cross_validate`),
         beside the physics reference fitted without each block and zero; ``forward``: the
-        last block alone, fitted on the earlier ones."""
+        last block alone, fitted on the earlier ones. The regression's own forecasts are
+        scored, without the physics prior (``held_out_skill_`` scores them with it)."""
         model = self._fitted()
         fallback, conn = _masks(self.complexity_, model.device)
         return selection.cross_validate(
             self.trajectory_, self.limit_cycle_, self.regression_, pool=self.pool,
             n_folds=n_folds, model=model, phase_averaged=fallback, connection_only=conn,
             connection_regressed=getattr(self.complexity_, "connection_regressed", False),
-            forward=forward, reference="swimmer",
+            forward=forward, reference=self._family,
             frame=self._reference_frame(self.trajectory_))
 
     def check_held_out(self, n_folds: int = 3) -> selection.Skill:
@@ -682,20 +748,26 @@ def _connection_delivered(alone: "selection.ConnectionAlone", given: LocalConnec
     return selection.connection_alone_model(fitted, alone.coef, alone.regression.fourier_order)
 
 
-def _forecast_meta(choice: "selection.ComplexityChoice", regression: Regression) -> dict:
+def _forecast_meta(choice: "selection.ComplexityChoice | None", regression: Regression,
+                   prior_weight: Tensor | None = None) -> dict:
     """How the forecasting model (the fit of ``regression``, with ``choice``'s components
-    zeroed) differs from the connection model (``meta["forecast_model"]`` of ``model_``;
-    JSON-ready): its bins and Fourier order, the ridge it puts on ``Â`` (0: none) and the
-    components it predicts by the phase average or by the connection alone (nested lists of
-    bools shaped like the model's batch dims x 3, or None)."""
+    zeroed, shrunk towards the physics reference by ``prior_weight``) differs from the
+    connection model (``meta["forecast_model"]`` of ``model_``; JSON-ready): its bins and
+    Fourier order, the ridge it puts on ``Â`` (0: none), the components it predicts by the
+    phase average or by the connection alone (nested lists of bools shaped like the model's
+    batch dims x 3, or None) and the prior's weight per component (or None)."""
     def listed(mask, names):
-        return None if not names else selection.nested_list(mask)
+        return None if choice is None or not names else selection.nested_list(mask)
 
     penalised = getattr(regression, "ridge_connection", False)
+    shrunk = prior_weight is not None and bool((prior_weight > 0).any())
     return {"n_bins": regression.n_bins, "fourier_order": regression.fourier_order,
             "A_ridge": float(regression.ridge) if penalised else 0.0,
-            "phase_averaged": listed(choice.phase_averaged, choice.phase_averaged_names()),
-            "connection_only": listed(choice.connection_only, choice.connection_only_names())}
+            "phase_averaged": listed(choice and choice.phase_averaged,
+                                     choice and choice.phase_averaged_names()),
+            "connection_only": listed(choice and choice.connection_only,
+                                      choice and choice.connection_only_names()),
+            "prior_weight": prior_weight.tolist() if shrunk else None}
 
 
 def _with_settings(model: LocalConnectionModel, settings: dict, **meta: Any
@@ -713,9 +785,11 @@ def _masks(choice: "selection.ComplexityChoice | None", device) -> tuple[Tensor 
     return choice.phase_average_mask(device), choice.connection_only_mask(device)
 
 
-def _check_arguments(*, pool: Any, complexity: Any, held_out_folds: Any, **stages: Any) -> None:
+def _check_arguments(*, pool: Any, complexity: Any, held_out_folds: Any, prior: Any,
+                     **stages: Any) -> None:
     """The constructor's arguments: each stage an instance of its kind's base, pool a bool,
-    complexity one of :data:`COMPLEXITY`, held_out_folds 0 or an integer >= 2."""
+    complexity one of :data:`COMPLEXITY`, held_out_folds 0 or an integer >= 2, prior None or
+    a name in :data:`~torchconn.regression.reference.FAMILIES`."""
     for name, (base, methods) in STAGES.items():
         value = stages[name]
         if not isinstance(value, base):
@@ -732,6 +806,9 @@ def _check_arguments(*, pool: Any, complexity: Any, held_out_folds: Any, **stage
             or held_out_folds < 0 or held_out_folds == 1):
         raise ValueError("ConnectionEstimator: held_out_folds must be 0 (no held-out check) or "
                          f"an integer >= 2, got {held_out_folds!r}")
+    if prior is not None and prior not in FAMILIES:
+        raise ValueError(f"ConnectionEstimator: prior must be None (no physics prior) or a "
+                         f"registered reference family ({', '.join(FAMILIES)}), got {prior!r}")
 
 
 @contextlib.contextmanager
@@ -781,7 +858,8 @@ def estimator_from_settings(settings: Mapping[str, Any] | None = None, *,
                             where: str = "estimator") -> ConnectionEstimator:
     """Build an estimator from a nested mapping, e.g. the sweep's TOML ``[estimator]`` table.
 
-    Keys: ``pool``, and one sub-table per stage (``smoother``, ``phaser``, ``cycle``,
+    Keys: ``pool``, ``complexity``, ``held_out_folds``, ``prior`` (a reference family's name,
+    or false or None for none), and one sub-table per stage (``smoother``, ``phaser``, ``cycle``,
     ``regression``) holding that stage's fields and optionally ``method`` (a name in
     :data:`STAGES`, default its first). Example::
 
@@ -825,7 +903,10 @@ def estimator_from_settings(settings: Mapping[str, Any] | None = None, *,
     pool = settings.get("pool", False)
     if not isinstance(pool, bool):
         raise ValueError(f"{where}.pool must be true or false, got {pool!r}")
-    options = {k: settings[k] for k in ("complexity", "held_out_folds") if k in settings}
+    options = {k: settings[k] for k in ("complexity", "held_out_folds", "prior")
+               if k in settings}
+    if options.get("prior", None) is False:  # TOML has no None
+        options["prior"] = None
     try:
         return ConnectionEstimator(**stages, pool=pool, **options)
     except ValueError as err:

@@ -29,12 +29,13 @@ def _recording(n_cycles: int, seeds, omega: float = 0.0):
 
 @pytest.fixture(scope="module")
 def fitted():
-    """Two trials of 9 cycles without jitter, one model per trial, the given complexity
-    (the forecasting model is the fit itself); and 4 later cycles of the same trials."""
+    """Two trials of 9 cycles without jitter, one model per trial, the given complexity and
+    no physics prior (the forecasting model is the fit itself); and 4 later cycles of the
+    same trials."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         est = ConnectionEstimator(regression=TubeRegression(n_bins=24, fourier_order=6),
-                                  complexity="fixed").fit(_recording(9, [1, 2]))
+                                  complexity="fixed", prior=None).fit(_recording(9, [1, 2]))
     return est, _recording(4, [11, 12])
 
 

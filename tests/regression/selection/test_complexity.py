@@ -1,5 +1,9 @@
 """Recordings at video rates whose full model no held-out check can score: the connection
-alone ``c + Âδ̇`` is scored instead (``complexity.select_connection_alone``)."""
+alone ``c + Âδ̇`` is scored instead (``complexity.select_connection_alone``).
+
+The estimators here have no physics prior (``prior=None``): these simulations are of the
+prior's own reference family, so it would take over the forecasts these tests examine
+(``tests/regression/selection/test_prior.py`` tests it)."""
 
 import math
 import warnings
@@ -46,6 +50,11 @@ F64 = torch.float64
 SPC = 10  # samples per cycle: 50 fps video of a 5 Hz tail beat
 
 
+def _estimator(**kw) -> ConnectionEstimator:
+    """The default estimator without the physics prior (see the module's docstring)."""
+    return ConnectionEstimator(prior=None, **kw)
+
+
 def _recording(n_cycles: int, seed: int, spc: int = SPC):
     """One 5-link trial, ω = 0.005, the simulator's fine step as at 126 samples per cycle."""
     seeds = np.array([seed])
@@ -58,7 +67,7 @@ def _fit(train, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
-        return ConnectionEstimator(phaser=Phaser(min_cycles=2.5), **kw).fit(train)
+        return _estimator(phaser=Phaser(min_cycles=2.5), **kw).fit(train)
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +88,7 @@ def test_a_video_rate_recording_no_full_model_can_score_is_checked_by_the_connec
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         with pytest.raises(ValueError, match="no candidate could be fitted"):
             complexity.select_complexity(est.trajectory_, est.limit_cycle_,
-                                    ConnectionEstimator().regression, pool=False)
+                                    _estimator().regression, pool=False)
     choice = est.complexity_
     assert choice.checked and choice.connection_regressed
     # chosen by held-out error among the grid's bins and orders
@@ -98,7 +107,7 @@ def test_a_video_rate_recording_no_full_model_can_score_is_checked_by_the_connec
     assert bool(alone.any())  # on this recording the connection predicts something
     # the same data give the same choice
     again = complexity.select_connection_alone(est.trajectory_, est.limit_cycle_,
-                                          ConnectionEstimator().regression, pool=False)
+                                          _estimator().regression, pool=False)
     assert again.choice == choice
     # forecasts: c + Âδ̇ or the phase average, never b̂ or ∂Â/∂r
     forecast = est.forecast_model_
@@ -118,7 +127,7 @@ def test_the_check_warns_what_the_connection_alone_predicts(video):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         with pytest.warns(PoorHeldOutSkillWarning, match="the connection alone"):
-            ConnectionEstimator(phaser=Phaser(min_cycles=2.5)).fit(train)
+            _estimator(phaser=Phaser(min_cycles=2.5)).fit(train)
 
 
 def _a_error(model) -> float:
@@ -233,7 +242,7 @@ def test_four_cycles_at_14_samples_per_cycle_are_checked_not_refused():
             tr = observe(simulate(NLinkSwimmer(3), reference_gait("3link"), eta=0.025,
                                   n_cycles=4, samples_per_cycle=14, seeds=[seed]), 0.002,
                          seeds=[seed])
-            est = ConnectionEstimator(pool=True).set_params(metric__enabled=False).fit(tr)
+            est = _estimator(pool=True).set_params(metric__enabled=False).fit(tr)
             assert est.held_out_skill_ is not None
             assert bool(torch.isfinite(est.held_out_skill_.r2).all())
 
@@ -247,7 +256,7 @@ def test_overfitting_a_short_recording_is_reported_and_complexity_from_cv_stops_
     train, test = six.slice_time(0, cut), six.slice_time(cut, six.n_samples)
 
     def estimator(complexity="fixed"):
-        return ConnectionEstimator(phaser=Phaser(min_cycles=2.0), complexity=complexity,
+        return _estimator(phaser=Phaser(min_cycles=2.0), complexity=complexity,
                                    metric=TiedMetric(enabled=False),
                                    regression=NoiseAwareRegression())
 
@@ -275,14 +284,14 @@ def test_the_fit_warns_by_itself_and_auto_complexity_stops_the_overfit(short):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         with pytest.warns(PoorHeldOutSkillWarning, match="worse than their phase-averaged"):
-            fixed = ConnectionEstimator(complexity="fixed").fit(short)
+            fixed = _estimator(complexity="fixed").fit(short)
         assert bool(fixed.held_out_skill_.worse_than_phase_average.any())
         assert fixed.complexity_ is None
         warnings.simplefilter("error", PoorHeldOutSkillWarning)
-        off = ConnectionEstimator(complexity="fixed", held_out_folds=0).fit(short)  # no check
+        off = _estimator(complexity="fixed", held_out_folds=0).fit(short)  # no check
         assert off.held_out_skill_ is None
         warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
-        auto = ConnectionEstimator().fit(short)
+        auto = _estimator().fit(short)
     # a complexity as given: one model connects and forecasts
     assert fixed.forecast_model_ is fixed.model_ and off.forecast_model_ is off.model_
     # the default chose a simpler model; the fit's settings record what was fitted
@@ -298,7 +307,7 @@ def test_a_complexity_the_recording_cannot_carry_is_reported(short):
     # leaves too few once a third of the cycles is held out
     reg = TubeRegression(window=1.8)
     with pytest.warns(PoorHeldOutSkillWarning, match="cannot be fitted when one block"):
-        est = ConnectionEstimator(regression=reg, complexity="fixed").fit(short)
+        est = _estimator(regression=reg, complexity="fixed").fit(short)
     assert bool(est.held_out_skill_.unscored.all())
 
 
@@ -336,7 +345,7 @@ def test_the_template_stays_the_connection_s_where_a_component_falls_back(short_
     train, later = short_and_later
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        est = ConnectionEstimator().fit(train)
+        est = _estimator().fit(train)
     assert est.complexity_.phase_averaged == ((False, True, False),)
     scored, held = est.score(later), est.held_out_skill_
     for s in (scored, held):
@@ -363,7 +372,7 @@ def test_the_connection_is_unpenalised_and_whole_while_forecasts_keep_the_ridge(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
-        est = ConnectionEstimator().fit(train)
+        est = _estimator().fit(train)
     choice, reg = est.complexity_, est.regression_
     assert choice.ridge > 0 and reg.ridge == choice.ridge and reg.ridge_connection
     traj, cycle = est.trajectory_, est.limit_cycle_
@@ -377,7 +386,7 @@ def test_the_connection_is_unpenalised_and_whole_while_forecasts_keep_the_ridge(
     assert est.model_.meta["forecast_model"] == {
         "n_bins": choice.n_bins, "fourier_order": choice.fourier_order,
         "A_ridge": choice.ridge, "phase_averaged": [[False, True, False]],
-        "connection_only": [[True, False, True]]}
+        "connection_only": [[True, False, True]], "prior_weight": None}
     # the forecasts: the penalised fit with the chosen rows zeroed, as before
     penalised = reg.fit(traj, cycle, pool=False)
     forecast = skill.with_phase_average(penalised, est.phase_average_,
@@ -424,7 +433,7 @@ def test_one_search_chooses_both_complexities_fitting_no_ridge_0_candidate_twice
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         warnings.simplefilter("ignore", PoorHeldOutSkillWarning)
-        est = ConnectionEstimator(complexity="fixed").fit(train)
+        est = _estimator(complexity="fixed").fit(train)
     traj, cycle = est.trajectory_, est.limit_cycle_
     both = (NoiseAwareRegression(), NoiseAwareRegression(ridge_connection=False))
     alone = [complexity.select_complexity(traj, cycle, reg, pool=False) for reg in both]
@@ -494,8 +503,8 @@ def test_no_component_falls_back_on_a_long_recording():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         warnings.simplefilter("error", PoorHeldOutSkillWarning)
-        auto = ConnectionEstimator(pool=True).fit(long)
-        cv = ConnectionEstimator(pool=True, complexity="cv").fit(long)
+        auto = _estimator(pool=True).fit(long)
+        cv = _estimator(pool=True, complexity="cv").fit(long)
     for est in (auto, cv):  # every component keeps its shape terms, offset terms included
         assert est.complexity_ is None or (
             est.complexity_.phase_averaged == (False,) * 3
@@ -535,7 +544,7 @@ def test_the_refit_after_the_complexity_choice_fits_nothing_twice(eight, monkeyp
             assert not calls, chosen
             assert_same_model(refit, stage.attach(chosen.fit(traj, cycle), stage.fit(traj, cycle)))
         calls.clear()
-        ConnectionEstimator(complexity="cv").fit(traj)
+        _estimator(complexity="cv").fit(traj)
     assert len(calls) == 1  # one metric fit, whatever the candidates
 
 
@@ -552,7 +561,7 @@ def test_a_short_recording_no_full_model_can_score_is_checked_by_the_connection_
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         with pytest.warns(PoorHeldOutSkillWarning, match="the connection alone"):
-            est = ConnectionEstimator(phaser=Phaser(min_cycles=2.5)).fit(train)
+            est = _estimator(phaser=Phaser(min_cycles=2.5)).fit(train)
         given = est.regression_.replace(n_bins=48, fourier_order=12).fit(
             est.trajectory_, est.limit_cycle_)
     choice = est.complexity_
@@ -592,7 +601,7 @@ def test_a_short_recording_no_check_can_score_predicts_the_phase_average(monkeyp
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedBinWarning)
         with pytest.warns(PoorHeldOutSkillWarning, match="cannot be checked"):
-            est = ConnectionEstimator(phaser=Phaser(min_cycles=2.5)).fit(train)
+            est = _estimator(phaser=Phaser(min_cycles=2.5)).fit(train)
     choice = est.complexity_
     assert not choice.checked and choice.scores == ()
     assert choice.phase_averaged == ((True, True, True),)
@@ -657,13 +666,13 @@ def test_an_unchecked_fit_on_many_cycles_advises_more_data_not_the_search_it_ran
     traj = observe(clean, 0.005, seeds=seeds).with_fields(power=None)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        est = ConnectionEstimator().fit(traj)
+        est = _estimator().fit(traj)
     assert est.complexity_ is None and bool(est.held_out_skill_.unscored.all())
     poor = [str(w.message) for w in caught if issubclass(w.category, PoorHeldOutSkillWarning)]
     assert len(poor) == 1 and "cannot be fitted when one block" in poor[0]
     assert "more samples per cycle" in poor[0] and "complexity='cv'" not in poor[0]
     with pytest.raises(ValueError, match="no candidate could be fitted"):
-        ConnectionEstimator(complexity="cv").fit(traj)
+        _estimator(complexity="cv").fit(traj)
 
 
 def test_components_neither_model_predicts_are_named():

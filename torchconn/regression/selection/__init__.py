@@ -36,6 +36,7 @@ from .complexity import (
     warn_if_poor,
 )
 from .held_out import leave_blocks_out
+from .prior import blend, blended_r2, forward_checked, prior_weights
 from .skill import (
     COMPONENTS,
     PoorHeldOutSkillWarning,
@@ -43,8 +44,10 @@ from .skill import (
     Skill,
     cross_validate,
     downdates,
+    fold_models,
     fold_references,
     held_out_checks,
+    held_out_predictions,
     phase_average,
     phase_average_orders,
     regression_view,
@@ -56,7 +59,8 @@ __all__ = [
     "Skill", "PoorHeldOutSkillWarning", "COMPONENTS", "RegressionView", "regression_view",
     "phase_average", "phase_average_orders", "cross_validate", "downdates",
     "with_phase_average", "leave_blocks_out", "held_out_checks", "fold_references",
-    "with_physics",
+    "with_physics", "fold_models", "held_out_predictions", "prior_weights", "forward_checked", "blend",
+    "blended_r2",
     "ComplexityChoice", "ConnectionAlone", "COMPLEXITY_GRID", "RIDGE_GRID", "RIDGE_MIN_GAIN",
     "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
     "select_complexity", "select_complexities", "select_connection_alone",

@@ -521,10 +521,10 @@ def _clearly_better(gaps: Tensor) -> Tensor:
     ``gaps (..., C, 3, 2)``: per cycle the difference and the phase average's squared error
     (cycles without scored samples, difference 0, left out)."""
     diff, base = gaps.unbind(-1)
-    return _lower_by(diff, FALLBACK_Z) & (diff.sum(-2) < -FALLBACK_MARGIN * base.sum(-2))
+    return lower_by(diff, FALLBACK_Z) & (diff.sum(-2) < -FALLBACK_MARGIN * base.sum(-2))
 
 
-def _lower_by(diff: Tensor, z: float) -> Tensor:
+def lower_by(diff: Tensor, z: float) -> Tensor:
     """``(..., 3)`` True where the sum over cycles of ``diff (..., C, 3)`` (per-cycle
     differences of squared errors; 0: a cycle without scored samples, left out) is below 0
     by more than ``z`` standard errors (of that sum, from the cycles' scatter), over at least
@@ -556,12 +556,12 @@ def _choose_terms(gaps: Tensor, gaps_conn: Tensor, short: Tensor | bool
     only when it beats the full model by :data:`OFFSET_TERMS_Z`."""
     diff, diff_conn = gaps[..., 0], gaps_conn[..., 0]
     full, conn = _clearly_better(gaps), _clearly_better(gaps_conn)
-    keep = full & (_lower_by(diff - diff_conn, OFFSET_TERMS_Z) | ~conn)
+    keep = full & (lower_by(diff - diff_conn, OFFSET_TERMS_Z) | ~conn)
     short = torch.as_tensor(short, device=diff.device).unsqueeze(-1)
     fallback = torch.where(short, ~keep & ~conn,
-                           _lower_by(-diff, FALLBACK_Z) & _lower_by(-diff_conn, FALLBACK_Z))
+                           lower_by(-diff, FALLBACK_Z) & lower_by(-diff_conn, FALLBACK_Z))
     conn_only = torch.where(short, ~keep & conn,
-                            ~fallback & _lower_by(diff_conn - diff, OFFSET_TERMS_Z))
+                            ~fallback & lower_by(diff_conn - diff, OFFSET_TERMS_Z))
     return fallback, conn_only
 
 

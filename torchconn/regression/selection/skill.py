@@ -49,7 +49,7 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "COMPONENTS", "RegressionView",
            "cross_validate", "with_phase_average", "downdates", "held_out_coefficients",
            "blended_held_out", "with_coefficients", "connection_columns", "fold_models",
            "score_folds", "variant_scores", "held_out_checks", "fold_references",
-           "with_physics"]
+           "with_physics", "fold_forecast", "held_out_predictions"]
 
 #: the body-velocity components, in the order of the last axis of ξ
 COMPONENTS = ("v_x", "v_y", "omega")
@@ -443,17 +443,9 @@ def score_folds(models, view: RegressionView, fold: Tensor, reg: Regression, dt:
     sums, gaps = [], []
     n_cycles = None if cycle is None else int(cycle.amax()) + 1
     for f in range(len(models)) if folds is None else folds:
-        fold_model = models[f]
-        train = torch.where(fold != f, view.phase, torch.nan)
-        # on a few cycles at video rates the other blocks may hold fewer samples than the
-        # model's order needs: the baseline then takes the highest order they determine
-        n_train = int(torch.isfinite(train).sum(-1).min())
-        base = phase_average(RegressionView(train, view.r, view.r_dot, view.xi),
-                             min(reg.fourier_order, max((n_train - 1) // 2, 0)))
-        template = fold_model  # Â(γ)γ̇ of the fold's fit, even where it falls back
-        if phase_averaged is not None or connection_only is not None:
-            fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
-            base = base.padded(fold_model.c.order)  # the same sums: an exact tie
+        template = models[f]  # Â(γ)γ̇ of the fold's fit, even where it falls back
+        fold_model, base = fold_forecast(models[f], view, fold, f, reg, phase_averaged,
+                                         connection_only)
         noise = None
         if noise_corrected and isinstance(reg, NoiseAwareRegression):
             noise = _noise_of(fold_model, dt, pool)
@@ -469,6 +461,46 @@ def score_folds(models, view: RegressionView, fold: Tensor, reg: Regression, dt:
     if references is not None:
         result = with_physics(result, view, fold, references, folds)
     return result, per_cycle
+
+
+def fold_forecast(model: LocalConnectionModel, view: RegressionView, fold: Tensor, f: int,
+                  reg: Regression, phase_averaged: Tensor | None = None,
+                  connection_only: Tensor | None = None
+                  ) -> tuple[LocalConnectionModel, FourierSeries]:
+    """The fit without block ``f`` (``model``) as it forecasts, with the components
+    ``phase_averaged`` / ``connection_only`` predicted so (:func:`with_phase_average`), and
+    the phase-averaged velocity of the other blocks of ``view`` (``fold`` each sample's
+    block) at the model's order, or the highest order those blocks determine."""
+    train = torch.where(fold != f, view.phase, torch.nan)
+    # on a few cycles at video rates the other blocks may hold fewer samples than the
+    # model's order needs: the baseline then takes the highest order they determine
+    n_train = int(torch.isfinite(train).sum(-1).min())
+    base = phase_average(RegressionView(train, view.r, view.r_dot, view.xi),
+                         min(reg.fourier_order, max((n_train - 1) // 2, 0)))
+    if phase_averaged is not None or connection_only is not None:
+        model = with_phase_average(model, base, phase_averaged, connection_only)
+        base = base.padded(model.c.order)  # the same sums: an exact tie
+    return model, base
+
+
+def held_out_predictions(models, view: RegressionView, fold: Tensor, reg: Regression,
+                         phase_averaged: Tensor | None = None,
+                         connection_only: Tensor | None = None,
+                         references=None) -> tuple[Tensor, Tensor | None]:
+    """Each sample of ``view`` predicted by the fold model fitted without its block
+    (:func:`fold_forecast`), ``(..., N, 3)`` (NaN where not scored), and with
+    ``references`` (per block the physics reference fitted without it,
+    :func:`fold_references`) likewise that reference's prediction (else None)."""
+    out = torch.full_like(view.xi, torch.nan)
+    ref_out = None if references is None else torch.full_like(view.xi, torch.nan)
+    for f, fold_model in enumerate(models):
+        ok, phase, r, r_dot, _ = _scored(view, fold == f)
+        forecast = fold_forecast(fold_model, view, fold, f, reg, phase_averaged,
+                                 connection_only)[0]
+        out = torch.where(ok[..., None], forecast.predict(phase, r, r_dot), out)
+        if references is not None and references[f] is not None:
+            ref_out = torch.where(ok[..., None], references[f].predict(r, r_dot), ref_out)
+    return out, ref_out
 
 
 def _scored(view: RegressionView, mask: Tensor | None):
