@@ -4,7 +4,7 @@
   fitted model against the phase-averaged velocity and the template, on contiguous blocks of
   whole cycles, interleaved or forward in time (:func:`cross_validate`), beside the physics
   reference and zero; :func:`regression_view`, the samples as a regression
-  sees them. (Its function :func:`~torchconn.regression.selection.skill.skill` is not
+  sees them; :func:`forward_prediction`, the forward check's predictions sample by sample. (Its function :func:`~torchconn.regression.selection.skill.skill` is not
   re-exported here: ``selection.skill`` is the module.)
 - :mod:`~torchconn.regression.selection.complexity` -- :func:`select_complexity`, the bins,
   Fourier order and ridge of least held-out error, and per component the full model, the
@@ -38,12 +38,14 @@ from .complexity import (
 from .held_out import leave_blocks_out
 from .skill import (
     COMPONENTS,
+    ForwardPrediction,
     PoorHeldOutSkillWarning,
     RegressionView,
     Skill,
     cross_validate,
     downdates,
     fold_references,
+    forward_prediction,
     held_out_checks,
     phase_average,
     phase_average_orders,
@@ -56,7 +58,7 @@ __all__ = [
     "Skill", "PoorHeldOutSkillWarning", "COMPONENTS", "RegressionView", "regression_view",
     "phase_average", "phase_average_orders", "cross_validate", "downdates",
     "with_phase_average", "leave_blocks_out", "held_out_checks", "fold_references",
-    "with_physics",
+    "with_physics", "ForwardPrediction", "forward_prediction",
     "ComplexityChoice", "ConnectionAlone", "COMPLEXITY_GRID", "RIDGE_GRID", "RIDGE_MIN_GAIN",
     "FALLBACK_Z", "FALLBACK_MARGIN", "FALLBACK_CYCLES", "OFFSET_TERMS_Z",
     "select_complexity", "select_complexities", "select_connection_alone",
