@@ -30,7 +30,7 @@ from matplotlib.figure import Figure
 from ._output import save_figure as _save_atomic
 
 __all__ = ["PALETTE", "CYCLE", "COLORS", "COMPONENT_NAMES", "SYMBOLS", "TIME_UNIT", "styled",
-           "velocity_unit", "velocity_label", "phase_label", "time_label", "joint_name",
+           "velocity_unit", "velocity_label", "phase_label", "phase_axis", "time_label", "joint_name",
            "joint_label", "connection_unit", "new_figure", "figure_and_axes",
            "figure_and_grid", "caption", "caption_of", "save_figure", "JOINT_ORDER"]
 
@@ -101,6 +101,14 @@ def velocity_label(component: str | int, time_unit: str = TIME_UNIT, prefix: str
 def phase_label() -> str:
     """Axis label of the gait phase."""
     return "gait phase φ (rad)"
+
+
+def phase_axis(ax: Axes, label: bool = True) -> None:
+    """Set ``ax``'s x axis to one gait cycle, ``[0, 2π]`` rad, ticked at multiples of π/2,
+    labelled :func:`phase_label` (``label=False``: no label, e.g. above a shared axis)."""
+    ax.set_xlim(0, 2 * np.pi)
+    ax.set_xticks([0, np.pi / 2, np.pi, 3 * np.pi / 2, 2 * np.pi], ["0", "π/2", "π", "3π/2", "2π"])
+    ax.set_xlabel(phase_label() if label else "")
 
 
 def time_label(time_unit: str = TIME_UNIT) -> str:

@@ -37,12 +37,6 @@ def _unbatched(model: LocalConnectionModel, fn: str) -> LocalConnectionModel:
     return model.to("cpu")
 
 
-def _phase_axis(ax) -> None:
-    ax.set_xlim(0, 2 * math.pi)
-    ax.set_xticks([0, math.pi / 2, math.pi, 3 * math.pi / 2, 2 * math.pi],
-                  ["0", "π/2", "π", "3π/2", "2π"])
-
-
 @style.styled
 def plot_held_out_velocity(estimator, *, trial: int = 0, axes=None,
                            time_unit: str = style.TIME_UNIT) -> Figure:
@@ -166,9 +160,7 @@ def plot_connection(model: LocalConnectionModel, *, truth=None, axes=None) -> Fi
                         label="true (simulator)")
             ax.set_title(f"{style.SYMBOLS[comp]} per {style.joint_name(i, d)} rate "
                          f"({style.connection_unit(comp)})", fontsize=8)
-            _phase_axis(ax)
-            if k == 2:
-                ax.set_xlabel(style.phase_label())
+            style.phase_axis(ax, label=k == 2)
         grid[k, 0].set_ylabel(f"Â, {style.SYMBOLS[comp]} row ({style.connection_unit(comp)})")
     grid[0, 0].legend(loc="best")
     fig.suptitle("Local connection Â(φ): body velocity per unit joint rate along the gait\n"
@@ -235,7 +227,7 @@ def plot_metric(model: LocalConnectionModel, *, truth=None, axes=None,
         if ref is not None:
             ax.plot(phi, ref, color=style.COLORS["truth"], ls="--", lw=1.1, label="true")
         ax.set_title(title, fontsize=8)
-        _phase_axis(ax)
+        style.phase_axis(ax)
     for ax in list(grid[:top].flat)[len(panels):]:
         ax.axis("off")
     for ax, (i, j) in zip(grid[top:].flat, pairs, strict=False):
@@ -246,8 +238,7 @@ def plot_metric(model: LocalConnectionModel, *, truth=None, axes=None,
             ax.plot(phi, true[:, i, j], color=style.COLORS["truth"], ls="--", lw=1.1,
                     label="true")
         ax.set_title(f"M̂_{i + 1}{j + 1}, full metric ({power}·{time_unit}²/rad²)", fontsize=8)
-        ax.set_xlabel(style.phase_label())
-        _phase_axis(ax)
+        style.phase_axis(ax)
     for ax in list(grid[top:].flat)[len(pairs):]:
         ax.axis("off")
     grid[0, 0].legend(loc="best")
@@ -309,9 +300,7 @@ def plot_limit_cycle(model: LocalConnectionModel, r=None, phase=None, *, axes=No
                 label="limit cycle γ(φ)")
         ax.set_title(style.joint_name(i, d), fontsize=8.5)
         ax.set_ylabel(f"angle r{i + 1} (rad)")
-        _phase_axis(ax)
-        if i >= d - cols:
-            ax.set_xlabel(style.phase_label())
+        style.phase_axis(ax, label=i >= d - cols)
     grid.flat[0].legend(loc="best", markerscale=6)
     fig.suptitle(f"The gait: each joint's angle against phase\n({style.JOINT_ORDER})")
     return style.caption(fig, (
