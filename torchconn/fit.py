@@ -55,13 +55,13 @@ from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
 from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
+from .plotting import save_figure
 from .regression.estimator import (
     ConnectionEstimator,
     estimator_from_settings,
     estimator_settings,
 )
 from .regression.model import LocalConnectionModel
-from .plotting import save_figure
 from .regression.plots import (
     ROWS,
     plot_connection,

@@ -14,9 +14,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from .._output import write_table
-from ..plotting import save_figure
 from .._provenance import jsonable, write_sidecar
 from ..physics.systems.swimmer import NLinkSwimmer
+from ..plotting import save_figure
 from .figures import plot_residual_profiles, plot_terms
 from .model import AugmentedModel
 from .residuals import COMPONENTS

@@ -41,7 +41,8 @@ def plot_gaits(result: LoopResult, system: LocomotionSystem, *, ax=None,
         grid = torch.stack(torch.meshgrid(g, g, indexing="xy"), -1)
         da = system.curvature(grid)[..., 0, 0].detach()
         lim = float(da.abs().max())
-        im = ax.pcolormesh(g.numpy(), g.numpy(), da.numpy(), cmap="RdBu_r", vmin=-lim, vmax=lim, shading="auto")
+        im = ax.pcolormesh(g.numpy(), g.numpy(), da.numpy(), cmap="RdBu_r", vmin=-lim,
+                           vmax=lim, shading="auto")
         fig.colorbar(im, ax=ax, label="curvature DA_x (BL/rad²)")
         ax.set_xlabel(style.joint_label(0, d))
         ax.set_ylabel(style.joint_label(1, d))

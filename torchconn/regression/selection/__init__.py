@@ -3,9 +3,10 @@
 - :mod:`~torchconn.regression.selection.skill` -- :class:`Skill`, the held-out ``R²`` of a
   fitted model against the phase-averaged velocity and the template, on contiguous blocks of
   whole cycles, interleaved or forward in time (:func:`cross_validate`), beside the physics
-  reference and zero; :func:`regression_view`, the samples as a regression
-  sees them; :func:`forward_prediction`, the forward check's predictions sample by sample. (Its function :func:`~torchconn.regression.selection.skill.skill` is not
-  re-exported here: ``selection.skill`` is the module.)
+  reference and zero; :func:`regression_view`, the samples as a regression sees them;
+  :func:`forward_prediction`, the forward check's predictions sample by sample. (Its
+  function :func:`~torchconn.regression.selection.skill.skill` is not re-exported here:
+  ``selection.skill`` is the module.)
 - :mod:`~torchconn.regression.selection.complexity` -- :func:`select_complexity`, the bins,
   Fourier order and ridge of least held-out error, and per component the full model, the
   connection alone or the phase average (:class:`ComplexityChoice`);
