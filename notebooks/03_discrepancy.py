@@ -110,7 +110,7 @@ if report.confounded_with:
 # ## Residual versus phase, before and after
 
 # %%
-nb.add(plot_residual_profiles(report, nb.out / "residuals_before_after.png"))
+nb.save(plot_residual_profiles(report), "residuals_before_after")
 
 fig, ax = plt.subplots(figsize=(6, 3.5))
 comps = list(report.gap_before)

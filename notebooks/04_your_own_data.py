@@ -191,9 +191,9 @@ def truth_metric(phi):
     return swimmer.metric(model.gamma_at(phi))
 
 
-nb.add(plot_connection(model, nb.out / "connection.png", truth=truth_connection))
-nb.add(plot_limit_cycle(model, nb.out / "limit_cycle.png", prepared.smoothed.r))
-nb.add(plot_metric(model, nb.out / "metric.png", truth=truth_metric))
+nb.save(plot_connection(model, truth=truth_connection), "connection")
+nb.save(plot_limit_cycle(model, prepared.smoothed.r, prepared.phase), "limit_cycle")
+nb.save(plot_metric(model, truth=truth_metric, time_unit="time unit"), "metric")
 
 # %% [markdown]
 # **A word on the metric.** The metric is estimated from the power channel by a regression on

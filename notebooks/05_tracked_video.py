@@ -135,13 +135,16 @@ nb.save(fig, "converted_shapes")
 # ## 3. Fit on two trials
 #
 # `torchconn-fit` takes the converted CSVs (or the tracking files directly, with the same
-# options). Every estimator setting is reachable with `--set estimator.<name>=value`.
+# options). Every estimator setting is reachable with `--set estimator.<name>=value`. Its first
+# figure, `held_out_velocity.png`, is the check within the fitted trials: their last third of
+# cycles predicted by the fit to the cycles before it.
 
 # %%
 fit_dir = nb.out / "fit"
 assert fit([str(c) for c in csvs[:2]] + ["--links", "3", "--out", str(fit_dir)]) == 0
 model = LocalConnectionModel.load(fit_dir / "model.npz")
-for name in ("connection.png", "limit_cycle.png"):  # the command's plots, beside the others
+# the command's plots, beside the others
+for name in ("held_out_velocity.png", "connection.png", "limit_cycle.png"):
     nb.add(shutil.copy(fit_dir / name, nb.out / f"fit_{name}"))
 
 # %% [markdown]

@@ -148,8 +148,8 @@ best_true = None if nb.small else ceiling(swimmer, max_turn=0.05).x_displacement
 print(f"optimiser with the true connection, turning <= 0.05 rad per cycle: {best_true}; best "
       f"realised |(x, y)| {max(r.realised for r in result.rounds):.4f}; intervals covered "
       f"{result.coverage:.0%}")
-nb.add(plot_gaits(result, swimmer, nb.out / "loop_gaits.png"))
-nb.add(plot_rounds(result, nb.out / "loop_objective.png", ceiling=best_true))
+nb.save(plot_gaits(result, swimmer), "loop_gaits")
+nb.save(plot_rounds(result, ceiling=best_true), "loop_objective")
 
 # %% [markdown]
 # ## 4. More joints
@@ -163,8 +163,8 @@ if not nb.small:
     result9 = improve(nine, circle_gait(8, 0.5), LoopSettings(rounds=rounds, seed=1))
     print(f"9-link: start {result9.start_true:.4f} -> best realised "
           f"{max(r.realised for r in result9.rounds):.4f}, covered {result9.coverage:.0%}")
-    nb.add(plot_gaits(result9, nine, nb.out / "loop9_gaits.png"))
-    nb.add(plot_rounds(result9, nb.out / "loop9_objective.png"))
+    nb.save(plot_gaits(result9, nine), "loop9_gaits")
+    nb.save(plot_rounds(result9), "loop9_objective")
 
 # %%
 nb.finish()

@@ -8,10 +8,13 @@ checks before fitting (:mod:`torchconn.io.preflight`); estimates phase and limit
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>,
-M_gamma_dot_<i>, power_on_cycle]``) and PNG plots with 95% confidence bands: the connection
-(``ConnectionEstimator.model_``). Where the forecasting model differs from it (a short
-recording, whose complexity was chosen by held-out error: a ridge on ``Â``, or components
-predicted by the phase average or the connection alone), that model
+M_gamma_dot_<i>, power_on_cycle]``) and PNG plots (unless ``--no-figures``):
+``held_out_velocity.png`` (measured body velocity against the model's prediction and the
+phase average on the last cycles, fitted without them), and with 95% confidence bands the
+connection (``ConnectionEstimator.model_``), the limit cycle and the metric. Where the
+forecasting model differs from the connection (a short recording, whose complexity was
+chosen by held-out error: a ridge on ``Â``, or components predicted by the phase average or
+the connection alone), that model
 (``ConnectionEstimator.forecast_model_``, what ``predict`` uses and the printed held-out R² is
 of) goes to ``DIR/forecast_model.npz``, and the printout says which is which. ``M_gamma_dot``
 (``M̂γ̇``) and ``power_on_cycle`` (``γ̇ᵀM̂γ̇``) are what the gait itself identifies; the full
@@ -52,14 +55,21 @@ from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
 from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
+from .plotting import save_figure
 from .regression.estimator import (
     ConnectionEstimator,
     estimator_from_settings,
     estimator_settings,
 )
 from .regression.model import LocalConnectionModel
+from .regression.plots import (
+    ROWS,
+    plot_connection,
+    plot_held_out_velocity,
+    plot_limit_cycle,
+    plot_metric,
+)
 from .regression.reference import FAMILIES
-from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 from .regression.selection import COMPONENTS, PoorHeldOutSkillWarning, nested_list
 
 __all__ = ["connection_table", "write_connection_csv", "main"]
@@ -337,12 +347,15 @@ def _write_results(out: Path, args, est, model, forecast) -> list[str]:
         forecast.save(out / FORECAST_FILE)
         outputs.append(FORECAST_FILE)
     if not args.no_figures:
-        plot_connection(model, out / "connection.png")
-        plot_limit_cycle(model, out / "limit_cycle.png", est.trajectory_.smoothed.r.cpu())
-        outputs += ["connection.png", "limit_cycle.png"]
+        figures = {"held_out_velocity.png": lambda: plot_held_out_velocity(est),
+                   "connection.png": lambda: plot_connection(model),
+                   "limit_cycle.png": lambda: plot_limit_cycle(
+                       model, est.trajectory_.smoothed.r, est.trajectory_.phase)}
         if model.M is not None:
-            plot_metric(model, out / "metric.png")
-            outputs.append("metric.png")
+            figures["metric.png"] = lambda: plot_metric(model)
+        for name, draw in figures.items():
+            save_figure(draw(), out / name)
+            outputs.append(name)
     return outputs
 
 

@@ -65,7 +65,7 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
     assert np.sqrt(((table[:, -3:-1] - mgd_true) ** 2).sum(-1).mean()
                    / (mgd_true**2).sum(-1).mean()) < 0.02
     assert np.sqrt(((table[:, -1] - p_true) ** 2).mean() / (p_true**2).mean()) < 0.01
-    for name in ("connection.png", "limit_cycle.png", "metric.png"):
+    for name in ("held_out_velocity.png", "connection.png", "limit_cycle.png", "metric.png"):
         assert (out / name).stat().st_size > 1000
     sidecar = json.loads((out / "fit.json").read_text())
     assert sidecar["device"] == "cpu"  # the default

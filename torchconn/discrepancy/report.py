@@ -16,6 +16,7 @@ from pathlib import Path
 from .._output import write_table
 from .._provenance import jsonable, write_sidecar
 from ..physics.systems.swimmer import NLinkSwimmer
+from ..plotting import save_figure
 from .figures import plot_residual_profiles, plot_terms
 from .model import AugmentedModel
 from .residuals import COMPONENTS
@@ -318,9 +319,11 @@ class DiscrepancyReport:
              for label, prof in self.profiles.items()
              for i, ph in enumerate(prof["centres"]) for k, comp in enumerate(COMPONENTS)])
         if figures:
-            paths["figure"] = plot_residual_profiles(self, out / "residual_vs_phase.png")
+            paths["figure"] = save_figure(plot_residual_profiles(self),
+                                          out / "residual_vs_phase.png")
             if self.terms is not None:
-                paths["terms_figure"] = plot_terms(self.terms, out / "terms_vs_simulator.png")
+                paths["terms_figure"] = save_figure(plot_terms(self.terms),
+                                                    out / "terms_vs_simulator.png")
         return paths
 
 

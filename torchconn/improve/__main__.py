@@ -62,11 +62,13 @@ def _simulate(args, folder: OutputFolder) -> int:
     })
     write_gait(result.rounds[-1].proposal, out / "next_gait")
     if not args.no_figures:
-        # lazy: .plots imports matplotlib, which only a run that draws figures needs
+        # lazy: .plots and ..plotting import matplotlib, which only a run that draws
+        # figures needs
+        from ..plotting import save_figure
         from .plots import plot_gaits, plot_rounds
 
-        plot_gaits(result, system, out / "gaits.png")
-        plot_rounds(result, out / "objective.png")
+        save_figure(plot_gaits(result, system), out / "gaits.png", dpi=120)
+        save_figure(plot_rounds(result), out / "objective.png", dpi=120)
     out = folder.commit()
     say(f"start {result.start_true:.4f} -> last proposal {result.rounds[-1].realised:.4f}; "
         f"intervals covered {result.coverage:.0%}; wrote {out}")

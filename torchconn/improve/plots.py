@@ -1,84 +1,109 @@
-"""Figures of an improvement loop: the gaits over the curvature, the objective per round."""
+"""Figures of an improvement loop: the gaits over the curvature, the objective per round.
+
+Each function returns a :class:`matplotlib.figure.Figure` with a caption and draws into the
+caller's axes when given (``ax=``); :func:`torchconn.plotting.save_figure` writes one.
+"""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import matplotlib
+import torch
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
+from .. import _linalg
+from .. import plotting as style
+from ..physics.systems.base import LocomotionSystem
+from .loop import LoopResult
 
-from .. import _linalg  # noqa: E402
-from .._output import save_figure  # noqa: E402
-from ..physics.systems.base import LocomotionSystem  # noqa: E402
-from .loop import LoopResult  # noqa: E402
+__all__ = ["plot_gaits", "plot_rounds", "OBJECTIVE_LABELS"]
 
-__all__ = ["plot_gaits", "plot_rounds"]
+#: each objective (:data:`~torchconn.improve.propose.OBJECTIVES`) as an axis label with its unit
+OBJECTIVE_LABELS = {"displacement": "displacement per cycle (BL)",
+                    "efficiency": "efficiency: displacement per unit cost (BL/cost)",
+                    "turning": "turning per cycle (rad)"}
 
 
-def plot_gaits(result: LoopResult, system: LocomotionSystem, path: str | Path,
-               n_phase: int = 200) -> Path:
-    """The recorded gaits of every round: over the x-curvature ``DA_x`` (2 joints) or projected
-    on the first two principal components of all their shapes (more joints)."""
+@style.styled
+def plot_gaits(result: LoopResult, system: LocomotionSystem, *, ax=None,
+               n_phase: int = 200) -> Figure:
+    """The recorded gaits of every round and the next proposal: over the x-curvature
+    ``DA_x`` (2 joints) or projected on the first two principal components of all their
+    shapes (more joints). ``ax``: the Axes to draw into; None: a new figure."""
     phi = torch.linspace(0, 2 * math.pi, n_phase, dtype=torch.float64)
     loops = [r.gait(phi).detach() for r in result.rounds] + [result.rounds[-1].proposal(phi)]
-    fig, ax = plt.subplots(figsize=(5.5, 5))
-    if system.shape_dim == 2:
+    fig, ax = style.figure_and_axes(ax, (6, 5.4))
+    d = system.shape_dim
+    if d == 2:
         span = max(float(torch.cat(loops).abs().max()) * 1.15, 0.5)
         g = torch.linspace(-span, span, 121, dtype=torch.float64)
         grid = torch.stack(torch.meshgrid(g, g, indexing="xy"), -1)
         da = system.curvature(grid)[..., 0, 0].detach()
         lim = float(da.abs().max())
-        im = ax.pcolormesh(g, g, da, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="auto")
-        fig.colorbar(im, ax=ax, label="curvature DA_x")
-        ax.set_xlabel("r1 (rad)")
-        ax.set_ylabel("r2 (rad)")
+        im = ax.pcolormesh(g.numpy(), g.numpy(), da.numpy(), cmap="RdBu_r", vmin=-lim,
+                           vmax=lim, shading="auto")
+        fig.colorbar(im, ax=ax, label="curvature DA_x (BL/rad²)")
+        ax.set_xlabel(style.joint_label(0, d))
+        ax.set_ylabel(style.joint_label(1, d))
         proj = loops
+        where = ("over the x-curvature (to first order a loop's forward displacement is the "
+                 "curvature it encloses: red counts positive when circled counter-clockwise)")
     else:
         allr = torch.cat(loops)
         mean = allr.mean(0)
         _, _, v = _linalg.svd(allr - mean, "the recorded gaits' shapes")
         proj = [(r - mean) @ v[:2].T for r in loops]
-        ax.set_xlabel("principal component 1 (rad)")
-        ax.set_ylabel("principal component 2 (rad)")
-    cmap = plt.get_cmap("viridis")
+        ax.set_xlabel("principal component 1 of the joint angles (rad)")
+        ax.set_ylabel("principal component 2 of the joint angles (rad)")
+        where = "in the plane of the two principal components of all their joint angles"
+    cmap = matplotlib.colormaps["viridis"]
     for k, p in enumerate(proj):
+        p = p.detach().cpu().numpy()
         last = k == len(proj) - 1
-        ax.plot(p[:, 0], p[:, 1], color="k" if last else cmap(k / max(len(proj) - 1, 1)),
+        ax.plot(p[:, 0], p[:, 1], color=style.COLORS["measured"] if last
+                else cmap(k / max(len(proj) - 1, 1)),
                 ls="--" if last else "-", lw=1.5, label="next proposal" if last else f"round {k}")
     ax.set_aspect("equal")
-    ax.legend(fontsize=7, loc="upper right")
-    ax.set_title("recorded gaits per round")
-    fig.tight_layout()
-    path = save_figure(fig, path, dpi=120)
-    plt.close(fig)
-    return path
+    ax.legend(loc="upper right")
+    ax.set_title("Recorded gaits per round and the next proposal")
+    return style.caption(fig, (
+        f"Each loop: one round's recorded gait (colour from first to last round) {where}; "
+        "dashed: the gait proposed next. Good: the loops move steadily towards higher "
+        "objective and settle; a proposal far from every recorded loop is an extrapolation "
+        "the trust region should have kept small."))
 
 
-def plot_rounds(result: LoopResult, path: str | Path, ceiling: float | None = None) -> Path:
+@style.styled
+def plot_rounds(result: LoopResult, *, ceiling: float | None = None, ax=None) -> Figure:
     """Objective per round: observed and true of each recorded gait, predicted (interval) vs
-    realised of each proposal, and the ceiling with the true connection."""
+    realised of each proposal, and the ceiling with the true connection. ``ax``: the Axes to
+    draw into; None: a new figure."""
     rounds = result.rounds
     k = [r.index for r in rounds]
-    fig, ax = plt.subplots(figsize=(6.5, 4))
+    fig, ax = style.figure_and_axes(ax, (7, 4.4))
+    colors = style.PALETTE
     ax.errorbar(k, [r.observed for r in rounds], yerr=[1.96 * r.observed_se for r in rounds],
-                fmt="o-", label="recorded gait: observed")
-    ax.plot(k, [r.true for r in rounds], "s", mfc="none", label="recorded gait: true")
+                fmt="o-", color=colors["blue"], capsize=2,
+                label="recorded gait: observed ±95%")
+    ax.plot(k, [r.true for r in rounds], "s", mfc="none", color=colors["black"],
+            label="recorded gait: true (simulator)")
     kp = [i + 1 for i in k]
     pred = [r.predicted for r in rounds]
     ax.errorbar(kp, pred, yerr=[[r.predicted - r.predicted_low for r in rounds],
                                 [r.predicted_high - r.predicted for r in rounds]],
-                fmt="^", color="C2", capsize=3, label="proposal: predicted (95%)")
-    ax.plot(kp, [r.realised for r in rounds], "x", color="C3", ms=8, label="proposal: realised")
+                fmt="^", color=colors["green"], capsize=3, label="proposal: predicted (95%)")
+    ax.plot(kp, [r.realised for r in rounds], "x", color=colors["vermillion"], ms=8,
+            label="proposal: realised (simulator)")
     if ceiling is not None:
-        ax.axhline(ceiling, color="k", ls=":", label="optimiser, true connection")
+        ax.axhline(ceiling, color="0.3", ls=":", label="optimiser, true connection")
+    objective = result.settings.objective
     ax.set_xlabel("round")
-    ax.set_ylabel(result.settings.objective + " per cycle")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = save_figure(fig, path, dpi=120)
-    plt.close(fig)
-    return path
+    ax.set_ylabel(OBJECTIVE_LABELS.get(objective, objective))
+    ax.legend(loc="best")
+    ax.set_title(f"The {objective} per round")
+    return style.caption(fig, (
+        "Per round: the recorded gait's objective as measured (with its 95% interval) and as "
+        "the simulator has it, and the proposal's predicted interval against what it "
+        "realised in the next round. Good: the realised value falls inside the predicted "
+        "interval and the measured objective rises round by round towards the ceiling."))

@@ -49,7 +49,8 @@ __all__ = ["Skill", "PoorHeldOutSkillWarning", "COMPONENTS", "RegressionView",
            "cross_validate", "with_phase_average", "downdates", "held_out_coefficients",
            "blended_held_out", "with_coefficients", "connection_columns", "fold_models",
            "score_folds", "variant_scores", "held_out_checks", "fold_references",
-           "with_physics", "fold_forecast", "held_out_predictions"]
+            "with_physics", "fold_predictors", "held_out_predictions", "ForwardPrediction",
+            "forward_prediction"]
 
 #: the body-velocity components, in the order of the last axis of ξ
 COMPONENTS = ("v_x", "v_y", "omega")
@@ -337,13 +338,17 @@ def held_out_checks(traj: Trajectory, cycle: LimitCycle, regression: Regression,
 def _checked_fold_models(traj, cycle, regression, model, pool, n_folds, refit,
                          connection_regressed):
     """:func:`fold_models` after checking :func:`cross_validate`'s arguments."""
-    if isinstance(n_folds, bool) or not isinstance(n_folds, int) or n_folds < 2:
-        raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
+    _checks_folds(n_folds)
     if connection_regressed and (refit or not downdates(regression)):
         raise ValueError("cross_validate: connection_regressed needs the downdated fits of a "
                          "TubeRegression or NoiseAwareRegression (refit=False)")
     return fold_models(traj, cycle, regression, model, pool=pool, n_folds=n_folds,
                        refit=refit, connection_regressed=connection_regressed)
+
+
+def _checks_folds(n_folds) -> None:
+    if isinstance(n_folds, bool) or not isinstance(n_folds, int) or n_folds < 2:
+        raise ValueError(f"n_folds must be an integer >= 2, got {n_folds!r}")
 
 
 def fold_references(view: RegressionView, fold: Tensor, n_folds: int, pool: bool, *,
@@ -443,9 +448,8 @@ def score_folds(models, view: RegressionView, fold: Tensor, reg: Regression, dt:
     sums, gaps = [], []
     n_cycles = None if cycle is None else int(cycle.amax()) + 1
     for f in range(len(models)) if folds is None else folds:
-        template = models[f]  # Â(γ)γ̇ of the fold's fit, even where it falls back
-        fold_model, base = fold_forecast(models[f], view, fold, f, reg, phase_averaged,
-                                         connection_only)
+        fold_model, base, template = fold_predictors(models, view, fold, reg, f,
+                                                     phase_averaged, connection_only)
         noise = None
         if noise_corrected and isinstance(reg, NoiseAwareRegression):
             noise = _noise_of(fold_model, dt, pool)
@@ -463,24 +467,70 @@ def score_folds(models, view: RegressionView, fold: Tensor, reg: Regression, dt:
     return result, per_cycle
 
 
-def fold_forecast(model: LocalConnectionModel, view: RegressionView, fold: Tensor, f: int,
-                  reg: Regression, phase_averaged: Tensor | None = None,
-                  connection_only: Tensor | None = None
-                  ) -> tuple[LocalConnectionModel, FourierSeries]:
-    """The fit without block ``f`` (``model``) as it forecasts, with the components
-    ``phase_averaged`` / ``connection_only`` predicted so (:func:`with_phase_average`), and
-    the phase-averaged velocity of the other blocks of ``view`` (``fold`` each sample's
-    block) at the model's order, or the highest order those blocks determine."""
+def fold_predictors(models, view: RegressionView, fold: Tensor, reg: Regression, f: int,
+                    phase_averaged: Tensor | None = None,
+                    connection_only: Tensor | None = None
+                    ) -> tuple[LocalConnectionModel, FourierSeries, LocalConnectionModel]:
+    """What :func:`score_folds` scores on block ``f``: the forecasting model fitted without it
+    (``models[f]`` with the components ``phase_averaged`` predicted by the baseline and those
+    ``connection_only`` by ``c + Aδ̇``), the baseline (the phase-averaged velocity of the
+    other blocks of ``view``, at the regression's order or the highest the other blocks
+    determine) and the template's model (``models[f]`` as fitted)."""
+    fold_model = models[f]
     train = torch.where(fold != f, view.phase, torch.nan)
     # on a few cycles at video rates the other blocks may hold fewer samples than the
     # model's order needs: the baseline then takes the highest order they determine
     n_train = int(torch.isfinite(train).sum(-1).min())
     base = phase_average(RegressionView(train, view.r, view.r_dot, view.xi),
                          min(reg.fourier_order, max((n_train - 1) // 2, 0)))
+    template = fold_model  # Â(γ)γ̇ of the fold's fit, even where it falls back
     if phase_averaged is not None or connection_only is not None:
-        model = with_phase_average(model, base, phase_averaged, connection_only)
-        base = base.padded(model.c.order)  # the same sums: an exact tie
-    return model, base
+        fold_model = with_phase_average(fold_model, base, phase_averaged, connection_only)
+        base = base.padded(fold_model.c.order)  # the same sums: an exact tie
+    return fold_model, base, template
+
+
+@dataclass(frozen=True)
+class ForwardPrediction:
+    """The forward-in-time held-out check's predictions, sample by sample
+    (:func:`forward_prediction`).
+
+    Attributes:
+        view: the samples, :class:`RegressionView` ``(..., N, ·)`` per trial (not pooled).
+        held_out: ``(..., N)`` bool, the samples of the last block of cycles (finite).
+        predicted: ``(..., N, 3)`` body velocity predicted by the forecasting model fitted
+            without that block (the same units as ``view.xi``).
+        phase_average: ``(..., N, 3)`` the phase-averaged velocity of the earlier blocks.
+    """
+
+    view: RegressionView
+    held_out: Tensor
+    predicted: Tensor
+    phase_average: Tensor
+
+
+def forward_prediction(traj: Trajectory, cycle: LimitCycle, regression: Regression,
+                       model: LocalConnectionModel, *, pool: bool, n_folds: int = 3,
+                       phase_averaged: Tensor | None = None,
+                       connection_only: Tensor | None = None,
+                       connection_regressed: bool = False) -> ForwardPrediction:
+    """The predictions :func:`cross_validate` scores with ``forward=True``: on the last of
+    ``n_folds`` blocks of cycles of every trial, the forecasting model fitted without it and
+    the phase average of the earlier blocks (arguments as :func:`cross_validate`'s;
+    ``model``: the regression's fit to the whole recording)."""
+    _checks_folds(n_folds)
+    reg, models, view, fold, _ = fold_models(traj, cycle, regression, model, pool=pool,
+                                             n_folds=n_folds, refit=False,
+                                             connection_regressed=connection_regressed)
+    last = n_folds - 1
+    fold_model, base, _ = fold_predictors(models, view, fold, reg, last, phase_averaged,
+                                          connection_only)
+    unflat = regression_view(traj, reg, model, pool=pool, flatten=False)
+    ok, phase, r, r_dot, _ = _scored(unflat, cycle_blocks(unflat.phase, n_folds) == last)
+    nan = torch.tensor(torch.nan, dtype=unflat.xi.dtype, device=unflat.xi.device)
+    return ForwardPrediction(unflat, ok,
+                             torch.where(ok[..., None], fold_model.predict(phase, r, r_dot), nan),
+                             torch.where(ok[..., None], base(phase), nan))
 
 
 def held_out_predictions(models, view: RegressionView, fold: Tensor, reg: Regression,
@@ -488,15 +538,15 @@ def held_out_predictions(models, view: RegressionView, fold: Tensor, reg: Regres
                          connection_only: Tensor | None = None,
                          references=None) -> tuple[Tensor, Tensor | None]:
     """Each sample of ``view`` predicted by the fold model fitted without its block
-    (:func:`fold_forecast`), ``(..., N, 3)`` (NaN where not scored), and with
+    (:func:`fold_predictors`), ``(..., N, 3)`` (NaN where not scored), and with
     ``references`` (per block the physics reference fitted without it,
     :func:`fold_references`) likewise that reference's prediction (else None)."""
     out = torch.full_like(view.xi, torch.nan)
     ref_out = None if references is None else torch.full_like(view.xi, torch.nan)
-    for f, fold_model in enumerate(models):
+    for f in range(len(models)):
         ok, phase, r, r_dot, _ = _scored(view, fold == f)
-        forecast = fold_forecast(fold_model, view, fold, f, reg, phase_averaged,
-                                 connection_only)[0]
+        forecast = fold_predictors(models, view, fold, reg, f, phase_averaged,
+                                   connection_only)[0]
         out = torch.where(ok[..., None], forecast.predict(phase, r, r_dot), out)
         if references is not None and references[f] is not None:
             ref_out = torch.where(ok[..., None], references[f].predict(r, r_dot), ref_out)
