@@ -30,6 +30,7 @@ from .cli.conversion import (
     conversion_flags,
     conversion_settings,
     load_recordings,
+    report_checks,
 )
 from .io.preflight import preflight
 from .io.trajectory_files import write_csv
@@ -115,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         if not rec.reports:
             raise InputError("the inputs are already trajectory CSVs; nothing to convert")
         check = preflight(rec.trajectory, body_length=rec.body_length)
-        say("\n".join(check.lines()))
+        report_checks(check, say)
         trials = [[tr for (path, _, tr) in rec.trials if str(path) == rep.source]
                   for rep in rec.reports]
         names = output_names([Path(rep.source) for rep in rec.reports],

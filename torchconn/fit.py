@@ -46,6 +46,7 @@ from .cli.conversion import (
     conversion_flags,
     conversion_settings,
     load_recordings,
+    report_checks,
     warn_unused_conversion,
 )
 from .io.preflight import CYCLE_RULES, CycleRule, preflight
@@ -312,7 +313,7 @@ def _read_checked(args, conv, given, known, swimmer, estimator, say):
     need = getattr(estimator.phaser, "min_cycles", CYCLE_RULES["fit"].per_trial)
     check = preflight(traj, body_length=rec.body_length,
                       rules={"fit": CycleRule(per_trial=need, total=need)})
-    say("\n".join(check.lines("fit")))
+    report_checks(check, say, "fit")
     if not check.ready["fit"]:
         raise InputError("the recording is not ready to fit: "
                          + "; ".join(check.problems["fit"]))
@@ -446,9 +447,9 @@ def _report_forecast(model, say) -> None:
 
 def _report_held_out(est, say) -> None:
     """Print the held-out R² of the forecasting model and its baselines (on interleaved
-    blocks of cycles, and on the later cycles fitted on the earlier ones), and a warning
-    where bins cannot be scored, the model loses to the phase average, or nothing has
-    skill."""
+    blocks of cycles, and on the later cycles fitted on the earlier ones), and warn
+    (:class:`PoorHeldOutSkillWarning`) where bins cannot be scored, the model loses to the
+    phase average, or nothing has skill."""
     held_out, folds, ref = est.held_out_skill_, est.held_out_folds, est.reference_
     say("held-out R² (v_x, v_y, omega) of the forecasting model and its baselines; "
         f"physics reference: the {ref.n_links}-link viscous swimmer (resistive-force "
@@ -466,23 +467,25 @@ def _report_held_out(est, say) -> None:
                          ("template", skill.r2_template)):
             say(f"    {name:>23}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
     if bool(held_out.unscored.any()):
-        print("WARNING: some phase bins cannot be fitted when a block of cycles is "
-              "left out: the model has too many coefficients for this recording "
-              "(record more cycles, or use fewer --n-bins)")
+        warnings.warn("some phase bins cannot be fitted when a block of cycles is "
+                      "left out: the model has too many coefficients for this recording "
+                      "(record more cycles, or use fewer --n-bins)", PoorHeldOutSkillWarning,
+                      stacklevel=2)
     elif bool(held_out.worse_than_phase_average.any()):
-        print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
-              f"velocity for {held_out.shortfalls()}: its shape terms do not help "
-              "predict those components on this "
-              "recording (" + ("record more cycles; the complexity was already chosen "
-              "by held-out error)" if est.complexity_ is not None else "try --complexity "
-              "cv, fewer --n-bins, a lower --fourier-order or a wider --window, or "
-              "record more cycles)"))
+        warnings.warn("the model predicts held-out cycles worse than the phase-averaged "
+                      f"velocity for {held_out.shortfalls()}: its shape terms do not help "
+                      "predict those components on this recording ("
+                      + ("record more cycles; the complexity was already chosen by held-out "
+                         "error)" if est.complexity_ is not None else "try --complexity cv, "
+                         "fewer --n-bins, a lower --fourier-order or a wider --window, or "
+                         "record more cycles)"), PoorHeldOutSkillWarning, stacklevel=2)
     if bool(held_out.without_skill.any()):
-        print("WARNING: neither the model nor the phase-averaged velocity predicts "
-              "held-out cycles better than their mean velocity for "
-              f"{held_out.without_skill_names()}: not predictable from the gait's "
-              "phase and shape on this recording (noise, or a motion the shape "
-              "changes do not drive: a flow, a tether, contact)")
+        warnings.warn("neither the model nor the phase-averaged velocity predicts "
+                      "held-out cycles better than their mean velocity for "
+                      f"{held_out.without_skill_names()}: not predictable from the gait's "
+                      "phase and shape on this recording (noise, or a motion the shape "
+                      "changes do not drive: a flow, a tether, contact)",
+                      PoorHeldOutSkillWarning, stacklevel=2)
 
 
 def _parameters(ref) -> str:

@@ -266,18 +266,22 @@ def test_fit_names_the_components_that_lose_to_the_phase_average(tmp_path, capsy
     out = tmp_path / "fit"
     assert main([str(path), "--links", "3", "--out", str(out), "--complexity", "fixed",
                  "--metric", "no"]) == 0
-    text = capsys.readouterr().out
+    printed = capsys.readouterr()
+    text = printed.err
     held = json.loads((out / "fit.json").read_text())["held_out_skill"]
     losing = [k for k, worse in enumerate(held["worse_than_phase_average"]) if worse]
     assert losing, "this recording was chosen because its fixed-complexity model loses"
-    warning = next(line for line in text.splitlines() if line.startswith("WARNING: the model"))
+    # warnings go to stderr in the one format of every command, never to stdout
+    warning = next(line for line in text.splitlines()
+                   if line.startswith("torchconn-fit: warning: the model"))
+    assert "warning" not in printed.out.lower()
     for k, name in enumerate(held["components"]):
         shown = (f"{name} (held-out R² {held['model'][k]:.3f} vs phase average "
                  f"{held['phase_average'][k]:.3f})")
         assert (shown in warning) == (k in losing), (shown, warning)
     # every component has skill here, so nothing is called unpredictable
     assert held["without_skill"] == [False, False, False]
-    assert "WARNING: neither the model" not in text
+    assert "warning: neither the model" not in text
 
 
 def test_more_bins_than_samples_is_refused_before_any_allocation(recording, tmp_path, capsys):

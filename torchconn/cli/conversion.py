@@ -6,7 +6,7 @@
   :func:`conversion_flags` checks the ones given, :func:`check_conversion_table` a
   ``[convert]`` table, and :func:`conversion_settings` resolves both.
 - :func:`load_recordings` reads trajectory CSVs or converts tracking files
-  (:class:`Recordings`).
+  (:class:`Recordings`); :func:`report_checks` prints the checks before work on them.
 """
 
 from __future__ import annotations
@@ -24,12 +24,14 @@ from .._cli import InputError, check_center_frame, check_keys
 from .._files import check_distinct, check_file
 from .._options import check_field
 from ..io._table import headerless
+from ..io.preflight import Preflight
 from ..io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
 from ..io.trajectory_files import read_csv
 from ..trajectory import Trajectory, pad_trials
 
 __all__ = ["add_conversion_arguments", "conversion_settings", "conversion_flags",
-           "check_conversion_table", "warn_unused_conversion", "load_recordings", "Recordings"]
+           "check_conversion_table", "warn_unused_conversion", "load_recordings", "Recordings",
+           "report_checks"]
 
 
 def add_conversion_arguments(p: argparse.ArgumentParser, *, frame: bool = True) -> None:
@@ -195,3 +197,13 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
                    for k in range(c.trajectory.batch_shape[0]))
     return Recordings(trajectory=traj, reports=tuple(c.report for c in convs),
                       body_length=torch.cat([c.body_length for c in convs]), trials=trials)
+
+
+def report_checks(check: Preflight, say, command: str | None = None) -> None:
+    """Give the checks before work (:func:`~torchconn.io.preflight.preflight`) of ``command``
+    (every command's when None): the measurements and verdicts through ``say`` (the command's
+    informer), each warning through :func:`warnings.warn` (``prog: warning: ...`` on
+    stderr, under ``--quiet`` too)."""
+    say("\n".join(check.lines(command, with_warnings=False)))
+    for message in check.warnings:
+        warnings.warn(message, stacklevel=2)

@@ -31,12 +31,13 @@ from .._cli import (
 from .._files import read_toml
 from .._options import check_field
 from .._output import OutputFolder
-from ..cli.common import add_common
+from ..cli.common import add_common, informer
 from ..cli.conversion import (
     add_conversion_arguments,
     conversion_flags,
     conversion_settings,
     load_recordings,
+    report_checks,
     warn_unused_conversion,
 )
 from ..io.preflight import preflight
@@ -177,8 +178,7 @@ def main(argv: list[str] | None = None) -> int:
             pool = settings.candidates if settings.candidates is not None else tuple(REGISTRY)
             settings = replace(settings, candidates=tuple(c for c in pool if c not in names))
         check = preflight(traj, body_length=rec.body_length)
-        if not args.quiet:
-            print("\n".join(check.lines("discrepancy")))
+        report_checks(check, informer(args.quiet), "discrepancy")
         if not check.periodic:  # the cycle rule itself is applied by diagnose()
             raise InputError("the recording is not ready for the discrepancy workflow: "
                              + "; ".join(check.problems["discrepancy"]))

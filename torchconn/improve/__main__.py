@@ -32,6 +32,8 @@ from .loop import LoopSettings, circle_gait, improve
 from .measure import measure_cycles
 from .propose import OBJECTIVES, TrustRegion, propose_gait
 
+PROG = "torchconn-improve"
+
 
 def _simulate(args, folder: OutputFolder) -> int:
     system = NLinkSwimmer(args.links)
@@ -141,7 +143,7 @@ def _check_flags(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m torchconn.improve",
+    p = argparse.ArgumentParser(prog=PROG,
                                 description=__doc__.split("\n")[0])
     add_version(p)
     sub = p.add_subparsers(dest="command", required=True)
@@ -160,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--objective", choices=OBJECTIVES, default="displacement")
         q.add_argument("--scale", type=float, default=3.0, help="trust radius in tube radii")
         q.add_argument("--out", type=Path, required=True)
-        add_common(q, version=False, figures=q is sim)  # propose writes no figures
+        add_common(q, version=False, figures=q is sim)  # propose writes none: a no-op
     args = p.parse_args(argv)
 
     def body() -> int:
@@ -169,8 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         check_center_frame(args.links, "center", "the loop's swimmer is in the center frame: "
                            "use an odd --links")
         args.device = str(resolve_device(args.device))
-        with OutputFolder(args.out, command=f"torchconn-improve {args.command}",
-                          log=lambda msg: print(f"{prog}: {msg}", file=sys.stderr)) as folder:
+        with OutputFolder(args.out, command=f"{PROG} {args.command}") as folder:
             return (_simulate if args.command == "simulate" else _propose)(args, folder)
 
     prog = f"{p.prog} {args.command}"
