@@ -8,7 +8,8 @@ checks before fitting (:mod:`torchconn.io.preflight`); estimates phase and limit
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>,
-M_gamma_dot_<i>, power_on_cycle]``) and PNG plots with 95% confidence bands: the connection
+M_gamma_dot_<i>, power_on_cycle]``, then each estimate's standard error ``<column>_se``, see
+:func:`connection_table`) and PNG plots with 95% confidence bands: the connection
 (``ConnectionEstimator.model_``). Where the forecasting model differs from it (a short
 recording, whose complexity was chosen by held-out error: a ridge on ``Â``, or components
 predicted by the phase average or the connection alone), that model
@@ -17,8 +18,9 @@ of) goes to ``DIR/forecast_model.npz``, and the printout says which is which. ``
 (``M̂γ̇``) and ``power_on_cycle`` (``γ̇ᵀM̂γ̇``) are what the gait itself identifies; the full
 ``M̂`` is only as good as the recording's off-cycle excitation (see the bands in ``metric.png``).
 ``DIR/fit.json`` records the settings of every estimator stage, the data (and conversion)
-summary, the checks and the versions. Every estimator setting is reachable through ``--config``
-(an ``[estimator]`` table with stage sub-tables, read by
+summary, the checks, the gait (frequency in Hz, :func:`gait_summary`), the units of its
+numbers and of the table's columns (:data:`UNITS`) and the versions. Every estimator
+setting is reachable through ``--config`` (an ``[estimator]`` table with stage sub-tables, read by
 :func:`~torchconn.regression.estimator.estimator_from_settings`) and
 ``--set estimator.<stage>.<field>=value``. The outputs replace ``DIR`` whole once all are
 written (:class:`~torchconn._output.OutputFolder`): never half a fit, nor a mix of two. Exit
@@ -62,7 +64,7 @@ from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 from .regression.selection import COMPONENTS, PoorHeldOutSkillWarning, nested_list
 
-__all__ = ["connection_table", "write_connection_csv", "main"]
+__all__ = ["connection_table", "write_connection_csv", "gait_summary", "UNITS", "main"]
 
 PROG = "torchconn-fit"
 #: where ``fit`` writes the forecasting model when it differs from the connection (model.npz)
@@ -71,30 +73,84 @@ FORECAST_FILE = "forecast_model.npz"
 
 def connection_table(model: LocalConnectionModel, n_points: int = 100):
     """Columns and rows of ``connection.csv`` for an unbatched model, on a uniform phase grid
-    (computed from a CPU copy of the model)."""
+    (computed from a CPU copy of the model).
+
+    Columns: ``phase`` (rad), the limit cycle ``r1…rd`` (rad), ``A_<k>_<i>`` (``k`` in x, y:
+    body lengths per rad; theta: rad per rad), ``dA_<k>_<i>_<j>`` (per rad), and with a metric
+    ``M_<i>_<j>``, ``M_gamma_dot_<i>``, ``power_on_cycle`` (power units). Then, for each of
+    these estimates, its standard error ``<column>_se``: the per-bin standard errors of
+    :attr:`LocalConnectionModel.bins` (whose ±1.96 SE are the 95% bands of the plots),
+    interpolated linearly in phase (periodically) between the bin centres.
+    """
     if model.batch_shape:
         raise ValueError(f"connection_table needs one model, got batch {tuple(model.batch_shape)}")
     model = model.to("cpu")
     d = model.shape_dim
     phi = torch.arange(n_points, dtype=torch.float64, device=model.device) * (2 * math.pi / n_points)
+    bins = model.bins
     cols = ["phase"] + [f"r{i + 1}" for i in range(d)]
     blocks = [phi[:, None], model.gamma_at(phi)]
-    cols += [f"A_{k}_{i + 1}" for k in ROWS for i in range(d)]
-    blocks.append(model.connection(phi).reshape(n_points, -1))
-    cols += [f"dA_{k}_{i + 1}_{j + 1}" for k in ROWS for i in range(d) for j in range(d)]
-    blocks.append(model.connection_jacobian(phi).reshape(n_points, -1))
+    # (column names, values on the grid, per-bin standard errors) of each estimate
+    estimates = [([f"A_{k}_{i + 1}" for k in ROWS for i in range(d)],
+                  model.connection(phi), bins.A_se),
+                 ([f"dA_{k}_{i + 1}_{j + 1}" for k in ROWS for i in range(d) for j in range(d)],
+                  model.connection_jacobian(phi), bins.dA_se)]
     if model.M is not None:
-        cols += [f"M_{i + 1}_{j + 1}" for i in range(d) for j in range(d)]
-        blocks.append(model.metric(phi).reshape(n_points, -1))
-        # the parts of M̂ the gait itself identifies, beside the full M̂
-        cols += [f"M_gamma_dot_{i + 1}" for i in range(d)] + ["power_on_cycle"]
-        blocks += [model.metric_gamma_dot(phi), model.power_on_cycle(phi)[:, None]]
+        estimates += [([f"M_{i + 1}_{j + 1}" for i in range(d) for j in range(d)],
+                       model.metric(phi), bins.M_se),
+                      # the parts of M̂ the gait itself identifies, beside the full M̂
+                      ([f"M_gamma_dot_{i + 1}" for i in range(d)], model.metric_gamma_dot(phi),
+                       bins.M_gamma_dot_se),
+                      (["power_on_cycle"], model.power_on_cycle(phi), bins.power_on_cycle_se)]
+    for names, values, _ in estimates:
+        cols += names
+        blocks.append(values.reshape(n_points, -1))
+    for names, _, se in estimates:
+        if se is not None:
+            cols += [f"{name}_se" for name in names]
+            blocks.append(_between_bins(bins.phase, se, phi).reshape(n_points, -1))
     return cols, torch.cat(blocks, -1).tolist()
+
+
+def _between_bins(centres: torch.Tensor, values: torch.Tensor, phase: torch.Tensor
+                  ) -> torch.Tensor:
+    """``values`` ``(M, ...)`` given at the bin centres ``(M,)`` (rad), interpolated linearly
+    and periodically (period 2π) to ``phase`` ``(P,)``; ``(P, ...)``."""
+    order = torch.argsort(centres)
+    c, v = centres[order], values[order]
+    c = torch.cat([c[-1:] - 2 * math.pi, c, c[:1] + 2 * math.pi])
+    v = torch.cat([v[-1:], v, v[:1]])
+    x = torch.remainder(phase, 2 * math.pi)
+    j = torch.searchsorted(c, x, right=True).clamp(1, len(c) - 1)
+    w = ((x - c[j - 1]) / (c[j] - c[j - 1])).reshape(-1, *[1] * (v.ndim - 1))
+    return v[j - 1] + w * (v[j] - v[j - 1])
 
 
 def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = 100) -> Path:
     """Write :func:`connection_table` to ``path`` (CSV with a header row), atomically."""
     return write_table(path, *connection_table(model, n_points))
+
+
+#: the units of fit.json's numbers and of connection.csv's columns (``*`` any index; ``t``
+#: in seconds, as ``torchconn-convert`` writes it: docs/conventions.md, "Units")
+UNITS = {
+    "t, dt, period_s": "s", "gait_frequency_hz": "Hz (gait cycles per second)",
+    "x, y": "body lengths", "theta, r*, phase": "rad", "phase_rate": "rad/s",
+    "v_x, v_y": "body lengths/s", "omega": "rad/s",
+    "A_x_*, A_y_*": "body lengths/rad", "A_theta_*": "rad/rad",
+    "dA_x_*, dA_y_*": "body lengths/rad^2", "dA_theta_*": "1/rad",
+    "M_*": "power units s^2/rad^2", "M_gamma_dot_*": "power units s/rad",
+    "power_on_cycle": "power units", "*_se": "those of the column it is the standard error of",
+    "R2": "1 (fraction of the velocity's variance explained)",
+}
+
+
+def gait_summary(model: LocalConnectionModel) -> dict:
+    """The gait of an unbatched model: its phase rate (rad/s), frequency (Hz) and period
+    (s), from the phase estimated on the recording's time base (``t``, seconds)."""
+    rate = float(model.phase_rate)
+    return {"phase_rate": rate, "frequency_hz": rate / (2 * math.pi),
+            "period_s": 2 * math.pi / rate}
 
 
 #: most rows of connection.csv (``--grid``): a phase step of 6e-5 rad, far finer than any fit
@@ -353,6 +409,8 @@ def _sidecar(args, estimator, est, rec, traj, check, known, model, forecast) -> 
                  "conversion": [r.to_dict() for r in rec.reports]},
         "preflight": check.to_dict(),
         "model": {"window": model.meta.get("window"), "metric": model.M is not None},
+        "gait": gait_summary(model),
+        "units": UNITS,
         # how the forecasting model (forecast_model.npz) differs from model.npz; None:
         # model.npz is the forecasting model too
         "forecast_model": None if forecast is None else {
