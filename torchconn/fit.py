@@ -1,4 +1,4 @@
-"""``torchconn-fit DATA… --links N --out DIR``: fit your recordings (CSV or tracking files).
+"""``torchconn-fit DATA… [--links N] --out DIR``: fit your recordings (CSV or tracking files).
 
 Also runs as ``python -m torchconn.fit``. Reads trajectory CSV files (the format of
 docs/conventions.md, section "Trajectory file format"), or tracking files (SLEAP, DeepLabCut,
@@ -44,11 +44,13 @@ from ._provenance import write_sidecar
 from .cli.common import add_common, add_config, config_tables, informer
 from .cli.conversion import (
     add_conversion_arguments,
+    add_links,
     check_conversion_table,
     conversion_flags,
     conversion_settings,
     load_recordings,
     report_checks,
+    resolve_links,
     warn_unused_conversion,
 )
 from .io.preflight import CYCLE_RULES, CycleRule, preflight
@@ -217,7 +219,7 @@ def _parser() -> argparse.ArgumentParser:
                    'one trial per file or several with a trial column (format: '
                    'docs/conventions.md, section "Trajectory file format"); or tracking files '
                    "(SLEAP, DeepLabCut, WCON, points: docs/tracking.md)")
-    p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
+    add_links(p)
     p.add_argument("--out", type=Path, required=True, help="output directory")
     add_config(p, "TOML file with an [estimator] table (stage sub-tables [estimator.phaser], "
                "[estimator.regression], ...) and a [convert] table",
@@ -259,7 +261,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _check_flags(args) -> None:
     """Refuse out-of-range numeric flags (``--links``, ``--grid``, ``--folds``, ``--window``)."""
-    if args.links < 2:
+    if args.links is not None and args.links < 2:
         raise InputError(f"--links must be >= 2, got {args.links}")
     if args.grid < 2:
         raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
@@ -318,6 +320,9 @@ def main(argv: list[str] | None = None) -> int:
         tables = _config_tables(args)
         given = conversion_flags(args)
         estimator = build_estimator(args, tables.get("estimator"))
+        args.links, how = resolve_links(args.links, args.data, args.format)
+        if how:
+            say(how)
 
         def conv():  # conversion options matter (and are checked) for tracking files only
             return conversion_settings(args, args.links, tables.get("convert"))

@@ -1,4 +1,4 @@
-"""``torchconn-discrepancy DATA.csv [MORE.csv ...] --links N --out DIR``.
+"""``torchconn-discrepancy DATA.csv [MORE.csv ...] [--links N] --out DIR``.
 
 Also runs as ``python -m torchconn.discrepancy``. Reads the recordings (the format of
 docs/conventions.md, section "Trajectory file format"), compares them with the nominal N-link swimmer,
@@ -34,10 +34,12 @@ from .._output import OutputFolder
 from ..cli.common import add_common, informer
 from ..cli.conversion import (
     add_conversion_arguments,
+    add_links,
     conversion_flags,
     conversion_settings,
     load_recordings,
     report_checks,
+    resolve_links,
     warn_unused_conversion,
 )
 from ..io.preflight import preflight
@@ -62,7 +64,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="trajectory CSV file(s): columns t, x, y, theta, r1..rd[, power][, trial] "
                    '(format: docs/conventions.md, section "Trajectory file format"), or tracking '
                    "files (converted as by torchconn-convert, same options)")
-    p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
+    add_links(p)
     p.add_argument("--drag-ratio", type=float, default=2.0,
                    help="nominal lateral/longitudinal drag ratio (default 2)")
     p.add_argument("--frame", default=None, choices=("center", "com-mean"),
@@ -142,8 +144,11 @@ def main(argv: list[str] | None = None) -> int:
     def body() -> int:
         set_threads(args.threads)
         device = resolve_device(args.device)
-        if args.links < 2:
+        if args.links is not None and args.links < 2:
             raise InputError(f"--links must be at least 2, got {args.links}")
+        args.links, how = resolve_links(args.links, args.data, args.format)
+        if how:
+            informer(args.quiet)(how)
         if not (math.isfinite(args.drag_ratio) and args.drag_ratio > 0):
             raise InputError(f"--drag-ratio must be a positive number, got {args.drag_ratio}")
         if args.link_lengths is not None and (
