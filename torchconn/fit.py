@@ -57,11 +57,8 @@ from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
 from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
-from .regression.estimator import (
-    ConnectionEstimator,
-    estimator_from_settings,
-    estimator_settings,
-)
+from .regression.defaults import pooled_estimator
+from .regression.estimator import ConnectionEstimator, estimator_settings
 from .regression.model import LocalConnectionModel
 from .regression.plots import ROWS, plot_connection, plot_limit_cycle, plot_metric
 from .regression.selection import COMPONENTS, PoorHeldOutSkillWarning, nested_list
@@ -73,7 +70,11 @@ PROG = "torchconn-fit"
 FORECAST_FILE = "forecast_model.npz"
 
 
-def connection_table(model: LocalConnectionModel, n_points: int = 100):
+#: rows of connection.csv (``--grid``, :func:`connection_table`'s ``n_points``)
+GRID = 100
+
+
+def connection_table(model: LocalConnectionModel, n_points: int = GRID):
     """Columns and rows of ``connection.csv`` for an unbatched model, on a uniform phase grid
     (computed from a CPU copy of the model).
 
@@ -128,7 +129,8 @@ def _between_bins(centres: torch.Tensor, values: torch.Tensor, phase: torch.Tens
     return v[j - 1] + w * (v[j] - v[j - 1])
 
 
-def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = 100) -> Path:
+def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = GRID
+                         ) -> Path:
     """Write :func:`connection_table` to ``path`` (CSV with a header row), atomically."""
     return write_table(path, *connection_table(model, n_points))
 
@@ -178,9 +180,10 @@ def _phase_order(text: str) -> int | str:
 
 
 def build_estimator(args, table: dict | None) -> ConnectionEstimator:
-    """The estimator of ``fit``: trials pooled by default, then the ``[estimator]`` table
-    (nested per stage, see :func:`estimator_from_settings`), then the shortcut flags."""
-    table = {"pool": True, **(table or {})}
+    """The estimator of ``fit``: :func:`~torchconn.regression.defaults.pooled_estimator` (the
+    API's defaults, trials pooled), then the ``[estimator]`` table (nested per stage, see
+    :func:`estimator_from_settings`), then the shortcut flags."""
+    table = dict(table or {})
     if args.complexity is not None:
         table["complexity"] = args.complexity
     if args.folds is not None:
@@ -195,7 +198,7 @@ def build_estimator(args, table: dict | None) -> ConnectionEstimator:
         if v is not None:
             table[stage] = {**table.get(stage, {}), field: v}
     try:
-        estimator = estimator_from_settings(table)
+        estimator = pooled_estimator(table)
     except ValueError as err:
         raise InputError(f"estimator options: {err}") from None
     if not estimator.pool:
@@ -212,7 +215,10 @@ def _parser() -> argparse.ArgumentParser:
         description="Fit one local connection model (and the metric, when the files have a "
         "power column) to your recorded trials, pooled, and write DIR/model.npz, "
         "DIR/connection.csv (one row per phase), PNG plots with 95% bands and DIR/fit.json. "
-        "Reads trajectory CSVs or tracking files. Also runs as python -m torchconn.fit.",
+        "Reads trajectory CSVs or tracking files. The estimator is ConnectionEstimator's "
+        "defaults with the trials pooled (in Python: "
+        "torchconn.regression.defaults.pooled_estimator(), the same numbers). "
+        "Also runs as python -m torchconn.fit.",
     )
     p.add_argument("data", nargs="+", type=Path,
                    help="trajectory CSV files: columns t, x, y, theta, r1..rd[, power][, trial], "
@@ -226,9 +232,12 @@ def _parser() -> argparse.ArgumentParser:
                "override a setting, e.g. --set estimator.regression.ridge=1e-6 or, for a "
                "stage, the short form --set regression.kernel=box (stages: smoother, phaser, "
                "cycle, regression; repeatable)")
-    p.add_argument("--n-bins", type=int, help="phase bins (estimator.regression.n_bins, default 48)")
+    default = pooled_estimator()  # the defaults the help names: the API's, trials pooled
+    p.add_argument("--n-bins", type=int, help="phase bins (estimator.regression.n_bins, "
+                   f"default {default.regression.n_bins})")
     p.add_argument("--fourier-order", type=int,
-                   help="Fourier order in phase (estimator.regression.fourier_order, default 12)")
+                   help="Fourier order in phase (estimator.regression.fourier_order, default "
+                   f"{default.regression.fourier_order})")
     p.add_argument("--window", type=float,
                    help="bin half-width in bin spacings (default: sized from the data)")
     p.add_argument("--phase-order", type=_phase_order, metavar="K|auto",
@@ -246,14 +255,16 @@ def _parser() -> argparse.ArgumentParser:
                    "held-out error over blocks of whole cycles (estimator.complexity)")
     p.add_argument("--folds", type=int,
                    help="blocks of whole cycles for the held-out check and the complexity "
-                   "choice (estimator.held_out_folds, default 3; 0 skips the check)")
+                   f"choice (estimator.held_out_folds, default {default.held_out_folds}; 0 "
+                   "skips the check)")
     p.add_argument("--metric", choices=("auto", "yes", "no"),
                    help="estimate the dissipation metric: auto (default) when the files have a "
                    "power column, yes to require one, no never")
     p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
                    help="a known condition, e.g. ambient_flow:u_x=0.01,u_y=0 (repeatable): the "
                    "recording is modelled relative to it")
-    p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
+    p.add_argument("--grid", type=int, default=GRID,
+                   help=f"rows of connection.csv (>= 2, default {GRID})")
     add_conversion_arguments(p)
     add_common(p)
     return p

@@ -13,6 +13,7 @@ Unknown columns are warned about.
 from __future__ import annotations
 
 import argparse
+import inspect
 import math
 import sys
 import time
@@ -50,6 +51,9 @@ from ..physics.systems.swimmer import NLinkSwimmer
 from .workflow import DiscrepancySettings, diagnose
 
 PROG = "torchconn-discrepancy"
+#: the defaults the flags name: the API's own (DiscrepancySettings, NLinkSwimmer)
+_DEFAULTS = DiscrepancySettings()
+_DRAG_RATIO = inspect.signature(NLinkSwimmer).parameters["drag_ratio"].default
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -65,8 +69,8 @@ def _parser() -> argparse.ArgumentParser:
                    '(format: docs/conventions.md, section "Trajectory file format"), or tracking '
                    "files (converted as by torchconn-convert, same options)")
     add_links(p)
-    p.add_argument("--drag-ratio", type=float, default=2.0,
-                   help="nominal lateral/longitudinal drag ratio (default 2)")
+    p.add_argument("--drag-ratio", type=float, default=_DRAG_RATIO,
+                   help=f"nominal lateral/longitudinal drag ratio (default {_DRAG_RATIO:g})")
     p.add_argument("--frame", default=None, choices=("center", "com-mean"),
                    help="body frame of the recorded pose (default: center)")
     p.add_argument("--link-lengths", type=float, nargs="+", default=None,
@@ -76,8 +80,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="effects to screen (default: all registered)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML file with a [discrepancy] table of DiscrepancySettings fields")
-    p.add_argument("--alpha", type=float, default=None, help="significance level (default 0.01)")
-    p.add_argument("--folds", type=int, default=None, help="cross-validation folds (default 5)")
+    p.add_argument("--alpha", type=float, default=None,
+                   help=f"significance level (default {_DEFAULTS.alpha:g})")
+    p.add_argument("--folds", type=int, default=None,
+                   help=f"cross-validation folds (default {_DEFAULTS.n_folds})")
     p.add_argument("--no-terms", action="store_true",
                    help="skip the term-by-term comparison with the Stage 4 local model")
     p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
