@@ -207,7 +207,8 @@ nb.save(plot_metric(model, truth=truth_metric, time_unit="time unit"), "metric")
 #
 # `torchconn.fit.connection_table(model, n_points)` evaluates the model on a uniform phase
 # grid: columns `phase`, the cycle `r1 … rd`, `A_<k>_<i>` ($A^k_i$, $k\in\{x, y, \theta\}$),
-# `dA_<k>_<i>_<j>` ($\partial A^k_i/\partial r_j$) and, with a power channel, `M_<i>_<j>`.
+# `dA_<k>_<i>_<j>` ($\partial A^k_i/\partial r_j$) and, with a power channel, `M_<i>_<j>`;
+# then each estimate's standard error `<column>_se` (the plots' 95% bands are ±1.96 of it).
 # That is a file any other tool can read. `model.save` writes the model itself losslessly
 # (`LocalConnectionModel.load` reads it back).
 

@@ -27,10 +27,10 @@ import re
 import shutil
 import socket
 import stat
-import sys
 import tempfile
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -356,15 +356,16 @@ class OutputFolder:
         out: the output folder.
         command: the command's name, recorded and checked in :data:`RECORD`.
         flag: the option that gave ``out``, for messages.
-        log: receives one line when the leftovers of a killed run are removed (default:
-            printed on stderr after ``command: ``).
+        log: receives one line when the leftovers of a killed run are removed or a stale
+            lock is taken over (default: :func:`warnings.warn`, which a command prints as
+            ``prog: warning: ...`` on stderr).
     """
 
     def __init__(self, out: Path | str, *, command: str, flag: str = "--out",
                  log: Callable[[str], object] | None = None):
         self.target = Path(out)
         self.command, self.flag = command, flag
-        self.log = log or (lambda msg: print(f"{command}: {msg}", file=sys.stderr, flush=True))
+        self.log = log or warnings.warn
         real = Path(os.path.realpath(self.target))
         self._real, self._parent = real, real.parent
         self._made: list[Path] = []  # parent folders created by this run

@@ -1,4 +1,4 @@
-"""``torchconn-convert SOURCE… --links N --out DIR``: tracked video to trajectory CSVs.
+"""``torchconn-convert SOURCE… [--links N] --out DIR``: tracked video to trajectory CSVs.
 
 Reads SLEAP (analysis .h5/.csv), DeepLabCut (.csv/.h5), WCON (.wcon/.json/.zip) or plain point
 arrays (.csv/.npz), fits a curve through each frame's keypoints, resamples it to an N-link
@@ -27,9 +27,12 @@ from ._provenance import write_sidecar
 from .cli.common import add_common, add_config, config_tables, informer
 from .cli.conversion import (
     add_conversion_arguments,
+    add_links,
     conversion_flags,
     conversion_settings,
     load_recordings,
+    report_checks,
+    resolve_links,
 )
 from .io.preflight import preflight
 from .io.trajectory_files import write_csv
@@ -83,8 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("sources", nargs="+", type=Path,
                    help="tracking files: SLEAP analysis .h5/.csv, DeepLabCut .csv/.h5, WCON "
                    ".wcon/.json/.zip, or point arrays .csv/.npz")
-    p.add_argument("--links", type=int, required=True, help="number of links N (odd for the "
-                   "center frame)")
+    add_links(p)
     p.add_argument("--out", type=Path, required=True, help="output directory")
     add_conversion_arguments(p)
     add_config(p, "TOML file with a [convert] table",
@@ -99,9 +101,12 @@ def main(argv: list[str] | None = None) -> int:
         unknown = sorted(set(tables) - {"convert"})
         if unknown:
             raise InputError(f"unknown config section(s) {unknown}; convert reads [convert]")
-        if args.links < 2:
+        if args.links is not None and args.links < 2:
             raise InputError(f"--links must be >= 2, got {args.links}")
         conversion_flags(args)
+        args.links, how = resolve_links(args.links, args.sources, args.format)
+        if how:
+            say(how)
         settings = conversion_settings(args, args.links, tables.get("convert"))
         with OutputFolder(args.out, command=PROG) as folder:
             return convert_into(folder, settings)
@@ -115,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         if not rec.reports:
             raise InputError("the inputs are already trajectory CSVs; nothing to convert")
         check = preflight(rec.trajectory, body_length=rec.body_length)
-        say("\n".join(check.lines()))
+        report_checks(check, say)
         trials = [[tr for (path, _, tr) in rec.trials if str(path) == rep.source]
                   for rep in rec.reports]
         names = output_names([Path(rep.source) for rep in rec.reports],

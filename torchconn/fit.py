@@ -1,4 +1,4 @@
-"""``torchconn-fit DATA… --links N --out DIR``: fit your recordings (CSV or tracking files).
+"""``torchconn-fit DATA… [--links N] --out DIR``: fit your recordings (CSV or tracking files).
 
 Also runs as ``python -m torchconn.fit``. Reads trajectory CSV files (the format of
 docs/conventions.md, section "Trajectory file format"), or tracking files (SLEAP, DeepLabCut,
@@ -8,7 +8,8 @@ checks before fitting (:mod:`torchconn.io.preflight`); estimates phase and limit
 local connection (and the metric, when a ``power`` column is present) with all trials pooled
 into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row per phase on a
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>,
-M_gamma_dot_<i>, power_on_cycle]``) and PNG plots (unless ``--no-figures``):
+M_gamma_dot_<i>, power_on_cycle]``, then each estimate's standard error ``<column>_se``, see
+:func:`connection_table`) and PNG plots (unless ``--no-figures``):
 ``held_out_velocity.png`` (measured body velocity against the model's prediction and the
 phase average on the last cycles, fitted without them), and with 95% confidence bands the
 connection (``ConnectionEstimator.model_``), the limit cycle and the metric. Where the
@@ -20,8 +21,9 @@ of) goes to ``DIR/forecast_model.npz``, and the printout says which is which. ``
 (``M̂γ̇``) and ``power_on_cycle`` (``γ̇ᵀM̂γ̇``) are what the gait itself identifies; the full
 ``M̂`` is only as good as the recording's off-cycle excitation (see the bands in ``metric.png``).
 ``DIR/fit.json`` records the settings of every estimator stage, the data (and conversion)
-summary, the checks and the versions. Every estimator setting is reachable through ``--config``
-(an ``[estimator]`` table with stage sub-tables, read by
+summary, the checks, the gait (frequency in Hz, :func:`gait_summary`), the units of its
+numbers and of the table's columns (:data:`UNITS`) and the versions. Every estimator
+setting is reachable through ``--config`` (an ``[estimator]`` table with stage sub-tables, read by
 :func:`~torchconn.regression.estimator.estimator_from_settings`) and
 ``--set estimator.<stage>.<field>=value``. The outputs replace ``DIR`` whole once all are
 written (:class:`~torchconn._output.OutputFolder`): never half a fit, nor a mix of two. Exit
@@ -45,10 +47,13 @@ from ._provenance import write_sidecar
 from .cli.common import add_common, add_config, config_tables, informer
 from .cli.conversion import (
     add_conversion_arguments,
+    add_links,
     check_conversion_table,
     conversion_flags,
     conversion_settings,
     load_recordings,
+    report_checks,
+    resolve_links,
     warn_unused_conversion,
 )
 from .io.preflight import CYCLE_RULES, CycleRule, preflight
@@ -56,11 +61,8 @@ from .io.trajectory_files import read_csv
 from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
 from .plotting import save_figure
-from .regression.estimator import (
-    ConnectionEstimator,
-    estimator_from_settings,
-    estimator_settings,
-)
+from .regression.defaults import pooled_estimator
+from .regression.estimator import ConnectionEstimator, estimator_settings
 from .regression.model import LocalConnectionModel
 from .regression.plots import (
     ROWS,
@@ -72,39 +74,98 @@ from .regression.plots import (
 from .regression.reference import FAMILIES
 from .regression.selection import COMPONENTS, PoorHeldOutSkillWarning, nested_list
 
-__all__ = ["connection_table", "write_connection_csv", "main"]
+__all__ = ["connection_table", "write_connection_csv", "gait_summary", "UNITS", "main"]
 
 PROG = "torchconn-fit"
 #: where ``fit`` writes the forecasting model when it differs from the connection (model.npz)
 FORECAST_FILE = "forecast_model.npz"
 
 
-def connection_table(model: LocalConnectionModel, n_points: int = 100):
+#: rows of connection.csv (``--grid``, :func:`connection_table`'s ``n_points``)
+GRID = 100
+
+
+def connection_table(model: LocalConnectionModel, n_points: int = GRID):
     """Columns and rows of ``connection.csv`` for an unbatched model, on a uniform phase grid
-    (computed from a CPU copy of the model)."""
+    (computed from a CPU copy of the model).
+
+    Columns: ``phase`` (rad), the limit cycle ``r1…rd`` (rad), ``A_<k>_<i>`` (``k`` in x, y:
+    body lengths per rad; theta: rad per rad), ``dA_<k>_<i>_<j>`` (per rad), and with a metric
+    ``M_<i>_<j>``, ``M_gamma_dot_<i>``, ``power_on_cycle`` (power units). Then, for each of
+    these estimates, its standard error ``<column>_se``: the per-bin standard errors of
+    :attr:`LocalConnectionModel.bins` (whose ±1.96 SE are the 95% bands of the plots),
+    interpolated linearly in phase (periodically) between the bin centres.
+    """
     if model.batch_shape:
         raise ValueError(f"connection_table needs one model, got batch {tuple(model.batch_shape)}")
     model = model.to("cpu")
     d = model.shape_dim
     phi = torch.arange(n_points, dtype=torch.float64, device=model.device) * (2 * math.pi / n_points)
+    bins = model.bins
     cols = ["phase"] + [f"r{i + 1}" for i in range(d)]
     blocks = [phi[:, None], model.gamma_at(phi)]
-    cols += [f"A_{k}_{i + 1}" for k in ROWS for i in range(d)]
-    blocks.append(model.connection(phi).reshape(n_points, -1))
-    cols += [f"dA_{k}_{i + 1}_{j + 1}" for k in ROWS for i in range(d) for j in range(d)]
-    blocks.append(model.connection_jacobian(phi).reshape(n_points, -1))
+    # (column names, values on the grid, per-bin standard errors) of each estimate
+    estimates = [([f"A_{k}_{i + 1}" for k in ROWS for i in range(d)],
+                  model.connection(phi), bins.A_se),
+                 ([f"dA_{k}_{i + 1}_{j + 1}" for k in ROWS for i in range(d) for j in range(d)],
+                  model.connection_jacobian(phi), bins.dA_se)]
     if model.M is not None:
-        cols += [f"M_{i + 1}_{j + 1}" for i in range(d) for j in range(d)]
-        blocks.append(model.metric(phi).reshape(n_points, -1))
-        # the parts of M̂ the gait itself identifies, beside the full M̂
-        cols += [f"M_gamma_dot_{i + 1}" for i in range(d)] + ["power_on_cycle"]
-        blocks += [model.metric_gamma_dot(phi), model.power_on_cycle(phi)[:, None]]
+        estimates += [([f"M_{i + 1}_{j + 1}" for i in range(d) for j in range(d)],
+                       model.metric(phi), bins.M_se),
+                      # the parts of M̂ the gait itself identifies, beside the full M̂
+                      ([f"M_gamma_dot_{i + 1}" for i in range(d)], model.metric_gamma_dot(phi),
+                       bins.M_gamma_dot_se),
+                      (["power_on_cycle"], model.power_on_cycle(phi), bins.power_on_cycle_se)]
+    for names, values, _ in estimates:
+        cols += names
+        blocks.append(values.reshape(n_points, -1))
+    for names, _, se in estimates:
+        if se is not None:
+            cols += [f"{name}_se" for name in names]
+            blocks.append(_between_bins(bins.phase, se, phi).reshape(n_points, -1))
     return cols, torch.cat(blocks, -1).tolist()
 
 
-def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = 100) -> Path:
+def _between_bins(centres: torch.Tensor, values: torch.Tensor, phase: torch.Tensor
+                  ) -> torch.Tensor:
+    """``values`` ``(M, ...)`` given at the bin centres ``(M,)`` (rad), interpolated linearly
+    and periodically (period 2π) to ``phase`` ``(P,)``; ``(P, ...)``."""
+    order = torch.argsort(centres)
+    c, v = centres[order], values[order]
+    c = torch.cat([c[-1:] - 2 * math.pi, c, c[:1] + 2 * math.pi])
+    v = torch.cat([v[-1:], v, v[:1]])
+    x = torch.remainder(phase, 2 * math.pi)
+    j = torch.searchsorted(c, x, right=True).clamp(1, len(c) - 1)
+    w = ((x - c[j - 1]) / (c[j] - c[j - 1])).reshape(-1, *[1] * (v.ndim - 1))
+    return v[j - 1] + w * (v[j] - v[j - 1])
+
+
+def write_connection_csv(model: LocalConnectionModel, path: Path | str, n_points: int = GRID
+                         ) -> Path:
     """Write :func:`connection_table` to ``path`` (CSV with a header row), atomically."""
     return write_table(path, *connection_table(model, n_points))
+
+
+#: the units of fit.json's numbers and of connection.csv's columns (``*`` any index; ``t``
+#: in seconds, as ``torchconn-convert`` writes it: docs/conventions.md, "Units")
+UNITS = {
+    "t, dt, period_s": "s", "gait_frequency_hz": "Hz (gait cycles per second)",
+    "x, y": "body lengths", "theta, r*, phase": "rad", "phase_rate": "rad/s",
+    "v_x, v_y": "body lengths/s", "omega": "rad/s",
+    "A_x_*, A_y_*": "body lengths/rad", "A_theta_*": "rad/rad",
+    "dA_x_*, dA_y_*": "body lengths/rad^2", "dA_theta_*": "1/rad",
+    "M_*": "power units s^2/rad^2", "M_gamma_dot_*": "power units s/rad",
+    "power_on_cycle": "power units", "*_se": "those of the column it is the standard error of",
+    "R2": "1 (fraction of the velocity's variance explained)",
+}
+
+
+def gait_summary(model: LocalConnectionModel) -> dict:
+    """The gait of an unbatched model: its phase rate (rad/s), frequency (Hz) and period
+    (s), from the phase estimated on the recording's time base (``t``, seconds)."""
+    rate = float(model.phase_rate)
+    return {"phase_rate": rate, "frequency_hz": rate / (2 * math.pi),
+            "period_s": 2 * math.pi / rate}
 
 
 #: most rows of connection.csv (``--grid``): a phase step of 6e-5 rad, far finer than any fit
@@ -130,9 +191,10 @@ def _phase_order(text: str) -> int | str:
 
 
 def build_estimator(args, table: dict | None) -> ConnectionEstimator:
-    """The estimator of ``fit``: trials pooled by default, then the ``[estimator]`` table
-    (nested per stage, see :func:`estimator_from_settings`), then the shortcut flags."""
-    table = {"pool": True, **(table or {})}
+    """The estimator of ``fit``: :func:`~torchconn.regression.defaults.pooled_estimator` (the
+    API's defaults, trials pooled), then the ``[estimator]`` table (nested per stage, see
+    :func:`estimator_from_settings`), then the shortcut flags."""
+    table = dict(table or {})
     if args.complexity is not None:
         table["complexity"] = args.complexity
     if args.folds is not None:
@@ -149,7 +211,7 @@ def build_estimator(args, table: dict | None) -> ConnectionEstimator:
         if v is not None:
             table[stage] = {**table.get(stage, {}), field: v}
     try:
-        estimator = estimator_from_settings(table)
+        estimator = pooled_estimator(table)
     except ValueError as err:
         raise InputError(f"estimator options: {err}") from None
     if not estimator.pool:
@@ -166,23 +228,29 @@ def _parser() -> argparse.ArgumentParser:
         description="Fit one local connection model (and the metric, when the files have a "
         "power column) to your recorded trials, pooled, and write DIR/model.npz, "
         "DIR/connection.csv (one row per phase), PNG plots with 95% bands and DIR/fit.json. "
-        "Reads trajectory CSVs or tracking files. Also runs as python -m torchconn.fit.",
+        "Reads trajectory CSVs or tracking files. The estimator is ConnectionEstimator's "
+        "defaults with the trials pooled (in Python: "
+        "torchconn.regression.defaults.pooled_estimator(), the same numbers). "
+        "Also runs as python -m torchconn.fit.",
     )
     p.add_argument("data", nargs="+", type=Path,
                    help="trajectory CSV files: columns t, x, y, theta, r1..rd[, power][, trial], "
                    'one trial per file or several with a trial column (format: '
                    'docs/conventions.md, section "Trajectory file format"); or tracking files '
                    "(SLEAP, DeepLabCut, WCON, points: docs/tracking.md)")
-    p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
+    add_links(p)
     p.add_argument("--out", type=Path, required=True, help="output directory")
     add_config(p, "TOML file with an [estimator] table (stage sub-tables [estimator.phaser], "
                "[estimator.regression], ...) and a [convert] table",
                "override a setting, e.g. --set estimator.regression.ridge=1e-6 or, for a "
                "stage, the short form --set regression.kernel=box (stages: smoother, phaser, "
                "cycle, regression; repeatable)")
-    p.add_argument("--n-bins", type=int, help="phase bins (estimator.regression.n_bins, default 48)")
+    default = pooled_estimator()  # the defaults the help names: the API's, trials pooled
+    p.add_argument("--n-bins", type=int, help="phase bins (estimator.regression.n_bins, "
+                   f"default {default.regression.n_bins})")
     p.add_argument("--fourier-order", type=int,
-                   help="Fourier order in phase (estimator.regression.fourier_order, default 12)")
+                   help="Fourier order in phase (estimator.regression.fourier_order, default "
+                   f"{default.regression.fourier_order})")
     p.add_argument("--window", type=float,
                    help="bin half-width in bin spacings (default: sized from the data)")
     p.add_argument("--phase-order", type=_phase_order, metavar="K|auto",
@@ -200,7 +268,8 @@ def _parser() -> argparse.ArgumentParser:
                    "held-out error over blocks of whole cycles (estimator.complexity)")
     p.add_argument("--folds", type=int,
                    help="blocks of whole cycles for the held-out check and the complexity "
-                   "choice (estimator.held_out_folds, default 3; 0 skips the check)")
+                   f"choice (estimator.held_out_folds, default {default.held_out_folds}; 0 "
+                   "skips the check)")
     p.add_argument("--prior", choices=(*FAMILIES, "none"),
                    help="the physics reference the forecasts may lean on where it predicts "
                    "held-out cycles better, and the baseline reported beside the model: "
@@ -212,7 +281,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
                    help="a known condition, e.g. ambient_flow:u_x=0.01,u_y=0 (repeatable): the "
                    "recording is modelled relative to it")
-    p.add_argument("--grid", type=int, default=100, help="rows of connection.csv (>= 2)")
+    p.add_argument("--grid", type=int, default=GRID,
+                   help=f"rows of connection.csv (>= 2, default {GRID})")
     add_conversion_arguments(p)
     add_common(p)
     return p
@@ -220,7 +290,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _check_flags(args) -> None:
     """Refuse out-of-range numeric flags (``--links``, ``--grid``, ``--folds``, ``--window``)."""
-    if args.links < 2:
+    if args.links is not None and args.links < 2:
         raise InputError(f"--links must be >= 2, got {args.links}")
     if args.grid < 2:
         raise InputError(f"--grid must be >= 2 (rows of connection.csv), got {args.grid}")
@@ -279,6 +349,9 @@ def main(argv: list[str] | None = None) -> int:
         tables = _config_tables(args)
         given = conversion_flags(args)
         estimator = build_estimator(args, tables.get("estimator"))
+        args.links, how = resolve_links(args.links, args.data, args.format)
+        if how:
+            say(how)
 
         def conv():  # conversion options matter (and are checked) for tracking files only
             return conversion_settings(args, args.links, tables.get("convert"))
@@ -330,7 +403,7 @@ def _read_checked(args, conv, given, known, swimmer, estimator, say):
     need = getattr(estimator.phaser, "min_cycles", CYCLE_RULES["fit"].per_trial)
     check = preflight(traj, body_length=rec.body_length,
                       rules={"fit": CycleRule(per_trial=need, total=need)})
-    say("\n".join(check.lines("fit")))
+    report_checks(check, say, "fit")
     if not check.ready["fit"]:
         raise InputError("the recording is not ready to fit: "
                          + "; ".join(check.problems["fit"]))
@@ -373,6 +446,8 @@ def _sidecar(args, estimator, est, rec, traj, check, known, model, forecast) -> 
                  "conversion": [r.to_dict() for r in rec.reports]},
         "preflight": check.to_dict(),
         "model": {"window": model.meta.get("window"), "metric": model.M is not None},
+        "gait": gait_summary(model),
+        "units": UNITS,
         # how the forecasting model (forecast_model.npz) differs from model.npz; None:
         # model.npz is the forecasting model too
         "forecast_model": None if forecast is None else {
@@ -470,9 +545,9 @@ def _report_forecast(model, say) -> None:
 
 def _report_held_out(est, say) -> None:
     """Print the held-out R² of the forecasting model and its baselines (on interleaved
-    blocks of cycles, and on the later cycles fitted on the earlier ones), and a warning
-    where bins cannot be scored, the model loses to the phase average, or nothing has
-    skill."""
+    blocks of cycles, and on the later cycles fitted on the earlier ones), and warn
+    (:class:`PoorHeldOutSkillWarning`) where bins cannot be scored, the model loses to the
+    phase average, or nothing has skill."""
     held_out, folds, ref = est.held_out_skill_, est.held_out_folds, est.reference_
     say("held-out R² (v_x, v_y, omega) of the forecasting model and its baselines; "
         f"physics reference: the {ref.n_links}-link viscous swimmer (resistive-force "
@@ -498,23 +573,25 @@ def _report_held_out(est, say) -> None:
             + "); the model R² above are of these forecasts, the connection (Â) is as "
             "estimated")
     if bool(held_out.unscored.any()):
-        print("WARNING: some phase bins cannot be fitted when a block of cycles is "
-              "left out: the model has too many coefficients for this recording "
-              "(record more cycles, or use fewer --n-bins)")
+        warnings.warn("some phase bins cannot be fitted when a block of cycles is "
+                      "left out: the model has too many coefficients for this recording "
+                      "(record more cycles, or use fewer --n-bins)", PoorHeldOutSkillWarning,
+                      stacklevel=2)
     elif bool(held_out.worse_than_phase_average.any()):
-        print("WARNING: the model predicts held-out cycles worse than the phase-averaged "
-              f"velocity for {held_out.shortfalls()}: its shape terms do not help "
-              "predict those components on this "
-              "recording (" + ("record more cycles; the complexity was already chosen "
-              "by held-out error)" if est.complexity_ is not None else "try --complexity "
-              "cv, fewer --n-bins, a lower --fourier-order or a wider --window, or "
-              "record more cycles)"))
+        warnings.warn("the model predicts held-out cycles worse than the phase-averaged "
+                      f"velocity for {held_out.shortfalls()}: its shape terms do not help "
+                      "predict those components on this recording ("
+                      + ("record more cycles; the complexity was already chosen by held-out "
+                         "error)" if est.complexity_ is not None else "try --complexity cv, "
+                         "fewer --n-bins, a lower --fourier-order or a wider --window, or "
+                         "record more cycles)"), PoorHeldOutSkillWarning, stacklevel=2)
     if bool(held_out.without_skill.any()):
-        print("WARNING: neither the model nor the phase-averaged velocity predicts "
-              "held-out cycles better than their mean velocity for "
-              f"{held_out.without_skill_names()}: not predictable from the gait's "
-              "phase and shape on this recording (noise, or a motion the shape "
-              "changes do not drive: a flow, a tether, contact)")
+        warnings.warn("neither the model nor the phase-averaged velocity predicts "
+                      "held-out cycles better than their mean velocity for "
+                      f"{held_out.without_skill_names()}: not predictable from the gait's "
+                      "phase and shape on this recording (noise, or a motion the shape "
+                      "changes do not drive: a flow, a tether, contact)",
+                      PoorHeldOutSkillWarning, stacklevel=2)
 
 
 def _parameters(ref) -> str:

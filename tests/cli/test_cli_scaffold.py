@@ -18,14 +18,14 @@ from torchconn.improve.loop import circle_gait
 from torchconn.sweep.__main__ import main as sweep_main
 
 #: command -> (its main, the argv that reaches its working parser, the flags it must offer)
-WORK = ["--quiet", "--threads"]
+WORK = ["--quiet", "--no-figures", "--threads"]  # --no-figures a no-op where none are drawn
 COMMANDS = {
-    "fit": (fit_main, [], WORK + ["--no-figures", "--device"]),
-    "convert": (convert_main, [], WORK),  # no figures; conversion runs on the CPU
-    "discrepancy": (discrepancy_main, [], WORK + ["--no-figures", "--device"]),
-    "improve simulate": (improve_main, ["simulate"], WORK + ["--no-figures", "--device"]),
-    "improve propose": (improve_main, ["propose"], WORK + ["--device"]),  # writes no figures
-    "sweep": (sweep_main, [], WORK + ["--no-figures", "--device"]),
+    "fit": (fit_main, [], WORK + ["--device"]),
+    "convert": (convert_main, [], WORK),  # conversion runs on the CPU
+    "discrepancy": (discrepancy_main, [], WORK + ["--device"]),
+    "improve simulate": (improve_main, ["simulate"], WORK + ["--device"]),
+    "improve propose": (improve_main, ["propose"], WORK + ["--device"]),
+    "sweep": (sweep_main, [], WORK + ["--device"]),
 }
 #: the module of each command, and the packages of the others
 MODULES = {"torchconn.fit": "fit", "torchconn.convert": "convert",

@@ -44,7 +44,8 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
                 + [f"dA_{k}_{i}_{j}" for k in ("x", "y", "theta") for i in (1, 2) for j in (1, 2)]
                 + [f"M_{i}_{j}" for i in (1, 2) for j in (1, 2)]
                 + ["M_gamma_dot_1", "M_gamma_dot_2", "power_on_cycle"])
-    assert header == expected
+    # each estimate's standard error after all the estimates
+    assert header == expected + [f"{c}_se" for c in expected[3:]]
     assert len(rows) == 51
     table = np.array(rows[1:], dtype=float)
     # the fitted connection along the fitted cycle is close to the simulator's there
@@ -62,9 +63,13 @@ def test_fit_writes_model_table_and_plots(recording, tmp_path):
     m_true = swimmer.metric(torch.tensor(table[:, 1:3]))
     mgd_true = (m_true @ gd[..., None])[..., 0].numpy()
     p_true = (gd.numpy() * mgd_true).sum(-1)
-    assert np.sqrt(((table[:, -3:-1] - mgd_true) ** 2).sum(-1).mean()
+    end = len(expected)  # the estimates' columns, before their standard errors
+    assert np.sqrt(((table[:, end - 3:end - 1] - mgd_true) ** 2).sum(-1).mean()
                    / (mgd_true**2).sum(-1).mean()) < 0.02
-    assert np.sqrt(((table[:, -1] - p_true) ** 2).mean() / (p_true**2).mean()) < 0.01
+    assert np.sqrt(((table[:, end - 1] - p_true) ** 2).mean() / (p_true**2).mean()) < 0.01
+    # the 95% bands (±1.96 SE) cover the simulator's A along most of the cycle
+    a_se = table[:, end:end + 6]
+    assert (a_se > 0).all() and (np.abs(table[:, 3:9] - a_true) < 1.96 * a_se).mean() > 0.8
     for name in ("held_out_velocity.png", "connection.png", "limit_cycle.png", "metric.png"):
         assert (out / name).stat().st_size > 1000
     sidecar = json.loads((out / "fit.json").read_text())
@@ -268,18 +273,22 @@ def test_fit_names_the_components_that_lose_to_the_phase_average(tmp_path, capsy
     out = tmp_path / "fit"
     assert main([str(path), "--links", "3", "--out", str(out), "--complexity", "fixed",
                  "--metric", "no"]) == 0
-    text = capsys.readouterr().out
+    printed = capsys.readouterr()
+    text = printed.err
     held = json.loads((out / "fit.json").read_text())["held_out_skill"]
     losing = [k for k, worse in enumerate(held["worse_than_phase_average"]) if worse]
     assert losing, "this recording was chosen because its fixed-complexity model loses"
-    warning = next(line for line in text.splitlines() if line.startswith("WARNING: the model"))
+    # warnings go to stderr in the one format of every command, never to stdout
+    warning = next(line for line in text.splitlines()
+                   if line.startswith("torchconn-fit: warning: the model"))
+    assert "warning" not in printed.out.lower()
     for k, name in enumerate(held["components"]):
         shown = (f"{name} (held-out R² {held['model'][k]:.3f} vs phase average "
                  f"{held['phase_average'][k]:.3f})")
         assert (shown in warning) == (k in losing), (shown, warning)
     # every component has skill here, so nothing is called unpredictable
     assert held["without_skill"] == [False, False, False]
-    assert "WARNING: neither the model" not in text
+    assert "warning: neither the model" not in text
 
 
 def test_more_bins_than_samples_is_refused_before_any_allocation(recording, tmp_path, capsys):
@@ -319,3 +328,52 @@ def test_the_command_fits_recordings_of_different_lengths(unequal_recordings, tm
                          "--metric", "no"]) == 0
         model = LocalConnectionModel.load(out / "model.npz")
         assert model.batch_shape == () and float(five_link_a_error(model)) < 0.45
+
+
+def test_connection_csv_standard_errors_are_the_plotted_bands_between_bins(recording, tmp_path):
+    """The ``_se`` columns are the per-bin standard errors the plots draw (±1.96 SE), at the
+    bin centres themselves and linearly (periodically) between them."""
+    from torchconn.fit import connection_table
+
+    out = tmp_path / "fit"
+    assert main([str(recording), "--links", "3", "--out", str(out), "--no-figures",
+                 "--quiet"]) == 0
+    assert (out / "connection.csv").read_text().splitlines()[0].split(",")[-1] \
+        == "power_on_cycle_se"
+    model = LocalConnectionModel.load(out / "model.npz")
+    bins = model.bins
+    n_bins = bins.phase.shape[0]
+    # the bins are centred on k 2π/M: a grid of 2M rows has them on its even rows
+    assert torch.allclose(bins.phase, torch.arange(n_bins, dtype=torch.float64)
+                          * (2 * math.pi / n_bins))
+    cols, rows = connection_table(model, 2 * n_bins)
+    table = torch.tensor(rows, dtype=torch.float64)
+    for name, se in (("A_y_2_se", bins.A_se[:, 1, 1]), ("dA_theta_1_2_se", bins.dA_se[:, 2, 0, 1]),
+                     ("M_1_1_se", bins.M_se[:, 0, 0]),
+                     ("M_gamma_dot_2_se", bins.M_gamma_dot_se[:, 1]),
+                     ("power_on_cycle_se", bins.power_on_cycle_se)):
+        got = table[:, cols.index(name)]
+        assert bool((se > 0).all()), name
+        assert torch.allclose(got[0::2], se, rtol=1e-9), name
+        assert torch.allclose(got[1::2], (se + se.roll(-1)) / 2, rtol=1e-9), name
+
+
+def test_fit_json_gives_the_gait_frequency_in_hz_and_the_units(recording, tmp_path):
+    """The gait frequency comes from the recording's time base: the same recording with its
+    clock in seconds at 1.5 cycles per second gives 1.5 Hz."""
+    traj = read_csv(recording)
+    hz = 1.5
+    # the simulation's clock runs one cycle per 2π time units: rescale it to seconds
+    t = traj.t / (2 * math.pi * hz)
+    path = write_csv(traj.with_fields(t=t), tmp_path / "seconds.csv")
+    out = tmp_path / "fit"
+    assert main([str(path), "--links", "3", "--out", str(out), "--no-figures", "--quiet",
+                 "--metric", "no"]) == 0
+    record = json.loads((out / "fit.json").read_text())
+    gait = record["gait"]
+    assert gait["frequency_hz"] == pytest.approx(hz, rel=0.01)
+    assert gait["period_s"] == pytest.approx(1 / gait["frequency_hz"])
+    assert gait["phase_rate"] == pytest.approx(2 * math.pi * gait["frequency_hz"])
+    units = record["units"]
+    assert units["t, dt, period_s"] == "s" and units["v_x, v_y"] == "body lengths/s"
+    assert record["data"]["dt"] == pytest.approx(float(t[1] - t[0]))

@@ -466,8 +466,7 @@ def tiny(tmp_path) -> Path:
     return path
 
 
-def test_sweep_removes_stale_cells_and_temporary_files_and_says_so(tiny, tmp_path, capsys,
-                                                                   umask):
+def test_sweep_removes_stale_cells_and_temporary_files_and_says_so(tiny, tmp_path, umask):
     umask(0o027)
     out = tmp_path / "sweep"
     config = load_config(tiny)
@@ -487,8 +486,9 @@ def test_sweep_removes_stale_cells_and_temporary_files_and_says_so(tiny, tmp_pat
     temporary = [out / ".results.csv.abcd1234.tmp", cell / ".cell.json.x_y12345.tmp"]
     for p in temporary:
         p.write_bytes(b"half")
-    summary = run_sweep(config, out, quiet=True, figures=False)
-    err = capsys.readouterr().err
+    with pytest.warns(UserWarning) as warned:  # even when quiet: files are deleted
+        summary = run_sweep(config, out, quiet=True, figures=False)
+    err = "\n".join(str(w.message) for w in warned)
     assert summary.computed == ()  # the current cell is reused
     assert dict(summary.removed) == {old.name: "computed by other torchconn code",
                                      half.name: "incomplete or damaged, and not a cell of "
@@ -504,7 +504,8 @@ def test_sweep_removes_stale_cells_and_temporary_files_and_says_so(tiny, tmp_pat
                                                                summary.removed]
     # a changed config supersedes the cell of the same name
     changed = load_config(tiny, ["simulation.n_cycles=6"])
-    summary = run_sweep(changed, out, quiet=True, figures=False)
+    with pytest.warns(UserWarning, match=f"removing stale cell folder cells/{cell.name}"):
+        summary = run_sweep(changed, out, quiet=True, figures=False)
     assert summary.removed == ((cell.name, "superseded: the config now gives this cell "
                                            "another fingerprint"),)
     assert other.is_dir() and mine.is_dir()

@@ -135,7 +135,7 @@ def test_command_errors_are_one_line_through_the_shared_wrapper(argv, message, t
     out = tmp_path / "out"
     assert main(["simulate", "--rounds", "1", "--out", str(out), *argv]) == 2
     err = capsys.readouterr().err.strip()
-    assert err == f"python -m torchconn.improve simulate: error: {message}"
+    assert err == f"torchconn-improve simulate: error: {message}"
     assert not out.exists()
 
 

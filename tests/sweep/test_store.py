@@ -116,7 +116,7 @@ def test_killed_run_resumes_keeps_finished_cells_and_matches_byte_for_byte(tmp_p
 
 
 @pytest.mark.parametrize("damage", ["truncate", "edit", "delete", "manifest"])
-def test_damaged_cell_is_detected_reported_and_recomputed(tmp_path, reference, damage, capsys):
+def test_damaged_cell_is_detected_reported_and_recomputed(tmp_path, reference, damage):
     out = tmp_path / "out"
     config = load_config(_config(tmp_path))
     run_sweep(config, out, quiet=True, figures=False)
@@ -132,8 +132,9 @@ def test_damaged_cell_is_detected_reported_and_recomputed(tmp_path, reference, d
         target.unlink()
     else:
         target.write_bytes(data[:20])
-    summary = run_sweep(config, out, quiet=False, figures=False)
-    err = capsys.readouterr().err
+    with pytest.warns(UserWarning) as warned:
+        summary = run_sweep(config, out, quiet=False, figures=False)
+    err = "\n".join(str(w.message) for w in warned)
     name = cell.name.rsplit("-", 1)[0]
     assert summary.computed == (name,) and summary.reused == 3
     reason = dict(summary.damaged)[name]

@@ -1,7 +1,9 @@
 """The flags and config handling every command shares.
 
 - :func:`add_common` adds ``--version`` (every command) and, for a command that does work,
-  ``--quiet``, ``--no-figures`` (where it writes figures), ``--threads`` and ``--device``.
+  ``--quiet``, ``--no-figures``, ``--threads`` and ``--device``. A command that writes no
+  figures (``convert``, ``improve propose``) accepts ``--no-figures`` as a no-op (its help
+  says so), so that one set of flags can be passed to every command.
 - :func:`informer` is the printer of a command's informational lines, silent under
   ``--quiet`` (errors and warnings are printed whatever the flag).
 - :func:`add_config` adds ``--config`` and ``--set``; :func:`config_tables` reads them into
@@ -34,14 +36,15 @@ def add_common(parser: argparse.ArgumentParser, *, version: bool = True, figures
     """The flags of a command that does work: ``--version`` (unless ``version=False``, for a
     subcommand whose parent has it), ``--quiet`` (``quiet_help``: what it leaves printed
     besides errors and warnings), ``--no-figures`` (``figures=False``: the command writes
-    none), ``--threads`` and ``--device`` (``device=False``: the command runs on the CPU only,
-    or has a ``--device`` of its own)."""
+    none, and the flag is accepted as a no-op), ``--threads`` and ``--device``
+    (``device=False``: the command runs on the CPU only, or has a ``--device`` of its own)."""
     if version:
         add_version(parser)
     parser.add_argument("--quiet", action="store_true",
                         help=f"{quiet_help}; errors and warnings are printed all the same")
-    if figures:
-        parser.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
+    parser.add_argument("--no-figures", action="store_true",
+                        help="do not write PNG figures" if figures else
+                        "accepted for uniformity; this command writes no figures")
     add_threads(parser)
     if device:
         add_device(parser)

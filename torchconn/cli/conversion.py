@@ -5,8 +5,10 @@
   :class:`~torchconn.io.tracking.ConversionSettings` (``--format``, ``--fps``, ...);
   :func:`conversion_flags` checks the ones given, :func:`check_conversion_table` a
   ``[convert]`` table, and :func:`conversion_settings` resolves both.
+- :func:`add_links` adds ``--links`` and :func:`resolve_links` resolves it: as given, else
+  from the joint columns of trajectory CSVs, else :data:`TRACKING_LINKS` for tracking files.
 - :func:`load_recordings` reads trajectory CSVs or converts tracking files
-  (:class:`Recordings`).
+  (:class:`Recordings`); :func:`report_checks` prints the checks before work on them.
 """
 
 from __future__ import annotations
@@ -24,17 +26,76 @@ from .._cli import InputError, check_center_frame, check_keys
 from .._files import check_distinct, check_file
 from .._options import check_field
 from ..io._table import headerless
+from ..io.preflight import Preflight
 from ..io.tracking import FORMATS, ConversionReport, ConversionSettings, convert_file, detect_format
-from ..io.trajectory_files import read_csv
+from ..io.trajectory_files import joint_count, read_csv
 from ..trajectory import Trajectory, pad_trials
 
 __all__ = ["add_conversion_arguments", "conversion_settings", "conversion_flags",
-           "check_conversion_table", "warn_unused_conversion", "load_recordings", "Recordings"]
+           "check_conversion_table", "warn_unused_conversion", "load_recordings", "Recordings",
+           "report_checks", "add_links", "resolve_links", "TRACKING_LINKS"]
 
 
-def add_conversion_arguments(p: argparse.ArgumentParser, *, frame: bool = True) -> None:
-    """The tracking-conversion options (shared by ``convert``, ``fit`` and ``discrepancy``;
-    ``frame=False`` when the command has its own ``--frame``)."""
+#: links ``N`` of the body model for tracking files when ``--links`` is not given: odd (the
+#: center body frame), and tracked rather than interpolated from 6 keypoints along the body
+TRACKING_LINKS = 5
+
+#: how to choose ``--links`` for a number of keypoints, for help texts and messages
+LINKS_GUIDE = ("K keypoints along the body track at most K - 1 links (more are interpolated "
+               "between keypoints; fewer, longer links average out tracking noise), and the "
+               "center body frame needs an odd number (else --frame com-mean): with 8 "
+               "keypoints, 7 or 5")
+
+
+def add_links(p: argparse.ArgumentParser) -> None:
+    """``--links N`` (default: from the inputs, :func:`resolve_links`)."""
+    p.add_argument("--links", type=int, metavar="N",
+                   help="links of the body model (d = N - 1 joint angles). Default: from the "
+                   "joint columns r1..rd of trajectory CSVs (N = d + 1); for tracking files "
+                   f"{TRACKING_LINKS}. {LINKS_GUIDE}")
+
+
+def _kinds(paths: list[Path], fmt: str) -> dict[Path, str]:
+    """Each input's format (``torchconn`` for a trajectory CSV), each checked to be a file."""
+    kinds = {}
+    for p in paths:
+        check_file(p, "a trajectory CSV or tracking file")
+        kinds[p] = detect_format(p) if fmt == "auto" else fmt
+    return kinds
+
+
+def resolve_links(links: int | None, paths: list[Path], fmt: str = "auto"
+                  ) -> tuple[int, str | None]:
+    """``--links`` as given, else from the inputs: ``d + 1`` for trajectory CSVs with joint
+    columns ``r1..rd``, :data:`TRACKING_LINKS` for tracking files. Returns ``(N, how)``:
+    ``how`` says where ``N`` came from (None when given).
+
+    Raises:
+        InputError: trajectory CSVs with different numbers of joint columns, or none.
+    """
+    if links is not None:
+        return links, None
+    kinds = _kinds(paths, fmt)
+    if any(k != "torchconn" for k in kinds.values()):
+        return TRACKING_LINKS, (f"--links {TRACKING_LINKS}, the default for tracking files; "
+                                f"pass --links to choose: {LINKS_GUIDE}")
+    counts = {p: joint_count(p) for p in paths}
+    if len(set(counts.values())) > 1 or 0 in counts.values():
+        found = ", ".join(f"{p}: {d}" for p, d in counts.items())
+        raise InputError(f"cannot infer --links from the joint columns r1..rd of the trajectory "
+                         f"CSVs ({found}); files of one body have the same number, at least "
+                         "1. Pass --links N (N - 1 joint columns)")
+    d = next(iter(counts.values()))
+    return d + 1, f"--links {d + 1}, from the joint columns r1..r{d} of the trajectory CSVs"
+
+
+def add_conversion_arguments(p: argparse.ArgumentParser, *, frame: bool = True,
+                             scale: bool = True) -> None:
+    """The tracking-conversion options (shared by ``convert``, ``fit``, ``discrepancy`` and
+    ``improve propose``; ``frame=False`` when the command has its own ``--frame`` or a fixed
+    frame, ``scale=False`` when its ``--scale`` means something else: the body length is then
+    the median chain length). ``--scale`` is stored as ``convert_scale`` (:data:`_DEST`), the
+    others under their field's name."""
     g = p.add_argument_group("tracking files (see torchconn.io.tracking.ConversionSettings)")
     g.add_argument("--format", choices=("auto",) + FORMATS, default="auto",
                    help="input format (default: from the suffix and the first lines)")
@@ -48,7 +109,9 @@ def add_conversion_arguments(p: argparse.ArgumentParser, *, frame: bool = True) 
                    help="which end of the keypoint list is the head (default first)")
     g.add_argument("--flip-y", action=argparse.BooleanOptionalAction, default=None,
                    help="flip the image y axis (default: on for SLEAP/DeepLabCut pixels)")
-    g.add_argument("--scale", type=float, help="file units per body length (default: median)")
+    if scale:
+        g.add_argument("--scale", type=float, dest="convert_scale",
+                       help="file units per body length (default: median)")
     g.add_argument("--min-score", type=float,
                    help="confidence threshold (default: 0.6 for DeepLabCut, none otherwise)")
     g.add_argument("--max-gap", type=float,
@@ -59,6 +122,8 @@ def add_conversion_arguments(p: argparse.ArgumentParser, *, frame: bool = True) 
 
 _FLAG_FIELDS = ("fps", "frame", "curve", "head", "flip_y", "scale", "min_score", "max_gap",
                 "keypoints", "track")
+#: the fields whose flag stores elsewhere than under its own name
+_DEST = {"scale": "convert_scale"}
 
 
 def conversion_flags(args) -> list[str]:
@@ -66,7 +131,7 @@ def conversion_flags(args) -> list[str]:
     before any work (:class:`InputError` naming the flag)."""
     given = []
     for name in _FLAG_FIELDS:
-        value = getattr(args, name, None)
+        value = getattr(args, _DEST.get(name, name), None)
         if value is None:
             continue
         flag = "--" + name.replace("_", "-")
@@ -113,7 +178,7 @@ def conversion_settings(args, n_links: int, table: dict | None = None) -> Conver
     """:class:`ConversionSettings` from a ``[convert]`` table, then the command-line flags."""
     values = dict(check_conversion_table(table))
     for name in _FLAG_FIELDS:
-        v = getattr(args, name, None)
+        v = getattr(args, _DEST.get(name, name), None)
         if v is not None:
             values[name] = v
     if isinstance(values.get("keypoints"), str):
@@ -150,10 +215,7 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
     ``settings`` may be a function returning them, called only when there are tracking files
     (so that CSV input never depends on conversion options); ``read_csv`` reads the CSVs.
     """
-    kinds = {}
-    for p in paths:
-        check_file(p, "a trajectory CSV or tracking file")
-        kinds[p] = detect_format(p) if fmt == "auto" else fmt
+    kinds = _kinds(paths, fmt)
     if all(k == "torchconn" for k in kinds.values()):
         try:
             traj = read_csv(paths, n_joints=n_links - 1)
@@ -195,3 +257,13 @@ def load_recordings(paths: list[Path], *, fmt: str = "auto", n_links: int,
                    for k in range(c.trajectory.batch_shape[0]))
     return Recordings(trajectory=traj, reports=tuple(c.report for c in convs),
                       body_length=torch.cat([c.body_length for c in convs]), trials=trials)
+
+
+def report_checks(check: Preflight, say, command: str | None = None) -> None:
+    """Give the checks before work (:func:`~torchconn.io.preflight.preflight`) of ``command``
+    (every command's when None): the measurements and verdicts through ``say`` (the command's
+    informer), each warning through :func:`warnings.warn` (``prog: warning: ...`` on
+    stderr, under ``--quiet`` too)."""
+    say("\n".join(check.lines(command, with_warnings=False)))
+    for message in check.warnings:
+        warnings.warn(message, stacklevel=2)

@@ -1,4 +1,4 @@
-"""``torchconn-discrepancy DATA.csv [MORE.csv ...] --links N --out DIR``.
+"""``torchconn-discrepancy DATA.csv [MORE.csv ...] [--links N] --out DIR``.
 
 Also runs as ``python -m torchconn.discrepancy``. Reads the recordings (the format of
 docs/conventions.md, section "Trajectory file format"), compares them with the nominal N-link swimmer,
@@ -13,6 +13,7 @@ Unknown columns are warned about.
 from __future__ import annotations
 
 import argparse
+import inspect
 import math
 import sys
 import time
@@ -31,12 +32,15 @@ from .._cli import (
 from .._files import read_toml
 from .._options import check_field
 from .._output import OutputFolder
-from ..cli.common import add_common
+from ..cli.common import add_common, informer
 from ..cli.conversion import (
     add_conversion_arguments,
+    add_links,
     conversion_flags,
     conversion_settings,
     load_recordings,
+    report_checks,
+    resolve_links,
     warn_unused_conversion,
 )
 from ..io.preflight import preflight
@@ -47,6 +51,9 @@ from ..physics.systems.swimmer import NLinkSwimmer
 from .workflow import DiscrepancySettings, diagnose
 
 PROG = "torchconn-discrepancy"
+#: the defaults the flags name: the API's own (DiscrepancySettings, NLinkSwimmer)
+_DEFAULTS = DiscrepancySettings()
+_DRAG_RATIO = inspect.signature(NLinkSwimmer).parameters["drag_ratio"].default
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -61,9 +68,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="trajectory CSV file(s): columns t, x, y, theta, r1..rd[, power][, trial] "
                    '(format: docs/conventions.md, section "Trajectory file format"), or tracking '
                    "files (converted as by torchconn-convert, same options)")
-    p.add_argument("--links", type=int, required=True, help="number of links N (d = N - 1 joints)")
-    p.add_argument("--drag-ratio", type=float, default=2.0,
-                   help="nominal lateral/longitudinal drag ratio (default 2)")
+    add_links(p)
+    p.add_argument("--drag-ratio", type=float, default=_DRAG_RATIO,
+                   help=f"nominal lateral/longitudinal drag ratio (default {_DRAG_RATIO:g})")
     p.add_argument("--frame", default=None, choices=("center", "com-mean"),
                    help="body frame of the recorded pose (default: center)")
     p.add_argument("--link-lengths", type=float, nargs="+", default=None,
@@ -73,8 +80,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="effects to screen (default: all registered)")
     p.add_argument("--config", type=Path, default=None,
                    help="TOML file with a [discrepancy] table of DiscrepancySettings fields")
-    p.add_argument("--alpha", type=float, default=None, help="significance level (default 0.01)")
-    p.add_argument("--folds", type=int, default=None, help="cross-validation folds (default 5)")
+    p.add_argument("--alpha", type=float, default=None,
+                   help=f"significance level (default {_DEFAULTS.alpha:g})")
+    p.add_argument("--folds", type=int, default=None,
+                   help=f"cross-validation folds (default {_DEFAULTS.n_folds})")
     p.add_argument("--no-terms", action="store_true",
                    help="skip the term-by-term comparison with the Stage 4 local model")
     p.add_argument("--known", action="append", default=[], metavar="EFFECT:P=V,...",
@@ -141,8 +150,11 @@ def main(argv: list[str] | None = None) -> int:
     def body() -> int:
         set_threads(args.threads)
         device = resolve_device(args.device)
-        if args.links < 2:
+        if args.links is not None and args.links < 2:
             raise InputError(f"--links must be at least 2, got {args.links}")
+        args.links, how = resolve_links(args.links, args.data, args.format)
+        if how:
+            informer(args.quiet)(how)
         if not (math.isfinite(args.drag_ratio) and args.drag_ratio > 0):
             raise InputError(f"--drag-ratio must be a positive number, got {args.drag_ratio}")
         if args.link_lengths is not None and (
@@ -177,8 +189,7 @@ def main(argv: list[str] | None = None) -> int:
             pool = settings.candidates if settings.candidates is not None else tuple(REGISTRY)
             settings = replace(settings, candidates=tuple(c for c in pool if c not in names))
         check = preflight(traj, body_length=rec.body_length)
-        if not args.quiet:
-            print("\n".join(check.lines("discrepancy")))
+        report_checks(check, informer(args.quiet), "discrepancy")
         if not check.periodic:  # the cycle rule itself is applied by diagnose()
             raise InputError("the recording is not ready for the discrepancy workflow: "
                              + "; ".join(check.problems["discrepancy"]))

@@ -1,8 +1,13 @@
 """Better gaits from data: run the improvement loop on a simulator, or propose the next gait
 from recordings.
 
-    python -m torchconn.improve simulate --links 3 --rounds 8 --out runs/improve3
-    python -m torchconn.improve propose trial1.csv trial2.csv --links 3 --out next/
+    torchconn-improve simulate --links 3 --rounds 8 --out runs/improve3
+    torchconn-improve propose trial1.csv trial2.csv --out next/
+    torchconn-improve propose fish.h5 --links 5 --fps 60 --out next/
+
+Also runs as ``python -m torchconn.improve``. ``propose`` reads trajectory CSVs or tracking
+files (SLEAP, DeepLabCut, WCON, points), converted on the fly with ``torchconn-convert``'s
+options (:mod:`torchconn.cli.conversion`).
 
 Both take ``--device`` (cpu, cuda, cuda:N): the recordings are simulated (or read on the CPU and
 moved once) and the models fitted there; the outputs are written from CPU copies. The outputs
@@ -23,7 +28,15 @@ from .._cli import InputError, check_center_frame, resolve_device, run_command, 
 from .._output import OutputFolder, write_table
 from .._provenance import write_sidecar
 from ..cli.common import add_common, add_version, informer
-from ..cli.conversion import load_recordings
+from ..cli.conversion import (
+    add_conversion_arguments,
+    add_links,
+    conversion_flags,
+    conversion_settings,
+    load_recordings,
+    resolve_links,
+    warn_unused_conversion,
+)
 from ..io.trajectory_files import read_csv
 from ..physics.systems import NLinkSwimmer
 from ..regression.estimator import estimator_from_settings
@@ -31,6 +44,8 @@ from .export import write_gait
 from .loop import LoopSettings, circle_gait, improve
 from .measure import measure_cycles
 from .propose import OBJECTIVES, TrustRegion, propose_gait
+
+PROG = "torchconn-improve"
 
 
 def _simulate(args, folder: OutputFolder) -> int:
@@ -77,9 +92,16 @@ def _simulate(args, folder: OutputFolder) -> int:
 
 def _propose(args, folder: OutputFolder) -> int:
     out = folder.path
-    # trajectory CSVs only; --links checked against their joint columns
-    traj = load_recordings(args.data, fmt="torchconn", n_links=args.links,
-                           read_csv=read_csv).trajectory.to(args.device)  # moved once
+
+    def conv():  # conversion options matter (and are checked) for tracking files only
+        return conversion_settings(args, args.links)
+
+    # trajectory CSVs (--links checked against their joint columns) or tracking files,
+    # converted as by torchconn-convert
+    rec = load_recordings(args.data, fmt=args.format, n_links=args.links, settings=conv,
+                          read_csv=read_csv)
+    warn_unused_conversion(rec, args.conversion_flags)
+    traj = rec.trajectory.to(args.device)  # moved once
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         # the loop's estimator (pooled, noise-aware regression)
@@ -143,7 +165,7 @@ def _check_flags(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m torchconn.improve",
+    p = argparse.ArgumentParser(prog=PROG,
                                 description=__doc__.split("\n")[0])
     add_version(p)
     sub = p.add_subparsers(dest="command", required=True)
@@ -156,23 +178,32 @@ def main(argv: list[str] | None = None) -> int:
     sim.add_argument("--omega", type=float, default=0.0, help="observation noise")
     sim.add_argument("--seed", type=int, default=0)
     rec = sub.add_parser("propose", help="the next gait to try, from recordings")
-    rec.add_argument("data", nargs="+", type=Path, help="trajectory CSV files")
-    rec.add_argument("--links", type=int, required=True)
+    rec.add_argument("data", nargs="+", type=Path,
+                     help="trajectory CSV files, or tracking files (converted as by "
+                     "torchconn-convert, same options but --frame, always center, and --scale, "
+                     "the trust radius here: the body length is the median chain length)")
+    add_links(rec)
+    # the loop's swimmer is in the center frame; --scale is the trust radius here
+    add_conversion_arguments(rec, frame=False, scale=False)
     for q in (sim, rec):
         q.add_argument("--objective", choices=OBJECTIVES, default="displacement")
         q.add_argument("--scale", type=float, default=3.0, help="trust radius in tube radii")
         q.add_argument("--out", type=Path, required=True)
-        add_common(q, version=False, figures=q is sim)  # propose writes no figures
+        add_common(q, version=False, figures=q is sim)  # propose writes none: a no-op
     args = p.parse_args(argv)
 
     def body() -> int:
         set_threads(args.threads)
+        if args.command == "propose":
+            args.conversion_flags = conversion_flags(args)
+            args.links, how = resolve_links(args.links, args.data, args.format)
+            if how:
+                informer(args.quiet)(how)
         _check_flags(args)
         check_center_frame(args.links, "center", "the loop's swimmer is in the center frame: "
                            "use an odd --links")
         args.device = str(resolve_device(args.device))
-        with OutputFolder(args.out, command=f"torchconn-improve {args.command}",
-                          log=lambda msg: print(f"{prog}: {msg}", file=sys.stderr)) as folder:
+        with OutputFolder(args.out, command=f"{PROG} {args.command}") as folder:
             return (_simulate if args.command == "simulate" else _propose)(args, folder)
 
     prog = f"{p.prog} {args.command}"

@@ -29,6 +29,7 @@ from .._cli import resolve_device
 from ..physics.gaits.evaluate import evaluate
 from ..physics.gaits.gait import FourierGait, as_gait
 from ..physics.systems.base import LocomotionSystem
+from ..regression.defaults import POOLED
 from ..regression.estimator import estimator_from_settings
 from ..regression.gait_prediction import normal_quantile
 from ..simulation import observe, simulate
@@ -117,7 +118,7 @@ class LoopSettings:
     truncation: float = 0.5
     truncation_spread: float = 1.0
     level: float = 0.95
-    estimator: dict = field(default_factory=lambda: {"pool": True,
+    estimator: dict = field(default_factory=lambda: {**POOLED,
                                                       "regression": {"method": "noise_aware"}})
     seed: int = 0
     device: str = "cpu"

@@ -63,7 +63,8 @@ def measure_cycles(traj: Trajectory, period: float = 2 * math.pi) -> CycleMeasur
 
     Args:
         traj: recordings, poses ``(..., T, 3)``; periods containing a missing pose are skipped.
-        period: the gait period in time units (2π: one cycle per 2π time units).
+        period: the gait period in the unit of ``t`` (s for recorded data; the default 2π
+            is one cycle on the simulations' clock).
     """
     s = round(period / traj.dt)
     if s < 2:

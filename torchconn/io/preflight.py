@@ -103,8 +103,10 @@ class Preflight:
     warnings: tuple[str, ...]
     rules: dict
 
-    def lines(self, command: str | None = None) -> list[str]:
-        """Readable lines: the measurements, then each command's verdict (or one command's)."""
+    def lines(self, command: str | None = None, *, with_warnings: bool = True) -> list[str]:
+        """Readable lines: the measurements, then each command's verdict (or one command's),
+        the :attr:`warnings` (``warning: ...``; left out with ``with_warnings=False``, for a
+        caller that gives them through :func:`warnings.warn`) and the problems."""
         n = len(self.cycles)
         out = [f"{n} trial(s), {self.total_cycles:.1f} gait cycles in all (per trial "
                f"{_span(self.cycles, '.1f')}), {_span(self.samples_per_cycle, '.0f')} samples "
@@ -115,7 +117,7 @@ class Preflight:
             verdict = "ok" if self.ready[cmd] else "NOT ENOUGH"
             out.append(f"{cmd} needs {rule.per_trial:g} cycles per trial and {rule.total:g} in "
                        f"all: {verdict}")
-        out += [f"warning: {w}" for w in self.warnings]
+        out += [f"warning: {w}" for w in self.warnings] if with_warnings else []
         cmds = [command] if command is not None else list(self.problems)
         for cmd in cmds:
             out += [f"{cmd}: {p}" for p in self.problems.get(cmd, [])]

@@ -37,9 +37,10 @@ from .. import _checks, _linalg
 from .._files import check_distinct
 from .._output import savez, write_bytes_atomic
 from ..trajectory import GroundTruth, SmoothedState, Trajectory, pad_trials, power_problem
-from ._table import read_table
+from ._table import first_rows, read_table
 
-__all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles", "principal_signal"]
+__all__ = ["read_csv", "write_csv", "save_npz", "load_npz", "count_cycles", "principal_signal",
+           "joint_count"]
 
 _POSE_COLUMNS = ("t", "x", "y", "theta")
 _JOINT = re.compile(r"^r(\d+)$")
@@ -156,6 +157,14 @@ def _parse_column(values: list[str], name: str, lines: list[int], file: str) -> 
             f"(expected magnitude at most {limit:.4g}: {why})"
         )
     return out
+
+
+def joint_count(path: str | PathLike) -> int:
+    """The number of joint columns ``d`` of a trajectory CSV (the highest ``r<i>`` of its
+    header row; 0 when it has none), read from the header alone."""
+    first = first_rows(path, "a trajectory CSV file (t, x, y, theta, r1, ..., rd)", 1)
+    header = [c.strip().strip('"').lower() for c in first[0]] if first else []
+    return max((int(m.group(1)) for n in header if (m := _JOINT.match(n))), default=0)
 
 
 def _read_rows(path: Path) -> tuple[list[str], list[list[str]], list[int]]:

@@ -36,7 +36,8 @@ class LimitCycle:
         gamma0: direct fit to the shapes, ``γ₀(φ) ≈ r``.
         omega: fit to the shape velocities per unit phase, ``ω(φ) ≈ ṙ / φ̇``.
         phase_rate: ``(...)`` mean phase velocity ``φ̇`` used to turn ``dγ/dφ`` into a time
-            derivative (1 by the conventions, one cycle per 2π time units).
+            derivative, in rad per unit of ``t`` (rad/s for recorded data; 1 on the
+            simulations' clock, one cycle per 2π).
         gamma0_weight: ``(..., K, d)`` the matched filter's weight on ``γ₀`` for harmonic
             ``k = 1..K`` of each coordinate (``1 - weight`` is on ``∫ω``).
     """
@@ -129,7 +130,7 @@ def fit_limit_cycle(
         dt: sampling interval. If given, the phase velocity ``φ̇`` is the least-squares slope
             of ``phase`` (which must then be unwrapped) against time per batch element
             (:func:`phase_rate`), and ``ω`` is fitted to ``ṙ / φ̇``; if None, ``φ̇ = 1`` (the
-            conventions' one cycle per 2π time units).
+            simulations' clock: one cycle per 2π time units).
 
     Returns:
         :class:`LimitCycle`; each batch element gets its own cycle.

@@ -123,8 +123,9 @@ class LocalConnectionModel:
 
     Attributes:
         gamma: limit cycle ``γ(φ)``, value shape ``(d,)``.
-        phase_rate: ``(...)`` mean phase velocity ``φ̇`` (1 in the units of docs/conventions.md: one cycle per
-            2π time units); on the cycle ``ṙ = φ̇ dγ/dφ``.
+        phase_rate: ``(...)`` mean phase velocity ``φ̇`` in rad per unit of ``t`` (rad/s for
+            recorded data: 2π times the gait frequency in Hz; 1 on the simulations' clock, one
+            cycle per 2π, docs/conventions.md "Units"); on the cycle ``ṙ = φ̇ dγ/dφ``.
         c, b, A, dA: Fourier series of the regression terms, value shapes ``(3,)``,
             ``(3, d)``, ``(3, d)``, ``(3, d, d)`` (``dA[..., k, i, j] = ∂A^k_i/∂r_j``).
         M: Fourier series of the metric ``(d, d)``, or None when no power was recorded.

@@ -23,6 +23,7 @@ import hashlib
 import json
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -126,10 +127,11 @@ def run_sweep(
         config: the sweep.
         out_dir: output folder, new, empty or an earlier sweep's; intact cells already stored
             there are reused, damaged ones recomputed, stale ones removed (each reported on
-            stderr with the reason).
+            stderr with the reason: through :func:`warnings.warn`, which a command prints as
+            ``prog: warning: ...``).
         workers: > 0 runs cells on a local Dask cluster with that many worker processes.
         scheduler: address of an existing Dask scheduler (``tcp://HOST:PORT``).
-        quiet: no progress bar or log lines (damaged cells are still reported).
+        quiet: no progress bar or log lines (the warnings are still given).
         figures: write the PNG figures.
         wait: when another run holds ``out_dir``, wait for it instead of raising
             :class:`~torchconn._output.FolderBusy`.
@@ -142,14 +144,13 @@ def run_sweep(
     _check_sweep_folder(Path(out_dir))
     out = prepare_output(out_dir)
     log = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
-    with FolderLock(out, wait=wait, log=log):
+    # a stale lock taken over, files deleted and damaged cells are warned about, even when quiet
+    with FolderLock(out, wait=wait, log=warnings.warn):
         _check_sweep_folder(out)  # again: it may have changed while we waited
         store = ResultStore(out)
         plan = [(cell, cell_fingerprint(config, cell)) for exp in config.experiments
                 for cell in experiment_cells(exp, config.block_trials)]
-        # reported even when quiet: files are deleted
-        say = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
-        temporary, removed = store.clean(plan, log=say)
+        temporary, removed = store.clean(plan, log=warnings.warn)
         done, pending, damaged = {}, [], []
         for cell, fp in plan:
             result, problem = store.load(cell, fp)
@@ -158,8 +159,8 @@ def run_sweep(
                 continue
             pending.append((cell, fp))
             if problem:
-                damaged.append((cell.name, problem))  # reported even when quiet
-                print(f"recomputing cell {cell.name}: {problem}", file=sys.stderr, flush=True)
+                damaged.append((cell.name, problem))
+                warnings.warn(f"recomputing cell {cell.name}: {problem}", stacklevel=2)
         log(f"sweep {config.name!r}: {len(config.experiments)} experiments in {len(plan)} cells, "
             f"{len(done)} already done in {out}")
         progress = Progress(len(plan), len(done), quiet)

@@ -490,7 +490,8 @@ def _chain_order(pts: np.ndarray, frame_ok: np.ndarray, used: list[str],
              "(sleap-io's CSV export, for one, sorts the node columns alphabetically)")
     if len(used) < s.n_links + 1 and s.curve == "polyline":
         note(f"{len(used)} keypoints for {s.n_links} links with curve='polyline': joints between "
-             "keypoints fall on straight segments (their angles are 0); use curve='spline'")
+             "keypoints fall on straight segments (their angles are 0); use the spline curve "
+             "(--curve spline; curve='spline' in Python)")
     if s.head == "last":
         pts = pts[:, ::-1]
         used = used[::-1]
