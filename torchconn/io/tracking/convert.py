@@ -37,8 +37,8 @@ import torch
 from torch import Tensor
 
 from ... import _linalg
-from ..._options import Options, option
 from ... import trajectory as _trajectory
+from ..._options import Options, option
 from ...trajectory import Trajectory, pad_trials
 from .readers import FORMATS, Keypoints, TrackingFormatError, keypoints_from_movement, read_tracking
 
