@@ -82,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("sources", nargs="+", type=Path,
                    help="tracking files: SLEAP analysis .h5/.csv, DeepLabCut .csv/.h5, WCON "
-                   ".wcon/.json/.zip, or point arrays .csv/.npz")
+                   ".wcon/.json/.zip, point arrays .csv/.npz, or any file the movement package "
+                   "loads (pip install 'torchconn[movement]')")
     p.add_argument("--links", type=int, required=True, help="number of links N (odd for the "
                    "center frame)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
