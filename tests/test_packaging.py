@@ -39,6 +39,12 @@ def test_every_subpackage_is_listed_for_the_wheel():
     assert listed - found == {"torchconn.configs"}
     assert PYPROJECT["tool"]["setuptools"]["package-dir"] == {"torchconn.configs": "configs"}
     assert (ROOT / "torchconn" / "py.typed").exists()
+    # the shipped recordings and their attribution are package data
+    data = PYPROJECT["tool"]["setuptools"]["package-data"]["torchconn.datasets"]
+    shipped = {p.name for p in (ROOT / "torchconn" / "datasets").iterdir() if p.suffix != ".py"
+               and p.name != "__pycache__"}
+    assert shipped == {"XMUC02_Trial1_sleap-1.csv", "ATTRIBUTION.md"}
+    assert all(any(Path(name).match(pattern) for pattern in data) for name in shipped)
 
 
 def test_dependencies_are_ranges_and_the_constraints_pin_the_tested_torch():
@@ -167,6 +173,7 @@ def test_wheel_in_a_fresh_venv_runs_every_command_outside_the_checkout(tmp_path)
     bin_ = env_dir / "bin"
     _run([bin_ / "python", "-m", "pip", "install", "-q", "-c", ROOT / "constraints.txt", wheel],
          tmp_path, env)
+    installed = {p for p in (env_dir / "lib").rglob("torchconn/**/*") if p.is_file()}
 
     work = tmp_path / "elsewhere"
     work.mkdir()
@@ -200,9 +207,10 @@ def test_wheel_in_a_fresh_venv_runs_every_command_outside_the_checkout(tmp_path)
           "--quiet", "--no-figures"], work, env)
     assert json.loads((work / "diag" / "report.json").read_text())["verdict"] in (
         "none", "effect", "unexplained")
-    # nothing was written into the installed package
+    # nothing was written into the installed package (the shipped recordings are in it)
+    assert {p.name for p in installed} >= {"XMUC02_Trial1_sleap-1.csv", "ATTRIBUTION.md"}
     written = [p for p in (env_dir / "lib").rglob("torchconn/**/*")
-               if p.is_file() and p.suffix not in (".py", ".pyc", ".toml", ".typed")]
+               if p.is_file() and p.suffix != ".pyc" and p not in installed]
     assert written == []
 
     # the same venv, now with an editable install of the sources: configs/ is the package

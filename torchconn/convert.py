@@ -85,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("sources", nargs="+", type=Path,
                    help="tracking files: SLEAP analysis .h5/.csv, DeepLabCut .csv/.h5, WCON "
-                   ".wcon/.json/.zip, or point arrays .csv/.npz")
+                   ".wcon/.json/.zip, point arrays .csv/.npz, or any file the movement package "
+                   "loads (pip install 'torchconn[movement]')")
     add_links(p)
     p.add_argument("--out", type=Path, required=True, help="output directory")
     add_conversion_arguments(p)

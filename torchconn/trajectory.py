@@ -31,6 +31,11 @@ __all__ = ["Trajectory", "GroundTruth", "SmoothedState", "TIME_AXIS", "COORD_AXI
 TIME_AXIS = -2
 COORD_AXIS = -1
 
+#: the conversion behind :meth:`Trajectory.from_movement`, set by
+#: :mod:`torchconn.io.tracking.convert` (which builds trajectories, so this module cannot
+#: import it; ``import torchconn`` imports it)
+_from_movement = None
+
 
 @dataclass(frozen=True)
 class GroundTruth:
@@ -119,6 +124,33 @@ class Trajectory:
     def batch_shape(self) -> torch.Size:
         """Leading batch dimensions ``...`` shared by every array."""
         return self.r.shape[:-2]
+
+    # ------------------------------------------------------------------ from other packages
+    @classmethod
+    def from_movement(cls, ds, n_links: int, **settings: Any) -> "Trajectory":
+        """The trajectory of one animal in a ``movement`` poses dataset (an ``xarray.Dataset``
+        with ``position (time, space, keypoint, individual)`` and ``confidence``, as
+        ``movement.io.load_dataset`` returns it), converted as ``torchconn-convert`` converts
+        a tracking file.
+
+        Args:
+            ds: the dataset (2-D poses; ``space`` holds ``x`` and ``y``).
+            n_links: links N of the swimmer.
+            **settings: the other fields of
+                :class:`~torchconn.io.tracking.ConversionSettings` (``fps``, ``keypoints``
+                head to tail, ``track`` for the individual, ``frame``, ...). ``fps`` defaults
+                to the dataset's ``fps`` attribute.
+
+        Returns:
+            Trials of the recording, batch ``(n_trials,)``; ``meta["conversion"]`` is the
+            :class:`~torchconn.io.tracking.ConversionReport`.
+
+        Raises:
+            TypeError: ``ds`` is not a poses dataset.
+            ValueError: bad settings, or data that cannot be converted (the message names the
+                dataset's source file, keypoint or frame).
+        """
+        return _from_movement(ds, n_links, **settings)
 
     # ------------------------------------------------------------------ updates
     def with_fields(self, **changes: Any) -> "Trajectory":

@@ -37,12 +37,13 @@ import torch
 from torch import Tensor
 
 from ... import _linalg
+from ... import trajectory as _trajectory
 from ..._options import Options, option
 from ...trajectory import Trajectory, pad_trials
-from .readers import FORMATS, Keypoints, TrackingFormatError, read_tracking
+from .readers import FORMATS, Keypoints, TrackingFormatError, keypoints_from_movement, read_tracking
 
 __all__ = ["ConversionSettings", "ConversionReport", "Conversion", "convert", "convert_file",
-           "midline_to_pose", "resample_midline"]
+           "convert_movement", "midline_to_pose", "resample_midline"]
 
 #: DeepLabCut's documented default ``pcutoff``: below it a likelihood marks a point as not found
 DLC_PCUTOFF = 0.6
@@ -645,3 +646,24 @@ def convert_file(path: str | PathLike, settings: ConversionSettings, *,
                                   f"{', '.join(FORMATS)}")
     kp = read_tracking(Path(path), format, track=settings.track)
     return convert(kp, settings)
+
+
+def convert_movement(ds, settings: ConversionSettings) -> Conversion:
+    """A ``movement`` poses dataset converted as :func:`convert_file` converts a file:
+    :func:`~torchconn.io.tracking.readers.keypoints_from_movement` then :func:`convert`.
+
+    ``settings.track`` selects the individual; without ``settings.fps`` the dataset's ``fps``
+    attribute is the frame rate (then the frames are on the grid ``1/fps`` exactly).
+    """
+    fps = ds.attrs.get("fps") if hasattr(ds, "attrs") else None
+    if settings.fps is None and fps is not None:
+        settings = dataclasses.replace(settings, fps=float(fps))
+    return convert(keypoints_from_movement(ds, settings.track), settings)
+
+
+def _trajectory_from_movement(ds, n_links: int, **settings) -> Trajectory:
+    return convert_movement(ds, ConversionSettings(n_links=n_links, **settings)).trajectory
+
+
+# Trajectory.from_movement converts through this module, which builds trajectories itself
+_trajectory._from_movement = _trajectory_from_movement

@@ -30,12 +30,18 @@ Layouts read (``docs/tracking.md`` has the details and a sample of each):
     optional ``t`` (seconds) or ``frame`` column, then ``x, y`` pairs along the body (named
     ``<name>.x, <name>.y`` / ``<name>_x, <name>_y`` or unnamed). NPZ: ``points (F, K, 2)``,
     optional ``t (F,)``, ``scores (F, K)``, ``names (K,)``.
+``movement`` (any file the ``movement`` package loads)
+    Read with ``movement.io.load_dataset`` (SLEAP ``.slp``/``.h5``, DeepLabCut, LightningPose,
+    Anipose, NWB, ...), then :func:`keypoints_from_movement`, which also takes a ``movement``
+    poses dataset already in memory. Detected for files the readers above do not know.
 
-HDF5 needs h5py (``pip install 'torchconn[tracking]'``).
+HDF5 needs h5py (``pip install 'torchconn[tracking]'``); the ``movement`` format needs
+``movement`` (``pip install 'torchconn[movement]'``).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import io
 import json
 import math
@@ -53,10 +59,11 @@ from ..._files import check_file, file_kind
 from .._table import first_rows, read_table
 
 __all__ = ["Keypoints", "FORMATS", "read_tracking", "detect_format", "TrackingFormatError",
-           "MissingDependencyError"]
+           "MissingDependencyError", "keypoints_from_movement"]
 
-#: the formats :func:`read_tracking` knows
-FORMATS = ("sleap", "dlc", "wcon", "points")
+#: the formats :func:`read_tracking` knows (``movement``: through the optional ``movement``
+#: package)
+FORMATS = ("sleap", "dlc", "wcon", "points", "movement")
 
 
 class TrackingFormatError(ValueError):
@@ -150,15 +157,20 @@ def detect_format(path: str | PathLike) -> str:
                 return "sleap"
             if "df_with_missing" in f or any(k in f for k in ("keypoints",)):
                 return "dlc"
+        if _movement_loads(path):
+            return "movement"
         raise TrackingFormatError(
             f"{path}: an HDF5 file that is neither a SLEAP analysis export (datasets 'tracks', "
-            "'node_names') nor a DeepLabCut pandas store (key 'df_with_missing'); "
-            "pass --format to say what it is"
+            "'node_names') nor a DeepLabCut pandas store (key 'df_with_missing')"
+            f"{_MOVEMENT_HINT if _movement_missing() else ''}; pass --format to say what it is"
         )
     known = (f"expected a trajectory CSV (.csv) or a tracking file: SLEAP (.h5, .csv), "
-             "DeepLabCut (.h5, .csv), WCON (.wcon, .json, .zip), points (.csv, .npz); pass "
+             "DeepLabCut (.h5, .csv), WCON (.wcon, .json, .zip), points (.csv, .npz)"
+             f"{_MOVEMENT_HINT if _movement_missing() else ''}; pass "
              f"--format {'|'.join(FORMATS)} for another suffix")
     if suffix not in (".csv", ".txt", ".tsv"):
+        if _movement_loads(path):
+            return "movement"
         with path.open("rb") as fh:
             kind = file_kind(fh.read(4096))
         if kind is not None:
@@ -215,6 +227,8 @@ def read_tracking(path: str | PathLike, format: str | None = None, *,
         return _read_dlc_h5(path, track) if is_h5 else _read_dlc_csv(path, track)
     if format == "wcon":
         return _read_wcon(path, track)
+    if format == "movement":
+        return _read_movement(path, track)
     if track is not None:
         raise TrackingFormatError(f"{path}: a point-array file holds one animal and no track "
                                   f"names, so track {track!r} (--track) selects nothing; "
@@ -239,6 +253,38 @@ def _open_h5(h5py, path: Path):
         return h5py.File(path, "r")
     except OSError as err:
         raise TrackingFormatError(f"{path}: not a readable HDF5 file ({err})") from None
+
+
+_MOVEMENT_HINT = (", or any file the movement package loads (SLEAP .slp, NWB, Anipose, ...: "
+                  "pip install 'torchconn[movement]')")
+
+
+def _movement_missing() -> bool:
+    return importlib.util.find_spec("movement") is None
+
+
+def _movement_io(path):
+    """``movement.io`` (optional: the extra ``torchconn[movement]``)."""
+    try:
+        import movement.io
+        import movement.io.load
+    except ImportError:
+        raise MissingDependencyError(
+            f"{path}: reading it through movement needs the movement package: pip install "
+            "'torchconn[movement]' (or pip install movement)"
+        ) from None
+    return movement.io
+
+
+def _movement_loads(path: Path) -> bool:
+    """Whether the installed ``movement`` (if any) recognises the file."""
+    if _movement_missing():
+        return False
+    try:
+        _movement_io(path).load.infer_source_software(path)
+    except (OSError, TypeError, ValueError):
+        return False
+    return True
 
 
 def _decode(x) -> str:
@@ -782,3 +828,107 @@ def _is_number(s: str) -> bool:
         return True
     except ValueError:
         return s.lower() in ("nan", "")
+
+
+# ============================================================================ movement
+#: ``movement``'s ``source_software`` -> the native format whose defaults apply (y flip, score
+#: threshold); any other source converts with the plain-points defaults
+_MOVEMENT_FORMAT = {"SLEAP": "sleap", "DeepLabCut": "dlc", "LightningPose": "dlc",
+                    "DeepLabCut/LightningPose": "dlc"}
+
+
+def _read_movement(path: Path, track) -> Keypoints:
+    load = _movement_io(path).load
+    try:
+        ds = load.load_dataset(path)
+    except (OSError, TypeError, ValueError, KeyError) as err:
+        raise TrackingFormatError(f"{path}: movement could not load it ({err})") from None
+    return keypoints_from_movement(ds, track, source=str(path))
+
+
+def _dim(dims: tuple[str, ...], names: tuple[str, ...], source: str) -> str:
+    """The one of ``names`` (a dimension's singular and plural spelling) among ``dims``."""
+    for n in names:
+        if n in dims:
+            return n
+    raise TrackingFormatError(f"{source}: 'position' has dimensions {dims}; a movement poses "
+                              f"dataset has {names[0]!r} (time, space, keypoint, individual)")
+
+
+def keypoints_from_movement(ds, track: str | int | None = None, *,
+                            source: str | None = None) -> Keypoints:
+    """The keypoints of one animal in a ``movement`` poses dataset.
+
+    Args:
+        ds: an ``xarray.Dataset`` as ``movement`` loads it: ``position`` with dimensions
+            ``(time, space, keypoint, individual)`` (or the plural ``keypoints``,
+            ``individuals`` of movement < 0.14), ``space`` holding ``x`` and ``y``; optional
+            ``confidence (time, keypoint, individual)`` (all NaN: no scores). The ``time``
+            coordinate is in frames, or in seconds when the ``fps`` attribute is set (then
+            frames are ``round(time · fps)`` and the time stamps are kept).
+        track: which individual (name or index); default: the only one, else the one with the
+            most tracked points (with a warning naming the others).
+        source: the name used in messages and reports (default: the ``source_file``
+            attribute).
+
+    Returns:
+        :class:`Keypoints` with ``format`` ``"sleap"`` or ``"dlc"`` for data from SLEAP,
+        DeepLabCut or LightningPose (their defaults apply in :func:`convert`), else
+        ``"movement"``. Frames where no keypoint was tracked are dropped, as the native readers
+        do.
+
+    Raises:
+        TypeError: ``ds`` is not an xarray Dataset with a ``position`` variable.
+        TrackingFormatError: bounding boxes, 3-D poses, missing dimensions, an unknown
+            individual.
+    """
+    if not hasattr(ds, "data_vars") or "position" not in ds.data_vars:
+        raise TypeError(f"expected a movement poses dataset (an xarray.Dataset with a "
+                        f"'position' variable), got {type(ds).__name__}")
+    attrs = dict(ds.attrs)
+    src = source or str(attrs.get("source_file") or "movement dataset")
+    if attrs.get("ds_type") == "bboxes":
+        raise TrackingFormatError(f"{src}: a movement dataset of bounding boxes; torchconn needs "
+                                  "keypoints along the body (a poses dataset)")
+    pos = ds["position"]
+    dims = tuple(pos.dims)
+    kdim = _dim(dims, ("keypoint", "keypoints"), src)
+    idim = _dim(dims, ("individual", "individuals"), src)
+    for d in ("time", "space"):
+        _dim(dims, (d,), src)
+    space = [str(c) for c in pos["space"].values]
+    if sorted(space) != ["x", "y"]:
+        raise TrackingFormatError(
+            f"{src}: space coordinates {space}; torchconn needs planar poses (x, y). Select "
+            "a plane first, e.g. ds.sel(space=['x', 'y'])")
+    inds = [str(n) for n in pos[idim].values]
+    xy = pos.sel(space=["x", "y"]).transpose(idim, "time", kdim, "space").values
+    xy = np.asarray(xy, dtype=np.float64)  # (I, F, K, 2)
+    counts = np.isfinite(xy).all(-1).sum((1, 2))
+    k = _choose_track(src, inds, counts, track, "individual")
+    points = xy[k]
+    scores = None
+    if "confidence" in ds.data_vars:
+        conf = ds["confidence"].transpose(idim, "time", kdim).values[k]
+        conf = np.asarray(conf, dtype=np.float64)
+        scores = conf if np.isfinite(conf).any() else None
+    t = np.asarray(ds["time"].values, dtype=np.float64)
+    fps = attrs.get("fps")
+    times = None
+    if fps is not None and math.isfinite(float(fps)) and float(fps) > 0:
+        times = t
+        frames = np.rint(t * float(fps)).astype(np.int64)
+    elif attrs.get("time_unit") == "seconds":
+        times, frames = t, np.arange(t.size, dtype=np.int64)
+    else:
+        if (t != np.round(t)).any():
+            raise TrackingFormatError(f"{src}: the time coordinate is in frames but holds "
+                                      "non-integer values; set the dataset's fps attribute")
+        frames = t.astype(np.int64)
+    points, scores, frames, times = _nan_rows_dropped(points, scores, frames, times)
+    software = str(attrs.get("source_software") or "")
+    fmt = _MOVEMENT_FORMAT.get(software, "movement")
+    return Keypoints(points=points, names=tuple(str(n) for n in pos[kdim].values),
+                     frames=frames, scores=scores, times=times, source=src, format=fmt,
+                     units="px" if fmt != "movement" else "",
+                     info={"individual": inds[k], "movement_source_software": software})
