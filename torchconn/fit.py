@@ -60,7 +60,8 @@ from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
 from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
-from .plotting import save_figure
+from .fit_report import fit_report
+from .plotting import caption_of, save_figure
 from .regression.defaults import pooled_estimator
 from .regression.estimator import ConnectionEstimator, estimator_settings
 from .regression.model import LocalConnectionModel
@@ -79,6 +80,8 @@ __all__ = ["connection_table", "write_connection_csv", "gait_summary", "UNITS", 
 PROG = "torchconn-fit"
 #: where ``fit`` writes the forecasting model when it differs from the connection (model.npz)
 FORECAST_FILE = "forecast_model.npz"
+#: the fit's report: its summary in words, tables and figures, one self-contained HTML file
+REPORT_FILE = "report.html"
 
 
 #: rows of connection.csv (``--grid``, :func:`connection_table`'s ``n_points``)
@@ -368,7 +371,25 @@ def main(argv: list[str] | None = None) -> int:
             model = est.model_.to("cpu")  # outputs are written from CPU copies
             # the model predict() uses, where it differs from the connection (short recordings)
             forecast = None if est.forecast_model_ is est.model_ else est.forecast_model_.to("cpu")
-            outputs = _write_results(folder.path, args, est, model, forecast)
+            details: list[str] = []
+            _report_metric(model, details.append)
+            if est.complexity_ is not None:
+                _report_complexity(est.complexity_, details.append)
+            if forecast is not None:
+                _report_forecast(model, details.append)
+            if est.held_out_skill_ is not None:
+                _report_held_out(est, details.append)
+            figures = {} if args.no_figures else _figures(est, model)
+            report = fit_report(
+                est, title=f"{PROG}: {', '.join(p.name for p in args.data)}",
+                n_links=args.links, frame=swimmer.frame,
+                frequency_hz=gait_summary(model)["frequency_hz"],
+                reference=_reference_words(est.reference_),
+                figures=[(fig, caption_of(fig) or name) for name, fig in figures.items()],
+                details=details)
+            outputs = _write_results(folder.path, args, model, forecast, figures)
+            report.write(folder.path / REPORT_FILE)
+            outputs.append(REPORT_FILE)
             write_sidecar(folder.path / "fit.json", {
                 "command": PROG, "argv": sys.argv[1:] if argv is None else list(argv),
                 **_sidecar(args, estimator, est, rec, traj, check, known, model, forecast),
@@ -376,16 +397,9 @@ def main(argv: list[str] | None = None) -> int:
                 "device": str(device),
             })
             out = folder.commit()
-            say(f"fitted one model to {traj.batch_shape.numel()} trial(s) of {traj.n_samples} "
-                f"samples (d = {traj.shape_dim})")
-            _report_metric(model, say)
-            if est.complexity_ is not None:
-                _report_complexity(est.complexity_, say)
-            if forecast is not None:
-                _report_forecast(model, say)
-            if est.held_out_skill_ is not None:
-                _report_held_out(est, say)
-            say(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}")
+            say("\n".join(report.text()))
+            say(f"wrote {', '.join(str(out / o) for o in outputs)} and {out / 'fit.json'}; "
+                f"open {out / REPORT_FILE} in a browser for the report with its figures")
             return 0
 
     return run_command(PROG, body)
@@ -410,25 +424,30 @@ def _read_checked(args, conv, given, known, swimmer, estimator, say):
     return rec, traj, check
 
 
-def _write_results(out: Path, args, est, model, forecast) -> list[str]:
+def _figures(est, model) -> dict:
+    """The fit's figures by file name: the held-out velocity first, then the connection, the
+    limit cycle and the metric (where fitted)."""
+    figures = {"held_out_velocity.png": plot_held_out_velocity(est),
+               "connection.png": plot_connection(model),
+               "limit_cycle.png": plot_limit_cycle(model, est.trajectory_.smoothed.r,
+                                                   est.trajectory_.phase)}
+    if model.M is not None:
+        figures["metric.png"] = plot_metric(model)
+    return figures
+
+
+def _write_results(out: Path, args, model, forecast, figures: dict) -> list[str]:
     """Write ``model.npz``, ``connection.csv``, the forecasting model where it differs and the
-    figures (unless ``--no-figures``) into ``out``; returns the names written."""
+    ``figures`` (by file name) into ``out``; returns the names written."""
     model.save(out / "model.npz")
     write_connection_csv(model, out / "connection.csv", args.grid)
     outputs = ["model.npz", "connection.csv"]
     if forecast is not None:
         forecast.save(out / FORECAST_FILE)
         outputs.append(FORECAST_FILE)
-    if not args.no_figures:
-        figures = {"held_out_velocity.png": lambda: plot_held_out_velocity(est),
-                   "connection.png": lambda: plot_connection(model),
-                   "limit_cycle.png": lambda: plot_limit_cycle(
-                       model, est.trajectory_.smoothed.r, est.trajectory_.phase)}
-        if model.M is not None:
-            figures["metric.png"] = lambda: plot_metric(model)
-        for name, draw in figures.items():
-            save_figure(draw(), out / name)
-            outputs.append(name)
+    for name, fig in figures.items():
+        save_figure(fig, out / name)
+        outputs.append(name)
     return outputs
 
 
@@ -540,38 +559,23 @@ def _report_forecast(model, say) -> None:
         ["rows 0 where named above"]
         if differs["phase_averaged"] or differs["connection_only"] else [])
     say(f"{FORECAST_FILE}: the forecasting model (what ConnectionEstimator.predict "
-        "uses, and the held-out R² below): " + ", ".join(how))
+        "uses, and the held-out R² above): " + ", ".join(how))
 
 
 def _report_held_out(est, say) -> None:
-    """Print the held-out R² of the forecasting model and its baselines (on interleaved
-    blocks of cycles, and on the later cycles fitted on the earlier ones), and warn
+    """Say how far the forecasts lean on the physics reference (the held-out R² of the model
+    and its baselines are the report's table), and warn
     (:class:`PoorHeldOutSkillWarning`) where bins cannot be scored, the model loses to the
     phase average, or nothing has skill."""
-    held_out, folds, ref = est.held_out_skill_, est.held_out_folds, est.reference_
-    say("held-out R² (v_x, v_y, omega) of the forecasting model and its baselines; "
-        f"physics reference: the {ref.n_links}-link viscous swimmer (resistive-force "
-        f"theory, {ref.frame} frame), {_parameters(ref)} fitted to the whole recording "
-        "and refitted without the cycles scored:")
-    for title, skill in ((f"held-out cycles (interleaved blocks, each of {folds} left out "
-                          "in turn)", held_out),
-                         (f"later cycles (fit on the earlier ones: the last of {folds} "
-                          "blocks)", est.forward_skill_)):
-        if skill is None:
-            continue
-        say(f"  {title}:")
-        for name, r2 in (("model", skill.r2), ("phase-averaged velocity", skill.r2_phase_average),
-                         ("physics reference", skill.r2_physics), ("zero", skill.r2_zero),
-                         ("template", skill.r2_template)):
-            say(f"    {name:>23}: " + "  ".join(f"{float(v):7.3f}" for v in r2.reshape(-1)))
+    held_out = est.held_out_skill_
     weight = est.prior_weight_
     if weight is not None and bool((weight > 0).any()):
         shrunk = [f"{name} {float(w):.0%}" for name, w in zip(
             COMPONENTS, weight.reshape(-1, 3).amax(0).tolist(), strict=True) if w > 0]
         say("physics prior: the forecasts lean towards the physics reference where it "
             "predicts held-out cycles better (share of the reference: " + ", ".join(shrunk)
-            + "); the model R² above are of these forecasts, the connection (Â) is as "
-            "estimated")
+            + "); the model's held-out R² are of these forecasts, the connection (Â) is "
+            "as estimated")
     if bool(held_out.unscored.any()):
         warnings.warn("some phase bins cannot be fitted when a block of cycles is "
                       "left out: the model has too many coefficients for this recording "
@@ -592,6 +596,15 @@ def _report_held_out(est, say) -> None:
                       "phase and shape on this recording (noise, or a motion the shape "
                       "changes do not drive: a flow, a tether, contact)",
                       PoorHeldOutSkillWarning, stacklevel=2)
+
+
+def _reference_words(ref) -> str:
+    """The physics reference in words, e.g. ``the 5-link viscous swimmer (resistive-force
+    theory, center frame), drag ratio 41.2 fitted``."""
+    if ref is None:
+        return ""
+    return (f"the {ref.n_links}-link viscous swimmer (resistive-force theory, {ref.frame} "
+            f"frame), {_parameters(ref)} fitted")
 
 
 def _parameters(ref) -> str:

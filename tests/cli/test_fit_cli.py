@@ -122,7 +122,14 @@ def test_fit_reports_held_out_skill_and_cross_validated_complexity(recording, tm
                  "noise_aware", "--complexity", "cv"]) == 0
     text = capsys.readouterr().out
     assert "complexity chosen by held-out error" in text
-    assert "held-out R² (v_x, v_y, omega)" in text and "phase-averaged velocity" in text
+    # the plain summary's table holds the held-out R² that fit.json records
+    assert "How well it predicts cycles it did not see" in text
+    assert "phase-averaged velocity" in text
+    row = next(line for line in text.splitlines() if line.strip().startswith("this model "))
+    held = json.loads((out / "fit.json").read_text())["held_out"]["interleaved"]
+    assert [float(x) for x in row.split()[-3:]] == pytest.approx(
+        [held[c]["model"] for c in ("v_x", "v_y", "omega")], abs=0.0051)
+    assert (out / "report.html").exists()
     model = LocalConnectionModel.load(out / "model.npz")
     assert model.batch_shape == ()
     # the forecasting model is written beside the connection where the two differ, and
@@ -254,7 +261,7 @@ def test_fit_tells_the_connection_from_the_forecasts_when_a_ridge_is_chosen(tmp_
             f"{own['fourier_order']}, ridge {own['ridge']:g} on b and dA/dr only, A "
             "unpenalised") in text
     assert f"A shrunk by the ridge {differs['A_ridge']:g}" in text
-    assert "held-out R² (v_x, v_y, omega) of the forecasting model" in text
+    assert "How well it predicts cycles it did not see" in text
     # model.npz is the fit of the settings it records, on the estimator's own data
     est = estimator_from_settings(model.meta["settings"])
     assert est.regression.ridge_connection is False

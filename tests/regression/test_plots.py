@@ -50,7 +50,9 @@ def test_held_out_velocity_draws_the_forward_check(est, tmp_path, monkeypatch):
     assert "held-out R² model" in axes[0].get_title()
     # the model's line is the forward check's prediction of trial 1 on its last block
     pred = selection.forward_prediction(est.trajectory_, est.limit_cycle_, est.regression_,
-                                        est.forecast_model_, pool=True)
+                                        est.forecast_model_, pool=True,
+                                        prior_weight=est.prior_weight_,
+                                        frame=est.reference_.frame)
     y = axes[0].get_lines()[1].get_ydata()
     expect = pred.predicted[1, :, 0].numpy()
     held = np.isfinite(expect)
@@ -61,8 +63,13 @@ def test_held_out_velocity_draws_the_forward_check(est, tmp_path, monkeypatch):
 
 
 def test_forward_prediction_is_what_the_forward_check_scores(est):
+    # the forecasts as delivered: blended with the physics reference where the prior acts
+    # (this simulation is of the prior's family, so it does)
+    assert bool((est.prior_weight_ > 0).any())
     pred = selection.forward_prediction(est.trajectory_, est.limit_cycle_, est.regression_,
-                                        est.forecast_model_, pool=True)
+                                        est.forecast_model_, pool=True,
+                                        prior_weight=est.prior_weight_,
+                                        frame=est.reference_.frame)
     ok = pred.held_out[..., None]
     y = torch.where(ok, pred.view.xi, 0.0)
     n = pred.held_out.sum()

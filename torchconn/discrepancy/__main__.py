@@ -2,7 +2,8 @@
 
 Also runs as ``python -m torchconn.discrepancy``. Reads the recordings (the format of
 docs/conventions.md, section "Trajectory file format"), compares them with the nominal N-link swimmer,
-names the missing effect(s) and writes ``DIR/report.json``, ``DIR/augmented_model.json``,
+names the missing effect(s) and writes ``DIR/report.html`` (the verdict in words, with the
+figures), ``DIR/report.json``, ``DIR/augmented_model.json``,
 ``DIR/residual_profile.csv`` and the figures; prints a readable summary. The outputs replace
 ``DIR`` whole once all are written (:class:`~torchconn._output.OutputFolder`). Exit codes: 0
 done, 2 bad input or an unusable output folder (one line says what to fix), 1 an internal
@@ -61,7 +62,8 @@ def _parser() -> argparse.ArgumentParser:
         prog=PROG,
         description="Find where a recording and the nominal N-link swimmer disagree, name the "
         "missing physical effect, add it and report the gap before and after. Writes "
-        "DIR/report.json, DIR/augmented_model.json, DIR/residual_profile.csv and figures. "
+        "DIR/report.html, DIR/report.json, DIR/augmented_model.json, "
+        "DIR/residual_profile.csv and figures. "
         "Also runs as python -m torchconn.discrepancy.",
     )
     p.add_argument("data", nargs="+", type=Path,

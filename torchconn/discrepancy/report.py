@@ -16,7 +16,8 @@ from pathlib import Path
 from .._output import write_table
 from .._provenance import jsonable, write_sidecar
 from ..physics.systems.swimmer import NLinkSwimmer
-from ..plotting import save_figure
+from ..plotting import caption_of, save_figure
+from ..report import Report
 from .figures import plot_residual_profiles, plot_terms
 from .model import AugmentedModel
 from .residuals import COMPONENTS
@@ -301,9 +302,52 @@ class DiscrepancyReport:
                          f"{self.noise_floor[k]:13.4g}")
         return "\n".join(lines)
 
+    def report(self, title: str = "torchconn-discrepancy", figures: dict | None = None
+               ) -> Report:
+        """The verdict in plain words, the gaps before and after, and ``figures`` (file name
+        -> Figure) as a :class:`~torchconn.report.Report` (``report.html``)."""
+        report = Report(title)
+        verdict = {
+            "none": "The simulator agrees with the measurements within their noise: no "
+                    "missing effect is needed.",
+            "effect": "The simulator misses an effect; adding "
+                      + " and ".join(e.name for e in self.effects)
+                      + " closes the gap to the measurements.",
+            "unexplained": "The simulator and the measurements disagree beyond the noise, "
+                           "and no registered effect explains it fully.",
+        }[self.verdict]
+        report.section("Verdict", [verdict])
+        for e in self.effects + self.partial_effects:
+            lines = [e.description] + [
+                f"{k} = {v:.4g} {e.units[k]} (95 % interval {e.ci[k][0]:.4g} to "
+                f"{e.ci[k][1]:.4g})" for k, v in e.parameters.items()]
+            lines.append(f"held-out p-value {e.p_value:.2g}: how likely a gain this large "
+                         "would be by chance")
+            report.section(f"Effect: {e.name}" + ("" if e in self.effects
+                                                  else " (explains part of it)"), lines)
+        cautions = [x.message for x in self.implausible] + [c.message
+                                                             for c in self.confounded_with]
+        if self.unexplained:
+            cautions.append(f"unexplained: {self.unexplained.message}")
+            cautions += [f"{w.component}: {w.text}" for w in self.unexplained.where]
+        if cautions:
+            report.section("Read with care", cautions)
+        report.table(
+            "The gap between simulator and measurements, on held-out cycles (RMS residual)",
+            ["component", "before", "after", "noise floor"],
+            [[k, f"{self.gap_before[k]:.3g}", f"{self.gap_after[k]:.3g}",
+              f"{self.noise_floor[k]:.3g}"] for k in COMPONENTS],
+            note="v_x, v_y in body lengths per time unit, omega in rad per time unit; 'after' "
+                 "is with the named effects added. A gap at the noise floor is all the data "
+                 "can show.")
+        for name, fig in (figures or {}).items():
+            report.figure(fig, caption_of(fig) or name)
+        return report
+
     def save(self, out: str | Path, *, figures: bool = True) -> dict[str, Path]:
-        """Write ``report.json``, ``augmented_model.json``, ``residual_profile.csv`` and the
-        figures into ``out``, each file atomically; returns the paths."""
+        """Write ``report.json``, ``report.html`` (:meth:`report`), ``augmented_model.json``,
+        ``residual_profile.csv`` and the figures into ``out``, each file atomically; returns
+        the paths."""
         out = Path(out)
         paths = {}
         paths["report"] = out / "report.json"
@@ -318,12 +362,16 @@ class DiscrepancyReport:
               f"{self.noise_floor[comp]:.6g}"]
              for label, prof in self.profiles.items()
              for i, ph in enumerate(prof["centres"]) for k, comp in enumerate(COMPONENTS)])
+        drawn = {}
         if figures:
-            paths["figure"] = save_figure(plot_residual_profiles(self),
-                                          out / "residual_vs_phase.png")
+            drawn["residual_vs_phase.png"] = plot_residual_profiles(self)
             if self.terms is not None:
-                paths["terms_figure"] = save_figure(plot_terms(self.terms),
-                                                    out / "terms_vs_simulator.png")
+                drawn["terms_vs_simulator.png"] = plot_terms(self.terms)
+        paths["html"] = self.report(figures=drawn).write(out / "report.html")
+        for key, name in (("figure", "residual_vs_phase.png"),
+                          ("terms_figure", "terms_vs_simulator.png")):
+            if name in drawn:
+                paths[key] = save_figure(drawn[name], out / name)
         return paths
 
 

@@ -40,6 +40,7 @@ from ..cli.conversion import (
 from ..io.trajectory_files import read_csv
 from ..physics.systems import NLinkSwimmer
 from ..regression.estimator import estimator_from_settings
+from ..report import Report
 from .export import write_gait
 from .loop import LoopSettings, circle_gait, improve
 from .measure import measure_cycles
@@ -76,14 +77,17 @@ def _simulate(args, folder: OutputFolder) -> int:
         "coverage": result.coverage, "rounds": rows,
     })
     write_gait(result.rounds[-1].proposal, out / "next_gait")
+    figures = {}
     if not args.no_figures:
         # lazy: .plots and ..plotting import matplotlib, which only a run that draws
         # figures needs
         from ..plotting import save_figure
         from .plots import plot_gaits, plot_rounds
 
-        save_figure(plot_gaits(result, system), out / "gaits.png", dpi=120)
-        save_figure(plot_rounds(result), out / "objective.png", dpi=120)
+        figures = {"gaits.png": plot_gaits(result, system), "objective.png": plot_rounds(result)}
+    _simulation_report(args, result, figures).write(out / "report.html")
+    for name, fig in figures.items():
+        save_figure(fig, out / name, dpi=120)
     out = folder.commit()
     say(f"start {result.start_true:.4f} -> last proposal {result.rounds[-1].realised:.4f}; "
         f"intervals covered {result.coverage:.0%}; wrote {out}")
@@ -123,13 +127,65 @@ def _propose(args, folder: OutputFolder) -> int:
         "command": "propose", "data": [str(p) for p in args.data], "links": args.links,
         "scale": args.scale, "device": args.device, **summary,
     })
+    report = _proposal_report(args, summary)
+    report.write(out / "report.html")
     folder.commit()
     paths = {k: folder.final(p) for k, p in paths.items()}
     say = informer(args.quiet)
-    say(f"observed {args.objective} {meas:.4g} ± {meas_se:.2g} per cycle; the next gait is "
-        f"predicted to gain {prop.gain:.3g} [{lo:.3g}, {hi:.3g}]")
-    say(f"wrote {paths['csv']} (joint angles over one cycle) and {paths['json']}")
+    say("\n".join(report.text()))
+    say(f"wrote {paths['csv']} (joint angles over one cycle), {paths['json']} and "
+        f"{folder.final(out / 'report.html')}")
     return 0
+
+
+def _proposal_report(args, summary: dict) -> Report:
+    """``propose``'s report: the current gait as measured and as the model predicts it, and
+    the proposal's predicted gain with its interval, in plain words."""
+    name, meas, se = summary["objective"], summary["observed"], summary["observed_se"]
+    model_now = summary["model_current"]
+    lo, hi = summary["gain_interval_95"]
+    off = (model_now - meas) / abs(meas) if meas else math.nan
+    report = Report(f"{PROG} propose: {', '.join(Path(p).name for p in args.data)}")
+    report.section("The gait you recorded", [
+        f"measured {name}: {meas:.4g} ± {se:.2g} per cycle (mean ± standard error over cycles)",
+        f"the model predicts {model_now:.4g} per cycle for it, "
+        + (f"{abs(off):.0%} {'above' if off > 0 else 'below'} the measurement"
+           if math.isfinite(off) else "where the measurement is 0")
+        + ("; treat the predicted gain with that in mind" if abs(off) > 0.1 else ""),
+    ])
+    report.section("The proposed gait (next_gait.csv)", [
+        f"predicted {name}: {summary['model_predicted']:.4g} per cycle, a gain of "
+        f"{summary['predicted_gain']:.3g} (95 % interval {lo:.3g} to {hi:.3g})",
+        f"a step of {summary['step_rad']:.3g} rad in joint-angle space, within the trust "
+        f"radius {summary['trust_radius_rad']:.3g} rad around the recorded gait",
+    ])
+    report.section("What to do next", [
+        "Record the proposed gait for several cycles, then run propose again on all the "
+        "recordings: the model then also knows the new gait."
+        + (" The interval includes no gain: record more cycles of the current gait first."
+           if lo <= 0 else "")])
+    return report
+
+
+def _simulation_report(args, result, figures: dict) -> Report:
+    """``simulate``'s report: each round's measured and predicted objective, and the
+    figures (file name -> Figure)."""
+    report = Report(f"{PROG} simulate: {args.links}-link swimmer, {args.objective}")
+    report.section("Outcome", [
+        f"start {result.start_true:.4g}, last proposal {result.rounds[-1].realised:.4g} "
+        f"(true values of the simulator, per cycle)",
+        f"the proposals' 95 % intervals covered the realised value in "
+        f"{result.coverage:.0%} of rounds"])
+    report.table("Rounds", ["round", "cycles used", "observed", "predicted", "realised"],
+                 [[r.index, r.cycles_used, f"{r.observed:.4g} ± {r.observed_se:.2g}",
+                   f"{r.predicted:.4g} [{r.predicted_low:.4g}, {r.predicted_high:.4g}]",
+                   f"{r.realised:.4g}"] for r in result.rounds])
+    if figures:
+        from ..plotting import caption_of  # lazy, as in _simulate
+
+        for name, fig in figures.items():
+            report.figure(fig, caption_of(fig) or name)
+    return report
 
 
 #: the trust radius (tube radii) the loop may adapt within (LoopSettings.min_scale, max_scale)

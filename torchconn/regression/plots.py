@@ -53,7 +53,8 @@ def plot_held_out_velocity(estimator, *, trial: int = 0, axes=None,
         time_unit: the unit of the recording's time (default ``s``).
 
     Returns:
-        The figure; its panel titles give the held-out ``R²`` of the forward check
+        The figure (the forecasts as delivered: blended with the physics reference where
+        the prior acts); its panel titles give the held-out ``R²`` of the forward check
         (``estimator.forward_skill_``, over all trials) where the fit ran it.
 
     Raises:
@@ -72,7 +73,9 @@ def plot_held_out_velocity(estimator, *, trial: int = 0, axes=None,
         estimator.trajectory_, estimator.limit_cycle_, estimator.regression_, model,
         pool=estimator.pool, n_folds=n_folds, phase_averaged=masks[0],
         connection_only=masks[1],
-        connection_regressed=getattr(choice, "connection_regressed", False))
+        connection_regressed=getattr(choice, "connection_regressed", False),
+        prior_weight=estimator.prior_weight_, family=estimator.prior or "swimmer",
+        frame=None if estimator.reference_ is None else estimator.reference_.frame)
     n_trials = math.prod(pred.held_out.shape[:-1])
     if isinstance(trial, bool) or not isinstance(trial, int) or not 0 <= trial < n_trials:
         raise ValueError(f"{fn}: trial must be an integer in [0, {n_trials}), got {trial!r}")

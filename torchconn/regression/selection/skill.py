@@ -513,11 +513,15 @@ def forward_prediction(traj: Trajectory, cycle: LimitCycle, regression: Regressi
                        model: LocalConnectionModel, *, pool: bool, n_folds: int = 3,
                        phase_averaged: Tensor | None = None,
                        connection_only: Tensor | None = None,
-                       connection_regressed: bool = False) -> ForwardPrediction:
+                       connection_regressed: bool = False, prior_weight: Tensor | None = None,
+                       family: str = "swimmer", frame: str | None = None) -> ForwardPrediction:
     """The predictions :func:`cross_validate` scores with ``forward=True``: on the last of
     ``n_folds`` blocks of cycles of every trial, the forecasting model fitted without it and
     the phase average of the earlier blocks (arguments as :func:`cross_validate`'s;
-    ``model``: the regression's fit to the whole recording)."""
+    ``model``: the regression's fit to the whole recording). With ``prior_weight``
+    (``(..., 3)``, the estimator's ``prior_weight_``) the forecasts are blended with the
+    physics reference of ``family`` (in ``frame``) fitted to the earlier blocks, as the
+    estimator delivers them."""
     _checks_folds(n_folds)
     reg, models, view, fold, _ = fold_models(traj, cycle, regression, model, pool=pool,
                                              n_folds=n_folds, refit=False,
@@ -528,8 +532,14 @@ def forward_prediction(traj: Trajectory, cycle: LimitCycle, regression: Regressi
     unflat = regression_view(traj, reg, model, pool=pool, flatten=False)
     ok, phase, r, r_dot, _ = _scored(unflat, cycle_blocks(unflat.phase, n_folds) == last)
     nan = torch.tensor(torch.nan, dtype=unflat.xi.dtype, device=unflat.xi.device)
-    return ForwardPrediction(unflat, ok,
-                             torch.where(ok[..., None], fold_model.predict(phase, r, r_dot), nan),
+    predicted = fold_model.predict(phase, r, r_dot)
+    if prior_weight is not None and bool((prior_weight > 0).any()):
+        reference = fold_references(view, fold, n_folds, pool, family=family, frame=frame,
+                                    folds=(last,))[last]
+        if reference is not None:
+            predicted = predicted + prior_weight.unsqueeze(-2) * (
+                reference.predict(r, r_dot) - predicted)
+    return ForwardPrediction(unflat, ok, torch.where(ok[..., None], predicted, nan),
                              torch.where(ok[..., None], base(phase), nan))
 
 
