@@ -77,8 +77,8 @@ def test_quiet_improve_writes_all_but_prints_nothing(tmp_path, capsys):
     assert improve_main(["simulate", "--rounds", "1", "--trials", "2", "--cycles", "8",
                          "--out", str(out), "--quiet", "--no-figures"]) == 0
     assert capsys.readouterr().out == ""
-    assert _written(out) == {"rounds.csv", "run.json", "next_gait.csv",
-                                               "next_gait.json"}
+    assert _written(out) == {"rounds.csv", "run.json", "next_gait.csv", "next_gait.json",
+                             "report.html"}
     traj = simulate(NLinkSwimmer(3), circle_gait(2, 0.8), eta=0.025, n_cycles=10,
                     seeds=np.arange(2))
     path = write_csv(traj, tmp_path / "rec.csv")
@@ -116,5 +116,5 @@ def test_quiet_fit_writes_all_but_prints_nothing(tmp_path, capsys):
     # the forecasting model has a file of its own where it differs from the connection
     # (here: leaning on the physics prior, the simulator's own family)
     forecast = json.loads((out / "fit.json").read_text())["forecast_model"]
-    assert _written(out) == {"model.npz", "connection.csv", "fit.json"} | (
+    assert _written(out) == {"model.npz", "connection.csv", "fit.json", "report.html"} | (
         {"forecast_model.npz"} if forecast else set())

@@ -126,9 +126,9 @@ def test_fit_json_and_summary_carry_the_baselines(tmp_path, capsys):
     assert main([str(path), "--links", "3", "--out", str(out), "--no-figures",
                  "--complexity", "fixed", "--n-bins", "24", "--fourier-order", "6"]) == 0
     text = capsys.readouterr().out
-    assert "held-out cycles (interleaved blocks" in text
-    assert "later cycles (fit on the earlier ones" in text
-    assert "physics reference: the 3-link viscous swimmer" in text and "drag ratio" in text
+    assert "How well it predicts cycles it did not see" in text
+    assert "this model, later cycles only" in text
+    assert "Physics: the 3-link viscous swimmer" in text and "drag ratio" in text
     sidecar = json.loads((out / "fit.json").read_text())
     held = sidecar["held_out"]
     assert held["folds"] == 3
