@@ -48,7 +48,7 @@ class TrustRegion:
             None: unbounded). π keeps a 3-link loop within the joint limits the gait optimiser
             uses, and a 9-link within its modal radius π/2 (``|r| = 2 × modal radius``).
         max_turn: for the displacement and efficiency objectives, the net rotation per cycle
-            a proposal may have (rad, None: any). Without it |(x, y)| per cycle is maximised by
+            a proposal may have (rad, None: any). Without it ``|(x, y)|`` per cycle is maximised by
             gaits that also turn (the chord of a screw motion), which make no progress over
             many cycles; 0.05 rad (3°) per cycle keeps proposals going straight.
         steps, lr: projected Adam ascent (step ``lr × radius``).
@@ -143,9 +143,9 @@ def propose_gait(
 
     Args:
         model: a fitted model without batch dims (fit with ``pool=True``, or pick one trial).
-        objective: ``"displacement"`` (|(x, y)| per cycle), ``"efficiency"`` (|(x, y)| / cost;
-            needs the metric, i.e. recordings with a ``power`` column) or ``"turning"`` (|θ|).
-        trust_region: a :class:`TrustRegion` (default: 2 tube radii, order-3 change, |r| ≤ π).
+        objective: ``"displacement"`` (``|(x, y)|`` per cycle), ``"efficiency"`` (``|(x, y)| / cost``;
+            needs the metric, i.e. recordings with a ``power`` column) or ``"turning"`` (``|θ|``).
+        trust_region: a :class:`TrustRegion` (default: 2 tube radii, order-3 change, ``|r| ≤ π``).
         n_steps: Magnus steps per cycle; n_draws, seed: redrawn models for the gain's interval
             (batched).
 

@@ -68,7 +68,7 @@ def ceiling(system: LocomotionSystem, *, order: int = 4, starts=(1.0, 2.0),
             component: int | str = "planar", max_turn: float | None = None) -> OptimisedGait:
     """The best displacement per cycle with the true connection, by the existing optimiser.
 
-    ``component``: ``"planar"`` (|(x, y)|, the loop's ``"displacement"`` objective) or 0, 1, 2.
+    ``component``: ``"planar"`` (``|(x, y)|``, the loop's ``"displacement"`` objective) or 0, 1, 2.
     ``max_turn``: the largest net rotation per cycle (rad; None: any) -- the loop's
     :attr:`TrustRegion.max_turn <torchconn.improve.TrustRegion.max_turn>`, for the ceiling of
     the same objective the loop maximises.
