@@ -74,12 +74,12 @@ from pathlib import Path
 import torch
 from accuracy import connection_errors  # beside this file
 from short_recordings import recording  # beside this file
-from torchconn.regression.reference import default_frame, fit_reference
 
 from torchconn import ConnectionEstimator, NLinkSwimmer, Phaser
 from torchconn.convert import load_recordings
 from torchconn.cycles import cycle_number
 from torchconn.io.tracking import ConversionSettings
+from torchconn.regression.reference import default_frame, fit_reference
 from torchconn.regression.selection import COMPONENTS, skill
 
 PREDICTORS = ("torchconn", "phase avg", "RFT k=2", "RFT fit k", "zero")

@@ -28,9 +28,10 @@ from torch import Tensor
 
 from .trajectory import pool_batch, span_bounds
 
-__all__ = ["FALLBACK_CYCLES", "cycle_number", "cycle_index", "cycle_blocks", "block_masks", "rank_blocks",
-           "present_cycles", "centred_window", "whole_cycle_weights", "whole_cycle_phase",
-           "trials_apart", "few_cycles"]
+__all__ = [
+    "FALLBACK_CYCLES", "cycles_note", "cycle_number", "cycle_index", "cycle_blocks", "block_masks",
+    "rank_blocks", "present_cycles", "centred_window", "whole_cycle_weights", "whole_cycle_phase",
+    "trials_apart", "few_cycles"]
 
 #: recordings that span at most this many cycles count as few (:func:`few_cycles`)
 FALLBACK_CYCLES = 6
@@ -239,3 +240,30 @@ def few_cycles(phase: Tensor, pool: bool) -> Tensor:
     if pool:
         span = span.sum()
     return torch.round(span) <= FALLBACK_CYCLES
+
+
+def cycles_note(traj, regression, alone: bool = False) -> str:
+    """The recording's cycles per trial (``traj``, a phased Trajectory) against those the
+    bins' window rule of ``regression`` needs: a window
+    holds ``samples_per_regressor`` samples per regressor and spans at most half a cycle
+    (:func:`~torchconn.regression.binning.auto_window`; a tricube window of half a cycle
+    carries the weight of 0.3 cycles), so ``P`` regressors per bin need
+    ``P · samples_per_regressor / 0.3`` samples per trial; ``alone``: also those of the
+    connection alone (``1 + d`` regressors), which ``complexity="auto"`` tried in its place."""
+    span = traj.phase.nan_to_num(nan=0.0).amax(-1) - traj.phase.nan_to_num(
+        nan=float("inf")).amin(-1)
+    cycles = float(span.min()) / (2 * math.pi)
+    per_cycle = (traj.n_samples - 1) / max(float(span.max()) / (2 * math.pi), 1e-9)
+    d = traj.shape_dim
+    p = 1 + 2 * d + d * d
+    spr = getattr(regression, "samples_per_regressor", 2.5)
+    need = p * spr / 0.3 / per_cycle
+    note = (f"this recording has {cycles:.1f} cycles per trial at {per_cycle:.0f} samples per "
+            f"cycle; {p} regressors per bin (d = {d} joints) at {spr:g} samples per regressor "
+            f"need at least {need:.1f} cycles per trial (1.5x that to choose the complexity "
+            "on 2 of 3 blocks of cycles)")
+    if alone:
+        need = (1 + d) * spr / 0.3 / per_cycle
+        note += (f"; the connection alone ({1 + d} regressors per bin), tried in its place, "
+                 f"needs {need:.1f}, and {1.5 * need:.1f} to be checked on 2 of 3 blocks")
+    return note

@@ -10,7 +10,7 @@ into one model, and writes ``DIR/model.npz``, ``DIR/connection.csv`` (one row pe
 uniform grid: ``phase, r1…rd, A_x_i, A_y_i, A_theta_i, dA_<k>_<i>_<j>[, M_<i>_<j>,
 M_gamma_dot_<i>, power_on_cycle]``, then each estimate's standard error ``<column>_se``, see
 :func:`connection_table`) and PNG plots (unless ``--no-figures``):
-``held_out_velocity.png`` (measured body velocity against the model's prediction and the
+``held_out_velocity.png`` (recorded body velocity against the model's prediction and the
 phase average on the last cycles, fitted without them), and with 95% confidence bands the
 connection (``ConnectionEstimator.model_``), the limit cycle and the metric. Where the
 forecasting model differs from the connection (a short recording, whose complexity was
@@ -56,11 +56,11 @@ from .cli.conversion import (
     resolve_links,
     warn_unused_conversion,
 )
+from .fit_report import fit_report
 from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
 from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
-from .fit_report import fit_report
 from .plotting import caption_of, save_figure
 from .regression.defaults import pooled_estimator
 from .regression.estimator import ConnectionEstimator, estimator_settings

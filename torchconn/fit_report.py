@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 
-from .report import Report, trust
 from .regression.selection import COMPONENTS
+from .report import Report, trust
 
 __all__ = ["fit_report", "cycles_per_trial", "trusted_parts", "GOOD_R2"]
 
@@ -62,7 +62,7 @@ def fit_report(est, *, title: str, n_links: int, frame: str, frequency_hz: float
         n_links: the body's links; frame: the body frame of the velocities.
         frequency_hz: the gait's frequency (cycles per second of the recording's ``t``).
         reference: the physics reference and its fitted parameters, in words.
-        figures: ``(Figure, caption)`` pairs, in order (the first: measured against predicted
+        figures: ``(Figure, caption)`` pairs, in order (the first: recorded against predicted
             velocity on held-out cycles).
         details: the fit's choices in a specialist's words (complexity, files), last.
     """

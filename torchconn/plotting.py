@@ -11,7 +11,7 @@ cycle lasts 2π time units). Joint ``i`` joins links ``i`` and ``i + 1``; link 1
 joint 1 is the joint nearest the tail and joint ``d`` the one nearest the head.
 
 The palette is Okabe and Ito's, which readers with any common colour-vision deficiency tell
-apart; each role (measured, model, baseline, …) keeps its colour across figures.
+apart; each role (recorded, model, baseline, …) keeps its colour across figures.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ PALETTE = {"black": "#000000", "orange": "#E69F00", "sky_blue": "#56B4E9",
 CYCLE = tuple(PALETTE[k] for k in ("blue", "orange", "green", "vermillion", "purple",
                                    "sky_blue", "black", "yellow"))
 #: one colour per role, the same in every figure
-COLORS = {"measured": PALETTE["black"], "model": PALETTE["blue"],
+COLORS = {"recorded": PALETTE["black"], "model": PALETTE["blue"],
           "phase_average": PALETTE["orange"], "physics": PALETTE["green"],
           "truth": PALETTE["black"], "samples": "0.6", "before": PALETTE["vermillion"],
           "after": PALETTE["blue"], "reference": "0.88", "metric": PALETTE["purple"]}

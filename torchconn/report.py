@@ -13,7 +13,7 @@ Example::
     report = Report("torchconn-fit: prickleback.csv")
     report.section("What was fitted", ["5.4 cycles of 131 samples, gait 1.9 Hz, 5 links"])
     report.table("Held-out R²", ["component", "model"], [["v_x", "0.23"]])
-    report.figure(fig, "Measured and predicted body velocity on cycles the fit did not see.")
+    report.figure(fig, "Recorded and predicted body velocity on cycles the fit did not see.")
     report.write("out/report.html")
 """
 
@@ -132,7 +132,7 @@ class Report:
                           for k in range(len(block.columns))]
                 for row in [block.columns, *block.rows]:
                     out.append("  " + "  ".join(cell.rjust(w) if k else cell.ljust(w)
-                                                for k, (cell, w) in enumerate(zip(row, widths))))
+                                                for k, (cell, w) in enumerate(zip(row, widths, strict=True))))
             if block.kind != "figure" and block.note:
                 out.append(f"  ({block.note})")
         return out

@@ -45,7 +45,7 @@ def test_held_out_velocity_draws_the_forward_check(est, tmp_path, monkeypatch):
     for ax, unit in zip(axes, ("BL/s", "BL/s", "rad/s"), strict=True):
         assert_units(ax.get_ylabel(), unit)
     assert_units(axes[-1].get_xlabel(), "s")
-    assert legend_texts(axes[0]) == ["measured", "model, fitted without these cycles",
+    assert legend_texts(axes[0]) == ["recorded", "model, fitted without these cycles",
                                      "phase average of the earlier cycles", "held-out cycles"]
     assert "held-out R² model" in axes[0].get_title()
     # the model's line is the forward check's prediction of trial 1 on its last block

@@ -29,7 +29,7 @@ def _closed(x: np.ndarray, k: int) -> np.ndarray:
 
 @style.styled
 def plot_residual_profiles(report, *, axes=None, time_unit: str = style.TIME_UNIT) -> Figure:
-    """Held-out residual (measured minus simulated body velocity) against phase, per
+    """Held-out residual (recorded minus simulated body velocity) against phase, per
     component, before and after the effects were added, each with its 95% cycle-bootstrap
     band, beside the noise floor (the RMS residual of a correct model).
 
@@ -65,10 +65,10 @@ def plot_residual_profiles(report, *, axes=None, time_unit: str = style.TIME_UNI
         style.phase_axis(ax)
         ax.set_ylabel(style.velocity_label(comp, time_unit, prefix="residual of "))
         ax.legend(handles=handles, loc="best")
-    fig.suptitle("Held-out residual against phase: measured minus simulated body velocity "
+    fig.suptitle("Held-out residual against phase: recorded minus simulated body velocity "
                  f"(mean over cycles) -- verdict: {report.verdict}")
     return style.caption(fig, (
-        "Each panel: the measured body velocity minus the simulator's, averaged over held-out "
+        "Each panel: the recorded body velocity minus the simulator's, averaged over held-out "
         "cycles at each phase, with its 95% band over cycles, for the nominal simulator "
         "(dashed) and with the effects found added (solid); the grey zone is the noise floor, "
         "the residual a correct model leaves. Good: after the effects are added, the curve "

@@ -139,7 +139,7 @@ def _propose(args, folder: OutputFolder) -> int:
 
 
 def _proposal_report(args, summary: dict) -> Report:
-    """``propose``'s report: the current gait as measured and as the model predicts it, and
+    """``propose``'s report: the current gait as recorded and as the model predicts it, and
     the proposal's predicted gain with its interval, in plain words."""
     name, meas, se = summary["objective"], summary["observed"], summary["observed_se"]
     model_now = summary["model_current"]
@@ -147,7 +147,7 @@ def _proposal_report(args, summary: dict) -> Report:
     off = (model_now - meas) / abs(meas) if meas else math.nan
     report = Report(f"{PROG} propose: {', '.join(Path(p).name for p in args.data)}")
     report.section("The gait you recorded", [
-        f"measured {name}: {meas:.4g} ± {se:.2g} per cycle (mean ± standard error over cycles)",
+        f"recorded {name}: {meas:.4g} ± {se:.2g} per cycle (mean ± standard error over cycles)",
         f"the model predicts {model_now:.4g} per cycle for it, "
         + (f"{abs(off):.0%} {'above' if off > 0 else 'below'} the measurement"
            if math.isfinite(off) else "where the measurement is 0")
@@ -168,7 +168,7 @@ def _proposal_report(args, summary: dict) -> Report:
 
 
 def _simulation_report(args, result, figures: dict) -> Report:
-    """``simulate``'s report: each round's measured and predicted objective, and the
+    """``simulate``'s report: each round's recorded and predicted objective, and the
     figures (file name -> Figure)."""
     report = Report(f"{PROG} simulate: {args.links}-link swimmer, {args.objective}")
     report.section("Outcome", [

@@ -61,7 +61,7 @@ def plot_gaits(result: LoopResult, system: LocomotionSystem, *, ax=None,
     for k, p in enumerate(proj):
         p = p.detach().cpu().numpy()
         last = k == len(proj) - 1
-        ax.plot(p[:, 0], p[:, 1], color=style.COLORS["measured"] if last
+        ax.plot(p[:, 0], p[:, 1], color=style.COLORS["recorded"] if last
                 else cmap(k / max(len(proj) - 1, 1)),
                 ls="--" if last else "-", lw=1.5, label="next proposal" if last else f"round {k}")
     ax.set_aspect("equal")
@@ -103,7 +103,7 @@ def plot_rounds(result: LoopResult, *, ceiling: float | None = None, ax=None) ->
     ax.legend(loc="best")
     ax.set_title(f"The {objective} per round")
     return style.caption(fig, (
-        "Per round: the recorded gait's objective as measured (with its 95% interval) and as "
+        "Per round: the recorded gait's objective from its cycles (with its 95% interval) and as "
         "the simulator has it, and the proposal's predicted interval against what it "
         "realised in the next round. Good: the realised value falls inside the predicted "
-        "interval and the measured objective rises round by round towards the ceiling."))
+        "interval and the recorded objective rises round by round towards the ceiling."))

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import warnings
 from collections.abc import Mapping
 from typing import Any
@@ -39,7 +38,7 @@ from torch import Tensor
 
 from .. import _checks
 from .._checks import unknown_keys_message
-from ..cycles import cycle_blocks
+from ..cycles import cycle_blocks, cycles_note
 from ..io.preflight import MAX_GAP_CYCLES, preflight
 from ..phase.limit_cycle import CycleEstimator, LimitCycle, SelfConsistentCycle
 from ..phase.phaser import PhaseEstimator, Phaser
@@ -823,34 +822,8 @@ def _cycles_in_errors(traj: Trajectory, regression: Regression, complexity: str)
             raise
         advice = ("; complexity='auto' or 'cv' (torchconn-fit --complexity) chooses fewer "
                   "coefficients" if complexity == "fixed" else "")
-        note = _cycles_note(traj, regression, alone=complexity == "auto")
+        note = cycles_note(traj, regression, alone=complexity == "auto")
         raise ValueError(f"{text} [{note}{advice}]") from None
-
-
-def _cycles_note(traj: Trajectory, regression: Regression, alone: bool = False) -> str:
-    """The recording's cycles per trial against those the bins' window rule needs: a window
-    holds ``samples_per_regressor`` samples per regressor and spans at most half a cycle
-    (:func:`~torchconn.regression.binning.auto_window`; a tricube window of half a cycle
-    carries the weight of 0.3 cycles), so ``P`` regressors per bin need
-    ``P · samples_per_regressor / 0.3`` samples per trial; ``alone``: also those of the
-    connection alone (``1 + d`` regressors), which ``complexity="auto"`` tried in its place."""
-    span = traj.phase.nan_to_num(nan=0.0).amax(-1) - traj.phase.nan_to_num(
-        nan=float("inf")).amin(-1)
-    cycles = float(span.min()) / (2 * math.pi)
-    per_cycle = (traj.n_samples - 1) / max(float(span.max()) / (2 * math.pi), 1e-9)
-    d = traj.shape_dim
-    p = 1 + 2 * d + d * d
-    spr = getattr(regression, "samples_per_regressor", 2.5)
-    need = p * spr / 0.3 / per_cycle
-    note = (f"this recording has {cycles:.1f} cycles per trial at {per_cycle:.0f} samples per "
-            f"cycle; {p} regressors per bin (d = {d} joints) at {spr:g} samples per regressor "
-            f"need at least {need:.1f} cycles per trial (1.5x that to choose the complexity "
-            "on 2 of 3 blocks of cycles)")
-    if alone:
-        need = (1 + d) * spr / 0.3 / per_cycle
-        note += (f"; the connection alone ({1 + d} regressors per bin), tried in its place, "
-                 f"needs {need:.1f}, and {1.5 * need:.1f} to be checked on 2 of 3 blocks")
-    return note
 
 
 # ---------------------------------------------------------------------- settings tables

@@ -40,7 +40,7 @@ def _unbatched(model: LocalConnectionModel, fn: str) -> LocalConnectionModel:
 @style.styled
 def plot_held_out_velocity(estimator, *, trial: int = 0, axes=None,
                            time_unit: str = style.TIME_UNIT) -> Figure:
-    """Measured body velocity against the model's prediction and the phase average, on the
+    """Recorded body velocity against the model's prediction and the phase average, on the
     cycles the fit did not see: the last block of cycles of the held-out check (the forward
     split of :meth:`~torchconn.regression.estimator.ConnectionEstimator.cross_validate`),
     predicted by the forecasting model and the phase average fitted to the earlier cycles.
@@ -84,7 +84,7 @@ def plot_held_out_velocity(estimator, *, trial: int = 0, axes=None,
         return x.reshape(n_trials, *x.shape[pred.held_out.ndim - 1:])[trial].cpu().numpy()
 
     held = one(pred.held_out)
-    measured, predicted, average = one(pred.view.xi), one(pred.predicted), one(pred.phase_average)
+    recorded, predicted, average = one(pred.view.xi), one(pred.predicted), one(pred.phase_average)
     dt = estimator.trajectory_.dt
     t = np.arange(held.shape[0]) * dt + float(estimator.trajectory_.t.reshape(-1)[0])
     if held.any():  # the held-out block, with a margin of the cycles before it
@@ -95,8 +95,8 @@ def plot_held_out_velocity(estimator, *, trial: int = 0, axes=None,
     skill = estimator.forward_skill_
     fig, grid = style.figure_and_grid(axes, (3, 1), (8, 6.2), fn=fn, sharex=True)
     for k, (ax, comp) in enumerate(zip(grid[:, 0], selection.COMPONENTS, strict=True)):
-        ax.plot(t[keep], measured[keep, k], color=style.COLORS["measured"], lw=1.8,
-                label="measured")
+        ax.plot(t[keep], recorded[keep, k], color=style.COLORS["recorded"], lw=1.8,
+                label="recorded")
         ax.plot(t[keep], predicted[keep, k], color=style.COLORS["model"], lw=1.3,
                 label="model, fitted without these cycles")
         ax.plot(t[keep], average[keep, k], color=style.COLORS["phase_average"], lw=1.3,
@@ -118,10 +118,10 @@ def plot_held_out_velocity(estimator, *, trial: int = 0, axes=None,
     fig.suptitle(f"Held-out check, trial {trial}: the last {_block(n_folds)} of the recording "
                  "predicted by the fit to the cycles before it")
     return style.caption(fig, (
-        "Body velocity on cycles the fit did not see (shaded), as measured (black) and as "
+        "Body velocity on cycles the fit did not see (shaded), as recorded (black) and as "
         "predicted from the joint angles by the model fitted to the earlier cycles (blue); "
         "the phase average (dashed) predicts the same velocity at every visit of a phase. "
-        "Good: the model follows the measured wiggles from cycle to cycle and its held-out "
+        "Good: the model follows the recorded wiggles from cycle to cycle and its held-out "
         "R² (closer to 1 is better) is above the phase average's; where it is not, the "
         "shape terms add nothing the average gait does not already say."))
 
