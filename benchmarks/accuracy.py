@@ -49,6 +49,7 @@ from torchconn import (
     simulate,
 )
 from torchconn.physics.gaits import FourierGait, reference_gait
+from torchconn.regression.metric import TiedMetric
 
 DT = 0.05
 SAMPLES_PER_CYCLE = round(2 * math.pi / DT)  # 126: Δt = 0.0499
@@ -130,8 +131,9 @@ def run_one(n_links: int, gait: str, omega: float, method: str, *, n_cycles: int
     traj = recording(n_links, gait, omega, n_cycles=n_cycles, seed=seed, n_trials=n_trials,
                      samples_per_cycle=per_cycle)
     # the table's complexity is fixed (48 bins, order 12), the fit's own held-out check off
-    est = ConnectionEstimator(pool=pool, regression=METHODS[method].replace(
-        metric=metric or False), complexity="fixed", held_out_folds=0)
+    est = ConnectionEstimator(pool=pool, regression=METHODS[method],
+                              metric=TiedMetric(enabled=bool(metric)), complexity="fixed",
+                              held_out_folds=0)
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
