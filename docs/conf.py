@@ -89,7 +89,11 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 os.environ.pop("TORCHCONN_SWEEP_DIR", None)
 
 nb_execution_mode = "off" if os.environ.get("TORCHCONN_DOCS_EXECUTE") == "off" else "cache"
-nb_execution_cache_path = str(DOCS / "_build" / ".jupyter_cache")
+nb_execution_cache_path = os.environ.get("TORCHCONN_DOCS_CACHE",
+                                         str(DOCS / "_build" / ".jupyter_cache"))
+# the notebooks show their figures inline: a non-interactive backend inherited from the
+# environment (MPLBACKEND=Agg, as test runners set) would leave every page without them
+os.environ.pop("MPLBACKEND", None)
 nb_execution_timeout = 600
 nb_execution_raise_on_error = True
 nb_execution_show_tb = True

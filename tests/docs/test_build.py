@@ -21,7 +21,9 @@ MISSING = [t for t in TOOLS if importlib.util.find_spec(t) is None]
 @pytest.mark.slow
 @pytest.mark.skipif(bool(MISSING), reason=f"the docs extra is not installed (no {', '.join(MISSING)})")
 def test_the_site_builds_without_warnings(tmp_path):
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg")
+    # a fresh notebook cache, so that the notebooks run in this build
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
+               TORCHCONN_DOCS_CACHE=str(tmp_path / "jupyter_cache"))
     proc = subprocess.run(
         [sys.executable, "-m", "sphinx", "-W", "--keep-going", "-j", "1", "-b", "html",
          "-d", str(tmp_path / "doctrees"), str(DOCS), str(tmp_path / "html")],
