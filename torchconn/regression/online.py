@@ -184,6 +184,7 @@ class OnlineConnection:
         self._tube_n = torch.zeros(batch + (d,), **kw)
         self.cycles = 0
         self.history: list[CycleConfidence] = []
+        self._solved: _Solved | None = None  # the solution of the current sums
 
     @classmethod
     def from_model(cls, model: LocalConnectionModel, **settings) -> "OnlineConnection":
@@ -245,15 +246,14 @@ class OnlineConnection:
         bins = assign_bins(phase, self.n_bins, window=self.window, kernel=self.kernel)
         s = _wls.prepare(fn, r, r_dot, xi, "xi", _K, bins, self.gamma_m, self.gamma_dot_m)
         new, new_w2, new_w, new_n = self._cycle_sums(s)
-        before = self._solve()
-        r2 = _predictive_r2(before, new, self.n_coef)
+        r2 = _predictive_r2(self._solution(), new, self.n_coef)
         self.sums = lam * self.sums + new
         self.sums_w2 = lam**2 * self.sums_w2 + new_w2
         self.sum_w = lam * self.sum_w + new_w
         self.count = self.count + new_n
         self._add_tube(phase, r.to(self.sums), lam)
         self.cycles += 1
-        after = self._solve()
+        self._solved = after = self._solve()
         confidence = CycleConfidence(
             cycle=self.cycles, r2=r2, dA_relative_se=_relative_se(after, self.shape_dim),
             fitted_bins=after.fitted.sum(-1), forgetting=lam)
@@ -304,6 +304,12 @@ class OnlineConnection:
         self._tube_n = lam * self._tube_n + n
 
     # ------------------------------------------------------------------ solutions
+    def _solution(self) -> _Solved:
+        """The solution of the current sums (solved once per update)."""
+        if self._solved is None:
+            self._solved = self._solve()
+        return self._solved
+
     def _solve(self) -> _Solved:
         """Solve every bin's normal equations from the sums (the solver's ridge convention,
         standard errors and fitting limits, :func:`~torchconn.regression._wls.solve`)."""
@@ -347,7 +353,7 @@ class OnlineConnection:
         """The per-bin estimates ``(..., M, ·)`` of every cycle added (as
         :func:`~torchconn.regression.connection_regression` returns them): NaN in bins that
         cannot be fitted yet."""
-        sol = self._solve()
+        sol = self._solution()
         ones = torch.ones_like(sol.condition)
         return fit_from_solution(_wls.Solution(
             coef=sol.coef, se=sol.se, n_samples=self.count, residual_rms=sol.residual_rms,
