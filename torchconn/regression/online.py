@@ -242,7 +242,9 @@ class OnlineConnection:
             raise ValueError(
                 f"{fn}: phase of shape {tuple(phase.shape)} does not end in the statistics' "
                 f"batch dims {tuple(batch)} + (N,): expected (*pooled, *{tuple(batch)}, N)")
+        # the statistics' dtype and device (those of gamma)
         phase = phase.to(self.sums)
+        r, r_dot, xi = (x.to(self.sums) if isinstance(x, Tensor) else x for x in (r, r_dot, xi))
         bins = assign_bins(phase, self.n_bins, window=self.window, kernel=self.kernel)
         s = _wls.prepare(fn, r, r_dot, xi, "xi", _K, bins, self.gamma_m, self.gamma_dot_m)
         new, new_w2, new_w, new_n = self._cycle_sums(s)
@@ -251,7 +253,7 @@ class OnlineConnection:
         self.sums_w2 = lam**2 * self.sums_w2 + new_w2
         self.sum_w = lam * self.sum_w + new_w
         self.count = self.count + new_n
-        self._add_tube(phase, r.to(self.sums), lam)
+        self._add_tube(phase, r, lam)
         self.cycles += 1
         self._solved = after = self._solve()
         confidence = CycleConfidence(
