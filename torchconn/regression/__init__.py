@@ -5,6 +5,8 @@
   each stage a pluggable option object.
 - :mod:`~torchconn.regression.tube` -- :class:`TubeRegression`, the regression stage.
 - :mod:`~torchconn.regression.metric` -- :class:`TiedMetric`, the metric stage.
+- :mod:`~torchconn.regression.online` -- :class:`OnlineConnection`, the tube regressions'
+  sums updated cycle by cycle (recursive least squares), with a confidence per cycle.
 - :mod:`~torchconn.regression.model` -- :class:`LocalConnectionModel`, the fitted ``Â``, ``∂Â/∂r``,
   ``M̂`` as Fourier series in phase, with per-bin standard errors.
 - :mod:`~torchconn.regression.plots` -- figures of a fitted model with confidence bands.
@@ -51,6 +53,7 @@ from .metric import (
 )
 from .model import BinEstimates, LocalConnectionModel
 from .noise_aware import NoiseAwareRegression
+from .online import CycleConfidence, OnlineConnection
 from .tied import tie_connection_derivative
 from .tube import TubeRegression
 
@@ -64,5 +67,5 @@ __all__ = [
     "LocalConnectionModel", "BinEstimates",
     "ConnectionEstimator", "estimator_from_settings", "estimator_settings", "STAGES",
     "Regression", "TubeRegression", "NoiseAwareRegression", "prepare",
-    "fit_local_model",
+    "fit_local_model", "OnlineConnection", "CycleConfidence",
 ]

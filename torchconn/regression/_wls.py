@@ -256,6 +256,37 @@ def ridge_cholesky(gram: Tensor, lam: Tensor | float, unpenalised: Tensor | None
     return chol, failed, dead, d2
 
 
+def condition_bound(matrix: Tensor, l_inv: Tensor, scale: Tensor) -> Tensor:
+    """Upper bound ``(b,)`` of the 1-norm condition number of the equilibrated normal matrix
+    ``A_s = D⁻¹AD⁻¹`` from ``A = matrix (b, P, P)`` (ridge included), the inverse ``l_inv`` of
+    its Cholesky factor and the column scales ``scale = diag(D) (b, P)``:
+    ``κ₁(A_s) ≤ ‖A_s‖₁ ‖L_s⁻¹‖₁ ‖L_s⁻¹‖∞`` with ``L_s⁻¹ = L⁻¹D``, exact for an orthogonal
+    design."""
+    # matrix-vector products as multiply-sum, norms as abs + sum: cheaper on CPU for small
+    # matrices than a bmm or torch.linalg.vector_norm
+    inv_scale = 1 / scale
+    a_norm = ((matrix.abs() * inv_scale.unsqueeze(-2)).sum(-1) * inv_scale).amax(-1)
+    l_abs = l_inv.abs()
+    l_norm1 = (l_abs.sum(-2) * scale).amax(-1)
+    l_norm_inf = (l_abs * scale.unsqueeze(-2)).sum(-1).amax(-1)
+    return a_norm * l_norm1 * l_norm_inf
+
+
+def sandwich(a_inv: Tensor, g2: Tensor, gram: Tensor | None, sum_w: Tensor
+             ) -> tuple[Tensor, Tensor]:
+    """The effective residual dof ``(b,)`` and ``diag(A⁻¹G₂A⁻¹) (b, P)`` of weighted least
+    squares with normal matrix ``A`` (``a_inv = A⁻¹ (b, P, P)``, ridge and correction
+    included), ``G₂ = XᵀW²X`` (``g2``), the observed ``G = XᵀWX`` (``gram``; None where
+    ``G₂ = G``, 0/1 weights) and ``Σw`` (``sum_w``): ``dof = Σw − 2 tr(A⁻¹G₂) +
+    tr(A⁻¹G A⁻¹G₂)``, which makes ``σ̂² = RSS / dof`` unbiased, and the sandwich's diagonal,
+    so that ``Cov β = σ² A⁻¹G₂A⁻¹``."""
+    s_mat = a_inv @ g2
+    trace = s_mat.diagonal(dim1=-2, dim2=-1).sum(-1)
+    a_g = s_mat if gram is None else a_inv @ gram  # G₂ = G for 0/1 weights
+    dof = sum_w - 2 * trace + (a_g * s_mat.mT).sum((-2, -1))
+    return dof, (s_mat * a_inv.mT).sum(-1)
+
+
 def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
                tolerate_dead: bool, correction: Correction | None = None, sel=None,
                standard_errors: bool = True, unpenalised: Tensor | None = None):
@@ -297,16 +328,8 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
     # L⁻¹ gives diag(A⁻¹) for the standard errors and the condition bound
     l_inv = _triangular_inverse(chol)
 
-    # condition of the equilibrated A_s = D⁻¹AD⁻¹, with L_s⁻¹ = L⁻¹D:
-    # κ₁(A_s) ≤ ‖A_s‖₁ ‖L_s⁻¹‖₁ ‖L_s⁻¹‖∞, an upper bound exact for an orthogonal design
-    # (matrix-vector products as multiply-sum, norms as abs + sum: cheaper on CPU for small
-    # matrices than a bmm or torch.linalg.vector_norm)
-    inv_scale = 1 / scale
-    a_norm = ((gram.abs() * inv_scale.unsqueeze(-2)).sum(-1) * inv_scale).amax(-1)
-    l_abs = l_inv.abs()
-    l_norm1 = (l_abs.sum(-2) * scale).amax(-1)
-    l_norm_inf = (l_abs * scale.unsqueeze(-2)).sum(-1).amax(-1)
-    bound = a_norm * l_norm1 * l_norm_inf
+    # condition of the equilibrated A_s = D⁻¹AD⁻¹
+    bound = condition_bound(gram, l_inv, scale)
     rank_deficient = failed | (dead.any(-1) & (not tolerate_dead))
     condition = torch.where(rank_deficient, torch.inf, bound)
     if not standard_errors:
@@ -338,11 +361,7 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
         else:
             xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w: XᵀW²X
             g2 = xww.mT @ xww
-        s_mat = a_inv @ g2
-        trace = s_mat.diagonal(dim1=-2, dim2=-1).sum(-1)
-        a_g = s_mat if binary else a_inv @ unpen  # G₂ = G for 0/1 weights
-        dof = sum_w - 2 * trace + (a_g * s_mat.mT).sum((-2, -1))
-        cov_diag = (s_mat * a_inv.mT).sum(-1)
+        dof, cov_diag = sandwich(a_inv, g2, None if binary else unpen, sum_w)
     sigma2 = torch.where(dof.unsqueeze(-1) > 0, rss / dof.unsqueeze(-1), torch.nan)
     se = (cov_diag.clamp(min=0).unsqueeze(-1) * sigma2.unsqueeze(-2)).sqrt()
     beta = beta.masked_fill(dead.unsqueeze(-1), torch.nan)
