@@ -42,7 +42,7 @@ from pathlib import Path
 import torch
 
 from ._cli import InputError, resolve_device, run_command, set_threads
-from ._output import OutputFolder, write_table
+from ._output import OutputFolder, write_bytes_atomic, write_table
 from ._provenance import write_sidecar
 from .cli.common import add_common, add_config, config_tables, informer
 from .cli.conversion import (
@@ -61,7 +61,7 @@ from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
 from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
-from .plotting import caption_of, save_figure
+from .plotting import render_png
 from .regression.defaults import pooled_estimator
 from .regression.estimator import ConnectionEstimator, estimator_settings
 from .regression.model import LocalConnectionModel
@@ -379,13 +379,15 @@ def main(argv: list[str] | None = None) -> int:
                 _report_forecast(model, details.append)
             if est.held_out_skill_ is not None:
                 _report_held_out(est, details.append)
-            figures = {} if args.no_figures else _figures(est, model)
+            # each figure rendered once, for its file and for the report
+            figures = {} if args.no_figures else {
+                name: render_png(fig) for name, fig in _figures(est, model).items()}
             report = fit_report(
                 est, title=f"{PROG}: {', '.join(p.name for p in args.data)}",
                 n_links=args.links, frame=swimmer.frame,
                 frequency_hz=gait_summary(model)["frequency_hz"],
                 reference=_reference_words(est.reference_),
-                figures=[(fig, caption_of(fig) or name) for name, fig in figures.items()],
+                figures=[(png, caption or name) for name, (png, caption) in figures.items()],
                 details=details)
             outputs = _write_results(folder.path, args, model, forecast, figures)
             report.write(folder.path / REPORT_FILE)
@@ -438,15 +440,16 @@ def _figures(est, model) -> dict:
 
 def _write_results(out: Path, args, model, forecast, figures: dict) -> list[str]:
     """Write ``model.npz``, ``connection.csv``, the forecasting model where it differs and the
-    ``figures`` (by file name) into ``out``; returns the names written."""
+    ``figures`` (file name -> (PNG bytes, caption)) into ``out``; returns the names
+    written."""
     model.save(out / "model.npz")
     write_connection_csv(model, out / "connection.csv", args.grid)
     outputs = ["model.npz", "connection.csv"]
     if forecast is not None:
         forecast.save(out / FORECAST_FILE)
         outputs.append(FORECAST_FILE)
-    for name, fig in figures.items():
-        save_figure(fig, out / name)
+    for name, (png, _) in figures.items():
+        write_bytes_atomic(out / name, png)
         outputs.append(name)
     return outputs
 

@@ -17,6 +17,7 @@ apart; each role (recorded, model, baseline, …) keeps its colour across figure
 from __future__ import annotations
 
 import functools
+import io
 import sys
 import textwrap
 from collections.abc import Callable
@@ -32,7 +33,7 @@ from ._output import save_figure as _save_atomic
 __all__ = ["PALETTE", "CYCLE", "COLORS", "COMPONENT_NAMES", "SYMBOLS", "TIME_UNIT", "styled",
            "velocity_unit", "velocity_label", "phase_label", "phase_axis", "time_label", "joint_name",
            "joint_label", "connection_unit", "new_figure", "figure_and_axes",
-           "figure_and_grid", "caption", "caption_of", "save_figure", "JOINT_ORDER"]
+           "figure_and_grid", "caption", "caption_of", "save_figure", "render_png", "JOINT_ORDER"]
 
 #: Okabe & Ito's colour-blind-safe palette
 PALETTE = {"black": "#000000", "orange": "#E69F00", "sky_blue": "#56B4E9",
@@ -202,6 +203,19 @@ def save_figure(fig: Figure, path: str | Path, *, dpi: int = 110) -> Path:
     caption included, then close it. Returns the path."""
     try:
         return _save_atomic(fig, path, dpi=dpi, bbox_inches="tight", pad_inches=0.12)
+    finally:
+        fig.clf()
+        _close(fig)
+
+
+def render_png(fig: Figure, *, dpi: int = 110) -> tuple[bytes, str | None]:
+    """``fig`` rendered as :func:`save_figure` writes it (PNG, caption included) and its
+    caption (:func:`caption_of`), then closed: one rendering for a file and a report."""
+    try:
+        caption = caption_of(fig)
+        buffer = io.BytesIO()
+        fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight", pad_inches=0.12)
+        return buffer.getvalue(), caption
     finally:
         fig.clf()
         _close(fig)

@@ -108,11 +108,16 @@ class Report:
         return self
 
     def figure(self, fig, caption: str, *, dpi: int = 110) -> "Report":
-        """A matplotlib ``Figure``, embedded as a PNG with its ``caption`` (what it shows and
-        what good looks like)."""
-        buffer = io.BytesIO()
-        fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
-        self._blocks.append(_Block("figure", note=caption, png=buffer.getvalue()))
+        """A figure with its ``caption`` (what it shows and what good looks like): a
+        matplotlib ``Figure`` (rendered here) or the bytes of a PNG already rendered
+        (e.g. by :func:`torchconn.plotting.render_png`), embedded as it is."""
+        if isinstance(fig, bytes | bytearray):
+            png = bytes(fig)
+        else:
+            buffer = io.BytesIO()
+            fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
+            png = buffer.getvalue()
+        self._blocks.append(_Block("figure", note=caption, png=png))
         return self
 
     @property

@@ -13,10 +13,10 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from .._output import write_table
+from .._output import write_bytes_atomic, write_table
 from .._provenance import jsonable, write_sidecar
 from ..physics.systems.swimmer import NLinkSwimmer
-from ..plotting import caption_of, save_figure
+from ..plotting import render_png
 from ..report import Report
 from .figures import plot_residual_profiles, plot_terms
 from .model import AugmentedModel
@@ -305,7 +305,8 @@ class DiscrepancyReport:
     def report(self, title: str = "torchconn-discrepancy", figures: dict | None = None
                ) -> Report:
         """The verdict in plain words, the gaps before and after, and ``figures`` (file name
-        -> Figure) as a :class:`~torchconn.report.Report` (``report.html``)."""
+        -> (PNG bytes, caption), :func:`~torchconn.plotting.render_png`) as a
+        :class:`~torchconn.report.Report` (``report.html``)."""
         report = Report(title)
         verdict = {
             "none": "The simulator agrees with the measurements within their noise: no "
@@ -340,8 +341,8 @@ class DiscrepancyReport:
             note="v_x, v_y in body lengths per time unit, omega in rad per time unit; 'after' "
                  "is with the named effects added. A gap at the noise floor is all the data "
                  "can show.")
-        for name, fig in (figures or {}).items():
-            report.figure(fig, caption_of(fig) or name)
+        for name, (png, caption) in (figures or {}).items():
+            report.figure(png, caption or name)
         return report
 
     def save(self, out: str | Path, *, figures: bool = True) -> dict[str, Path]:
@@ -362,16 +363,16 @@ class DiscrepancyReport:
               f"{self.noise_floor[comp]:.6g}"]
              for label, prof in self.profiles.items()
              for i, ph in enumerate(prof["centres"]) for k, comp in enumerate(COMPONENTS)])
-        drawn = {}
+        drawn = {}  # each figure rendered once, for its file and for the report
         if figures:
-            drawn["residual_vs_phase.png"] = plot_residual_profiles(self)
+            drawn["residual_vs_phase.png"] = render_png(plot_residual_profiles(self))
             if self.terms is not None:
-                drawn["terms_vs_simulator.png"] = plot_terms(self.terms)
+                drawn["terms_vs_simulator.png"] = render_png(plot_terms(self.terms))
         paths["html"] = self.report(figures=drawn).write(out / "report.html")
         for key, name in (("figure", "residual_vs_phase.png"),
                           ("terms_figure", "terms_vs_simulator.png")):
             if name in drawn:
-                paths[key] = save_figure(drawn[name], out / name)
+                paths[key] = write_bytes_atomic(out / name, drawn[name][0])
         return paths
 
 

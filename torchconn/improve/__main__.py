@@ -25,7 +25,7 @@ from pathlib import Path
 
 from .._checks import check_value
 from .._cli import InputError, check_center_frame, resolve_device, run_command, set_threads
-from .._output import OutputFolder, write_table
+from .._output import OutputFolder, write_bytes_atomic, write_table
 from .._provenance import write_sidecar
 from ..cli.common import add_common, add_version, informer
 from ..cli.conversion import (
@@ -81,13 +81,15 @@ def _simulate(args, folder: OutputFolder) -> int:
     if not args.no_figures:
         # lazy: .plots and ..plotting import matplotlib, which only a run that draws
         # figures needs
-        from ..plotting import save_figure
+        from ..plotting import render_png
         from .plots import plot_gaits, plot_rounds
 
-        figures = {"gaits.png": plot_gaits(result, system), "objective.png": plot_rounds(result)}
+        # each figure rendered once, for its file and for the report
+        figures = {"gaits.png": render_png(plot_gaits(result, system), dpi=120),
+                   "objective.png": render_png(plot_rounds(result), dpi=120)}
     _simulation_report(args, result, figures).write(out / "report.html")
-    for name, fig in figures.items():
-        save_figure(fig, out / name, dpi=120)
+    for name, (png, _) in figures.items():
+        write_bytes_atomic(out / name, png)
     out = folder.commit()
     say(f"start {result.start_true:.4f} -> last proposal {result.rounds[-1].realised:.4f}; "
         f"intervals covered {result.coverage:.0%}; wrote {out}")
@@ -169,7 +171,7 @@ def _proposal_report(args, summary: dict) -> Report:
 
 def _simulation_report(args, result, figures: dict) -> Report:
     """``simulate``'s report: each round's recorded and predicted objective, and the
-    figures (file name -> Figure)."""
+    figures (file name -> (PNG bytes, caption))."""
     report = Report(f"{PROG} simulate: {args.links}-link swimmer, {args.objective}")
     report.section("Outcome", [
         f"start {result.start_true:.4g}, last proposal {result.rounds[-1].realised:.4g} "
@@ -180,11 +182,8 @@ def _simulation_report(args, result, figures: dict) -> Report:
                  [[r.index, r.cycles_used, f"{r.observed:.4g} ± {r.observed_se:.2g}",
                    f"{r.predicted:.4g} [{r.predicted_low:.4g}, {r.predicted_high:.4g}]",
                    f"{r.realised:.4g}"] for r in result.rounds])
-    if figures:
-        from ..plotting import caption_of  # lazy, as in _simulate
-
-        for name, fig in figures.items():
-            report.figure(fig, caption_of(fig) or name)
+    for name, (png, caption) in figures.items():
+        report.figure(png, caption or name)
     return report
 
 
