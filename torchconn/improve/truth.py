@@ -158,22 +158,9 @@ def _ceiling(system: LocomotionSystem, objective: str, s: LoopSettings, order: i
                 FourierGait(circle)(grid), dim=-1).amax()))
             params = torch.zeros(2 * order + 1, d, dtype=torch.float64)
             params[: circle.shape[0]] = circle
-            params.requires_grad_(True)
-            opt = torch.optim.LBFGS([params], lr=1, max_iter=max_iter, tolerance_grad=1e-10,
-                                    tolerance_change=1e-14, history_size=20,
-                                    line_search_fn="strong_wolfe")
-            count = [0]
-
-            def closure() -> Tensor:
-                opt.zero_grad()
-                loss = -penalised(FourierGait(params), n_steps)
-                loss.backward()
-                count[0] += 1
-                return loss
-
-            opt.step(closure)
-            evaluations += count[0]
-            gait = FourierGait(params.detach().clone())
+            evaluations += _maximise(lambda c: penalised(FourierGait(c), n_steps), params,
+                                     max_iter)
+            gait = FourierGait(params)
             runs.append((float(penalised(gait, 256)), gait))
     _, best = max(runs, key=lambda run: run[0])
     return Ceiling(
@@ -183,6 +170,27 @@ def _ceiling(system: LocomotionSystem, objective: str, s: LoopSettings, order: i
         values=tuple(true_objective(system, g, objective) for _, g in runs),
         evaluations=evaluations,
     )
+
+
+def _maximise(fn, params: Tensor, max_iter: int) -> int:
+    """Maximise ``fn(params)`` by L-BFGS (strong Wolfe line search) in place, from ``params``;
+    the number of evaluations."""
+    params.requires_grad_(True)
+    opt = torch.optim.LBFGS([params], lr=1, max_iter=max_iter, tolerance_grad=1e-10,
+                            tolerance_change=1e-14, history_size=20, line_search_fn="strong_wolfe")
+    count = 0
+
+    def closure() -> Tensor:
+        nonlocal count
+        opt.zero_grad()
+        loss = -fn(params)
+        loss.backward()
+        count += 1
+        return loss
+
+    opt.step(closure)
+    params.requires_grad_(False)
+    return count
 
 
 def _winding_rate(coeffs: Tensor, phi: Tensor) -> Tensor:
