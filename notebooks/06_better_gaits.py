@@ -144,7 +144,7 @@ result = improve(swimmer, start, settings, progress=lambda r: print(
     f"round {r.index}: {r.cycles_used} cycles, observed {r.observed:.4f} ± {r.observed_se:.4f}, "
     f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, {r.predicted_high:.4f}], "
     f"realised {r.realised:.4f}"))
-best_true = None if nb.small else ceiling(swimmer, max_turn=0.05).x_displacement
+best_true = None if nb.small else ceiling(swimmer, "displacement", settings).value
 print(f"optimiser with the true connection, turning <= 0.05 rad per cycle: {best_true}; best "
       f"realised |(x, y)| {max(r.realised for r in result.rounds):.4f}; intervals covered "
       f"{result.coverage:.0%}")

@@ -189,7 +189,7 @@ def test_three_link_loop_reaches_the_straight_ceiling_with_covering_intervals():
     rounds; the accepted gaits' true values never fall by more than the measurement noise."""
     system = NLinkSwimmer(3)
     res = improve(system, circle_gait(2, 0.5), LoopSettings(seed=0))
-    cap = ceiling(system, max_turn=0.05).x_displacement
+    cap = ceiling(system).value  # the loop's own family: LoopSettings()'s limits
     best = max(r.true for r in res.rounds if r.accepted)
     assert best >= 0.9 * cap, (best, cap)
     assert sum(r.covered for r in res.rounds) >= 7

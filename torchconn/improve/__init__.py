@@ -30,11 +30,11 @@ from .propose import (
     objective_value,
     propose_gait,
 )
-from .truth import ceiling, exact_local_model
+from .truth import Ceiling, ceiling, exact_local_model
 
 __all__ = [
     "OBJECTIVES", "TrustRegion", "Proposal", "propose_gait", "objective_value",
     "LoopSettings", "Round", "LoopResult", "improve", "circle_gait", "true_objective",
-    "CycleMeasurement", "measure_cycles", "ceiling", "exact_local_model", "check_trust_region",
+    "CycleMeasurement", "measure_cycles", "Ceiling", "ceiling", "exact_local_model", "check_trust_region",
     "finite_difference_baseline", "BaselineStep", "gait_table", "write_gait",
 ]

@@ -36,7 +36,8 @@ from ..simulation import observe, simulate
 from .measure import measure_cycles
 from .propose import OBJECTIVES, TrustRegion, objective_value, propose_gait
 
-__all__ = ["LoopSettings", "Round", "LoopResult", "improve", "circle_gait", "true_objective"]
+__all__ = ["LoopSettings", "Round", "LoopResult", "improve", "circle_gait", "true_objective",
+           "gait_order"]
 
 
 def circle_gait(shape_dim: int, radius: float = 0.5, direction: int = -1) -> FourierGait:
@@ -152,6 +153,14 @@ class LoopSettings:
                              "proposal needs one model")
         if not (0 < self.min_scale <= self.trust_region.scale <= self.max_scale):
             raise ValueError("need min_scale <= trust_region.scale <= max_scale")
+
+
+def gait_order(settings: LoopSettings) -> int:
+    """The Fourier order per joint of the loop's proposals under ``settings``: the fitted
+    cycle's order (the estimator's ``cycle.order``) or the change's (``trust_region.order``),
+    whichever is higher -- a proposal is the fitted cycle plus the change."""
+    cycle = estimator_from_settings(settings.estimator, where="LoopSettings.estimator").cycle
+    return max(int(cycle.order), settings.trust_region.order)
 
 
 @dataclass(frozen=True)

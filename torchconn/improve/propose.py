@@ -30,7 +30,7 @@ from ..regression.gait_prediction import (
 from ..regression.model import LocalConnectionModel
 
 __all__ = ["OBJECTIVES", "TrustRegion", "Proposal", "propose_gait", "objective_value",
-           "check_trust_region"]
+           "penalised_objective", "check_trust_region"]
 
 #: what a proposal maximises: |(x, y)| per cycle, |(x, y)| / cost, |θ| per cycle
 OBJECTIVES = ("displacement", "efficiency", "turning")
@@ -128,6 +128,24 @@ def objective_value(objective: str, displacement: Tensor, cost: Tensor | None) -
             raise ValueError("objective 'efficiency' needs a cost, i.e. the model's metric M̂")
         return planar / cost
     raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+
+
+def penalised_objective(value: Tensor, displacement: Tensor, shapes: Tensor, objective: str,
+                        trust_region: TrustRegion) -> Tensor:
+    """``value (...)`` of a gait less the penalties of ``trust_region``'s constraints.
+
+    ``displacement (..., 3)`` is the gait's displacement per cycle and ``shapes (..., n, d)`` its
+    shapes at ``n`` phases. Turning more than ``max_turn`` rad per cycle costs
+    ``10³ · (|θ| − max_turn)²`` (not for the ``"turning"`` objective), leaving ``|r| ≤ shape_bound``
+    costs ``10³`` times the mean over the phases of the squared excess.
+    """
+    f = value
+    if trust_region.max_turn is not None and objective != "turning":
+        f = f - 1e3 * torch.relu(displacement[..., 2].abs() - trust_region.max_turn).pow(2)
+    if trust_region.shape_bound is not None:
+        excess = torch.relu(torch.linalg.vector_norm(shapes, dim=-1) - trust_region.shape_bound)
+        f = f - 1e3 * excess.pow(2).mean(-1)
+    return f
 
 
 def propose_gait(
@@ -243,15 +261,9 @@ class _ChangeSearch:
 
     def penalised(self, m: LocalConnectionModel, u: Tensor) -> Tensor:
         """The predicted objective ``(...)`` less the turning and joint-limit penalties."""
-        tr = self.tr
         f, disp = self.predicted(m, u)
-        if tr.max_turn is not None and self.objective != "turning":
-            f = f - 1e3 * torch.relu(disp[..., 2].abs() - tr.max_turn).pow(2)
-        if tr.shape_bound is not None:
-            r = self.base_r + self.change(u)(self.theta)
-            excess = torch.relu(torch.linalg.vector_norm(r, dim=-1) - tr.shape_bound)
-            f = f - 1e3 * excess.pow(2).mean(-1)
-        return f
+        return penalised_objective(f, disp, self.base_r + self.change(u)(self.theta),
+                                   self.objective, self.tr)
 
     def ascend(self, m: LocalConnectionModel) -> Tensor:
         """Projected Adam ascent of ``m``'s objective over the change. The step length decays

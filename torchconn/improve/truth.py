@@ -2,24 +2,29 @@
 
 :func:`exact_local_model` is what a perfect estimator would return -- ``A(γ(φ))``,
 ``∂A/∂r(γ(φ))`` and ``M(γ(φ))`` of the simulator, as Fourier series in phase, with zero standard
-errors. :func:`ceiling` runs the existing gait optimiser with the true connection (the best
-displacement in its gait family), the ceiling a data-driven loop is judged against.
+errors. :func:`ceiling` maximises the simulator's objective over the improvement loop's own
+gait family and constraints, the ceiling a data-driven loop is judged against.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
+from torch import Tensor
 
 from ..phase.fourier import FourierSeries, fit_fourier
-from ..physics.gaits.gait import as_gait
-from ..physics.gaits.optimize import NINE_LINK_MAX_RADIUS, OptimisedGait, optimise_gait
-from ..physics.gaits.reference import nine_link_modes
+from ..physics.gaits.evaluate import displacement, evaluate, gauss_phases
+from ..physics.gaits.gait import FourierGait, as_gait
 from ..physics.systems.base import LocomotionSystem
 from ..regression.model import BinEstimates, LocalConnectionModel
+from .loop import LoopSettings, circle_gait, gait_order, true_objective
+from .propose import OBJECTIVES, objective_value, penalised_objective
 
-__all__ = ["exact_local_model", "ceiling"]
+__all__ = ["exact_local_model", "Ceiling", "ceiling"]
 
 
 def exact_local_model(
@@ -64,31 +69,149 @@ def exact_local_model(
     )
 
 
-def ceiling(system: LocomotionSystem, *, order: int = 4, starts=(1.0, 2.0),
-            component: int | str = "planar", max_turn: float | None = None) -> OptimisedGait:
-    """The best displacement per cycle with the true connection, by the existing optimiser.
+@dataclass(frozen=True)
+class Ceiling:
+    """The best gait of the loop's gait family with the true connection.
 
-    ``component``: ``"planar"`` (``|(x, y)|``, the loop's ``"displacement"`` objective) or 0, 1, 2.
-    ``max_turn``: the largest net rotation per cycle (rad; None: any) -- the loop's
-    :attr:`TrustRegion.max_turn <torchconn.improve.TrustRegion.max_turn>`, for the ceiling of
-    the same objective the loop maximises.
-
-    Simple loops star-shaped about the straight shape (:class:`PolarGait`, loop radius ≤ π) in
-    the shape plane of a 3-link, or in the two-mode plane of the 9-link (modal radius ≤ π/2);
-    both directions and every start radius in ``starts`` (clipped inside the bound) are tried.
+    Attributes:
+        gait: a :class:`FourierGait` of ``order`` harmonics per joint.
+        value: its objective (:func:`~torchconn.improve.true_objective`, 256 steps per cycle).
+        displacement: its displacement per cycle ``(x, y, θ)``, ``(3,)``.
+        peak: its largest shape ``max_φ |r(φ)|`` (rad).
+        order: the family's Fourier order per joint.
+        values: the objective reached from each start circle, in the order tried.
+        evaluations: objective evaluations over all starts.
     """
+
+    gait: FourierGait
+    value: float
+    displacement: Tensor
+    peak: float
+    order: int
+    values: tuple[float, ...]
+    evaluations: int
+
+
+_CACHE: dict[tuple, Ceiling] = {}
+
+
+def ceiling(system: LocomotionSystem, objective: str = "displacement",
+            settings: LoopSettings | None = None, *, peaks: Sequence[float] = (0.5, 1.0, 2.0),
+            max_iter: int = 300, n_steps: int = 128) -> Ceiling:
+    """The best ``objective`` per cycle with the true connection, over the loop's own gaits.
+
+    The family is that of :func:`~torchconn.improve.improve` under ``settings`` (default
+    :class:`LoopSettings()`): a free Fourier series per joint of the proposals' order
+    (:func:`~torchconn.improve.loop.gait_order`), the trust region's joint limit
+    ``|r| ≤ shape_bound`` and turning limit ``max_turn``, penalised as the proposals are
+    (:func:`~torchconn.improve.propose.penalised_objective`). The simulator's objective
+    (:mod:`torchconn.physics.gaits.evaluate`, ``n_steps`` Magnus steps per cycle) is maximised by
+    L-BFGS (``max_iter`` evaluations per start) from the loop's start circles
+    (:func:`~torchconn.improve.circle_gait`, both directions) scaled to each peak ``|r|`` in
+    ``peaks`` (rad, at most 0.9 ``shape_bound``); the best by the penalised objective at 256 steps
+    is returned. Deterministic on one device and thread count; the result is cached per system
+    (its connection and metric at fixed shapes), objective and family.
+
+    Raises:
+        ValueError: an unknown objective, empty or non-positive ``peaks``.
+    """
+    s = LoopSettings() if settings is None else settings
+    if not isinstance(s, LoopSettings):
+        raise TypeError(f"settings must be a LoopSettings, got {type(s).__name__}")
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    peaks = tuple(float(p) for p in peaks)
+    if not peaks or not all(p > 0 for p in peaks):
+        raise ValueError(f"peaks must be positive shape radii (rad), got {peaks!r}")
+    tr, order = s.trust_region, gait_order(s)
+    key = (_fingerprint(system), objective, order, tr.shape_bound, tr.max_turn, peaks,
+           max_iter, n_steps)
+    if key not in _CACHE:
+        _CACHE[key] = _ceiling(system, objective, s, order, peaks, max_iter, n_steps)
+    return _CACHE[key]
+
+
+def _ceiling(system: LocomotionSystem, objective: str, s: LoopSettings, order: int,
+             peaks: tuple[float, ...], max_iter: int, n_steps: int) -> Ceiling:
+    tr, d = s.trust_region, system.shape_dim
+    _, theta = gauss_phases(n_steps)
+    theta = theta.reshape(-1)
+    grid = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
+
+    def penalised(gait: FourierGait, steps: int) -> Tensor:
+        if objective == "efficiency":
+            m = evaluate(system, gait, steps)
+            disp, value = m.displacement, m.efficiency
+        else:
+            disp = displacement(system, gait, steps)
+            value = objective_value(objective, disp, None)
+        f = penalised_objective(value, disp, gait(theta), objective, tr)
+        return f - 1e3 * torch.relu(-_winding_rate(gait.coeffs, theta)).pow(2).mean()
+
+    runs, evaluations = [], 0
+    for peak in peaks:
+        if tr.shape_bound is not None:
+            peak = min(peak, 0.9 * tr.shape_bound)
+        for direction in (-1, 1):
+            circle = circle_gait(d, 1.0, direction).coeffs
+            circle = circle * (peak / float(torch.linalg.vector_norm(
+                FourierGait(circle)(grid), dim=-1).amax()))
+            params = torch.zeros(2 * order + 1, d, dtype=torch.float64)
+            params[: circle.shape[0]] = circle
+            evaluations += _maximise(lambda c: penalised(FourierGait(c), n_steps), params,
+                                     max_iter)
+            gait = FourierGait(params)
+            runs.append((float(penalised(gait, 256)), gait))
+    _, best = max(runs, key=lambda run: run[0])
+    return Ceiling(
+        gait=best, value=true_objective(system, best, objective),
+        displacement=displacement(system, best, 256).detach(),
+        peak=float(torch.linalg.vector_norm(best(grid), dim=-1).amax()), order=order,
+        values=tuple(true_objective(system, g, objective) for _, g in runs),
+        evaluations=evaluations,
+    )
+
+
+def _maximise(fn, params: Tensor, max_iter: int) -> int:
+    """Maximise ``fn(params)`` by L-BFGS (strong Wolfe line search) in place, from ``params``;
+    the number of evaluations."""
+    params.requires_grad_(True)
+    opt = torch.optim.LBFGS([params], lr=1, max_iter=max_iter, tolerance_grad=1e-10,
+                            tolerance_change=1e-14, history_size=20, line_search_fn="strong_wolfe")
+    count = 0
+
+    def closure() -> Tensor:
+        nonlocal count
+        opt.zero_grad()
+        loss = -fn(params)
+        loss.backward()
+        count += 1
+        return loss
+
+    opt.step(closure)
+    params.requires_grad_(False)
+    return count
+
+
+def _winding_rate(coeffs: Tensor, phi: Tensor) -> Tensor:
+    """``c × dc/dφ (n,)`` at phases ``phi (n,)`` for the coordinates ``c(φ) (n, 2)`` of
+    ``r(φ) − a0`` in the basis of the gait's first harmonic ``(a1, b1)`` (coefficients
+    ``(2K+1, d)``): non-negative everywhere exactly when the gait, projected on that plane, is
+    star-shaped about its mean shape and winds once per period."""
+    series = FourierSeries(torch.cat([torch.zeros_like(coeffs[:1]), coeffs[1:]]), value_ndim=1)
+    to_plane = torch.linalg.pinv(coeffs[1:3].T)  # (2, d)
+    c = series(phi) @ to_plane.T
+    v = series.derivative()(phi) @ to_plane.T
+    return c[:, 0] * v[:, 1] - c[:, 1] * v[:, 0]
+
+
+def _fingerprint(system: LocomotionSystem) -> tuple:
+    """A key for ``system``'s mechanics: its type, shape dimension and a digest of its
+    connection and metric at fixed shapes."""
     d = system.shape_dim
-    if d == 2:
-        modes, bound = None, math.pi
-    elif d == 8:
-        modes, bound = nine_link_modes(), NINE_LINK_MAX_RADIUS
-    else:
-        raise ValueError(f"the ceiling's gait family is defined for 2 or 8 joints, got {d}")
-    runs = [
-        optimise_gait(system, modes=modes, order=order, radius=min(r, 0.9 * bound),
-                      max_radius=bound, direction=s, component=component, max_turn=max_turn)
-        for r in starts for s in (1, -1)
-    ]
-    return max(runs, key=lambda run: run.x_displacement)
-
-
+    probe = torch.linspace(-1.0, 1.0, 5 * d, dtype=torch.float64).reshape(5, d)
+    probe = probe * torch.linspace(0.3, 1.1, d, dtype=torch.float64)
+    with torch.no_grad():
+        a, m = system.connection_and_metric(probe)
+    digest = hashlib.sha256(a.cpu().numpy().tobytes() + m.cpu().numpy().tobytes()).hexdigest()
+    return type(system).__qualname__, d, digest
