@@ -102,3 +102,21 @@ def fitted_3link():
         no_power = traj.with_fields(power=None)
         est = ConnectionEstimator(pool=True).fit(no_power)
     return system, traj, est.model_
+
+
+_AVX2_TEST = "test_mkl_code_paths.py::test_numerics_pass_on_mkls_avx2_code_path"
+
+
+def pytest_collection_finish(session):
+    """Start the numerics run on MKL's AVX2 path (tests/test_mkl_code_paths.py) at once
+    where its test is selected, so that it runs beside the suite, not after it."""
+    for item in session.items:
+        if item.nodeid.endswith(_AVX2_TEST):
+            item.module.start()
+
+
+def pytest_sessionfinish(session):
+    """End that run if the suite ended without waiting for it (interrupted, -x)."""
+    for item in getattr(session, "items", []):
+        if item.nodeid.endswith(_AVX2_TEST):
+            item.module.stop()

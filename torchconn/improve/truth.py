@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .. import _linalg
 from ..phase.fourier import FourierSeries, fit_fourier
 from ..physics.gaits.evaluate import displacement, evaluate, gauss_phases
 from ..physics.gaits.gait import FourierGait, as_gait
@@ -199,7 +200,7 @@ def _winding_rate(coeffs: Tensor, phi: Tensor) -> Tensor:
     ``(2K+1, d)``): non-negative everywhere exactly when the gait, projected on that plane, is
     star-shaped about its mean shape and winds once per period."""
     series = FourierSeries(torch.cat([torch.zeros_like(coeffs[:1]), coeffs[1:]]), value_ndim=1)
-    to_plane = torch.linalg.pinv(coeffs[1:3].T)  # (2, d)
+    to_plane = _linalg.pinv(coeffs[1:3].T, "the gait's first-harmonic plane")  # (2, d)
     c = series(phi) @ to_plane.T
     v = series.derivative()(phi) @ to_plane.T
     return c[:, 0] * v[:, 1] - c[:, 1] * v[:, 0]
