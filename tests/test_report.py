@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from torchconn.plotting import render_png  # noqa: E402
 from torchconn.report import Report, trust  # noqa: E402
 
 
@@ -47,8 +48,9 @@ def test_the_page_embeds_its_figures_and_links_nowhere(tmp_path):
     report = Report("torchconn-fit: <fish>.csv", "One trial.")
     report.section("What was fitted", ["5 links", "gait 2.0 Hz"], note="small print")
     report.table("Held-out R²", ["component", "model"], [["v_x", 0.5], ["omega", 0.9]])
-    report.figure(fig, "A line & what good looks like.")
-    plt.close(fig)
+    report.figure(render_png(fig)[0], "A line & what good looks like.")
+    with pytest.raises(TypeError, match="png must be the bytes of a PNG"):
+        report.figure(fig, "a Figure, not rendered")
     path = report.write(tmp_path / "report.html")
     page = path.read_text()
     parser = _Page()

@@ -29,9 +29,9 @@ from torch import Tensor
 from .trajectory import pool_batch, span_bounds
 
 __all__ = [
-    "FALLBACK_CYCLES", "cycles_note", "cycle_number", "cycle_index", "cycle_blocks", "block_masks",
-    "rank_blocks", "present_cycles", "centred_window", "whole_cycle_weights", "whole_cycle_phase",
-    "trials_apart", "few_cycles"]
+    "FALLBACK_CYCLES", "cycles_note", "cycles_spanned", "cycle_number", "cycle_index",
+    "cycle_blocks", "block_masks", "rank_blocks", "present_cycles", "centred_window",
+    "whole_cycle_weights", "whole_cycle_phase", "trials_apart", "few_cycles"]
 
 #: recordings that span at most this many cycles count as few (:func:`few_cycles`)
 FALLBACK_CYCLES = 6
@@ -226,17 +226,22 @@ def _crossing(mono: Tensor, levels: Tensor) -> Tensor:
     return (i - 1).to(mono.dtype) + frac
 
 
-def few_cycles(phase: Tensor, pool: bool) -> Tensor:
-    """``(...)`` bool (pooled: ``()``) True where a trial (pooled: the trials together) spans
-    at most :data:`FALLBACK_CYCLES` cycles of ``phase (..., N)``, rounded to whole cycles.
-
-    The span ``(max φ − min φ) / 2π`` over the finite phases is counted, not the cycles seen:
-    a recording of 6 cycles spans 5.9-6.1 cycles of its estimated phase while its samples
-    touch 7 partial cycles. A trial without a finite phase spans 0 cycles."""
+def cycles_spanned(phase: Tensor) -> Tensor:
+    """``(...)`` the cycles each trial of ``phase (..., N)`` spans: ``(max φ − min φ) / 2π``
+    over its finite phases, not the cycles its samples touch (a recording of 6 cycles spans
+    5.9-6.1 cycles of its estimated phase while its samples touch 7 partial cycles). A trial
+    without a finite phase spans 0 cycles."""
     finite = torch.isfinite(phase)
     span = (torch.where(finite, phase, -math.inf).amax(-1)
             - torch.where(finite, phase, math.inf).amin(-1)) / (2 * math.pi)
-    span = span.clamp(min=0)
+    return span.clamp(min=0)
+
+
+def few_cycles(phase: Tensor, pool: bool) -> Tensor:
+    """``(...)`` bool (pooled: ``()``) True where a trial (pooled: the trials together) spans
+    at most :data:`FALLBACK_CYCLES` cycles of ``phase (..., N)`` (:func:`cycles_spanned`),
+    rounded to whole cycles."""
+    span = cycles_spanned(phase)
     if pool:
         span = span.sum()
     return torch.round(span) <= FALLBACK_CYCLES

@@ -10,23 +10,17 @@ from __future__ import annotations
 
 import math
 
+from .cycles import cycles_spanned
 from .regression.selection import COMPONENTS
 from .report import Report, trust
 
-__all__ = ["fit_report", "cycles_per_trial", "trusted_parts", "GOOD_R2"]
+__all__ = ["fit_report", "trusted_parts", "GOOD_R2"]
 
 #: the body-velocity components in words, with their units
 _NAMES = {"v_x": "forward speed v_x (BL/s)", "v_y": "sideways speed v_y (BL/s)",
           "omega": "turning rate ω (rad/s)"}
 #: R² above which a component counts as well predicted
 GOOD_R2 = 0.7
-
-
-def cycles_per_trial(traj) -> float:
-    """The fewest whole-record phase spans among the trials, in cycles."""
-    phase = traj.phase
-    span = phase.nan_to_num(nan=-math.inf).amax(-1) - phase.nan_to_num(nan=math.inf).amin(-1)
-    return float(span.min()) / (2 * math.pi)
 
 
 def trusted_parts(model) -> list[tuple[str, str, float]]:
@@ -69,7 +63,7 @@ def fit_report(est, *, title: str, n_links: int, frame: str, frequency_hz: float
     model = est.model_
     traj = est.trajectory_
     n_trials = traj.batch_shape.numel()
-    cycles = cycles_per_trial(traj)
+    cycles = float(cycles_spanned(traj.phase).min())  # the fewest of any trial
     per_cycle = 2 * math.pi / max(float(model.phase_rate.double().mean()) * traj.dt, 1e-12)
     report = Report(title)
     report.section("What was fitted", [

@@ -13,7 +13,8 @@ Example::
     report = Report("torchconn-fit: prickleback.csv")
     report.section("What was fitted", ["5.4 cycles of 131 samples, gait 1.9 Hz, 5 links"])
     report.table("Held-out R²", ["component", "model"], [["v_x", "0.23"]])
-    report.figure(fig, "Recorded and predicted body velocity on cycles the fit did not see.")
+    png, caption = render_png(fig)  # torchconn.plotting
+    report.figure(png, caption)
     report.write("out/report.html")
 """
 
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -107,17 +107,15 @@ class Report:
                                    rows=[[str(c) for c in row] for row in rows], note=note))
         return self
 
-    def figure(self, fig, caption: str, *, dpi: int = 110) -> "Report":
-        """A figure with its ``caption`` (what it shows and what good looks like): a
-        matplotlib ``Figure`` (rendered here) or the bytes of a PNG already rendered
-        (e.g. by :func:`torchconn.plotting.render_png`), embedded as it is."""
-        if isinstance(fig, bytes | bytearray):
-            png = bytes(fig)
-        else:
-            buffer = io.BytesIO()
-            fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
-            png = buffer.getvalue()
-        self._blocks.append(_Block("figure", note=caption, png=png))
+    def figure(self, png: bytes, caption: str) -> "Report":
+        """A figure, the bytes of its PNG (:func:`torchconn.plotting.render_png` renders a
+        matplotlib ``Figure`` as the commands write it), embedded with its ``caption`` (what
+        it shows and what good looks like)."""
+        if not isinstance(png, bytes | bytearray):
+            raise TypeError(f"Report.figure: png must be the bytes of a PNG, got "
+                            f"{type(png).__name__} (render a Figure with "
+                            "torchconn.plotting.render_png)")
+        self._blocks.append(_Block("figure", note=caption, png=bytes(png)))
         return self
 
     @property

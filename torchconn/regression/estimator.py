@@ -388,9 +388,9 @@ class ConnectionEstimator:
         self.prior_weight_ = None
         if outcome.held is not None:
             references, fold = self._baselines(traj, view, outcome)
-        if outcome.held is not None and self.prior is not None:
-            forecast, connection = self._with_prior(traj, cycle, view, outcome, forecast,
-                                                    connection, references, fold)
+            if self.prior is not None:
+                forecast = self._with_prior(traj, cycle, view, outcome, forecast, references,
+                                            fold)
         self.forecast_model_ = _with_settings(forecast, estimator_settings(self, regression))
         self.model_ = self.forecast_model_
         if forecast is not connection:
@@ -426,9 +426,8 @@ class ConnectionEstimator:
 
     def _with_prior(self, traj: Trajectory, cycle: LimitCycle,
                     view: "selection.RegressionView", outcome: _Outcome,
-                    forecast: LocalConnectionModel, connection: LocalConnectionModel,
-                    references: list, fold: Tensor
-                    ) -> tuple[LocalConnectionModel, LocalConnectionModel]:
+                    forecast: LocalConnectionModel, references: list, fold: Tensor
+                    ) -> LocalConnectionModel:
         """The forecasting model shrunk towards the physics reference
         (:mod:`~torchconn.regression.selection.prior`): per component the weight that
         minimises the held-out squared error of the blend of the forecasts' fits without
@@ -452,7 +451,7 @@ class ConnectionEstimator:
             weight = selection.forward_checked(weight, view.xi, fitted, physics, forward)
         self.prior_weight_ = weight
         if not bool((weight > 0).any()):
-            return forecast, connection
+            return forecast
         # the checks' skill is of the forecasts delivered: the blend, held out
         self.held_out_skill_ = dataclasses.replace(
             self.held_out_skill_, r2=selection.blended_r2(view.xi, fitted, physics, weight))
@@ -460,8 +459,7 @@ class ConnectionEstimator:
             self.forward_skill_ = dataclasses.replace(
                 self.forward_skill_, r2=selection.blended_r2(
                     view.xi, fitted, physics, weight, forward))
-        return selection.blend(forecast, self.reference_.local_model(forecast), weight), \
-            connection
+        return selection.blend(forecast, self.reference_.local_model(forecast), weight)
 
     @staticmethod
     def _reference_frame(traj: Trajectory) -> str:

@@ -69,13 +69,15 @@ def plot_held_out_velocity(estimator, *, trial: int = 0, axes=None,
     masks = ((None, None) if choice is None else
              (choice.phase_average_mask(model.device), choice.connection_only_mask(model.device)))
     n_folds = estimator.held_out_folds or 3
+    reference = estimator.reference_  # the prior's family and frame, where it was fitted
     pred = selection.forward_prediction(
         estimator.trajectory_, estimator.limit_cycle_, estimator.regression_, model,
         pool=estimator.pool, n_folds=n_folds, phase_averaged=masks[0],
         connection_only=masks[1],
         connection_regressed=getattr(choice, "connection_regressed", False),
-        prior_weight=estimator.prior_weight_, family=estimator.prior or "swimmer",
-        frame=None if estimator.reference_ is None else estimator.reference_.frame)
+        prior_weight=estimator.prior_weight_,
+        family=reference.family if reference is not None else "swimmer",
+        frame=reference.frame if reference is not None else None)
     n_trials = math.prod(pred.held_out.shape[:-1])
     if isinstance(trial, bool) or not isinstance(trial, int) or not 0 <= trial < n_trials:
         raise ValueError(f"{fn}: trial must be an integer in [0, {n_trials}), got {trial!r}")
