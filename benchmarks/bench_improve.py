@@ -1,23 +1,27 @@
-"""The improvement loop against its ceiling and a model-free baseline (issue 17's table).
+"""The improvement loop against its ceiling and the model-free baseline, in recorded cycles.
 
-For each swimmer and seed: the loop from a circle gait of radius 0.5 (K rounds of trials ×
-cycles, the paper's SDE, observation noise ``--omega``), the true value of the gait recorded in
-each round and of each proposal (the simulator's exact value), the coverage of the prediction
-intervals, the ceiling (:func:`torchconn.improve.ceiling`: the best gait with the true connection
-in the loop's own gait family, joint limits and turning limit, for every link count), and the
-model-free finite-difference optimiser given ``--fd-factor`` × the loop's recorded cycles.
-Prints Markdown tables, then per link count and noise level one line
+For each swimmer, observation noise ``--omega`` and seed: the loop (:func:`torchconn.improve.improve`,
+its defaults: recordings of ``trials × cycles``, one pooled model from every recording,
+proposals when the gain interval excludes zero, excitation otherwise) from a circle gait of
+radius 0.5, for ``--rounds`` recordings. Judged by the simulator's exact, penalised objective
+(:func:`torchconn.improve.true_score`) of the gait the loop keeps, against the ceiling
+(:func:`torchconn.improve.ceiling`: the optimum that an ascent with the true connection reaches
+from the loop's start gait in the loop's own family, joint and turning limits; the best of many
+starts is printed beside it -- the family has many local optima), and against the model-free
+finite-difference optimiser given ``--fd-factor`` × the loop's cycles. Prints one Markdown row
+per loop (cycles to 80/90/95 % of the ceiling, coverage of the gain intervals of the proposals
+moved to, the largest fall between kept gaits in standard errors), then per link count and
+noise level one line
 ``cycles-to-90: links=L omega=W cycles=C per_link=P``: C the median over seeds of the cycles
-recorded until the true objective of a recorded gait first reaches 90 % of the ceiling
-(``none`` if not reached).
+recorded until the kept gait first reaches 90 % of the ceiling (``none`` if not reached).
 
-    python benchmarks/bench_improve.py --links 3 5 9 --seeds 0 1 --rounds 8 --omega 0 0.002
-    python benchmarks/bench_improve.py --links 3 --max-turn none   # the loop may turn too
+    python benchmarks/bench_improve.py --links 3 5 9 --seeds 0 1 2 --omega 0 0.002 0.005
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import math
 import statistics
@@ -26,24 +30,8 @@ import time
 import torch
 
 from torchconn import NLinkSwimmer
-from torchconn.improve import (
-    LoopSettings,
-    TrustRegion,
-    ceiling,
-    circle_gait,
-    improve,
-    true_objective,
-)
+from torchconn.improve import LoopSettings, ceiling, circle_gait, improve, true_score
 from torchconn.improve.baselines import finite_difference_baseline
-from torchconn.physics.gaits import evaluate
-
-
-def cycles_to(result, cap: float | None, fraction: float) -> int | None:
-    """Cycles recorded until (and including) the first recording of a gait whose true
-    objective reaches ``fraction`` of ``cap``; None if no recorded gait does (or no cap)."""
-    if cap is None:
-        return None
-    return next((r.cycles_used for r in result.rounds if r.true >= fraction * cap), None)
 
 
 def median_cycles(values: list[int | None]) -> float | None:
@@ -53,93 +41,83 @@ def median_cycles(values: list[int | None]) -> float | None:
     return None if math.isinf(med) else med
 
 
+def cycles_to(result, cap: float | None, fraction: float) -> int | None:
+    """Cycles recorded until (and including) the step after which the kept gait's exact,
+    penalised objective first reaches ``fraction`` of ``cap``; None if it never does."""
+    if cap is None:
+        return None
+    return next((r.cycles_used for r in result.rounds if r.kept_true >= fraction * cap), None)
+
+
+def worst_fall(result) -> float:
+    """The largest fall of the exact objective between consecutive kept gaits, in standard
+    errors of the kept gait's observed objective (0 when it never fell)."""
+    falls, last = [0.0], None
+    for r in result.rounds:
+        if last is not None and r.kept is not last.kept:
+            falls.append((last.kept_true - r.kept_true) / max(last.observed_se, 1e-12))
+        last = r
+    return max(falls)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--links", type=int, nargs="+", default=[3, 5, 9])
-    p.add_argument("--seeds", type=int, nargs="+", default=[0])
-    p.add_argument("--rounds", type=int, default=8)
-    p.add_argument("--trials", type=int, default=4)
-    p.add_argument("--cycles", type=int, default=20)
-    p.add_argument("--omega", type=float, nargs="+", default=[0.0],
-                   help="observation noise levels (one loop per level, link count and seed)")
-    p.add_argument("--max-turn", default="0.05",
-                   help="the loop's turning limit per cycle (rad), or 'none'")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--rounds", type=int, default=None,
+                   help="recordings per loop (default: 5 cycles per link's worth, doubled)")
+    p.add_argument("--omega", type=float, nargs="+", default=[0.0, 0.002, 0.005])
     p.add_argument("--fd-factor", type=float, default=3.0,
                    help="the model-free baseline gets this many times the loop's cycles")
+    p.add_argument("--ceiling-iterations", type=int, default=1000)
     p.add_argument("--no-baseline", action="store_true")
-    p.add_argument("--no-ceiling", action="store_true")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    max_turn = None if args.max_turn.lower() == "none" else float(args.max_turn)
-    rows, covered, reached = [], {}, {}
-    for omega, links in itertools.product(args.omega, args.links):
+    fractions = (0.8, 0.9, 0.95)
+    print("| links | ω | seed | ceiling from the start / best known | start/ceiling | "
+          "kept/ceiling | cycles to 80/90/95 % | covered | worst fall (SE) | "
+          "model-free cycles to 90 % | loop s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    reached, covered = {}, {}
+    for links, omega in itertools.product(args.links, args.omega):
         system = NLinkSwimmer(links)
         start = circle_gait(links - 1, 0.5)
         for seed in args.seeds:
-            settings = LoopSettings(rounds=args.rounds, trials=args.trials, cycles=args.cycles,
-                                    seed=seed, omega=omega,
-                                    trust_region=TrustRegion(scale=3.0, max_turn=max_turn))
-            # the same family for every seed and noise level: computed once (cached)
-            cap = None if args.no_ceiling else ceiling(system, "displacement", settings).value
+            base = LoopSettings(seed=seed, omega=omega)
+            rounds = args.rounds or math.ceil(2 * 5 * links / (base.trials * base.cycles))
+            settings = dataclasses.replace(base, rounds=rounds)
+            # the optimum the true connection's ascent reaches from the loop's start (the
+            # targets' ceiling), and the best of many starts (a lower bound on the family's)
+            cap = ceiling(system, "displacement", settings, starts=[start], peaks=(),
+                          random_starts=0, max_iter=args.ceiling_iterations).value
+            best_known = ceiling(system, "displacement", settings,
+                                 max_iter=args.ceiling_iterations).value
             t0 = time.perf_counter()
             res = improve(system, start, settings)
             loop_s = time.perf_counter() - t0
-            phi = torch.linspace(0, 2 * math.pi, 256, dtype=torch.float64)
-            print(f"\n{links}-link, seed {seed}, ω {omega}, start {res.start_true:.4f}, "
-                  f"loop {loop_s:.0f} s")
-            print("| round | cycles | observed | true | accepted | step (rad) | predicted [95%] "
-                  "| realised | covered | max abs r |")
-            print("|---|---|---|---|---|---|---|---|---|---|")
-            for r in res.rounds:
-                shape = float(torch.linalg.vector_norm(r.proposal(phi), dim=-1).max())
-                print(f"| {r.index} | {r.cycles_used} | {r.observed:.4f} ± {r.observed_se:.4f} "
-                      f"| {r.true:.4f} | {r.accepted} | {r.step:.3f} | {r.predicted:.4f} "
-                      f"[{r.predicted_low:.4f}, {r.predicted_high:.4f}] | {r.realised:.4f} | "
-                      f"{r.covered} | {shape:.2f} |")
-            reached.setdefault((links, omega), []).append(cycles_to(res, cap, 0.9))
-            hits = covered.setdefault((omega, links), [0, 0])
-            hits[0] += sum(r.covered for r in res.rounds)
-            hits[1] += len(res.rounds)
-            # the loop moves on from accepted gaits: their true values, round by round
-            kept = [r.true for r in res.rounds if r.accepted]
-            worst_fall = max([0.0] + [kept[k] - kept[k + 1] for k in range(len(kept) - 1)])
-            best = max(res.rounds, key=lambda r: r.realised)
-            disp = evaluate(system, best.proposal).displacement
-            print(f"best proposal's displacement per cycle (x, y, θ): {disp.numpy().round(4)}")
-            fd_best = fd_cycles = fd_match = None
+            to = [cycles_to(res, cap, f) for f in fractions]
+            reached.setdefault((links, omega), []).append(to[1])
+            moved = [r.covered for r in res.rounds if r.moved]
+            hits = covered.setdefault((links, omega), [0, 0])
+            hits[0], hits[1] = hits[0] + sum(moved), hits[1] + len(moved)
+            fd = "—"
             if not args.no_baseline:
-                budget = int(args.fd_factor * res.rounds[-1].cycles_used)
-                steps = finite_difference_baseline(system, start, budget=budget, trials=1,
-                                                   cycles=args.cycles, seed=seed,
-                                                   max_turn=max_turn)
-                if steps:
-                    values = [true_objective(system, s.gait, "displacement") for s in steps]
-                    fd_best, fd_cycles = max(values), steps[-1].cycles_used
-                    gain = best.realised - res.start_true
-                    match = [s.cycles_used for s, v in zip(steps, values, strict=True)
-                             if v - res.start_true >= gain]
-                    fd_match = match[0] if match else None
-            rows.append((omega, links, seed, res.start_true, [r.true for r in res.rounds],
-                         best.realised, cap, res.coverage, worst_fall,
-                         res.rounds[-1].cycles_used, fd_best, fd_cycles, fd_match))
-    print(f"\nturning limit {max_turn} rad per cycle; 'rounds' lists the true "
-          "|(x, y)| per cycle of the gait recorded in each round")
-    print("\n| ω | links | seed | start | rounds 1.. | best realised | ceiling (true A) | best/ceiling "
-          "| intervals covering | worst fall between accepted gaits | loop cycles "
-          "| model-free best (cycles) | model-free cycles to match |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for (omega, links, seed, start, per_round, best, cap, cov, fall, cyc, fdb, fdc, fdm) in rows:
-        trail = " → ".join(f"{v:.3f}" for v in per_round[1:])
-        ratio = "—" if cap is None else f"{best / cap:.0%}"
-        capt = "—" if cap is None else f"{cap:.4f}"
-        fd = "—" if fdb is None else f"{fdb:.4f} ({fdc})"
-        fdm_s = "not reached" if fdb is not None and fdm is None else (fdm or "—")
-        print(f"| {omega:g} | {links} | {seed} | {start:.4f} | {trail} | {best:.4f} | {capt} | {ratio} | "
-              f"{cov:.0%} | {fall:.4f} | {cyc} | {fd} | {fdm_s} |")
-    print("\n| ω | links | intervals covering the realised value |")
+                steps = finite_difference_baseline(
+                    system, start, budget=int(args.fd_factor * res.rounds[-1].cycles_used),
+                    trials=1, cycles=settings.cycles, seed=seed)
+                hit = [s.cycles_used for s in steps
+                       if true_score(system, s.gait, settings) >= 0.9 * cap]
+                fd = hit[0] if hit else f"not in {steps[-1].cycles_used if steps else 0}"
+            print(f"| {links} | {omega:g} | {seed} | {cap:.4f} / {best_known:.4f} | "
+                  f"{res.start_true / cap:.0%} | "
+                  f"{res.rounds[-1].kept_true / cap:.0%} | "
+                  f"{' / '.join('—' if c is None else str(c) for c in to)} | "
+                  f"{sum(moved)}/{len(moved)} | {worst_fall(res):.1f} | {fd} | {loop_s:.0f} |",
+                  flush=True)
+    print("\n| links | ω | proposals moved to whose interval held the realised objective |")
     print("|---|---|---|")
-    for (omega, links), (hit, n) in covered.items():
-        print(f"| {omega:g} | {links} | {hit}/{n} ({hit / n:.0%}) |")
+    for (links, omega), (hit, n) in covered.items():
+        print(f"| {links} | {omega:g} | {hit}/{n} ({hit / max(n, 1):.0%}) |")
     print()
     for (links, omega), per_seed in reached.items():
         med = median_cycles(per_seed)

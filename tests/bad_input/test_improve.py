@@ -23,7 +23,7 @@ SIMULATE_CASES = [
     (["--rounds", "0"], ["--rounds must be >= 1"]),
     (["--rounds", "-1"], ["--rounds must be >= 1"]),
     (["--trials", "0"], ["--trials must be >= 1"]),
-    (["--cycles", "3"], ["--cycles must be >= 4"]),
+    (["--cycles", "2"], ["--cycles must be >= 3"]),
     (["--seed", "-1"], ["--seed must be >= 0"]),
     (["--scale", "0"], ["--scale must be > 0"]),
     (["--scale", "inf"], ["--scale must be a finite number"]),
@@ -53,6 +53,13 @@ def test_improve_simulate_flags_checked_before_work(argv, fragments, tmp_path, c
     ("twice", ["{rec}", "{rec}", "--links", "3"], ["inputs 1 and 2 name the same file"]),
     ("scale-0", ["{rec}", "--links", "3", "--scale", "0"], ["--scale must be > 0"]),
     ("links-2", ["{rec}", "--links", "2"], ["--links must be >= 3"]),
+    ("earlier-missing", ["{rec}", "--links", "3", "--earlier", "{tmp}/gone.csv"],
+     ["gone.csv", "not found"]),
+    ("pool-length-0", ["{rec}", "--links", "3", "--earlier", "{rec}", "--pool-length", "0"],
+     ["--pool-length must be > 0"]),
+    ("earlier-efficiency", ["{rec}", "--links", "3", "--earlier", "{rec}", "--objective",
+                            "efficiency"], ["--objective efficiency needs the metric",
+                                            "--earlier"]),
 ])
 def test_improve_propose_bad_input(name, argv, fragments, recording, tmp_path, capsys,
                                    monkeypatch):
@@ -72,11 +79,15 @@ def test_improve_propose_bad_input(name, argv, fragments, recording, tmp_path, c
     (LoopSettings, dict(seed=-2), r"LoopSettings\.seed must be >= 0"),
     (LoopSettings, dict(objective="speed"), r"LoopSettings\.objective must be one of"),
     (LoopSettings, dict(poor_ratio=0.9, good_ratio=0.5), r"poor_ratio .* must be <= good_ratio"),
+    (LoopSettings, dict(cycles=2), r"LoopSettings\.cycles must be at least 3 \(two whole"),
+    (LoopSettings, dict(objective="efficiency"), r"'efficiency' needs the metric"),
+    (LoopSettings, dict(pool_length=0.0), r"LoopSettings\.pool_length must be > 0"),
+    (LoopSettings, dict(excitation=2.0), r"LoopSettings\.excitation must be <= 1"),
     (TrustRegion, dict(scale=math.inf), r"TrustRegion\.scale must be a finite number"),
     (TrustRegion, dict(lr=0.0), r"TrustRegion\.lr must be > 0"),
     (TrustRegion, dict(steps=0), r"TrustRegion\.steps must be >= 1"),
-], ids=["omega", "eta-nan", "alpha-0", "level-1", "seed", "objective", "ratios", "scale-inf",
-        "lr-0", "steps-0"])
+], ids=["omega", "eta-nan", "alpha-0", "level-1", "seed", "objective", "ratios", "cycles-2",
+        "efficiency", "pool-length-0", "excitation-2", "scale-inf", "lr-0", "steps-0"])
 def test_improve_settings_api(cls, kwargs, match):
     with pytest.raises(ValueError, match=match):
         cls(**kwargs)

@@ -78,6 +78,7 @@ def test_quiet_improve_writes_all_but_prints_nothing(tmp_path, capsys):
                          "--out", str(out), "--quiet", "--no-figures"]) == 0
     assert capsys.readouterr().out == ""
     assert _written(out) == {"rounds.csv", "run.json", "next_gait.csv", "next_gait.json",
+                             "best_gait.csv", "best_gait.json",
                              "report.html"}
     traj = simulate(NLinkSwimmer(3), circle_gait(2, 0.8), eta=0.025, n_cycles=10,
                     seeds=np.arange(2))

@@ -12,7 +12,7 @@ from torchconn.improve.propose import objective_value, penalised_objective
 from torchconn.improve.truth import _CACHE, _winding_rate
 from torchconn.physics.gaits import FourierGait, evaluate
 
-SMALL = dict(peaks=(1.0,), max_iter=40)
+SMALL = dict(peaks=(1.0,), random_starts=0, max_iter=40)
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +24,7 @@ def three_link():
 
 def test_ceiling_is_in_the_loops_family(three_link):
     _, settings, cap = three_link
-    assert cap.order == gait_order(settings) == 8  # the fitted cycle's order (8) > the change's
+    assert cap.order == gait_order(settings) == 3  # the change's order (3) > the circle's (1)
     assert cap.gait.coeffs.shape == (2 * cap.order + 1, 2)
     tr = settings.trust_region
     assert cap.peak <= tr.shape_bound * 1.01
@@ -92,8 +92,14 @@ def test_ceiling_rejects_bad_arguments():
     system = NLinkSwimmer(3)
     with pytest.raises(ValueError, match="objective must be one of"):
         ceiling(system, "speed")
-    with pytest.raises(ValueError, match="peaks"):
+    with pytest.raises(ValueError, match="peaks must be positive"):
+        ceiling(system, peaks=(-1.0,))
+    with pytest.raises(ValueError, match="random_starts are scaled to the largest of peaks"):
         ceiling(system, peaks=())
+    with pytest.raises(ValueError, match="no start"):
+        ceiling(system, peaks=(), random_starts=0)
+    with pytest.raises(ValueError, match="starts must be Fourier gaits of 2 joints"):
+        ceiling(system, starts=[circle_gait(4, 0.5)])
     with pytest.raises(TypeError, match="settings must be a LoopSettings"):
         ceiling(system, "displacement", {"rounds": 2})
 
@@ -111,3 +117,20 @@ def test_penalised_objective_charges_the_limits():
     outside = torch.tensor([[2.0, 0.0], [0.0, 0.0]], dtype=torch.float64)
     assert float(penalised_objective(value, straight, outside, "displacement", tr)) == \
         pytest.approx(0.3 - 1e3 * 1.0 / 2)
+
+
+def test_ceiling_from_a_given_start_is_a_local_optimum_above_it():
+    """``starts=[gait]`` alone: the ascent from the loop's own start gait (the benchmark's
+    ceiling) ends above that gait, in the family's order, and is cached by its start."""
+    system = NLinkSwimmer(3)
+    settings = LoopSettings()
+    start = circle_gait(2, 0.5)
+    local = ceiling(system, "displacement", settings, starts=[start], peaks=(), random_starts=0,
+                    max_iter=40)
+    assert local.values == (local.value,)  # one start, one run
+    assert local.gait.coeffs.shape == (7, 2)
+    assert _penalised(system, local.gait, settings.trust_region) > 2 * _penalised(
+        system, start, settings.trust_region)
+    other = ceiling(system, "displacement", settings, starts=[circle_gait(2, 0.6)], peaks=(),
+                    random_starts=0, max_iter=40)
+    assert other is not local

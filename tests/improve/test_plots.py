@@ -23,8 +23,11 @@ def circle(radius):
 
 
 def loop(objective="displacement", n=3):
-    rounds = [SimpleNamespace(index=k, gait=circle(0.5 + 0.2 * k), proposal=circle(0.7 + 0.2 * k),
+    kinds = ("start", "proposal", "excited", "proposal")
+    rounds = [SimpleNamespace(index=k, kind=kinds[k % 4], cycles=3, cycles_used=3 * (k + 1),
+                              gait=circle(0.5 + 0.2 * k), proposal=circle(0.7 + 0.2 * k),
                               observed=0.1 * k, observed_se=0.01, true=0.1 * k + 0.005,
+                              kept_true=0.1 * k + 0.005, moved=k != 1,
                               predicted=0.1 * k + 0.1, predicted_low=0.1 * k + 0.08,
                               predicted_high=0.1 * k + 0.12, realised=0.1 * k + 0.1)
               for k in range(n)]
@@ -37,7 +40,7 @@ def test_gaits_over_the_curvature(tmp_path):
     ax = fig.axes[0]
     assert_labelled(ax, x=("rad",), y=("rad",))
     assert "joint 1 (tail)" in ax.get_xlabel() and "joint 2 (head)" in ax.get_ylabel()
-    assert legend_texts(ax) == ["round 0", "round 1", "round 2", "next proposal"]
+    assert legend_texts(ax) == ["0: start", "1: proposal", "2: excited", "next proposal"]
     assert "(BL/rad²)" in fig.axes[1].get_ylabel()  # the colour bar
     assert list(tmp_path.iterdir()) == []
 
@@ -47,7 +50,8 @@ def test_rounds_name_the_objective_with_its_unit(objective, unit):
     fig = Figure()
     ax = fig.subplots()
     assert plot_rounds(loop(objective), ceiling=0.5, ax=ax) is fig
-    assert ax.get_xlabel() == "round" and f"({unit})" in ax.get_ylabel()
+    assert ax.get_xlabel() == "cycles recorded" and f"({unit})" in ax.get_ylabel()
     texts = legend_texts(ax)
-    assert len(texts) == 5 and "optimiser, true connection" in texts
+    assert len(texts) == 6 and "optimiser, true connection" in texts
+    assert "kept gait: true (simulator)" in texts
     assert caption_of(fig)

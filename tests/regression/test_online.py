@@ -209,6 +209,9 @@ def test_bad_input_names_the_argument(recording):
         online.update(phase, r, r_dot, xi, forgetting=0.0)
     with pytest.raises(ValueError, match="xi"):
         online.update(phase, r, r_dot, xi[..., :2])
+    for weight in (0.0, -1.0, math.inf):
+        with pytest.raises(ValueError, match="weight"):
+            online.update(phase, r, r_dot, xi, weight=weight)
     batched = OnlineConnection(FourierSeries(coeffs.expand(3, -1, -1), 1), 1.0, n_bins=M,
                                fourier_order=ORDER)
     with pytest.raises(ValueError, match="phase of shape"):

@@ -7,7 +7,8 @@ record it → …**
   -- a nearby gait's displacement, cost and efficiency from the local model alone, with standard
   errors and its distance from the data;
 - :func:`propose_gait` -- one improvement step within a :class:`TrustRegion`;
-- :func:`improve` -- the loop on a simulator (:class:`LoopSettings`, :class:`LoopResult`);
+- :func:`improve` -- the loop on a simulator (:class:`LoopSettings`, :class:`LoopResult`), with
+  one model from every recording (:class:`PooledConnection`);
 - :func:`measure_cycles` -- displacement and cost per cycle from recordings, model-free;
 - :func:`finite_difference_baseline` -- the model-free optimiser; :func:`ceiling` -- the best gait
   with the true connection; :func:`exact_local_model` -- a perfect estimator's model;
@@ -20,8 +21,18 @@ recordings (``propose``).
 
 from .baselines import BaselineStep, finite_difference_baseline
 from .export import gait_table, write_gait
-from .loop import LoopResult, LoopSettings, Round, circle_gait, improve, true_objective
+from .loop import (
+    LoopResult,
+    LoopSettings,
+    Round,
+    circle_gait,
+    excitation_gait,
+    improve,
+    true_objective,
+    true_score,
+)
 from .measure import CycleMeasurement, measure_cycles
+from .pooled import GaitRecording, PooledConnection, gait_recording
 from .propose import (
     OBJECTIVES,
     Proposal,
@@ -35,6 +46,7 @@ from .truth import Ceiling, ceiling, exact_local_model
 __all__ = [
     "OBJECTIVES", "TrustRegion", "Proposal", "propose_gait", "objective_value",
     "LoopSettings", "Round", "LoopResult", "improve", "circle_gait", "true_objective",
+    "true_score", "excitation_gait", "PooledConnection", "GaitRecording", "gait_recording",
     "CycleMeasurement", "measure_cycles", "Ceiling", "ceiling", "exact_local_model", "check_trust_region",
     "finite_difference_baseline", "BaselineStep", "gait_table", "write_gait",
 ]

@@ -38,12 +38,14 @@ from ..cli.conversion import (
     warn_unused_conversion,
 )
 from ..io.trajectory_files import read_csv
+from ..physics.gaits.gait import FourierGait
 from ..physics.systems import NLinkSwimmer
-from ..regression.estimator import estimator_from_settings
+from ..regression.defaults import pooled_estimator
 from ..report import Report
 from .export import write_gait
-from .loop import LoopSettings, circle_gait, improve
+from .loop import LOOP_OBJECTIVES, MIN_CYCLES, LoopSettings, circle_gait, improve
 from .measure import measure_cycles
+from .pooled import PooledConnection, aligned_recording
 from .propose import OBJECTIVES, TrustRegion, propose_gait
 
 PROG = "torchconn-improve"
@@ -61,10 +63,17 @@ def _simulate(args, folder: OutputFolder) -> int:
     say = informer(args.quiet)
 
     def report(r):
-        say(f"round {r.index}: {r.cycles_used} cycles, observed {r.observed:.4f} ± "
-            f"{r.observed_se:.4f} (true {r.true:.4f}){'' if r.accepted else ' rejected'}; "
-            f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, "
-            f"{r.predicted_high:.4f}], realised {r.realised:.4f}", flush=True)
+        what = {"start": "the start gait", "proposal": "the proposal",
+                "repeat": "the kept gait again",
+                "excited": f"the kept gait perturbed by {r.excitation:.3f} rad (excitation: "
+                           "the model's ∂A/∂r is not yet known well enough to step)"}[r.kind]
+        verdict = "" if r.accepted else " -- worse than the kept gait, rejected"
+        step = (f"moving to a proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, "
+                f"{r.predicted_high:.4f}] (true {r.realised:.4f})" if r.moved else
+                "the gain's interval includes 0: recording again")
+        say(f"recording {r.index} ({r.cycles_used} cycles so far): {what}, observed "
+            f"{r.observed:.4f} ± {r.observed_se:.4f} (true {r.true:.4f}){verdict}; {step}",
+            flush=True)
 
     out = folder.path
     result = improve(system, start, settings, progress=report)
@@ -76,6 +85,7 @@ def _simulate(args, folder: OutputFolder) -> int:
         "settings": dataclasses.asdict(settings), "start_true": result.start_true,
         "coverage": result.coverage, "rounds": rows,
     })
+    write_gait(result.rounds[-1].kept, out / "best_gait")
     write_gait(result.rounds[-1].proposal, out / "next_gait")
     figures = {}
     if not args.no_figures:
@@ -91,8 +101,10 @@ def _simulate(args, folder: OutputFolder) -> int:
     for name, (png, _) in figures.items():
         write_bytes_atomic(out / name, png)
     out = folder.commit()
-    say(f"start {result.start_true:.4f} -> last proposal {result.rounds[-1].realised:.4f}; "
-        f"intervals covered {result.coverage:.0%}; wrote {out}")
+    last = result.rounds[-1]
+    say(f"start {result.start_true:.4f} -> kept gait {last.kept_true:.4f} after "
+        f"{last.cycles_used} cycles; intervals of the proposals moved to covered "
+        f"{result.coverage:.0%}; wrote {out}")
     return 0
 
 
@@ -107,11 +119,21 @@ def _propose(args, folder: OutputFolder) -> int:
     rec = load_recordings(args.data, fmt=args.format, n_links=args.links, settings=conv,
                           read_csv=read_csv)
     warn_unused_conversion(rec, args.conversion_flags)
+    if args.earlier and args.objective == "efficiency":
+        raise InputError("--objective efficiency needs the metric, which the pooled model of "
+                         "--earlier recordings does not estimate: propose from the current "
+                         "recordings alone, or use --objective displacement or turning")
+    # one recording (one gait) per --earlier file, all read before any fitting
+    earlier = {path: load_recordings([path], fmt=args.format, n_links=args.links,
+                                     settings=conv, read_csv=read_csv).trajectory
+               for path in args.earlier}
     traj = rec.trajectory.to(args.device)  # moved once
+    est = pooled_estimator()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        # the loop's estimator (pooled, noise-aware regression)
-        model = estimator_from_settings(LoopSettings().estimator).fit(traj).model_
+        model = est.fit(traj).model_
+    if earlier:
+        model = _pooled_model(args, est, earlier)
     prop = propose_gait(model, args.objective, TrustRegion(scale=args.scale))
     meas, meas_se = measure_cycles(traj, period=2 * math.pi / float(model.phase_rate))\
         .objective(args.objective)
@@ -140,6 +162,27 @@ def _propose(args, folder: OutputFolder) -> int:
     return 0
 
 
+def _pooled_model(args, est, earlier: dict):
+    """The model around the current recordings' cycle from them and every ``--earlier``
+    recording (``{path: trajectory}``, one gait per file), each weighted by its distance from
+    the current gait (:class:`~torchconn.improve.pooled.PooledConnection`)."""
+    model = est.model_
+    pool = PooledConnection(length=args.pool_length, phase_rate=float(model.phase_rate))
+    pool.add(aligned_recording(est.trajectory_, model.gamma))
+    for path, traj in earlier.items():
+        try:
+            prepared = est.prepare(traj.to(args.device))
+            pool.add(aligned_recording(prepared, model.gamma))
+        except ValueError as err:
+            raise InputError(f"--earlier {path}: {err}") from None
+    try:
+        return pool.model(FourierGait(model.gamma.coeffs))
+    except ValueError as err:
+        raise InputError(f"the recordings near the current gait are too few for one pooled "
+                         f"model ({err}); record more cycles of the current gait, or widen "
+                         f"--pool-length") from None
+
+
 def _proposal_report(args, summary: dict) -> Report:
     """``propose``'s report: the current gait as recorded and as the model predicts it, and
     the proposal's predicted gain with its interval, in plain words."""
@@ -162,8 +205,9 @@ def _proposal_report(args, summary: dict) -> Report:
         f"radius {summary['trust_radius_rad']:.3g} rad around the recorded gait",
     ])
     report.section("What to do next", [
-        "Record the proposed gait for several cycles, then run propose again on all the "
-        "recordings: the model then also knows the new gait."
+        "Record the proposed gait for a few cycles, then run propose again with the new "
+        "recordings as the current ones and these (and any earlier ones) after --earlier: "
+        "one model then holds every gait recorded."
         + (" The interval includes no gain: record more cycles of the current gait first."
            if lo <= 0 else "")])
     return report
@@ -173,13 +217,19 @@ def _simulation_report(args, result, figures: dict) -> Report:
     """``simulate``'s report: each round's recorded and predicted objective, and the
     figures (file name -> (PNG bytes, caption))."""
     report = Report(f"{PROG} simulate: {args.links}-link swimmer, {args.objective}")
+    last = result.rounds[-1]
+    moved = [r for r in result.rounds if r.moved]
     report.section("Outcome", [
-        f"start {result.start_true:.4g}, last proposal {result.rounds[-1].realised:.4g} "
-        f"(true values of the simulator, per cycle)",
-        f"the proposals' 95 % intervals covered the realised value in "
-        f"{result.coverage:.0%} of rounds"])
-    report.table("Rounds", ["round", "cycles used", "observed", "predicted", "realised"],
-                 [[r.index, r.cycles_used, f"{r.observed:.4g} ± {r.observed_se:.2g}",
+        f"start {result.start_true:.4g}, kept gait after {last.cycles_used} recorded cycles "
+        f"{last.kept_true:.4g} (true values of the simulator, per cycle, less the turning and "
+        "joint-limit penalties)",
+        f"the loop moved to {len(moved)} proposals; their 95 % intervals held the realised "
+        f"value for {sum(r.covered for r in moved)} of them"])
+    report.table("Recordings", ["recording", "cycles so far", "recorded", "observed",
+                                "next", "predicted", "realised"],
+                 [[r.index, r.cycles_used, r.kind + ("" if r.accepted else " (rejected)"),
+                   f"{r.observed:.4g} ± {r.observed_se:.2g}",
+                   "proposal" if r.moved else "record again",
                    f"{r.predicted:.4g} [{r.predicted_low:.4g}, {r.predicted_high:.4g}]",
                    f"{r.realised:.4g}"] for r in result.rounds])
     for name, (png, caption) in figures.items():
@@ -189,17 +239,17 @@ def _simulation_report(args, result, figures: dict) -> Report:
 
 #: the trust radius (tube radii) the loop may adapt within (LoopSettings.min_scale, max_scale)
 _SCALES = (LoopSettings.min_scale, LoopSettings.max_scale)
-#: recorded cycles per trial: more than the loop's phase estimator needs (its min_cycles)
-_MIN_CYCLES = math.floor(estimator_from_settings(LoopSettings().estimator).phaser.min_cycles) + 1
 
 
 def _check_flags(args) -> None:
     """Every flag's type and range, before any work (:class:`InputError` naming the flag)."""
     checks = [("--links", args.links, int, {"ge": 3}), ("--scale", args.scale, float, {"gt": 0})]
+    if args.command == "propose":
+        checks.append(("--pool-length", args.pool_length, float, {"gt": 0}))
     if args.command == "simulate":
         checks += [("--rounds", args.rounds, int, {"ge": 1}),
                    ("--trials", args.trials, int, {"ge": 1}),
-                   ("--cycles", args.cycles, int, {"ge": _MIN_CYCLES}),
+                   ("--cycles", args.cycles, int, {"ge": MIN_CYCLES}),
                    ("--radius", args.radius, float, {"gt": 0}),
                    ("--omega", args.omega, float, {"ge": 0}),
                    ("--seed", args.seed, int, {"ge": 0})]
@@ -226,22 +276,35 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="command", required=True)
     sim = sub.add_parser("simulate", help="run the loop on the N-link swimmer simulator")
     sim.add_argument("--links", type=int, default=3)
-    sim.add_argument("--rounds", type=int, default=8)
-    sim.add_argument("--trials", type=int, default=4)
-    sim.add_argument("--cycles", type=int, default=20)
+    defaults = LoopSettings()
+    sim.add_argument("--rounds", type=int, default=defaults.rounds,
+                     help="recordings (each of --trials x --cycles cycles of one gait)")
+    sim.add_argument("--trials", type=int, default=defaults.trials)
+    sim.add_argument("--cycles", type=int, default=defaults.cycles,
+                     help=f"cycles per trial and recording (at least {MIN_CYCLES})")
     sim.add_argument("--radius", type=float, default=0.5, help="start circle radius (rad)")
     sim.add_argument("--omega", type=float, default=0.0, help="observation noise")
     sim.add_argument("--seed", type=int, default=0)
     rec = sub.add_parser("propose", help="the next gait to try, from recordings")
     rec.add_argument("data", nargs="+", type=Path,
-                     help="trajectory CSV files, or tracking files (converted as by "
-                     "torchconn-convert, same options but --frame, always center, and --scale, "
-                     "the trust radius here: the body length is the median chain length)")
+                     help="recordings of the current gait: trajectory CSV files, or tracking "
+                     "files (converted as by torchconn-convert, same options but --frame, "
+                     "always center, and --scale, the trust radius here: the body length is the "
+                     "median chain length)")
+    rec.add_argument("--earlier", nargs="+", type=Path, action="extend", default=[],
+                     metavar="FILE",
+                     help="recordings of earlier gaits (earlier rounds), one gait per file: "
+                     "pooled into one model with the current recordings, each weighted by its "
+                     "distance from the current gait")
+    rec.add_argument("--pool-length", type=float, default=defaults.pool_length,
+                     help="with --earlier: a recording D rad (rms) from the current gait is "
+                     "weighted exp(-(D/L)^2/2) (default %(default)s rad)")
     add_links(rec)
     # the loop's swimmer is in the center frame; --scale is the trust radius here
     add_conversion_arguments(rec, frame=False, scale=False)
     for q in (sim, rec):
-        q.add_argument("--objective", choices=OBJECTIVES, default="displacement")
+        q.add_argument("--objective", default="displacement",
+                       choices=OBJECTIVES if q is rec else LOOP_OBJECTIVES)
         q.add_argument("--scale", type=float, default=3.0, help="trust radius in tube radii")
         q.add_argument("--out", type=Path, required=True)
         add_common(q, version=False, figures=q is sim)  # propose writes none: a no-op

@@ -1,24 +1,30 @@
-"""The loop on a simulator: record → fit → propose → record the proposal → …
+"""The loop on a simulator: record a few cycles → model → propose → record the proposal → …
 
-Every round records ``trials × cycles`` of the current gait with the paper's SDE (α, η) and the
-observation model (ω), estimates its objective from the recordings alone, fits a pooled local
-model and proposes the next gait (:func:`~torchconn.improve.propose.propose_gait`). The
-proposal's predicted objective is the *observed* objective of the current gait plus the model's
-predicted gain (the model's errors common to both gaits cancel in the gain), less the model's
-over-prediction, which grows with the step and is learned from the steps taken; the interval
-holds both standard errors and that over-prediction's spread. The trust region
-adapts: it grows when a step's observed gain is near the predicted one, shrinks when far below,
-and a proposal whose recording scores worse than its start by more than the noise is
-rejected -- the loop returns to the previous gait and proposes again with half the radius.
-The simulator's exact objective of every gait (:func:`torchconn.physics.gaits.evaluate`) is
-recorded for judging, never used by the loop.
+Every step records ``trials × cycles`` of one commanded gait with the paper's SDE (α, η) and the
+observation model (ω), phased by the gait clock the loop commands. The model is one regression
+over *every* recording so far, weighted by each recording's distance from the current gait
+(:class:`~torchconn.improve.pooled.PooledConnection`): the tube widens as the loop moves and a
+new recording of the current gait is an online update of the sums. After every recording the
+loop proposes (:func:`~torchconn.improve.propose.propose_gait`) and moves to the proposal only
+when the prediction interval of its gain excludes zero; otherwise it records the current gait
+again, perturbed along the shape directions where ``∂Â/∂r`` is least known (deliberate
+excitation, within the trust radius).
+
+A proposal's predicted objective is the *observed* objective of the current gait plus the
+model's gain, less the over-prediction learnt from the steps taken (it grows as the step²); the
+interval holds both standard errors and that over-prediction's spread. The trust region adapts:
+it grows when a step's observed gain is near the predicted one, shrinks when far below, and a
+proposal whose recording scores worse than its start, or turns more than the turning limit, by
+more than the noise is rejected -- the loop keeps the previous gait (the rejected recording
+stays in the pooled data) and proposes again with a smaller radius. The simulator's exact
+objective of every gait (:func:`torchconn.physics.gaits.evaluate`) is recorded for judging,
+never used by the loop.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,18 +32,28 @@ import torch
 
 from .._checks import check_value
 from .._cli import resolve_device
+from ..phase.fourier import fit_fourier
 from ..physics.gaits.evaluate import evaluate
 from ..physics.gaits.gait import FourierGait, as_gait
 from ..physics.systems.base import LocomotionSystem
-from ..regression.defaults import POOLED
-from ..regression.estimator import estimator_from_settings
 from ..regression.gait_prediction import normal_quantile
+from ..regression.model import LocalConnectionModel
 from ..simulation import observe, simulate
+from ..trajectory import Trajectory
 from .measure import measure_cycles
-from .propose import OBJECTIVES, TrustRegion, objective_value, propose_gait
+from .pooled import PooledConnection, gait_recording
+from .propose import OBJECTIVES, TrustRegion, objective_value, penalised_objective, propose_gait
 
 __all__ = ["LoopSettings", "Round", "LoopResult", "improve", "circle_gait", "true_objective",
-           "gait_order"]
+           "gait_order", "excitation_gait", "true_score", "MIN_CYCLES", "LOOP_OBJECTIVES"]
+
+#: the objectives the loop can improve (efficiency needs the metric, which its pooled model
+#: does not estimate)
+LOOP_OBJECTIVES = ("displacement", "turning")
+#: the fewest cycles a recording may hold: two whole periods to measure its objective
+MIN_CYCLES = 3
+#: the trust radii a step is chosen from, as fractions of the current one
+_STEP_FRACTIONS = (1.0, 0.5, 0.25)
 
 
 def circle_gait(shape_dim: int, radius: float = 0.5, direction: int = -1) -> FourierGait:
@@ -74,37 +90,43 @@ class LoopSettings:
     """Settings of :func:`improve`.
 
     Attributes:
-        rounds: K rounds (each records one gait, then proposes the next).
-        trials, cycles: recordings per round (``trials × cycles`` recorded cycles).
+        rounds: K recordings (each records one gait, then proposes).
+        trials, cycles: one recording is ``trials × cycles`` cycles of one gait (``cycles ≥ 3``:
+            two whole periods to measure).
         eta, alpha: the shape SDE (the paper's η = 0.025, α = 0.05).
         omega: observation noise on every recorded pose and joint sample.
         objective: see :data:`~torchconn.improve.propose.OBJECTIVES`.
-        trust_region: the first round's trust region; ``scale`` then adapts.
+        trust_region: the first proposal's trust region; ``scale`` then adapts.
         grow, shrink, good_ratio, poor_ratio, max_scale, min_scale: trust-radius adaptation
             (in tube radii): the radius grows when the observed gain of a step is more than
             ``good_ratio`` of the predicted one, shrinks below ``poor_ratio`` or when the
             recording scores worse than its start by more than the noise (rejected).
         truncation, truncation_spread: prior mean and spread of the model's over-prediction
             of a gain per rad of step, in units of the first proposal's predicted gain (so the
-            first step's prior is ``truncation × step × gain``; default 0.5 per rad). The
-            over-prediction grows with the step: as step² from the
-            first-order model's truncation, as the step from its errors in ``∂Â/∂r``, which
-            the ascent follows (the optimiser's curse: largest near an optimum, where the true
-            gain vanishes and the predicted one does not). Every informative step
-            (predicted gain above twice the noise of the observed gains) adds its own
+            first step's prior is ``truncation × step × gain``). The over-prediction grows with
+            the step: as step² from the first-order model's truncation, as the step from its
+            errors in ``∂Â/∂r``, which the ascent follows. Every informative step (predicted
+            gain above twice the noise of the observed gains) adds its own
             ``(predicted − observed gain) / step``, each prior counting as one step; the mean
             corrects the next predicted gain, the spread widens its interval.
-        level: central level of the prediction intervals.
-        estimator: the estimator's settings table (:func:`estimator_from_settings`) for the
-            pooled fit each round (default: the noise-aware regression).
-        seed: root seed (per-round seeds from ``numpy.random.SeedSequence``).
+        level: central level of the prediction intervals; the loop moves to a proposal when
+            the interval of its gain lies above zero.
+        pool_length: ``ℓ`` (rad) of the pooled model: a recording ``D`` rad (rms) from the
+            current gait is weighted ``exp(−½ (D/ℓ)²)``
+            (:class:`~torchconn.improve.pooled.PooledConnection`); None weights all alike.
+        excitation: where a proposal's gain interval includes zero, the next recording of
+            the current gait is perturbed by a first harmonic of peak ``excitation ×
+            trust_region.scale`` tube radii (rad; the first trust radius, however far the
+            radius has shrunk since) along the joints where ``∂Â/∂r`` is least known; 0: no
+            perturbation.
+        seed: root seed (per-recording seeds from ``numpy.random.SeedSequence``).
         device: where the recordings are simulated and the models fitted (``cpu``, ``cuda``,
             ``cuda:N``); CPU and CUDA draw different random numbers from the same seed.
     """
 
-    rounds: int = 8
-    trials: int = 4
-    cycles: int = 20
+    rounds: int = 15
+    trials: int = 1
+    cycles: int = 3
     eta: float = 0.025
     alpha: float = 0.05
     omega: float = 0.0
@@ -119,8 +141,8 @@ class LoopSettings:
     truncation: float = 0.5
     truncation_spread: float = 1.0
     level: float = 0.95
-    estimator: dict = field(default_factory=lambda: {**POOLED,
-                                                      "regression": {"method": "noise_aware"}})
+    pool_length: float | None = 0.5
+    excitation: float = 0.5
     seed: int = 0
     device: str = "cpu"
 
@@ -130,12 +152,17 @@ class LoopSettings:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"LoopSettings.{name} must be a positive integer, got {value!r}")
+        if self.cycles < MIN_CYCLES:
+            raise ValueError(f"LoopSettings.cycles must be at least {MIN_CYCLES} (two whole "
+                             f"periods to measure a gait), got {self.cycles!r}")
         for name, bounds in (("eta", {"ge": 0}), ("alpha", {"gt": 0}), ("omega", {"ge": 0}),
                              ("grow", {"ge": 1}), ("shrink", {"gt": 0, "le": 1}),
                              ("good_ratio", {}), ("poor_ratio", {}), ("max_scale", {"gt": 0}),
                              ("min_scale", {"gt": 0}), ("truncation", {"ge": 0}),
-                             ("truncation_spread", {"ge": 0}), ("level", {"gt": 0})):
+                             ("truncation_spread", {"ge": 0}), ("level", {"gt": 0}),
+                             ("excitation", {"ge": 0, "le": 1})):
             check_value(f"LoopSettings.{name}", getattr(self, name), float, bounds)
+        check_value("LoopSettings.pool_length", self.pool_length, float | None, {"gt": 0})
         if not self.level < 1:
             raise ValueError(f"LoopSettings.level must be < 1, got {self.level!r}")
         if not self.poor_ratio <= self.good_ratio:
@@ -145,55 +172,73 @@ class LoopSettings:
         if self.objective not in OBJECTIVES:
             raise ValueError(f"LoopSettings.objective must be one of {', '.join(OBJECTIVES)}, "
                              f"got {self.objective!r}")
+        if self.objective not in LOOP_OBJECTIVES:
+            raise ValueError("LoopSettings.objective 'efficiency' needs the metric, which the "
+                             "loop's pooled model does not estimate: use 'displacement' or "
+                             "'turning' (torchconn-improve propose fits the metric from "
+                             "recordings with a power column)")
         if not isinstance(self.trust_region, TrustRegion):
             raise TypeError(f"LoopSettings.trust_region must be a TrustRegion, got "
                             f"{type(self.trust_region).__name__}")
-        if not estimator_from_settings(self.estimator, where="LoopSettings.estimator").pool:
-            raise ValueError("LoopSettings.estimator must pool the trials (pool=True): a "
-                             "proposal needs one model")
         if not (0 < self.min_scale <= self.trust_region.scale <= self.max_scale):
             raise ValueError("need min_scale <= trust_region.scale <= max_scale")
 
 
-def gait_order(settings: LoopSettings) -> int:
-    """The Fourier order per joint of the loop's proposals under ``settings``: the fitted
-    cycle's order (the estimator's ``cycle.order``) or the change's (``trust_region.order``),
-    whichever is higher -- a proposal is the fitted cycle plus the change."""
-    cycle = estimator_from_settings(settings.estimator, where="LoopSettings.estimator").cycle
-    return max(int(cycle.order), settings.trust_region.order)
+def gait_order(settings: LoopSettings, start=None) -> int:
+    """The Fourier order per joint of the loop's gaits under ``settings``: every proposal is
+    the current gait plus a change of order ``trust_region.order``, so the start gait's order
+    (``start``, a :class:`FourierGait`; None: a circle, order 1) or the change's, whichever is
+    higher."""
+    own = 1 if start is None else getattr(as_gait(start), "order", 1)
+    return max(own, settings.trust_region.order)
 
 
 @dataclass(frozen=True)
 class Round:
-    """One round of the loop.
+    """One recording of the loop, and the proposal made after it.
 
     Attributes:
-        index: round number (0 records the start gait).
-        cycles_used: recorded cycles so far, this round's included.
-        gait: the gait recorded this round.
-        observed, observed_se: its objective estimated from the recordings, and its standard
-            error.
-        true: its exact objective (simulator, for judging only).
-        accepted: False when the recording scored worse than the gait it was proposed from
-            (by more than the noise); the loop then proposed again from that gait.
-        scale: trust radius (tube radii) used for this round's proposal.
-        step: the proposal's largest change ``max_φ |Δ|`` from the fitted cycle (rad).
-        proposal: the gait proposed from this round's base gait.
+        index: recording number (0 records the start gait).
+        kind: what was recorded: ``"start"``, ``"proposal"`` (the previous step's proposal),
+            ``"repeat"`` (the current gait again) or ``"excited"`` (the current gait perturbed).
+        cycles: cycles recorded in this step; cycles_used: recorded cycles so far, this
+            step's included.
+        gait: the gait recorded this step (perturbation included).
+        excitation: the perturbation's peak ``max_φ |ε(φ)|`` (rad; 0: none).
+        observed, observed_se: the recorded gait's objective estimated from this recording,
+            and its standard error.
+        true: the recorded gait's exact, penalised objective (:func:`true_score`; for
+            judging only).
+        accepted: for a proposal: False when its recording scored worse than the gait it was
+            proposed from, or turned more than the trust region's ``max_turn`` per cycle (by
+            more than the noise); the loop then kept that gait.
+        kept, kept_true: the gait the loop keeps after this step (its best so far: the
+            start, an accepted proposal, or a perturbed recording that scored better than the
+            kept gait by more than the noise) and its exact objective.
+        scale: trust radius (tube radii) used for this step's proposal.
+        step: the proposal's largest change ``max_φ |Δ|`` from the kept gait (rad).
+        proposal: the gait proposed from the kept gait.
         predicted, predicted_low, predicted_high: the proposal's predicted objective (observed
-            base + model gain) and interval.
+            kept gait + corrected gain) and interval.
         model_predicted: the model's own prediction of the proposal's objective.
-        gain, gain_se: the model's predicted gain (selection-bias corrected, before the
-            truncation correction) and its standard error.
+        gain, gain_se: the model's predicted gain (before the over-prediction correction) and
+            its standard error; gain_low: the lower end of the corrected gain's interval.
+        moved: the proposal is recorded next (its gain interval lies above zero).
         realised: the proposal's exact objective (simulator).
     """
 
     index: int
+    kind: str
+    cycles: int
     cycles_used: int
     gait: FourierGait
+    excitation: float
     observed: float
     observed_se: float
     true: float
     accepted: bool
+    kept: FourierGait
+    kept_true: float
     scale: float
     step: float
     proposal: FourierGait
@@ -203,6 +248,8 @@ class Round:
     model_predicted: float
     gain: float
     gain_se: float
+    gain_low: float
+    moved: bool
     realised: float
 
     @property
@@ -212,12 +259,12 @@ class Round:
     def as_row(self) -> dict:
         """The JSON/CSV row (no gaits)."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                if f.name not in ("gait", "proposal")} | {"covered": self.covered}
+                if f.name not in ("gait", "proposal", "kept")} | {"covered": self.covered}
 
 
 @dataclass(frozen=True)
 class LoopResult:
-    """The rounds of one loop, the start gait's exact objective and the best accepted gait."""
+    """The recordings of one loop, the start gait's exact objective and the best kept gait."""
 
     rounds: tuple[Round, ...]
     start_true: float
@@ -225,11 +272,15 @@ class LoopResult:
 
     @property
     def best(self) -> Round:
-        return max((r for r in self.rounds if r.accepted), key=lambda r: r.observed)
+        """The last step: its kept gait is the loop's best."""
+        return self.rounds[-1]
 
     @property
     def coverage(self) -> float:
-        return float(np.mean([r.covered for r in self.rounds]))
+        """The share of the proposals the loop moved to whose interval held the realised
+        objective (NaN when it never moved)."""
+        moved = [r.covered for r in self.rounds if r.moved]
+        return float(np.mean(moved)) if moved else math.nan
 
 
 def _record(system, gait, s: LoopSettings, seed: np.random.SeedSequence):
@@ -242,74 +293,192 @@ def _record(system, gait, s: LoopSettings, seed: np.random.SeedSequence):
     return traj
 
 
+def excitation_gait(model: LocalConnectionModel, gait: FourierGait, peak: float,
+                    seed: int, *, shape_bound: float | None = None) -> FourierGait:
+    """``gait`` plus a first harmonic ``ε(φ) = u cos φ + v sin φ`` of peak ``max_φ |ε| = peak``
+    (rad): ``u, v`` random, scaled per joint ``j`` by the standard error of ``∂Â/∂r`` along
+    ``r_j`` (root-sum-square over bins and entries), so the joints whose derivative is least
+    known move most. With ``shape_bound``, the perturbation is shrunk (halved up to 20 times)
+    until every shape keeps ``|r| ≤ shape_bound``; ``gait`` itself when none does."""
+    d = gait.shape_dim
+    se = model.bins.dA_se.square().sum((-4, -3, -2)).sqrt()  # (d,): along r_j
+    kw = dict(dtype=gait.coeffs.dtype, device=gait.coeffs.device)
+    gen = torch.Generator(device=gait.coeffs.device).manual_seed(seed)
+    uv = torch.randn(2, d, generator=gen, **kw) * torch.nan_to_num(se, nan=1.0).to(**kw)
+    phi = torch.arange(256, **kw) * (2 * math.pi / 256)
+    wave = torch.cos(phi)[:, None] * uv[0] + torch.sin(phi)[:, None] * uv[1]
+    uv = uv * (peak / float(torch.linalg.vector_norm(wave, dim=-1).amax()))
+    for _ in range(20):
+        coeffs = gait.coeffs.detach().clone()
+        coeffs[1:3] += uv
+        out = FourierGait(coeffs)
+        if shape_bound is None or _peak_shape(out) <= shape_bound:
+            return out
+        uv = uv / 2
+    return gait
+
+
+def _peak_shape(gait) -> float:
+    """``max_φ |r(φ)|`` of ``gait`` at 256 phases (rad)."""
+    phi = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
+    phi = phi.to(getattr(gait, "coeffs", phi).device)
+    return float(torch.linalg.vector_norm(gait(phi), dim=-1).amax())
+
+
 def improve(system: LocomotionSystem, start, settings: LoopSettings | None = None,
             *, progress=None) -> LoopResult:
     """Run the improvement loop on a simulator from the ``start`` gait.
 
     Args:
         system: the simulator (e.g. ``NLinkSwimmer(3)``).
-        start: the start gait (gait object or callable ``φ -> r``).
+        start: the start gait (gait object or callable ``φ -> r``; a callable is sampled into a
+            Fourier gait of the loop's order).
         settings: :class:`LoopSettings`.
-        progress: optional callable ``(Round) -> None`` called after each round.
+        progress: optional callable ``(Round) -> None`` called after each recording.
     """
     s = LoopSettings() if settings is None else settings
-    start = as_gait(start)
+    start = _as_fourier(start, gait_order(s))
     if start.shape_dim != system.shape_dim:
         raise ValueError(f"start gait has {start.shape_dim} joints, the system {system.shape_dim}")
     seeds = np.random.SeedSequence(s.seed).spawn(s.rounds)
     z = normal_quantile(s.level)
     scale = s.trust_region.scale
-    gait, rounds, base, errors, first_gain = start, [], None, [], None
+    pool = PooledConnection(length=s.pool_length)
+    rounds, errors, first_gain = [], [], None
+    kept = None  # the kept gait: gait, observed, observed_se, true, and its last proposal
+    gait, kind, excitation = start, "start", 0.0
     for k in range(s.rounds):
         traj = _record(system, gait, s, seeds[k])
-        meas, meas_se = measure_cycles(traj).objective(s.objective)
+        pool.add(gait_recording(traj, gait, s.trials * s.cycles))
+        measured = measure_cycles(traj)
+        meas, meas_se = measured.objective(s.objective)
+        true = true_score(system, gait, s)
+        within = _within_limits(gait, measured, s, z)
         accepted = True
-        if base is not None:
+        if kind == "proposal":
             # the trust-region test: observed against predicted gain, both from data
-            predicted_gain, observed_gain = base["gain"], meas - base["observed"]
+            predicted_gain, observed_gain = kept["gain"], meas - kept["observed"]
             ratio = observed_gain / predicted_gain if predicted_gain > 0 else 0.0
-            if meas < base["observed"] - z * math.hypot(meas_se, base["observed_se"]):
-                accepted = False
-            noise = math.hypot(meas_se, base["observed_se"])
-            if predicted_gain > 2 * noise and base["step"] > 0:
-                # an informative step (its gain stands out of the measurement noise): its
-                # over-prediction per rad of step
-                errors.append((predicted_gain - observed_gain) / base["step"])
+            noise = math.hypot(meas_se, kept["observed_se"])
+            accepted = within and meas >= kept["observed"] - z * noise
+            if accepted and predicted_gain > 2 * noise and kept["step"] > 0:
+                # an informative step (its gain stands out of the measurement noise, and
+                # within the constraints): its over-prediction per rad² of step
+                errors.append((predicted_gain - observed_gain) / kept["step"] ** 2)
             if not accepted or ratio < s.poor_ratio:
                 scale = max(scale * s.shrink, s.min_scale)
             elif ratio > s.good_ratio:
                 scale = min(scale * s.grow, s.max_scale)
-        if accepted:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # e.g. no power channel: metric not estimated
-                model = estimator_from_settings(s.estimator).fit(traj).model_
-            base = {"model": model, "observed": meas, "observed_se": meas_se, "gait": gait}
-        tr = dataclasses.replace(s.trust_region, scale=scale)
-        prop = propose_gait(base["model"], s.objective, tr, seed=k)
-        # The over-prediction grows with the step: learned per rad of step, each prior
-        # (scaled by the first proposal's gain) worth one step taken.
+        # an excited recording that scores better than the kept gait by more than the noise
+        # is kept: the perturbation found a better gait
+        better = kind == "excited" and within and meas > kept["observed"] + z * math.hypot(
+            meas_se, kept["observed_se"])
+        if (kind in ("start", "proposal") and accepted) or better:
+            kept = {"gait": gait, "observed": meas, "observed_se": meas_se, "true": true,
+                    "traj": [traj]}
+        elif kind == "repeat":
+            kept["traj"].append(traj)
+            kept["observed"], kept["observed_se"] = measure_cycles(
+                _stack_trials(kept["traj"])).objective(s.objective)
+        model = pool.model(kept["gait"])
+        candidates = [propose_gait(model, s.objective, dataclasses.replace(
+            s.trust_region, scale=scale * fraction), seed=k) for fraction in _STEP_FRACTIONS]
         if first_gain is None:
-            first_gain = abs(prop.gain)
+            first_gain = abs(candidates[0].gain)
+        # The over-prediction grows as the step squared (the first-order model's truncation):
+        # learned per rad² of step, the prior (scaled by the first proposal's gain) worth one
+        # step taken. The step is the one of the trust radius and two shorter ones whose
+        # corrected gain has the highest lower bound.
         n = 1 + len(errors)
         bias = (s.truncation * first_gain + sum(errors)) / n
         spread = math.sqrt(((s.truncation_spread * first_gain) ** 2
                             + sum((e - bias) ** 2 for e in errors)) / n)
-        gain = prop.gain - bias * prop.step
-        predicted = base["observed"] + gain
-        half = z * math.sqrt(base["observed_se"] ** 2 + prop.gain_se ** 2
-                             + (spread * prop.step) ** 2)
-        base.update(gain=prop.gain, step=prop.step)
+        best = None
+        for prop in candidates:
+            gain = prop.gain - bias * prop.step ** 2
+            gain_half = z * math.sqrt(prop.gain_se ** 2 + (spread * prop.step ** 2) ** 2)
+            if best is None or gain - gain_half > best[1] - best[2]:
+                best = (prop, gain, gain_half)
+        prop, gain, gain_half = best
+        predicted = kept["observed"] + gain
+        half = math.hypot(z * kept["observed_se"], gain_half)
+        moved = gain - gain_half > 0
+        kept.update(gain=prop.gain, step=prop.step)
         rnd = Round(
-            index=k, cycles_used=(k + 1) * s.trials * s.cycles, gait=gait, observed=meas,
-            observed_se=meas_se, true=true_objective(system, gait, s.objective),
-            accepted=accepted, scale=scale, step=prop.step, proposal=prop.gait,
-            predicted=predicted,
+            index=k, kind=kind, cycles=s.trials * s.cycles, cycles_used=pool.cycles, gait=gait,
+            excitation=excitation, observed=meas, observed_se=meas_se, true=true,
+            accepted=accepted, kept=kept["gait"], kept_true=kept["true"], scale=scale,
+            step=prop.step, proposal=prop.gait, predicted=predicted,
             predicted_low=predicted - half, predicted_high=predicted + half,
             model_predicted=prop.predicted, gain=prop.gain, gain_se=prop.gain_se,
-            realised=true_objective(system, prop.gait, s.objective),
+            gain_low=gain - gain_half, moved=moved,
+            realised=true_score(system, prop.gait, s),
         )
         rounds.append(rnd)
         if progress is not None:
             progress(rnd)
-        gait = prop.gait
-    return LoopResult(tuple(rounds), true_objective(system, start, s.objective), s)
+        if moved:
+            gait, kind, excitation = prop.gait, "proposal", 0.0
+        elif s.excitation > 0:
+            # the first trust radius of the current tube, however far the radius has shrunk
+            tube = sum(model.meta["tube_rms"]) / len(model.meta["tube_rms"])
+            peak = s.excitation * s.trust_region.scale * tube
+            gait = excitation_gait(model, kept["gait"], peak, seed=k,
+                                   shape_bound=s.trust_region.shape_bound)
+            excitation, kind = _peak_shape(_difference(gait, kept["gait"])), "excited"
+        else:
+            gait, kind, excitation = kept["gait"], "repeat", 0.0
+    return LoopResult(tuple(rounds), true_score(system, start, s), s)
+
+
+def true_score(system: LocomotionSystem, gait, settings: LoopSettings,
+               n_steps: int = 256) -> float:
+    """The simulator's exact objective of ``gait`` less the trust region's penalties
+    (:func:`~torchconn.improve.propose.penalised_objective`: turning beyond ``max_turn``,
+    shapes beyond ``shape_bound``, at 256 phases), as the ceiling scores its gaits; for
+    judging."""
+    m = evaluate(system, gait, n_steps)
+    value = objective_value(settings.objective, m.displacement, m.cost)
+    phi = torch.arange(256, dtype=value.dtype, device=value.device) * (2 * math.pi / 256)
+    return float(penalised_objective(value, m.displacement, as_gait(gait)(phi),
+                                     settings.objective, settings.trust_region))
+
+
+def _within_limits(gait, measured, s: LoopSettings, z: float) -> bool:
+    """False when ``gait`` leaves the trust region's ``shape_bound``, or its recordings turn
+    more than its ``max_turn`` per cycle by more than ``z`` standard errors (the turning limit
+    does not apply to the turning objective)."""
+    bound, limit = s.trust_region.shape_bound, s.trust_region.max_turn
+    if bound is not None and _peak_shape(gait) > bound * (1 + 1e-9):
+        return False
+    if limit is None or s.objective == "turning":
+        return True
+    return measured.turning - z * measured.turning_se <= limit
+
+
+def _difference(a: FourierGait, b: FourierGait) -> FourierGait:
+    """The gait ``a − b`` (coefficients padded to the higher order)."""
+    n = max(a.coeffs.shape[0], b.coeffs.shape[0])
+
+    def padded(c):
+        return torch.cat([c, c.new_zeros(n - c.shape[0], c.shape[1])])
+
+    return FourierGait(padded(a.coeffs) - padded(b.coeffs))
+
+
+def _as_fourier(gait, order: int) -> FourierGait:
+    """``gait`` as a :class:`FourierGait` (a callable sampled and fitted at ``order``)."""
+    gait = as_gait(gait)
+    if isinstance(gait, FourierGait):
+        return gait
+    phi = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
+    return FourierGait(fit_fourier(phi, gait(phi), order, value_ndim=1).coeffs)
+
+
+def _stack_trials(trajs: list[Trajectory]) -> Trajectory:
+    """Recordings of one length as the trials of one :class:`Trajectory` (poses, shapes,
+    power)."""
+    first = trajs[0]
+    power = None if first.power is None else torch.cat([t.power for t in trajs])
+    return Trajectory(t=first.t, pose=torch.cat([t.pose for t in trajs]),
+                      r=torch.cat([t.r for t in trajs]), power=power)

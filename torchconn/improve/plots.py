@@ -28,7 +28,7 @@ OBJECTIVE_LABELS = {"displacement": "displacement per cycle (BL)",
 @style.styled
 def plot_gaits(result: LoopResult, system: LocomotionSystem, *, ax=None,
                n_phase: int = 200) -> Figure:
-    """The recorded gaits of every round and the next proposal: over the x-curvature
+    """The recorded gaits of every recording and the next proposal: over the x-curvature
     ``DA_x`` (2 joints) or projected on the first two principal components of all their
     shapes (more joints). ``ax``: the Axes to draw into; None: a new figure."""
     phi = torch.linspace(0, 2 * math.pi, n_phase, dtype=torch.float64)
@@ -63,12 +63,14 @@ def plot_gaits(result: LoopResult, system: LocomotionSystem, *, ax=None,
         last = k == len(proj) - 1
         ax.plot(p[:, 0], p[:, 1], color=style.COLORS["recorded"] if last
                 else cmap(k / max(len(proj) - 1, 1)),
-                ls="--" if last else "-", lw=1.5, label="next proposal" if last else f"round {k}")
+                ls="--" if last else "-", lw=1.5,
+                label="next proposal" if last else f"{k}: {result.rounds[k].kind}")
     ax.set_aspect("equal")
     ax.legend(loc="upper right")
-    ax.set_title("Recorded gaits per round and the next proposal")
+    ax.set_title("Recorded gaits and the next proposal")
     return style.caption(fig, (
-        f"Each loop: one round's recorded gait (colour from first to last round) {where}; "
+        f"Each loop: one recording's gait (colour from first to last; start, proposal, "
+        f"repeat or perturbed: excited) {where}; "
         "dashed: the gait proposed next. Good: the loops move steadily towards higher "
         "objective and settle; a proposal far from every recorded loop is an extrapolation "
         "the trust region should have kept small."))
@@ -76,34 +78,39 @@ def plot_gaits(result: LoopResult, system: LocomotionSystem, *, ax=None,
 
 @style.styled
 def plot_rounds(result: LoopResult, *, ceiling: float | None = None, ax=None) -> Figure:
-    """Objective per round: observed and true of each recorded gait, predicted (interval) vs
-    realised of each proposal, and the ceiling with the true connection. ``ax``: the Axes to
-    draw into; None: a new figure."""
+    """Objective against recorded cycles: observed and true of each recording, the kept
+    gait's true value, predicted (interval) vs realised of each proposal the loop moved to,
+    and the ceiling with the true connection. ``ax``: the Axes to draw into; None: a new
+    figure."""
     rounds = result.rounds
-    k = [r.index for r in rounds]
+    c = [r.cycles_used for r in rounds]
     fig, ax = style.figure_and_axes(ax, (7, 4.4))
     colors = style.PALETTE
-    ax.errorbar(k, [r.observed for r in rounds], yerr=[1.96 * r.observed_se for r in rounds],
-                fmt="o-", color=colors["blue"], capsize=2,
-                label="recorded gait: observed ±95%")
-    ax.plot(k, [r.true for r in rounds], "s", mfc="none", color=colors["black"],
-            label="recorded gait: true (simulator)")
-    kp = [i + 1 for i in k]
-    pred = [r.predicted for r in rounds]
-    ax.errorbar(kp, pred, yerr=[[r.predicted - r.predicted_low for r in rounds],
-                                [r.predicted_high - r.predicted for r in rounds]],
-                fmt="^", color=colors["green"], capsize=3, label="proposal: predicted (95%)")
-    ax.plot(kp, [r.realised for r in rounds], "x", color=colors["vermillion"], ms=8,
-            label="proposal: realised (simulator)")
+    ax.errorbar(c, [r.observed for r in rounds], yerr=[1.96 * r.observed_se for r in rounds],
+                fmt="o", color=colors["blue"], capsize=2,
+                label="recording: observed ±95%")
+    ax.plot(c, [r.true for r in rounds], "s", mfc="none", color=colors["black"],
+            label="recording: true (simulator)")
+    ax.step(c, [r.kept_true for r in rounds], where="post", color=colors["black"], lw=1.2,
+            label="kept gait: true (simulator)")
+    moved = [(r, n + r.cycles) for r, n in zip(rounds, c, strict=True) if r.moved]
+    if moved:
+        ax.errorbar([n for _, n in moved], [r.predicted for r, _ in moved],
+                    yerr=[[r.predicted - r.predicted_low for r, _ in moved],
+                          [r.predicted_high - r.predicted for r, _ in moved]],
+                    fmt="^", color=colors["green"], capsize=3, label="proposal: predicted (95%)")
+        ax.plot([n for _, n in moved], [r.realised for r, _ in moved], "x",
+                color=colors["vermillion"], ms=8, label="proposal: realised (simulator)")
     if ceiling is not None:
         ax.axhline(ceiling, color="0.3", ls=":", label="optimiser, true connection")
     objective = result.settings.objective
-    ax.set_xlabel("round")
+    ax.set_xlabel("cycles recorded")
     ax.set_ylabel(OBJECTIVE_LABELS.get(objective, objective))
     ax.legend(loc="best")
-    ax.set_title(f"The {objective} per round")
+    ax.set_title(f"The {objective} against the cycles recorded")
     return style.caption(fig, (
-        "Per round: the recorded gait's objective from its cycles (with its 95% interval) and as "
-        "the simulator has it, and the proposal's predicted interval against what it "
-        "realised in the next round. Good: the realised value falls inside the predicted "
-        "interval and the recorded objective rises round by round towards the ceiling."))
+        "Per recording: its objective from its own cycles (with its 95% interval) and as the "
+        "simulator has it; the line is the true objective of the gait the loop keeps. Each "
+        "proposal the loop moved to: its predicted interval, at the cycles when it was "
+        "recorded, against what it realised. Good: the realised values fall inside the "
+        "predicted intervals and the kept gait rises towards the ceiling in few cycles."))

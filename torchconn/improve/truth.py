@@ -80,7 +80,7 @@ class Ceiling:
         displacement: its displacement per cycle ``(x, y, θ)``, ``(3,)``.
         peak: its largest shape ``max_φ |r(φ)|`` (rad).
         order: the family's Fourier order per joint.
-        values: the objective reached from each start circle, in the order tried.
+        values: the objective reached from each start, in the order tried.
         evaluations: objective evaluations over all starts.
     """
 
@@ -97,8 +97,10 @@ _CACHE: dict[tuple, Ceiling] = {}
 
 
 def ceiling(system: LocomotionSystem, objective: str = "displacement",
-            settings: LoopSettings | None = None, *, peaks: Sequence[float] = (0.5, 1.0, 2.0),
-            max_iter: int = 300, n_steps: int = 128) -> Ceiling:
+            settings: LoopSettings | None = None, *,
+            peaks: Sequence[float] = (0.5, 1.0, 2.0, 2.8), random_starts: int = 4,
+            starts: Sequence[FourierGait] = (), max_iter: int = 300,
+            n_steps: int = 128) -> Ceiling:
     """The best ``objective`` per cycle with the true connection, over the loop's own gaits.
 
     The family is that of :func:`~torchconn.improve.improve` under ``settings`` (default
@@ -107,14 +109,21 @@ def ceiling(system: LocomotionSystem, objective: str = "displacement",
     ``|r| ≤ shape_bound`` and turning limit ``max_turn``, penalised as the proposals are
     (:func:`~torchconn.improve.propose.penalised_objective`). The simulator's objective
     (:mod:`torchconn.physics.gaits.evaluate`, ``n_steps`` Magnus steps per cycle) is maximised by
-    L-BFGS (``max_iter`` evaluations per start) from the loop's start circles
-    (:func:`~torchconn.improve.circle_gait`, both directions) scaled to each peak ``|r|`` in
-    ``peaks`` (rad, at most 0.9 ``shape_bound``); the best by the penalised objective at 256 steps
-    is returned. Deterministic on one device and thread count; the result is cached per system
-    (its connection and metric at fixed shapes), objective and family.
+    L-BFGS (``max_iter`` evaluations per start) from several starts, and the best by the
+    penalised objective at 256 steps is returned. The objective has many local optima (gaits
+    with larger higher harmonics enclose more of the shape space), so the starts are: the
+    loop's start circles (:func:`~torchconn.improve.circle_gait`, both directions) scaled to
+    each peak ``|r|`` in ``peaks`` (rad, at most 0.9 ``shape_bound``); ``random_starts`` gaits
+    with random coefficients of every harmonic (a fixed generator), scaled to the largest peak;
+    and the gaits in ``starts`` (e.g. the gaits a loop kept, padded or cut to the family's
+    order). The value is a lower bound on the family's best. With ``starts=[start gait]``
+    alone (``peaks=()``, ``random_starts=0``) it is the optimum a local ascent with the true
+    connection reaches from where the loop starts. Deterministic on one device and
+    thread count; the result is cached per system (its connection and metric at fixed shapes),
+    objective, family and starts.
 
     Raises:
-        ValueError: an unknown objective, empty or non-positive ``peaks``.
+        ValueError: an unknown objective, non-positive ``peaks``, no start at all.
     """
     s = LoopSettings() if settings is None else settings
     if not isinstance(s, LoopSettings):
@@ -122,19 +131,61 @@ def ceiling(system: LocomotionSystem, objective: str = "displacement",
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
     peaks = tuple(float(p) for p in peaks)
-    if not peaks or not all(p > 0 for p in peaks):
+    if not all(p > 0 for p in peaks):
         raise ValueError(f"peaks must be positive shape radii (rad), got {peaks!r}")
+    if not isinstance(random_starts, int) or random_starts < 0:
+        raise ValueError(f"random_starts must be a non-negative integer, got {random_starts!r}")
+    if random_starts and not peaks:
+        raise ValueError("random_starts are scaled to the largest of peaks: give peaks too")
+    if not (peaks or starts):
+        raise ValueError("no start: give peaks (start circles) or starts (gaits)")
     tr, order = s.trust_region, gait_order(s)
+    extra = tuple(_in_family(as_gait(g), order, system.shape_dim) for g in starts)
     key = (_fingerprint(system), objective, order, tr.shape_bound, tr.max_turn, peaks,
-           max_iter, n_steps)
+           random_starts, tuple(g.numpy().tobytes() for g in extra), max_iter, n_steps)
     if key not in _CACHE:
-        _CACHE[key] = _ceiling(system, objective, s, order, peaks, max_iter, n_steps)
+        _CACHE[key] = _ceiling(system, objective, s, order,
+                               _starts(system.shape_dim, order, peaks, random_starts, tr) + extra,
+                               max_iter, n_steps)
     return _CACHE[key]
 
 
+def _in_family(gait: FourierGait, order: int, d: int) -> Tensor:
+    """The coefficients ``(2·order + 1, d)`` of ``gait`` padded with zeros or cut to ``order``."""
+    if not isinstance(gait, FourierGait) or gait.shape_dim != d:
+        raise ValueError(f"starts must be Fourier gaits of {d} joints")
+    coeffs = gait.coeffs.detach().to(dtype=torch.float64, device="cpu")[: 2 * order + 1]
+    return torch.cat([coeffs, coeffs.new_zeros(2 * order + 1 - coeffs.shape[0], d)])
+
+
+def _starts(d: int, order: int, peaks: tuple[float, ...], random_starts: int,
+            tr) -> tuple[Tensor, ...]:
+    """The optimiser's start coefficients ``(2·order + 1, d)``: circles of both directions at
+    each peak, then ``random_starts`` random gaits at the largest peak."""
+    grid = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
+    bound = math.inf if tr.shape_bound is None else 0.9 * tr.shape_bound
+    out = []
+
+    def scaled(coeffs: Tensor, peak: float) -> Tensor:
+        coeffs = coeffs.clone()
+        coeffs[0] = 0
+        size = float(torch.linalg.vector_norm(FourierGait(coeffs)(grid), dim=-1).amax())
+        return coeffs * (min(peak, bound) / size)
+
+    for peak in peaks:
+        for direction in (-1, 1):
+            out.append(_in_family(FourierGait(scaled(circle_gait(d, 1.0, direction).coeffs,
+                                                     peak)), order, d))
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(random_starts):
+        coeffs = torch.randn(2 * order + 1, d, generator=gen, dtype=torch.float64)
+        out.append(scaled(coeffs, max(peaks)))
+    return tuple(out)
+
+
 def _ceiling(system: LocomotionSystem, objective: str, s: LoopSettings, order: int,
-             peaks: tuple[float, ...], max_iter: int, n_steps: int) -> Ceiling:
-    tr, d = s.trust_region, system.shape_dim
+             starts: tuple[Tensor, ...], max_iter: int, n_steps: int) -> Ceiling:
+    tr = s.trust_region
     _, theta = gauss_phases(n_steps)
     theta = theta.reshape(-1)
     grid = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
@@ -150,19 +201,11 @@ def _ceiling(system: LocomotionSystem, objective: str, s: LoopSettings, order: i
         return f - 1e3 * torch.relu(-_winding_rate(gait.coeffs, theta)).pow(2).mean()
 
     runs, evaluations = [], 0
-    for peak in peaks:
-        if tr.shape_bound is not None:
-            peak = min(peak, 0.9 * tr.shape_bound)
-        for direction in (-1, 1):
-            circle = circle_gait(d, 1.0, direction).coeffs
-            circle = circle * (peak / float(torch.linalg.vector_norm(
-                FourierGait(circle)(grid), dim=-1).amax()))
-            params = torch.zeros(2 * order + 1, d, dtype=torch.float64)
-            params[: circle.shape[0]] = circle
-            evaluations += _maximise(lambda c: penalised(FourierGait(c), n_steps), params,
-                                     max_iter)
-            gait = FourierGait(params)
-            runs.append((float(penalised(gait, 256)), gait))
+    for params in starts:
+        params = params.clone()
+        evaluations += _maximise(lambda c: penalised(FourierGait(c), n_steps), params, max_iter)
+        gait = FourierGait(params)
+        runs.append((float(penalised(gait, 256)), gait))
     _, best = max(runs, key=lambda run: run[0])
     return Ceiling(
         gait=best, value=true_objective(system, best, objective),

@@ -213,7 +213,7 @@ class OnlineConnection:
 
     # ------------------------------------------------------------------ updates
     def update(self, phase: Tensor, r: Tensor, r_dot: Tensor, xi: Tensor, *,
-               forgetting: float | None = None) -> CycleConfidence:
+               forgetting: float | None = None, weight: float = 1.0) -> CycleConfidence:
         """Add one cycle's samples; returns (and records in :attr:`history`) its confidence.
 
         Args:
@@ -224,6 +224,8 @@ class OnlineConnection:
             forgetting: ``λ`` (default: the constructor's): the earlier cycles' sums are
                 multiplied by ``λ`` before this cycle's are added (``XᵀW²X`` by ``λ²``), so
                 that after ``C`` cycles cycle ``c``'s weights carry ``λ^(C − c)``.
+            weight: every sample of this cycle enters with its kernel weight times ``weight``
+                (``> 0``): a recording of another gait, counted less the further it lies.
 
         ``...`` are the statistics' batch dims; leading ``*pooled`` dims (trials) are summed
         into them.
@@ -235,6 +237,9 @@ class OnlineConnection:
         fn = "OnlineConnection.update"
         lam = self.forgetting if forgetting is None else _check_forgetting(
             forgetting, f"{fn}: forgetting")
+        _checks.check_value(f"{fn}: weight", weight, float, {"gt": 0})
+        if not math.isfinite(weight):
+            raise ValueError(f"{fn}: weight must be finite, got {weight!r}")
         _checks.tensor(phase, "phase", "(..., N)", fn=fn, floating=True,
                        valid=lambda t: t.ndim >= 1)
         batch = self.batch_shape
@@ -249,11 +254,11 @@ class OnlineConnection:
         s = _wls.prepare(fn, r, r_dot, xi, "xi", _K, bins, self.gamma_m, self.gamma_dot_m)
         new, new_w2, new_w, new_n = self._cycle_sums(s)
         r2 = _predictive_r2(self._solution(), new, self.n_coef)
-        self.sums = lam * self.sums + new
-        self.sums_w2 = lam**2 * self.sums_w2 + new_w2
-        self.sum_w = lam * self.sum_w + new_w
+        self.sums = lam * self.sums + weight * new
+        self.sums_w2 = lam**2 * self.sums_w2 + weight**2 * new_w2
+        self.sum_w = lam * self.sum_w + weight * new_w
         self.count = self.count + new_n
-        self._add_tube(phase, r, lam)
+        self._add_tube(phase, r, lam, weight)
         self.cycles += 1
         self._solved = after = self._solve()
         confidence = CycleConfidence(
@@ -292,8 +297,9 @@ class OnlineConnection:
 
         return fold(full), fold(g2), fold(sum_w), fold(count)
 
-    def _add_tube(self, phase: Tensor, r: Tensor, lam: float) -> None:
-        """Add the cycle's squared offsets ``δ = r − γ(φ)`` per joint (NaN samples aside)."""
+    def _add_tube(self, phase: Tensor, r: Tensor, lam: float, weight: float) -> None:
+        """Add the cycle's squared offsets ``δ = r − γ(φ)`` per joint (NaN samples aside),
+        times ``weight``."""
         pooled = phase.ndim - 1 - len(self.batch_shape)
         valid = torch.isfinite(phase).unsqueeze(-1) & torch.isfinite(r)
         delta = r - self.gamma(torch.nan_to_num(phase))
@@ -302,8 +308,8 @@ class OnlineConnection:
         dims = tuple(range(pooled))
         if pooled:
             sq, n = sq.sum(dims), n.sum(dims)
-        self._tube_sq = lam * self._tube_sq + sq
-        self._tube_n = lam * self._tube_n + n
+        self._tube_sq = lam * self._tube_sq + weight * sq
+        self._tube_n = lam * self._tube_n + weight * n
 
     # ------------------------------------------------------------------ solutions
     def _solution(self) -> _Solved:
