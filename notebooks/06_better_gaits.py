@@ -25,12 +25,14 @@
 #    model alone, with standard errors and the gait's distance from the data (in tube radii).
 # 2. `propose_gait(model, objective, trust_region)`: the best gait within a trust region sized by
 #    the tube the data covered, with the predicted gain and its interval.
-# 3. `improve(system, start, settings)`: the loop on a simulator, judged by the simulator's exact
-#    displacement of every proposal (never shown to the loop).
+# 3. `improve(system, start, settings)`: the loop on a simulator, a few cycles at a time, with one
+#    model from every gait recorded (`PooledConnection`), judged by the simulator's exact
+#    displacement of every gait (never shown to the loop).
 #
 # The same loop is a command: `python -m torchconn.improve simulate --links 3 --out DIR`, and
-# `python -m torchconn.improve propose trial*.csv --links 3 --out DIR` proposes the next gait
-# from your own recordings (joint-angle time series and Fourier coefficients).
+# `python -m torchconn.improve propose round2/*.csv --earlier round1/*.csv --links 3 --out DIR`
+# proposes the next gait from your own recordings of every round (joint-angle time series and
+# Fourier coefficients).
 
 # %%
 from _notebook import Notebook  # before pyplot: outside Jupyter it selects the Agg backend
@@ -59,7 +61,7 @@ from torchconn.physics.gaits import FourierGait, evaluate
 nb = Notebook("06_better_gaits")
 torch.set_num_threads(1)
 trials, cycles = (2, 12) if nb.small else (4, 20)
-rounds = 2 if nb.small else 8
+rounds = 3 if nb.small else 10
 
 # %% [markdown]
 # ## 1. What the model predicts for a nearby gait
@@ -127,27 +129,32 @@ print(f"simulator: current {true_objective(swimmer, cycle, 'displacement'):.4f},
       f"{true_objective(swimmer, prop.gait, 'displacement'):.4f}")
 
 # %% [markdown]
-# ## 3. The loop
+# ## 3. The loop, a few cycles at a time
 #
-# Each round records `trials × cycles` of the current gait, measures its displacement per cycle
-# from the recordings, fits, and proposes. The predicted value of a proposal is the measured
-# value of its start plus the model's gain, less the first-order model's truncation error: it
-# grows as the step², and the loop learns its size from the steps it has measured (the interval
-# holds its spread). The trust radius grows when the next recording confirms the predicted gain
-# and shrinks (or the step is rejected) when it does not. The proposals swim straight (at most
-# 0.05 rad of turning per cycle), so the ceiling is the optimiser's best |(x, y)| per cycle with
-# the true connection under the same limit (skipped in small-data mode: it takes a minute).
+# Each step records 3 cycles of one gait, and the model is **one regression over every
+# recording so far**, each weighted by its distance from the current gait: earlier gaits are
+# data off the current cycle, so the tube (and the trust radius, in tube radii) widens as the
+# loop moves. After every recording the loop proposes, and moves to the proposal only when the
+# 95 % interval of its gain lies above zero. Otherwise it records the current gait again,
+# perturbed along the joints where `∂Â/∂r` is least known (deliberate excitation). The
+# predicted value of a proposal is the measured value of its start plus the model's gain,
+# less the over-prediction learnt from the steps taken (it grows as the step²). The proposals
+# swim straight (at most 0.05 rad of turning per cycle); the ceiling is the ascent with the
+# true connection from the same start, in the same family and limits (skipped in small-data
+# mode: it takes a minute).
 
 # %%
-settings = LoopSettings(rounds=rounds, trials=trials, cycles=cycles, seed=1)
+settings = LoopSettings(rounds=rounds, seed=1)
 result = improve(swimmer, start, settings, progress=lambda r: print(
-    f"round {r.index}: {r.cycles_used} cycles, observed {r.observed:.4f} ± {r.observed_se:.4f}, "
-    f"proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, {r.predicted_high:.4f}], "
-    f"realised {r.realised:.4f}"))
-best_true = None if nb.small else ceiling(swimmer, "displacement", settings).value
-print(f"optimiser with the true connection, turning <= 0.05 rad per cycle: {best_true}; best "
-      f"realised |(x, y)| {max(r.realised for r in result.rounds):.4f}; intervals covered "
-      f"{result.coverage:.0%}")
+    f"{r.cycles_used:3d} cycles: recorded {r.kind}, observed {r.observed:.4f} ± "
+    f"{r.observed_se:.4f}; kept gait's true value {r.kept_true:.4f}; "
+    + (f"moving to a proposal predicted {r.predicted:.4f} [{r.predicted_low:.4f}, "
+       f"{r.predicted_high:.4f}], realised {r.realised:.4f}" if r.moved else "recording again")))
+best_true = None if nb.small else ceiling(swimmer, "displacement", settings, starts=[start],
+                                          peaks=(), random_starts=0).value
+print(f"ascent with the true connection from the same start: {best_true}; kept gait after "
+      f"{result.rounds[-1].cycles_used} cycles: {result.rounds[-1].kept_true:.4f}; "
+      f"intervals covered {result.coverage:.0%} of the proposals the loop moved to")
 nb.save(plot_gaits(result, swimmer), "loop_gaits")
 nb.save(plot_rounds(result, ceiling=best_true), "loop_objective")
 
@@ -161,8 +168,8 @@ nb.save(plot_rounds(result, ceiling=best_true), "loop_objective")
 if not nb.small:
     nine = NLinkSwimmer(9)
     result9 = improve(nine, circle_gait(8, 0.5), LoopSettings(rounds=rounds, seed=1))
-    print(f"9-link: start {result9.start_true:.4f} -> best realised "
-          f"{max(r.realised for r in result9.rounds):.4f}, covered {result9.coverage:.0%}")
+    print(f"9-link: start {result9.start_true:.4f} -> kept gait "
+          f"{result9.rounds[-1].kept_true:.4f} after {result9.rounds[-1].cycles_used} cycles")
     nb.save(plot_gaits(result9, nine), "loop9_gaits")
     nb.save(plot_rounds(result9), "loop9_objective")
 
