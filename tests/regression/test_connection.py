@@ -367,3 +367,37 @@ def test_the_ridge_can_leave_the_connection_unpenalised():
     chol_all, _, _, _ = _wls.ridge_cholesky(gram.clone()[None], lam)  # every column
     shrunk = torch.cholesky_solve(rhs[None], chol_all)[0]
     assert float(shrunk[a].norm()) < 0.8 * float(beta_true[a].norm())
+
+
+def test_ridge_cholesky_is_torchs_factor_or_the_identity_where_it_fails():
+    # the factor is torch's own, bit for bit and in its column-major layout (the triangular
+    # solves' rounding depends on it); a matrix that is not positive definite gets the
+    # identity and is flagged, and a dead column a unit pivot
+    from torchconn.regression import _wls
+
+    gen = torch.Generator().manual_seed(4)
+    x = torch.randn(3, 60, 6, generator=gen, dtype=F64)
+    gram = x.mT @ x
+    off = 2 * (gram[1, 0, 0] * gram[1, 1, 1]).sqrt()
+    gram[1, 0, 1] = gram[1, 1, 0] = off  # not positive definite, positive diagonal
+    gram[2, :, 4] = gram[2, 4, :] = 0.0  # a dead column
+    chol, failed, dead, d2 = _wls.ridge_cholesky(gram.clone(), 0.0)
+    ref, info = torch.linalg.cholesky_ex(gram)
+    assert failed.tolist() == [False, True, False] and (info[1] != 0).item()
+    assert torch.equal(chol[0], ref[0]) and chol.stride() == ref.stride()
+    assert torch.equal(chol[1], torch.eye(6, dtype=F64))
+    assert dead.tolist() == [[False] * 6] * 2 + [[False] * 4 + [True, False]]
+    assert torch.equal(d2, gram.diagonal(dim1=-2, dim2=-1))
+    pivoted = gram[2].clone()
+    pivoted[4, 4] = 1.0
+    assert torch.equal(chol[2], torch.linalg.cholesky(pivoted))
+
+
+def test_row_sums_in_place_are_the_running_sums():
+    from torchconn.regression import _wls
+
+    x = torch.randn(4, 37, 5, generator=torch.Generator().manual_seed(5), dtype=F64)
+    x[:, 30:] = 0  # padding rows
+    expected = _wls._row_sum(x, -2)
+    assert torch.equal(expected, x[:, :30].cumsum(-2)[:, -1])  # padding leaves it unchanged
+    assert torch.equal(_wls._row_sum_(x.clone(), -2), expected)

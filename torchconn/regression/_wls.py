@@ -248,11 +248,11 @@ def ridge_cholesky(gram: Tensor, lam: Tensor | float, unpenalised: Tensor | None
     gram.diagonal(dim1=-2, dim2=-1).add_(torch.where(dead, 1.0, penalty))
     chol, info = torch.linalg.cholesky_ex(gram)
     failed = info != 0
-    # unconditionally (asking whether any failed would stop a GPU for a host sync), and in
-    # place: the factor's column-major layout is kept (the triangular solves' rounding
-    # depends on it)
+    # unconditionally (asking whether any failed would stop a GPU for a host sync); the
+    # factor's column-major layout is kept (the triangular solves' rounding depends on it):
+    # the selection runs on its transpose (row-major, one contiguous pass)
     eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
-    chol.copy_(torch.where(failed[..., None, None], eye, chol))
+    chol = torch.where(failed[..., None, None], eye, chol.mT).mT
     return chol, failed, dead, d2
 
 
@@ -265,10 +265,10 @@ def condition_bound(matrix: Tensor, l_inv: Tensor, scale: Tensor) -> Tensor:
     # matrix-vector products as multiply-sum, norms as abs + sum: cheaper on CPU for small
     # matrices than a bmm or torch.linalg.vector_norm
     inv_scale = 1 / scale
-    a_norm = ((matrix.abs() * inv_scale.unsqueeze(-2)).sum(-1) * inv_scale).amax(-1)
+    a_norm = (matrix.abs().mul_(inv_scale.unsqueeze(-2)).sum(-1) * inv_scale).amax(-1)
     l_abs = l_inv.abs()
     l_norm1 = (l_abs.sum(-2) * scale).amax(-1)
-    l_norm_inf = (l_abs * scale.unsqueeze(-2)).sum(-1).amax(-1)
+    l_norm_inf = l_abs.mul_(scale.unsqueeze(-2)).sum(-1).amax(-1)
     return a_norm * l_norm1 * l_norm_inf
 
 
@@ -337,11 +337,11 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
         nan = torch.full_like(beta, torch.nan)
         return beta, nan, nan[:, 0], condition, (w > 0).sum(-1), kappa
 
-    rss = _row_sum((yw - xw @ beta).square(), -2)  # (b, K)
+    rss = _row_sum_((yw - xw @ beta).square_(), -2)  # (b, K)
     sum_w = _row_sum(w, -1)
     if binary and no_ridge:
         dof = sum_w - p
-        cov_diag = l_inv.square().sum(-2)  # diag(A⁻¹)
+        cov_diag = l_inv.square_().sum(-2)  # diag(A⁻¹); L⁻¹ is not used after this
     elif plain:
         # kernel weights, no ridge, no correction: A = G = XᵀWX (dead columns aside, where
         # G₂ is 0 too), so the sandwich Cov = σ² A⁻¹G₂A⁻¹ with G₂ = XᵀW²X and the dof
@@ -350,8 +350,8 @@ def _fit_chunk(xy: Tensor, w: Tensor, lam: Tensor, binary: bool, n_out: int,
         # instead of forming G₂ and two P³ products with it
         xww = xw * w.sqrt().unsqueeze(-1)  # rows scaled by w
         q = xww @ (l_inv.mT @ l_inv)
-        dof = sum_w - _row_sum((q * xww).sum(-1), -1)
-        cov_diag = _row_sum(q.square(), -2)
+        cov_diag = _row_sum_(q.square(), -2)
+        dof = sum_w - _row_sum(q.mul_(xww).sum(-1), -1)
     else:
         # sandwich for kernel weights / ridge: Cov = σ² A⁻¹ (XᵀW²X) A⁻¹, and the effective
         # residual dof  Σw − 2 tr(A⁻¹G₂) + tr(A⁻¹G A⁻¹G₂)  that makes σ̂² unbiased
@@ -576,6 +576,12 @@ def _row_sum(x: Tensor, dim: int) -> Tensor:
     it unchanged, so a bin's sum does not depend on how far the batch pads its rows (torch's
     cascade ``sum`` rounds with the padded length)."""
     return x.cumsum(dim).select(dim, -1)
+
+
+def _row_sum_(x: Tensor, dim: int) -> Tensor:
+    """:func:`_row_sum` of a temporary ``x``, overwritten with its running sum (the same sum;
+    in place saves allocating a second array the size of the design)."""
+    return x.cumsum_(dim).select(dim, -1)
 
 
 def _triangular_inverse(chol: Tensor) -> Tensor:
