@@ -69,7 +69,10 @@ def main(argv=None) -> int:
     p.add_argument("--omega", type=float, nargs="+", default=[0.0, 0.002, 0.005])
     p.add_argument("--fd-factor", type=float, default=3.0,
                    help="the model-free baseline gets this many times the loop's cycles")
-    p.add_argument("--ceiling-iterations", type=int, default=1000)
+    p.add_argument("--ceiling-iterations", type=int, default=1000,
+                   help="L-BFGS evaluations of the ceiling's ascent from the start gait")
+    p.add_argument("--best-known-iterations", type=int, default=300,
+                   help="L-BFGS evaluations per start of the best-known (multi-start) value")
     p.add_argument("--no-baseline", action="store_true")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -91,7 +94,7 @@ def main(argv=None) -> int:
             cap = ceiling(system, "displacement", settings, starts=[start], peaks=(),
                           random_starts=0, max_iter=args.ceiling_iterations).value
             best_known = ceiling(system, "displacement", settings,
-                                 max_iter=args.ceiling_iterations).value
+                                 max_iter=args.best_known_iterations).value
             t0 = time.perf_counter()
             res = improve(system, start, settings)
             loop_s = time.perf_counter() - t0

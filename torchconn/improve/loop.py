@@ -350,10 +350,10 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
     for k in range(s.rounds):
         traj = _record(system, gait, s, seeds[k])
         pool.add(gait_recording(traj, gait, s.trials * s.cycles))
-        measured = measure_cycles(traj)
-        meas, meas_se = measured.objective(s.objective)
+        recorded = measure_cycles(traj)
+        meas, meas_se = recorded.objective(s.objective)
         true = true_score(system, gait, s)
-        within = _within_limits(gait, measured, s, z)
+        within = _within_limits(gait, recorded, s, z)
         accepted = True
         if kind == "proposal":
             # the trust-region test: observed against predicted gain, both from data
@@ -444,7 +444,7 @@ def true_score(system: LocomotionSystem, gait, settings: LoopSettings,
                                      settings.objective, settings.trust_region))
 
 
-def _within_limits(gait, measured, s: LoopSettings, z: float) -> bool:
+def _within_limits(gait, recorded, s: LoopSettings, z: float) -> bool:
     """False when ``gait`` leaves the trust region's ``shape_bound``, or its recordings turn
     more than its ``max_turn`` per cycle by more than ``z`` standard errors (the turning limit
     does not apply to the turning objective)."""
@@ -453,7 +453,7 @@ def _within_limits(gait, measured, s: LoopSettings, z: float) -> bool:
         return False
     if limit is None or s.objective == "turning":
         return True
-    return measured.turning - z * measured.turning_se <= limit
+    return recorded.turning - z * recorded.turning_se <= limit
 
 
 def _difference(a: FourierGait, b: FourierGait) -> FourierGait:
