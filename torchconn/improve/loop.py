@@ -210,8 +210,9 @@ class Round:
         true: the recorded gait's exact, penalised objective (:func:`true_score`; for
             judging only).
         accepted: for a proposal: False when its recording scored worse than the gait it was
-            proposed from, or turned more than the trust region's ``max_turn`` per cycle (by
-            more than the noise); the loop then kept that gait.
+            proposed from, or turns more than the trust region's ``max_turn`` per cycle as the
+            model including the recording predicts it (by more than the noise); the loop then
+            kept that gait.
         kept, kept_true: the gait the loop keeps after this step (its best so far: the
             start, an accepted proposal, or a perturbed recording that scored better than the
             kept gait by more than the noise) and its exact objective.
@@ -224,7 +225,8 @@ class Round:
         gain, gain_se: the model's predicted gain (before the over-prediction correction) and
             its standard error; gain_low: the lower end of the corrected gain's interval.
         moved: the proposal is recorded next (its gain interval lies above zero).
-        realised: the proposal's exact objective (simulator).
+        realised: the proposal's exact objective (simulator; what ``predicted`` predicts, no
+            penalties).
     """
 
     index: int
@@ -353,7 +355,7 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
         recorded = measure_cycles(traj)
         meas, meas_se = recorded.objective(s.objective)
         true = true_score(system, gait, s)
-        within = _within_limits(gait, recorded, s, z)
+        within = kind == "start" or _within_limits(gait, pool, s, z, seed=k)
         accepted = True
         if kind == "proposal":
             # the trust-region test: observed against predicted gain, both from data
@@ -412,7 +414,7 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
             predicted_low=predicted - half, predicted_high=predicted + half,
             model_predicted=prop.predicted, gain=prop.gain, gain_se=prop.gain_se,
             gain_low=gain - gain_half, moved=moved,
-            realised=true_score(system, prop.gait, s),
+            realised=true_objective(system, prop.gait, s.objective),
         )
         rounds.append(rnd)
         if progress is not None:
@@ -444,16 +446,21 @@ def true_score(system: LocomotionSystem, gait, settings: LoopSettings,
                                      settings.objective, settings.trust_region))
 
 
-def _within_limits(gait, recorded, s: LoopSettings, z: float) -> bool:
-    """False when ``gait`` leaves the trust region's ``shape_bound``, or its recordings turn
-    more than its ``max_turn`` per cycle by more than ``z`` standard errors (the turning limit
-    does not apply to the turning objective)."""
+def _within_limits(gait: FourierGait, pool: PooledConnection, s: LoopSettings, z: float, *,
+                   seed: int) -> bool:
+    """False when ``gait`` leaves the trust region's ``shape_bound``, or turns more than its
+    ``max_turn`` per cycle by more than ``z`` standard errors as the pooled model centred on
+    ``gait`` predicts it (the recordings' own turning per cycle varies too much from cycle to
+    cycle to tell in a few cycles; the turning limit does not apply to the turning
+    objective)."""
     bound, limit = s.trust_region.shape_bound, s.trust_region.max_turn
     if bound is not None and _peak_shape(gait) > bound * (1 + 1e-9):
         return False
     if limit is None or s.objective == "turning":
         return True
-    return recorded.turning - z * recorded.turning_se <= limit
+    pred = pool.model(gait).evaluate_gait(gait, phase_offset=0.0, n_draws=32, seed=seed,
+                                          warn_excursion=math.inf, max_excursion=math.inf)
+    return abs(float(pred.displacement[2])) - z * float(pred.displacement_se[2]) <= limit
 
 
 def _difference(a: FourierGait, b: FourierGait) -> FourierGait:
