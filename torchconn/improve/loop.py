@@ -102,12 +102,12 @@ class LoopSettings:
             ``good_ratio`` of the predicted one, shrinks below ``poor_ratio`` or when the
             recording scores worse than its start by more than the noise (rejected).
         truncation, truncation_spread: prior mean and spread of the model's over-prediction
-            of a gain per rad of step, in units of the first proposal's predicted gain (so the
-            first step's prior is ``truncation × step × gain``). The over-prediction grows with
-            the step: as step² from the first-order model's truncation, as the step from its
-            errors in ``∂Â/∂r``, which the ascent follows. Every informative step (predicted
-            gain above twice the noise of the observed gains) adds its own
-            ``(predicted − observed gain) / step``, each prior counting as one step; the mean
+            of a gain per rad² of step, in units of the first proposal's predicted gain (so the
+            first step's prior is ``truncation × step² × gain``). The over-prediction grows
+            with the step: as step² from the first-order model's truncation, and the ascent
+            follows the model's errors in ``∂Â/∂r``. Every informative step (predicted gain
+            above twice the noise of the observed gains, within the limits) adds its own
+            ``(predicted − observed gain) / step²``, the prior counting as one step; the mean
             corrects the next predicted gain, the spread widens its interval.
         level: central level of the prediction intervals; the loop moves to a proposal when
             the interval of its gain lies above zero.
