@@ -25,6 +25,7 @@ top functions by cumulative time.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import pstats
 import resource
@@ -37,23 +38,23 @@ from pathlib import Path
 FIT = "import sys; from torchconn.fit import main; sys.exit(main(sys.argv[1:]))"
 
 
-def cpu_seconds(cmd: list[str], env: dict[str, str]) -> float:
-    """User + system CPU seconds of one run of ``cmd`` (its output discarded)."""
+def cpu_seconds(cmd: list[str], env: dict[str, str], cwd: Path) -> float:
+    """User + system CPU seconds of one run of ``cmd`` in ``cwd`` (its output discarded)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL,
+    subprocess.run(cmd, env=env, cwd=cwd, check=True, stdout=subprocess.DEVNULL,
                    stderr=subprocess.DEVNULL)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
-def best_of(commands: dict[str, list[str]], env: dict[str, str], repeats: int
+def best_of(commands: dict[str, list[str]], env: dict[str, str], cwd: Path, repeats: int
             ) -> dict[str, float]:
     """The least CPU seconds of ``repeats`` runs of each command, run in turn (one of each per
     round), so that a change of the machine's load affects them alike."""
     times: dict[str, list[float]] = {name: [] for name in commands}
     for _ in range(repeats):
         for name, cmd in commands.items():
-            times[name].append(cpu_seconds(cmd, env))
+            times[name].append(cpu_seconds(cmd, env, cwd))
     return {name: min(t) for name, t in times.items()}
 
 
@@ -62,7 +63,7 @@ def converted_prickleback(folder: Path, env: dict[str, str]) -> Path:
     code = ("import sys, torchconn.datasets as d; from torchconn.convert import main; "
             "sys.exit(main(d.prickleback().convert_args() + ['--out', sys.argv[1]]))")
     subprocess.run([sys.executable, "-c", code, str(folder / "converted")], env=env,
-                   check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                   cwd=folder, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     (csv,) = (folder / "converted").glob("*.csv")
     return csv
 
@@ -73,7 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1, help="OMP/MKL threads of every child")
     p.add_argument("--profile", action="store_true", help="profile one fit into fit.prof")
     args = p.parse_args(argv)
-    env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads))
+    # the children import the torchconn this interpreter would (not one in their folder)
+    package = Path(importlib.util.find_spec("torchconn").origin).parent
+    path = os.pathsep.join([str(package.parent), *filter(None, [os.environ.get("PYTHONPATH")])])
+    env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads),
+               PYTHONPATH=path)
     py = sys.executable
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -81,17 +86,18 @@ def main(argv: list[str] | None = None) -> int:
         fit = [py, "-c", FIT, str(csv), "--links", "5", "--threads", str(args.threads),
                "--out", str(tmp / "fitted")]
         if args.profile:
-            subprocess.run([py, "-m", "cProfile", "-o", "fit.prof", "-m", "torchconn.fit",
-                            *fit[3:]], env=env, check=True, stdout=subprocess.DEVNULL)
+            subprocess.run([py, "-m", "cProfile", "-o", str(Path("fit.prof").resolve()), "-m",
+                            "torchconn.fit", *fit[3:]], env=env, cwd=tmp, check=True,
+                           stdout=subprocess.DEVNULL)
             pstats.Stats("fit.prof").sort_stats("cumulative").print_stats(40)
         best = best_of({"torch": [py, "-c", "import torch"],
                         "torchconn": [py, "-c", "import torchconn"], "fit": fit,
                         "no_figures": [*fit, "--no-figures"]},
-                       env, args.repeats)
+                       env, tmp, args.repeats)
     t_torch, t_conn, t_fit = best["torch"], best["torchconn"], best["fit"]
     load = os.getloadavg()[0]
-    print(f"CPU seconds, best of {args.repeats}, {args.threads} thread(s), "
-          f"load average {load:.1f} on {os.cpu_count()} cores:")
+    print(f"torchconn from {package}; CPU seconds, best of {args.repeats}, {args.threads} "
+          f"thread(s), load average {load:.1f} on {os.cpu_count()} cores:")
     print(f"  import torch       {t_torch:6.2f}")
     print(f"  import torchconn   {t_conn:6.2f}   adds {t_conn - t_torch:+.2f} s to import torch "
           f"(target <= 0.3 s)")
