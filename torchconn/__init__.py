@@ -19,7 +19,7 @@ The package's folders are the pipeline's stages:
 ``trajectory`` holds the :class:`Trajectory` container that flows through every stage.
 """
 
-from . import io as _io  # noqa: F401  # sets the conversion behind Trajectory.from_movement
+from . import io  # noqa: F401  # sets the conversion behind Trajectory.from_movement
 from ._lazy import lazy_exports
 from ._version import __version__
 
