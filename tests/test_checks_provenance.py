@@ -3,8 +3,10 @@
 import json
 import os
 
+import matplotlib
 import numpy as np
 import pytest
+import scipy
 import torch
 
 from torchconn import _checks, _provenance
@@ -84,6 +86,7 @@ def test_spawn_seeds_are_seed_sequence_children_keyed_by_position():
 def test_versions_and_source_hash():
     v = _provenance.versions()
     assert v["torch"] == torch.__version__ and v["numpy"] == np.__version__
+    assert v["scipy"] == scipy.__version__ and v["matplotlib"] == matplotlib.__version__
     assert {"torchconn", "python", "scipy", "matplotlib"} <= set(v)
     h = _provenance.source_hash()
     assert len(h) == 16 and int(h, 16) >= 0

@@ -19,21 +19,26 @@ The package's folders are the pipeline's stages:
 ``trajectory`` holds the :class:`Trajectory` container that flows through every stage.
 """
 
+from . import io  # noqa: F401  # sets the conversion behind Trajectory.from_movement
+from ._lazy import lazy_exports
 from ._version import __version__
-from .io import read_csv, write_csv
-from .phase import Phaser, RTSSmoother, SelfConsistentCycle
-from .physics import gaits, se2
-from .physics.systems import AffineConnectionSystem, LocomotionSystem, NLinkSwimmer
-from .regression import (
-    ConnectionEstimator,
-    LocalConnectionModel,
-    NoiseAwareRegression,
-    TiedMetric,
-    TubeRegression,
-    estimator_from_settings,
-)
-from .simulation import observe, simulate
-from .trajectory import GroundTruth, SmoothedState, Trajectory
+
+#: the public names and the modules that define them, imported on first use (``import
+#: torchconn`` loads no stage but the file formats; ``torchconn.regression`` and the other
+#: subpackages are imported when first read too)
+_EXPORTS = {
+    "NLinkSwimmer": ".physics.systems", "AffineConnectionSystem": ".physics.systems",
+    "LocomotionSystem": ".physics.systems",
+    "Trajectory": ".trajectory", "GroundTruth": ".trajectory", "SmoothedState": ".trajectory",
+    "gaits": ".physics", "se2": ".physics",
+    "simulate": ".simulation", "observe": ".simulation",
+    "read_csv": ".io", "write_csv": ".io",
+    "ConnectionEstimator": ".regression", "LocalConnectionModel": ".regression",
+    "estimator_from_settings": ".regression",
+    "RTSSmoother": ".phase", "Phaser": ".phase", "SelfConsistentCycle": ".phase",
+    "TubeRegression": ".regression", "NoiseAwareRegression": ".regression",
+    "TiedMetric": ".regression",
+}
 
 __all__ = [
     "__version__",
@@ -44,3 +49,5 @@ __all__ = [
     "RTSSmoother", "Phaser", "SelfConsistentCycle", "TubeRegression", "NoiseAwareRegression",
     "TiedMetric",
 ]
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

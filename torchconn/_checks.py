@@ -28,7 +28,8 @@ import torch
 from torch import Tensor
 
 __all__ = [
-    "describe", "tensor", "last_dim", "finite", "integer", "check_shapes", "phase_samples",
+    "describe", "tensor", "last_dim", "finite", "integer", "broadcast_shapes", "check_shapes",
+    "phase_samples",
     "first_index", "check_value", "unknown_keys_message", "did_you_mean",
 ]
 
@@ -97,6 +98,17 @@ def integer(value, name: str, *, minimum: int = 0, fn: str | None = None) -> int
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{_at(fn)}{name} must be an integer >= {minimum}, got {value!r}")
     return int(value)
+
+
+def broadcast_shapes(*shapes) -> torch.Size:
+    """The shape ``shapes`` (tuples of ints) broadcast to, as :func:`torch.broadcast_shapes`
+    gives it, without the symbolic-shape machinery (sympy, about 0.3 s of CPU) torch's loads on
+    first use.
+
+    Raises:
+        ValueError: the shapes do not broadcast.
+    """
+    return torch.Size(np.broadcast_shapes(*shapes))
 
 
 def check_shapes(r: Tensor, d: int, name: str = "r") -> Tensor:

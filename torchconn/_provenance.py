@@ -14,7 +14,7 @@ import json
 import math
 import platform
 from collections.abc import Mapping
-from importlib import resources
+from importlib import metadata, resources
 from pathlib import Path
 
 import numpy as np
@@ -27,14 +27,12 @@ __all__ = ["versions", "source_hash", "spawn_seeds", "jsonable", "write_json", "
 
 
 def versions() -> dict[str, str]:
-    """Versions of torchconn, Python and the libraries that determine its numbers."""
-    # scipy and matplotlib are imported here only, so that importing torchconn loads neither
-    import matplotlib
-    import scipy
-
+    """Versions of torchconn, Python and the libraries that determine its numbers (scipy's
+    and matplotlib's from their installed metadata: a command that uses neither loads
+    neither)."""
     return {"torchconn": __version__, "python": platform.python_version(),
-            "torch": torch.__version__, "numpy": np.__version__, "scipy": scipy.__version__,
-            "matplotlib": matplotlib.__version__}
+            "torch": torch.__version__, "numpy": np.__version__,
+            "scipy": metadata.version("scipy"), "matplotlib": metadata.version("matplotlib")}
 
 
 @functools.cache

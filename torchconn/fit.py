@@ -61,17 +61,9 @@ from .io.preflight import CYCLE_RULES, CycleRule, preflight
 from .io.trajectory_files import read_csv
 from .known import changes_data, parse_known, relative_to_known
 from .physics.systems.swimmer import NLinkSwimmer
-from .plotting import render_png
 from .regression.defaults import pooled_estimator
 from .regression.estimator import ConnectionEstimator, estimator_settings
-from .regression.model import LocalConnectionModel
-from .regression.plots import (
-    ROWS,
-    plot_connection,
-    plot_held_out_velocity,
-    plot_limit_cycle,
-    plot_metric,
-)
+from .regression.model import ROWS, LocalConnectionModel
 from .regression.reference import FAMILIES
 from .regression.selection import COMPONENTS, PoorHeldOutSkillWarning, nested_list
 
@@ -379,9 +371,7 @@ def main(argv: list[str] | None = None) -> int:
                 _report_forecast(model, details.append)
             if est.held_out_skill_ is not None:
                 _report_held_out(est, details.append)
-            # each figure rendered once, for its file and for the report
-            figures = {} if args.no_figures else {
-                name: render_png(fig) for name, fig in _figures(est, model).items()}
+            figures = {} if args.no_figures else _figures(est, model)
             report = fit_report(
                 est, title=f"{PROG}: {', '.join(p.name for p in args.data)}",
                 n_links=args.links, frame=swimmer.frame,
@@ -426,16 +416,21 @@ def _read_checked(args, conv, given, known, swimmer, estimator, say):
     return rec, traj, check
 
 
-def _figures(est, model) -> dict:
-    """The fit's figures by file name: the held-out velocity first, then the connection, the
-    limit cycle and the metric (where fitted)."""
-    figures = {"held_out_velocity.png": plot_held_out_velocity(est),
-               "connection.png": plot_connection(model),
-               "limit_cycle.png": plot_limit_cycle(model, est.trajectory_.smoothed.r,
-                                                   est.trajectory_.phase)}
+def _figures(est, model) -> dict[str, tuple[bytes, str | None]]:
+    """The fit's figures by file name, each rendered once for its file and for the report
+    (PNG bytes and caption, :func:`~torchconn.plotting.render_png`): the held-out velocity
+    first, then the connection, the limit cycle and the metric (where fitted)."""
+    # lazy: the plots import matplotlib, which only a fit that draws figures needs
+    from .plotting import render_png
+    from .regression import plots
+
+    figures = {"held_out_velocity.png": plots.plot_held_out_velocity(est),
+               "connection.png": plots.plot_connection(model),
+               "limit_cycle.png": plots.plot_limit_cycle(model, est.trajectory_.smoothed.r,
+                                                         est.trajectory_.phase)}
     if model.M is not None:
-        figures["metric.png"] = plot_metric(model)
-    return figures
+        figures["metric.png"] = plots.plot_metric(model)
+    return {name: render_png(fig) for name, fig in figures.items()}
 
 
 def _write_results(out: Path, args, model, forecast, figures: dict) -> list[str]:

@@ -210,14 +210,14 @@ def save_figure(fig: Figure, path: str | Path, *, dpi: int = 110) -> Path:
 
 def render_png(fig: Figure, *, dpi: int = 110) -> tuple[bytes, str | None]:
     """``fig`` rendered as :func:`save_figure` writes it (PNG, caption included) and its
-    caption (:func:`caption_of`), then closed: one rendering for a file and a report."""
+    caption (:func:`caption_of`), then closed (released from pyplot where it manages it; the
+    figure itself is left as drawn): one rendering for a file and a report."""
     try:
         caption = caption_of(fig)
         buffer = io.BytesIO()
         fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight", pad_inches=0.12)
         return buffer.getvalue(), caption
     finally:
-        fig.clf()
         _close(fig)
 
 

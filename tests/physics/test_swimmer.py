@@ -1,13 +1,17 @@
 """The N-link swimmer against closed forms, an independent NumPy derivation, and autograd."""
 
 import itertools
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 
 from torchconn import NLinkSwimmer
+from torchconn.discrepancy.simulate import LateralSlipSwimmer
 from torchconn.physics import se2
+from torchconn.physics.systems import LocomotionSystem
 from torchconn.testing.numpy_swimmer import connection_and_metric_numpy
 
 F64 = torch.float64
@@ -63,6 +67,40 @@ def test_jacobian_matches_central_differences_and_gradcheck():
         assert torch.allclose(J[..., j], fd, atol=1e-8)
     assert torch.autograd.gradcheck(s.connection, (r.clone().requires_grad_(),))
     assert torch.autograd.gradcheck(s.metric, (r.clone().requires_grad_(),))
+
+
+@pytest.mark.parametrize("n", [3, 5, 9])
+@pytest.mark.parametrize("frame", ["center", "com-mean"])
+def test_jacobian_is_the_plain_forward_mode_one_bit_for_bit(n, frame):
+    """The swimmer's geometry enters its Jacobian's forward pass as constants of zero tangent:
+    the derivative of the connection as a function of the shape alone, bit for bit (signed
+    zeros too, at a straight body and with joints at 0), and for a subclass that adds terms
+    to the connection, its own connection's."""
+    s = NLinkSwimmer(n, drag_ratio=3.1, frame=frame)
+    r = torch.randn(40, n - 1, dtype=F64, generator=torch.Generator().manual_seed(n))
+    r[:2] = 0.0
+    r[2:4, 0] = 0.0
+    plain = LocomotionSystem._jacobian(s, s._connection, r)  # fn closes over the geometry
+    got = s.connection_jacobian(r)
+    assert torch.equal(got.view(torch.int64), plain.view(torch.int64))
+    if n == 3 and frame == "center":
+        eps = 0.2  # LateralSlipSwimmer: NLinkSwimmer(3) and a slip ε (r2, r1) in v_y
+        slip = LateralSlipSwimmer(eps).connection_jacobian(r) - NLinkSwimmer(3).connection_jacobian(r)
+        expected = torch.zeros(3, 2, 2, dtype=F64)
+        expected[1] = torch.tensor([[0.0, eps], [eps, 0.0]], dtype=F64)  # ∂(ε r2, ε r1)/∂r
+        assert torch.allclose(slip, expected.expand_as(slip), atol=1e-15)
+
+
+def test_jacobian_and_curvature_load_no_compiler():
+    """Forward mode on a constant operand loads torch._dynamo and sympy (about 1 s of CPU);
+    the swimmer's Jacobian and curvature have none."""
+    code = ("import sys, torch\nfrom torchconn import NLinkSwimmer\n"
+            "r = torch.randn(8, 4, dtype=torch.float64)\n"
+            "NLinkSwimmer(5).connection_jacobian(r); NLinkSwimmer(5).curvature(r)\n"
+            "print(sorted({'torch._dynamo', 'sympy'} & set(sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "[]"
 
 
 def test_differentiable_in_parameters():

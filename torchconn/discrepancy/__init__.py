@@ -21,27 +21,27 @@ its named stages), :mod:`.report` (the stages' typed results and the report),
 :mod:`.model` (the augmented model), :mod:`.figures`.
 """
 
-from ..physics.effects import (
-    REGISTRY,
-    AmbientFlow,
-    BodyDrift,
-    DragRatio,
-    Effect,
-    JointBias,
-    LinkLength,
-    MarkerOffset,
-    Param,
-    TimeLag,
-    get_effect,
-    register,
-)
-from .confounding import principal_cosine, separating_experiments, signature_collinearity
-from .forward import ForwardModel, Measurement, prepare_measurement
-from .model import AugmentedModel, load_augmented
-from .report import VERDICTS, DiscrepancyReport
-from .residuals import compare_terms, phase_profile
-from .simulate import effect_parameters, simulate_with_effects
-from .workflow import DiscrepancySettings, diagnose
+from .._lazy import lazy_exports
+
+#: the public names and the modules that define them, imported on first use (the workflow
+#: loads scipy.stats, the report matplotlib: ``import torchconn.discrepancy`` loads neither)
+_EXPORTS = {
+    "Effect": "..physics.effects", "Param": "..physics.effects", "REGISTRY": "..physics.effects",
+    "register": "..physics.effects", "get_effect": "..physics.effects",
+    "AmbientFlow": "..physics.effects", "DragRatio": "..physics.effects",
+    "MarkerOffset": "..physics.effects", "JointBias": "..physics.effects",
+    "TimeLag": "..physics.effects", "LinkLength": "..physics.effects",
+    "BodyDrift": "..physics.effects",
+    "simulate_with_effects": ".simulate", "effect_parameters": ".simulate",
+    "Measurement": ".forward", "ForwardModel": ".forward", "prepare_measurement": ".forward",
+    "phase_profile": ".residuals", "compare_terms": ".residuals",
+    "signature_collinearity": ".confounding", "principal_cosine": ".confounding",
+    "separating_experiments": ".confounding",
+    "diagnose": ".workflow", "DiscrepancySettings": ".workflow",
+    "DiscrepancyReport": ".report", "VERDICTS": ".report",
+    "AugmentedModel": ".model", "load_augmented": ".model",
+}
+
 
 __all__ = [
     "Effect", "Param", "REGISTRY", "register", "get_effect",
@@ -53,3 +53,5 @@ __all__ = [
     "diagnose", "DiscrepancySettings", "DiscrepancyReport", "VERDICTS",
     "AugmentedModel", "load_augmented",
 ]
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

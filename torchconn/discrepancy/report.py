@@ -16,9 +16,7 @@ from pathlib import Path
 from .._output import write_bytes_atomic, write_table
 from .._provenance import jsonable, write_sidecar
 from ..physics.systems.swimmer import NLinkSwimmer
-from ..plotting import render_png
 from ..report import Report
-from .figures import plot_residual_profiles, plot_terms
 from .model import AugmentedModel
 from .residuals import COMPONENTS
 
@@ -365,6 +363,10 @@ class DiscrepancyReport:
              for i, ph in enumerate(prof["centres"]) for k, comp in enumerate(COMPONENTS)])
         drawn = {}  # each figure rendered once, for its file and for the report
         if figures:
+            # lazy: the figures import matplotlib, which only a report with figures needs
+            from ..plotting import render_png
+            from .figures import plot_residual_profiles, plot_terms
+
             drawn["residual_vs_phase.png"] = render_png(plot_residual_profiles(self))
             if self.terms is not None:
                 drawn["terms_vs_simulator.png"] = render_png(plot_terms(self.terms))

@@ -261,8 +261,8 @@ def fit_fourier(
     Y = values.reshape(values.shape[: values.ndim - value_ndim] + (-1,))  # (..., T, V)
 
     try:
-        batch = torch.broadcast_shapes(phi.shape[:-1], Y.shape[:-2])
-    except RuntimeError as e:
+        batch = _checks.broadcast_shapes(phi.shape[:-1], Y.shape[:-2])
+    except ValueError as e:
         raise ValueError(
             f"fit_fourier: batch dims of phi {tuple(phi.shape[:-1])} and values "
             f"{tuple(Y.shape[:-2])} do not broadcast"
@@ -275,7 +275,7 @@ def fit_fourier(
             )
         if not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
             raise ValueError("fit_fourier: weights must be finite and non-negative")
-        batch = torch.broadcast_shapes(batch, w.shape[:-1])
+        batch = _checks.broadcast_shapes(batch, w.shape[:-1])
     phi = phi.expand(batch + (T,))
     Y = Y.expand(batch + Y.shape[-2:])
     w = w.expand(batch + (T,))

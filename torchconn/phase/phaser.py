@@ -389,7 +389,7 @@ class Phaser(PhaseEstimator):
         model = self.model_
         if _spans(x) is None:
             return _transform(model, x, self, "Phaser.transform")
-        batch = torch.broadcast_shapes(x.shape[:-2], model.batch_shape)
+        batch = _checks.broadcast_shapes(x.shape[:-2], model.batch_shape)
         flat = x.expand(batch + x.shape[-2:]).reshape(-1, *x.shape[-2:])
         per = _map_model(model, lambda t, n: t.expand(batch + t.shape[t.ndim - n:])
                          .reshape((-1,) + t.shape[t.ndim - n:]))

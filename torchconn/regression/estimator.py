@@ -304,7 +304,7 @@ class ConnectionEstimator:
         3. the connection alone, where no candidate with ``b̂`` and ``∂Â/∂r`` can be scored;
         4. the given fit unchecked (the phase average presumed on few cycles).
         """
-        given = _Given(self.regression, _with_metric(connection, metric))
+        given = _Given(self.regression, _with_metric(connection, metric), connection=connection)
         if given.model is not None:
             few = bool(selection.few_cycles(traj.phase, self.pool).any())
             given.held, given.forward, given.full = self._held_out(
@@ -330,7 +330,7 @@ class ConnectionEstimator:
         """Candidate 2: the complexity chosen by held-out error, fitted; None with ``"auto"``
         where no candidate can be scored (the error kept for candidate 4)."""
         try:
-            chosen, choice, free = self._select(traj, cycle)
+            chosen, choice, free = self._select(traj, cycle, given)
         except ValueError as err:
             if self.complexity != "auto":
                 raise
@@ -496,7 +496,7 @@ class ConnectionEstimator:
     def _folds(self) -> int:
         return self.held_out_folds or 3
 
-    def _select(self, traj: Trajectory, cycle: LimitCycle
+    def _select(self, traj: Trajectory, cycle: LimitCycle, given: _Given | None = None
                 ) -> tuple[Regression, "selection.ComplexityChoice", Regression | None]:
         """The given regression with the complexity chosen by held-out error
         (:func:`~torchconn.regression.selection.select_complexity`), its choice, and, where its
@@ -505,12 +505,15 @@ class ConnectionEstimator:
         (the bins, order and ridge whose unshrunk connection predicts held-out cycles best,
         not those whose shrunk one did; where no such candidate scores, the forecasts'
         complexity), else None. One search serves both: the candidates they fit alike (ridge
-        0) are fitted once (:func:`~torchconn.regression.selection.select_complexities`)."""
-        given = (self.regression,)
+        0) are fitted once (:func:`~torchconn.regression.selection.select_complexities`), and
+        the ``given`` complexity's fit, where it is a candidate, is not fitted again."""
+        regressions = (self.regression,)
         if getattr(self.regression, "ridge_connection", False):
-            given += (self.regression.replace(ridge_connection=False),)
+            regressions += (self.regression.replace(ridge_connection=False),)
+        fitted = () if given is None or given.connection is None else (
+            (given.regression, given.connection),)
         (chosen, choice), *free = selection.select_complexities(
-            traj, cycle, given, pool=self.pool, n_folds=self._folds())
+            traj, cycle, regressions, pool=self.pool, n_folds=self._folds(), fitted=fitted)
         if not free:
             return chosen, choice, None
         return chosen, choice, (chosen.replace(ridge_connection=False) if free[0] is None
@@ -664,9 +667,10 @@ class ConnectionEstimator:
 @dataclasses.dataclass
 class _Given:
     """The given regression's fit and its held-out check, as the selection's candidates see
-    them: ``model`` None where it could not be fitted (or with ``complexity="cv"``); ``held``
-    the check's skill (None: off), ``full`` ``(..., 3)`` True where each component's full
-    model is the one to keep; ``error`` the selection's error where no candidate scored."""
+    them: ``model`` None where it could not be fitted (or with ``complexity="cv"``; with the
+    metric attached, ``connection`` the regression's own fit without it); ``held`` the
+    check's skill (None: off), ``full`` ``(..., 3)`` True where each component's full model is
+    the one to keep; ``error`` the selection's error where no candidate scored."""
 
     regression: Regression
     model: LocalConnectionModel | None
@@ -674,6 +678,7 @@ class _Given:
     full: Tensor | None = None
     error: ValueError | None = None
     forward: "selection.Skill | None" = None
+    connection: LocalConnectionModel | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -28,7 +28,11 @@ from ..phase.fourier import FourierSeries
 from .diagnostics import RegressionDiagnostics
 from .gait_prediction import GaitPrediction, predict_gait
 
-__all__ = ["LocalConnectionModel", "BinEstimates"]
+__all__ = ["LocalConnectionModel", "BinEstimates", "ROWS"]
+
+#: the rows of the connection ``A`` (body-velocity components ``v_x, v_y, ω``) as the
+#: columns of tables name them (``A_x_1``, ``dA_theta_2_1``, ...)
+ROWS = ("x", "y", "theta")
 
 
 @dataclass(frozen=True)

@@ -15,12 +15,11 @@ from matplotlib.figure import Figure
 
 from .. import plotting as style
 from . import selection
-from .model import LocalConnectionModel
+from .model import ROWS, LocalConnectionModel
 
 __all__ = ["plot_held_out_velocity", "plot_connection", "plot_metric", "plot_limit_cycle",
            "ROWS"]
 
-ROWS = ("x", "y", "theta")
 _Z95 = 1.96
 
 

@@ -44,7 +44,6 @@ from .experiment import (
     experiment_seeds,
     run_cell,
 )
-from .figures import make_figures
 from .store import ResultStore
 
 __all__ = ["run_sweep", "SweepSummary", "Progress", "cell_fingerprint"]
@@ -251,6 +250,9 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged,
     write_table(out / "claims.csv", ("claim", "holds", "evidence"), claims)
     made = []
     if figures:
+        # lazy: the figures import matplotlib, which only a run that draws them needs
+        from .figures import make_figures
+
         as_dicts = [
             [dict(zip(cols, r, strict=False)) for r in rows]
             for rows, cols in ((results, RESULT_COLUMNS), (phase_errors, PHASE_COLUMNS),

@@ -458,6 +458,16 @@ def test_one_search_chooses_both_complexities_fitting_no_ridge_0_candidate_twice
     assert sorted(fits) == sorted(grid)
     assert sorted(passes) == sorted([(n, True, complexity.RIDGE_GRID) for n in grid]
                                     + [(n, False, complexity.RIDGE_GRID[1:]) for n in grid])
+    # a fit the caller has (the given complexity's, fitted raising on ill-conditioned bins)
+    # serves as that candidate's whole-recording fit: the same choices, one fit fewer
+    given = both[0].replace(n_bins=grid[-1], fourier_order=complexity.COMPLEXITY_GRID[-1][1])
+    assert given.on_ill_conditioned == "raise"
+    model = fit(given, traj, cycle, pool=False)
+    fits.clear()
+    reused = complexity.select_complexities(traj, cycle, both, pool=False,
+                                            fitted=((given, model),))
+    assert reused == alone
+    assert sorted(fits) == sorted(grid[:-1])
     with pytest.raises(ValueError, match="differ only in ridge_connection"):
         complexity.select_complexities(traj, cycle, (both[0], both[1].replace(n_bins=96)),
                                   pool=False)

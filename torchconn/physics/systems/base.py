@@ -70,18 +70,26 @@ class LocomotionSystem(ABC):
         """``∂M/∂r``: ``(..., d) -> (..., d, d, d)`` holding ``∂M_ij/∂r_k`` at ``[..., i, j, k]``."""
         return self._jacobian(self._metric, check_shapes(r, self.shape_dim))
 
-    def _jacobian(self, fn, r: Tensor) -> Tensor:
-        """``∂fn/∂r`` with the shape derivative as the last axis.
+    def _jacobian(self, fn, r: Tensor, constants: tuple[Tensor, ...] = ()) -> Tensor:
+        """``∂fn/∂r`` with the shape derivative as the last axis, ``fn(r, *constants)``.
 
         ``fn`` maps each shape to its own value (no coupling across the batch), so one
         forward-mode JVP of the whole batch per shape direction gives every shape's Jacobian:
         ``d`` batched JVPs (vectorised with ``vmap`` over the directions) instead of a
         per-shape ``jacfwd``.
+
+        ``constants``: tensors ``fn`` takes besides ``r``, held fixed (their tangent is 0).
+        Passed so rather than read from the system, they give the same derivative bit for
+        bit, and the forward pass never meets a constant operand: torch gives one an implicit
+        zero tangent whose arithmetic runs through Python kernels that load ``torch._dynamo``
+        and sympy on first use (about 1 s of CPU).
         """
         d = self.shape_dim
         eye = torch.eye(d, dtype=r.dtype, device=r.device)
         tangents = eye.reshape((d,) + (1,) * (r.ndim - 1) + (d,)).expand((d,) + r.shape)
-        jac = torch.func.vmap(lambda v: torch.func.jvp(fn, (r,), (v,))[1])(tangents)
+        zeros = tuple(torch.zeros_like(c) for c in constants)
+        jac = torch.func.vmap(
+            lambda v: torch.func.jvp(fn, (r, *constants), (v, *zeros))[1])(tangents)
         return jac.movedim(0, -1)
 
     def curvature(self, r: Tensor) -> Tensor:

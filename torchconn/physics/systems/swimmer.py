@@ -128,9 +128,10 @@ class NLinkSwimmer(LocomotionSystem):
     def connection_and_metric(self, r: Tensor) -> tuple[Tensor, Tensor]:
         return self._connection_and_metric(check_shapes(r, self.shape_dim))
 
-    def _link_terms(self, r: Tensor):
-        """Per-link kinematics and the connection: ``(A, u_r, w_r, b, drag, Θ)``."""
-        theta_mat, c_mat, drag = self._geometry(r)
+    def _link_terms(self, r: Tensor, geometry: tuple[Tensor, Tensor, Tensor] | None = None):
+        """Per-link kinematics and the connection: ``(A, u_r, w_r, b, drag, Θ)``;
+        ``geometry``: :meth:`_geometry`'s ``(Θ, C, drag)`` (None: computed here)."""
+        theta_mat, c_mat, drag = self._geometry(r) if geometry is None else geometry
         th = _rows(r, theta_mat.T)  # (..., N) link angles in the body frame
         cs, sn = torch.cos(th), torch.sin(th)
         # Link i's twist in its own frame is (u, w, Ω) = J_g xi + J_r r_dot. With
@@ -174,6 +175,18 @@ class NLinkSwimmer(LocomotionSystem):
 
     def _connection(self, r: Tensor) -> Tensor:
         return self._link_terms(r)[0]
+
+    def _connection_of(self, r: Tensor, *geometry: Tensor) -> Tensor:
+        """:meth:`_connection` with :meth:`_geometry`'s ``(Θ, C, drag)`` given."""
+        return self._link_terms(r, geometry)[0]
+
+    def _jacobian(self, fn, r: Tensor, constants: tuple[Tensor, ...] = ()) -> Tensor:
+        """The base class's, with the geometry ``(Θ, C, drag)`` a constant of the swimmer's
+        own connection (not of a subclass's, which may add terms): the same numbers, bit for
+        bit, without the forward pass loading ``torch._dynamo``."""
+        if fn == self._connection and type(self)._connection is NLinkSwimmer._connection:
+            return super()._jacobian(self._connection_of, r, self._geometry(r))
+        return super()._jacobian(fn, r, constants)
 
     def _connection_and_metric(self, r: Tensor) -> tuple[Tensor, Tensor]:
         a, u_r, w_r, b, drag, theta_mat = self._link_terms(r)

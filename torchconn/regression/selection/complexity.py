@@ -423,13 +423,18 @@ def select_complexity(traj: Trajectory, cycle: LimitCycle, regression: Regressio
 
 def select_complexities(traj: Trajectory, cycle: LimitCycle,
                         regressions: Sequence[Regression], *, pool: bool, n_folds: int = 3,
-                        fallback_ok: bool = True, ridges: tuple[float, ...] = RIDGE_GRID
+                        fallback_ok: bool = True, ridges: tuple[float, ...] = RIDGE_GRID,
+                        fitted: Sequence[tuple[Regression, LocalConnectionModel]] = ()
                         ) -> list[tuple[Regression, ComplexityChoice] | None]:
     """:func:`select_complexity` of each of ``regressions``, which differ at most in
     ``ridge_connection`` (e.g. ``Â`` penalised and not), in one search: a candidate the
     settings fit alike (every one of ridge 0, which penalises nothing) is fitted and scored
     once, and every ``(n_bins, fourier_order)`` fits its whole-recording model once. Each
     choice is the one :func:`select_complexity` makes for its regression alone.
+
+    ``fitted``: pairs of a regression and its fit to this recording (pooled alike) that the
+    caller already has, e.g. the given complexity's; a candidate whose whole-recording fit
+    one of them is takes it instead of fitting it again (:func:`_whole_fit`).
 
     Returns one ``(regression, choice)`` per regression; None for a later one none of whose
     candidates could be fitted.
@@ -453,7 +458,7 @@ def select_complexities(traj: Trajectory, cycle: LimitCycle,
     results = {}  # (n_bins, order, ridge, setting) -> (loss, fallback, conn) or the failure
     for n_bins, order in COMPLEXITY_GRID:
         for penalty, result in _candidate_skills(traj, cycle, first, n_bins, order, pool,
-                                                 n_folds, penalties).items():
+                                                 n_folds, penalties, fitted).items():
             if not isinstance(result, str):
                 (s, gaps), (s_conn, gaps_conn) = result
                 # the models must beat the baseline on the held-out data as observed (the
@@ -577,14 +582,14 @@ def _nested_tuple(mask: Tensor) -> tuple:
     return tup(mask.tolist())
 
 
-def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, penalties
-                      ) -> dict:
+def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, penalties,
+                      fitted=()) -> dict:
     """Per candidate ``(ridge, ridge_connection)`` of ``penalties`` at ``(n_bins, order)``:
     ``((Skill, gaps), (Skill, gaps))`` of the model as fitted and of the connection alone
     (:func:`variant_scores`), the noise-corrected skill and per held-out cycle the observed
     SSE minus the phase average's; or, for a candidate that cannot be fitted, the failure (a
-    string). One whole-recording fit serves every candidate, and one pass over the data every
-    ridge of a setting."""
+    string). One whole-recording fit serves every candidate (one of ``fitted`` where it is
+    that fit, :func:`_whole_fit`), and one pass over the data every ridge of a setting."""
     base = regression.replace(n_bins=n_bins, fourier_order=order, ridge=0.0)
 
     def penalised(setting):
@@ -607,7 +612,8 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, pen
         try:
             # the whole recording's window, interval and noise level (bins that need a
             # ridge are NaN here and do not matter: only the fits without each block count)
-            model = base.replace(on_ill_conditioned="warn").fit(traj, cycle, pool=pool)
+            model = _whole_fit(base.replace(on_ill_conditioned="warn"), traj, cycle, pool,
+                               fitted)
         except ValueError as err:
             return dict.fromkeys(penalties, f"{n_bins} bins: {err}")
     unflat = regression_view(traj, base, model, pool=pool, flatten=False)
@@ -630,3 +636,17 @@ def _candidate_skills(traj, cycle, regression, n_bins, order, pool, n_folds, pen
             else:
                 out[ridge, setting] = full, conn
     return out
+
+
+def _whole_fit(regression: Regression, traj: Trajectory, cycle: LimitCycle, pool: bool,
+               fitted: Sequence[tuple[Regression, LocalConnectionModel]]
+               ) -> LocalConnectionModel:
+    """``regression.fit`` (its ``on_ill_conditioned`` is ``"warn"``), or the model in
+    ``fitted`` (pairs of a regression and its fit to the same recording) of a regression that
+    differs from it at most in ``on_ill_conditioned = "raise"``: with no bin ill-conditioned
+    the two settings fit alike, bit for bit, and a fit that raised nothing had none."""
+    for other, model in fitted:
+        if getattr(other, "on_ill_conditioned", None) in ("raise", "warn") and other.replace(
+                on_ill_conditioned=regression.on_ill_conditioned) == regression:
+            return model
+    return regression.fit(traj, cycle, pool=pool)
