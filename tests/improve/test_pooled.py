@@ -194,3 +194,13 @@ def test_excitation_keeps_the_joint_limits(three_gaits):
     out = excitation_gait(model, gait, 1.0, seed=0, shape_bound=0.8)
     assert float(torch.linalg.vector_norm(out(phi), dim=-1).max()) <= 0.8 + 1e-9
     assert not torch.equal(out.coeffs, gait.coeffs)
+
+
+def test_loop_records_the_kept_gait_again_until_every_phase_bin_can_be_fitted():
+    """The 9-link's 81 regressors per bin need more than one 3-cycle recording: the loop
+    proposes nothing (NaN predictions) and records the start again, without failing."""
+    res = improve(NLinkSwimmer(9), circle_gait(8, 0.5), LoopSettings(seed=0, rounds=2))
+    first, second = res.rounds
+    assert not first.moved and math.isnan(first.predicted)
+    assert second.kind == "repeat" and second.cycles_used == 6
+    assert torch.equal(second.gait.coeffs, first.gait.coeffs)

@@ -382,46 +382,38 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
             kept["traj"].append(traj)
             kept["observed"], kept["observed_se"] = measure_cycles(
                 _stack_trials(kept["traj"])).objective(s.objective)
-        model = pool.model(kept["gait"])
-        candidates = [propose_gait(model, s.objective, dataclasses.replace(
-            s.trust_region, scale=scale * fraction), seed=k) for fraction in _STEP_FRACTIONS]
-        if first_gain is None:
-            first_gain = abs(candidates[0].gain)
-        # The over-prediction grows as the step squared (the first-order model's truncation):
-        # learned per rad² of step, the prior (scaled by the first proposal's gain) worth one
-        # step taken. The step is the one of the trust radius and two shorter ones whose
-        # corrected gain has the highest lower bound.
-        n = 1 + len(errors)
-        bias = (s.truncation * first_gain + sum(errors)) / n
-        spread = math.sqrt(((s.truncation_spread * first_gain) ** 2
-                            + sum((e - bias) ** 2 for e in errors)) / n)
-        best = None
-        for prop in candidates:
-            gain = prop.gain - bias * prop.step ** 2
-            gain_half = z * math.sqrt(prop.gain_se ** 2 + (spread * prop.step ** 2) ** 2)
-            if best is None or gain - gain_half > best[1] - best[2]:
-                best = (prop, gain, gain_half)
-        prop, gain, gain_half = best
-        predicted = kept["observed"] + gain
-        half = math.hypot(z * kept["observed_se"], gain_half)
-        moved = gain - gain_half > 0
-        kept.update(gain=prop.gain, step=prop.step)
-        rnd = Round(
-            index=k, kind=kind, cycles=s.trials * s.cycles, cycles_used=pool.cycles, gait=gait,
-            excitation=excitation, observed=meas, observed_se=meas_se, true=true,
-            accepted=accepted, kept=kept["gait"], kept_true=kept["true"], scale=scale,
-            step=prop.step, proposal=prop.gait, predicted=predicted,
-            predicted_low=predicted - half, predicted_high=predicted + half,
-            model_predicted=prop.predicted, gain=prop.gain, gain_se=prop.gain_se,
-            gain_low=gain - gain_half, moved=moved,
-            realised=true_objective(system, prop.gait, s.objective),
-        )
+        try:
+            model = pool.model(kept["gait"])
+        except ValueError:  # too few samples near the kept gait for every phase bin yet
+            model = None
+        if model is None:
+            rnd = _unfitted_round(k, kind, gait, excitation, meas, meas_se, true, accepted,
+                                  kept, scale, pool.cycles, s)
+        else:
+            candidates = [propose_gait(model, s.objective, dataclasses.replace(
+                s.trust_region, scale=scale * fraction), seed=k) for fraction in _STEP_FRACTIONS]
+            if first_gain is None:
+                first_gain = abs(candidates[0].gain)
+            prop, gain, gain_half = _best_step(candidates, errors, first_gain, s, z)
+            predicted = kept["observed"] + gain
+            half = math.hypot(z * kept["observed_se"], gain_half)
+            kept.update(gain=prop.gain, step=prop.step)
+            rnd = Round(
+                index=k, kind=kind, cycles=s.trials * s.cycles, cycles_used=pool.cycles,
+                gait=gait, excitation=excitation, observed=meas, observed_se=meas_se, true=true,
+                accepted=accepted, kept=kept["gait"], kept_true=kept["true"], scale=scale,
+                step=prop.step, proposal=prop.gait, predicted=predicted,
+                predicted_low=predicted - half, predicted_high=predicted + half,
+                model_predicted=prop.predicted, gain=prop.gain, gain_se=prop.gain_se,
+                gain_low=gain - gain_half, moved=gain - gain_half > 0,
+                realised=true_objective(system, prop.gait, s.objective),
+            )
         rounds.append(rnd)
         if progress is not None:
             progress(rnd)
-        if moved:
-            gait, kind, excitation = prop.gait, "proposal", 0.0
-        elif s.excitation > 0:
+        if rnd.moved:
+            gait, kind, excitation = rnd.proposal, "proposal", 0.0
+        elif s.excitation > 0 and model is not None:
             # the first trust radius of the current tube, however far the radius has shrunk
             tube = sum(model.meta["tube_rms"]) / len(model.meta["tube_rms"])
             peak = s.excitation * s.trust_region.scale * tube
@@ -446,6 +438,41 @@ def true_score(system: LocomotionSystem, gait, settings: LoopSettings,
                                      settings.objective, settings.trust_region))
 
 
+def _best_step(candidates: list, errors: list[float], first_gain: float, s: LoopSettings,
+               z: float):
+    """The proposal among ``candidates`` (one per trust radius) whose gain, corrected for the
+    over-prediction, has the highest lower bound: ``(proposal, gain, half-width)``.
+
+    The over-prediction grows as the step squared (the first-order model's truncation): it is
+    learnt per rad² of step from ``errors``, the prior (scaled by the first proposal's gain,
+    ``first_gain``) worth one step taken."""
+    n = 1 + len(errors)
+    bias = (s.truncation * first_gain + sum(errors)) / n
+    spread = math.sqrt(((s.truncation_spread * first_gain) ** 2
+                        + sum((e - bias) ** 2 for e in errors)) / n)
+    best = None
+    for prop in candidates:
+        gain = prop.gain - bias * prop.step ** 2
+        gain_half = z * math.sqrt(prop.gain_se ** 2 + (spread * prop.step ** 2) ** 2)
+        if best is None or gain - gain_half > best[1] - best[2]:
+            best = (prop, gain, gain_half)
+    return best
+
+
+def _unfitted_round(index, kind, gait, excitation, observed, observed_se, true, accepted, kept,
+                    scale, cycles_used, s: LoopSettings) -> Round:
+    """A step after which the pooled model cannot be fitted yet (too few samples near the
+    kept gait in some phase bin): no proposal (NaN predictions), the kept gait recorded
+    again."""
+    nan = math.nan
+    return Round(
+        index=index, kind=kind, cycles=s.trials * s.cycles, cycles_used=cycles_used, gait=gait,
+        excitation=excitation, observed=observed, observed_se=observed_se, true=true,
+        accepted=accepted, kept=kept["gait"], kept_true=kept["true"], scale=scale, step=0.0,
+        proposal=kept["gait"], predicted=nan, predicted_low=nan, predicted_high=nan,
+        model_predicted=nan, gain=nan, gain_se=nan, gain_low=nan, moved=False, realised=nan)
+
+
 def _within_limits(gait: FourierGait, pool: PooledConnection, s: LoopSettings, z: float, *,
                    seed: int) -> bool:
     """False when ``gait`` leaves the trust region's ``shape_bound``, or turns more than its
@@ -458,8 +485,12 @@ def _within_limits(gait: FourierGait, pool: PooledConnection, s: LoopSettings, z
         return False
     if limit is None or s.objective == "turning":
         return True
-    pred = pool.model(gait).evaluate_gait(gait, phase_offset=0.0, n_draws=32, seed=seed,
-                                          warn_excursion=math.inf, max_excursion=math.inf)
+    try:
+        model = pool.model(gait)
+    except ValueError:  # too few samples near the gait to tell: not refused
+        return True
+    pred = model.evaluate_gait(gait, phase_offset=0.0, n_draws=32, seed=seed,
+                               warn_excursion=math.inf, max_excursion=math.inf)
     return abs(float(pred.displacement[2])) - z * float(pred.displacement_se[2]) <= limit
 
 
