@@ -2,7 +2,8 @@
 
 The unit of work and storage is a cell (one noise level of one experiment, ``block_trials``
 trials; see :class:`~torchconn.sweep.experiment.Cell`), so a killed run loses only the cells
-in flight and ``--workers`` spreads even a single experiment. Only one run writes a folder at
+in flight, and ``--jobs`` (local processes, by default one per core) and ``--workers`` (Dask)
+spread even a single experiment. Only one run writes a folder at
 a time (:class:`~torchconn._output.FolderLock`); stored cells are checked on load and
 damaged ones recomputed (:class:`~torchconn.sweep.store.ResultStore`). Per-experiment
 summaries (claims, figures) are computed from all cells once they are loaded.
@@ -19,17 +20,23 @@ A folder that is neither empty nor a sweep's (no ``cells/``) is refused.
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import json
+import multiprocessing
+import os
+import signal
 import sys
 import time
 import warnings
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from .._cli import InputError, prepare_output
+from .._cli import InputError, hold_freed_memory, prepare_output
 from .._output import OS_LITTER, FolderLock, write_table
 from .._provenance import write_sidecar
 from .claims import check_claims
@@ -47,7 +54,7 @@ from .experiment import (
 from .figures import make_figures
 from .store import ResultStore
 
-__all__ = ["run_sweep", "SweepSummary", "Progress", "cell_fingerprint"]
+__all__ = ["run_sweep", "SweepSummary", "Progress", "cell_fingerprint", "default_jobs"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -102,6 +109,60 @@ def _in_worker(config: SweepConfig, cell: Cell, threads: int) -> ExperimentResul
     return run_cell(config, cell)
 
 
+def default_jobs(config: SweepConfig, threads: int) -> int:
+    """How many cells ``torchconn-sweep`` runs at once by default: one per ``threads`` CPU
+    cores this process may use (:func:`run_sweep` runs no more than there are cells to
+    compute); 1 when the cells run on a GPU."""
+    if torch.device(config.device).type != "cpu":
+        return 1
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, cores // max(threads, 1))
+
+
+#: Linux ``prctl`` option: the signal a process gets when its parent ends
+_PR_SET_PDEATHSIG = 1
+
+
+def _start_job(threads: int, parent: int) -> None:
+    """A local job process: the parent's thread count, freed memory kept for reuse
+    (:func:`~torchconn._cli.hold_freed_memory`); an interrupt is the parent's to handle (it
+    stops the jobs), not every job's. On Linux the job ends with its parent (process
+    ``parent``): a forked job holds the output folder's lock with it, and a parent killed
+    with ``kill -9`` must not leave it held."""
+    torch.set_num_threads(threads)
+    hold_freed_memory()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+        except (OSError, AttributeError):
+            pass
+        if os.getppid() != parent:  # the parent ended before that took effect
+            os._exit(1)
+
+
+def _job(config: SweepConfig, cell: Cell) -> tuple[ExperimentResult, list]:
+    """One cell in a job process, and the warnings it showed (those its filters, a fork of the
+    parent's, let through), as ``(category, message)`` for the parent to give again where the
+    command shows them."""
+    caught = []
+    with warnings.catch_warnings():
+        warnings.showwarning = lambda message, category, *args, **kwargs: caught.append(
+            (category, str(message)))
+        result = run_cell(config, cell)
+    return result, caught
+
+
+def _cell_cost(cell: Cell) -> int:
+    """A cell's relative cost, to start the longest first: samples times links."""
+    sim = cell.experiment.simulation
+    links = int(cell.experiment.system.removesuffix("link"))
+    return (cell.stop - cell.start) * sim.n_cycles * sim.samples_per_cycle * links
+
+
 def _dask():
     try:
         from distributed import Client, LocalCluster, as_completed
@@ -117,6 +178,7 @@ def run_sweep(
     *,
     workers: int = 0,
     scheduler: str | None = None,
+    jobs: int = 1,
     quiet: bool = False,
     figures: bool = True,
     wait: bool = False,
@@ -131,6 +193,9 @@ def run_sweep(
             ``prog: warning: ...``).
         workers: > 0 runs cells on a local Dask cluster with that many worker processes.
         scheduler: address of an existing Dask scheduler (``tcp://HOST:PORT``).
+        jobs: without Dask, how many cells run at once, each in a local process with this
+            process's torch thread count (1: one after another, in this process). The rows
+            are the same bit for bit for any ``jobs``; the longest cells start first.
         quiet: no progress bar or log lines (the warnings are still given).
         figures: write the PNG figures.
         wait: when another run holds ``out_dir``, wait for it instead of raising
@@ -140,6 +205,8 @@ def run_sweep(
         raise InputError(f"--workers must be an integer >= 0, got {workers!r}")
     if workers and scheduler:
         raise InputError("give either --workers (a local cluster) or --scheduler, not both")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise InputError(f"--jobs must be an integer >= 1, got {jobs!r}")
     dask = _dask() if (workers or scheduler) else None
     _check_sweep_folder(Path(out_dir))
     out = prepare_output(out_dir)
@@ -165,15 +232,18 @@ def run_sweep(
             f"{len(done)} already done in {out}")
         progress = Progress(len(plan), len(done), quiet)
         t0 = time.perf_counter()
+        local = 1 if dask else min(jobs, max(len(pending), 1))
         if pending and dask:
             _run_dask(dask, config, pending, store, done, progress, workers, scheduler)
+        elif local > 1:
+            _run_jobs(config, pending, store, done, progress, local)
         else:
             for cell, fp in pending:
                 done[cell.name] = run_cell(config, cell)
                 store.save(cell, fp, done[cell.name])
                 progress.update(cell.name)
         wall = time.perf_counter() - t0
-        return _assemble(config, out, done, plan, wall, figures, log,
+        return _assemble(config, out, done, plan, wall, figures, log, jobs=local,
                          computed=tuple(c.name for c, _ in pending), damaged=tuple(damaged),
                          removed=tuple(removed), temporary=tuple(temporary))
 
@@ -220,6 +290,51 @@ def _run_dask(dask, config, pending, store, done, progress, workers, scheduler) 
             cluster.close()
 
 
+def _run_jobs(config, pending, store, done, progress, jobs: int) -> None:
+    """The pending cells on ``jobs`` local processes, longest first; each cell stored as it
+    finishes. On an error or an interrupt the jobs still running are stopped (the cells
+    already stored are kept)."""
+    threads = torch.get_num_threads()
+    # fork: the jobs start at once with torchconn imported; spawn (imports anew) elsewhere and
+    # for jobs of several threads (OpenMP's thread pool does not survive a fork)
+    method = "fork" if sys.platform.startswith("linux") and threads == 1 else "spawn"
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(method),
+                               initializer=_start_job, initargs=(threads, os.getpid()))
+    try:
+        running = {pool.submit(_job, config, cell): (cell, fp)
+                   for cell, fp in sorted(pending, key=lambda p: -_cell_cost(p[0]))}
+        while running:
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                cell, fp = running.pop(fut)
+                try:
+                    result, caught = fut.result()
+                except BrokenProcessPool:
+                    raise RuntimeError(
+                        f"a job process ended abruptly (killed, or out of memory?) with "
+                        f"{len(running) + 1} cells unfinished; the cells finished are kept: run "
+                        "again, with fewer --jobs to use less memory") from None
+                for category, message in caught:
+                    warnings.warn(message, category, stacklevel=1)
+                done[cell.name] = result
+                store.save(cell, fp, result)
+                progress.update(cell.name)
+    except BaseException:
+        _stop_jobs(pool)
+        raise
+    pool.shutdown()
+
+
+def _stop_jobs(pool: ProcessPoolExecutor) -> None:
+    """Cancel the queued cells and end the job processes now (not after their cells)."""
+    # (the executor has no public way to end its processes before Python 3.14; shutdown
+    # forgets them)
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for process in processes:
+        process.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
 def _device_record(name: str) -> dict:
     """The device the cells ran on, for ``run.json`` (CPU and CUDA draw different numbers)."""
     device = torch.device(name)
@@ -230,8 +345,8 @@ def _device_record(name: str) -> dict:
     return out
 
 
-def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged, removed,
-              temporary) -> SweepSummary:
+def _assemble(config, out, done, plan, wall, figures, log, *, jobs, computed, damaged,
+              removed, temporary) -> SweepSummary:
     previous = _previous_outputs(out)
     (out / "run.json").unlink(missing_ok=True)  # the completion record goes first, comes last
     per_experiment = {e.name: ExperimentResult() for e in config.experiments}
@@ -276,6 +391,7 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged,
         "timings_s": timings,
         "wall_time_s_this_run": wall,
         "torch_threads": torch.get_num_threads(),
+        "jobs": jobs,
         "device": _device_record(config.device),
     }
     write_sidecar(out / "run.json", sidecar)
