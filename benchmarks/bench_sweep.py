@@ -26,8 +26,9 @@ Run by hand: ``python benchmarks/bench_sweep.py [--workers 2] [--block 20] [--st
    its cells: start-up, reading the stored cells, tables, claims, figures); then the same cells
    one after another in this process, with the stage clocks reading this process's CPU time:
    the CPU seconds of each stage and of all cells. On a shared machine the wall time is the
-   other processes' too: the load average is printed; on an idle machine the wall time is
-   about the cells' CPU time over the jobs plus the rest.
+   other processes' too: the load average is printed, and the wall time on an idle machine
+   with a core per job is estimated from ``run.json``'s CPU times, the command's process's
+   (start-up, tables, figures) plus its busiest job's.
 
 The machine's load average is printed: on a shared machine compare ratios within one run.
 """
@@ -200,8 +201,9 @@ def _timed_command(out: str) -> tuple[float, float]:
     into ``out``."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     cpu0, t0 = _children_cpu(), time.perf_counter()
+    # (run from the output's folder: python -m puts the working folder first on the path)
     subprocess.run([sys.executable, "-m", "torchconn.sweep", "--out", out, "--quiet"], env=env,
-                   check=True)
+                   check=True, cwd=Path(out).parent)
     return time.perf_counter() - t0, _children_cpu() - cpu0
 
 
@@ -212,6 +214,11 @@ def default_part() -> None:
         print(f"default sweep (torchconn-sweep): wall {wall:.1f} s, CPU {cpu:.1f} s (user + "
               f"system, its jobs included), {run.get('jobs', 1)} jobs of {run['torch_threads']} "
               f"thread(s) ({load()})")
+        if "cpu_time_s" in run:
+            own, jobs = run["cpu_time_s"]["this_process"], run["cpu_time_s"]["jobs"]
+            print(f"  CPU s of the command's process {own:.1f}, of its jobs "
+                  f"{[round(j, 1) for j in jobs]}: on an idle machine with a core per job "
+                  f"about {own + max(jobs, default=0.0):.1f} s wall")
         wall, cpu = _timed_command(f"{tmp}/out")
         print(f"  again, every cell stored (start-up, reading the cells, tables, claims, "
               f"figures): wall {wall:.1f} s, CPU {cpu:.1f} s")

@@ -161,8 +161,11 @@ def test_local_jobs_match_the_serial_run(tmp_path):
     for table in ("results.csv", "phase_errors.csv", "traces.csv", "claims.csv"):
         assert (tmp_path / "jobs" / table).read_bytes() == (
             tmp_path / "serial" / table).read_bytes()
-    assert json.loads((tmp_path / "jobs" / "run.json").read_text())["jobs"] == 3
-    assert json.loads((tmp_path / "serial" / "run.json").read_text())["jobs"] == 1
+    run, serial = (json.loads((tmp_path / name / "run.json").read_text())
+                   for name in ("jobs", "serial"))
+    assert run["jobs"] == 3 and serial["jobs"] == 1
+    assert len(run["cpu_time_s"]["jobs"]) == 3 and min(run["cpu_time_s"]["jobs"]) > 0
+    assert serial["cpu_time_s"]["jobs"] == [] and serial["cpu_time_s"]["this_process"] > 0
 
 
 def test_a_jobs_warnings_reach_the_caller(tmp_path, monkeypatch):

@@ -144,16 +144,16 @@ def _start_job(threads: int, parent: int) -> None:
             os._exit(1)
 
 
-def _job(config: SweepConfig, cell: Cell) -> tuple[ExperimentResult, list]:
-    """One cell in a job process, and the warnings it showed (those its filters, a fork of the
+def _job(config: SweepConfig, cell: Cell) -> tuple[ExperimentResult, list, int, float]:
+    """One cell in a job process; the warnings it showed (those its filters, a fork of the
     parent's, let through), as ``(category, message)`` for the parent to give again where the
-    command shows them."""
+    command shows them; the process's id and the CPU seconds it has used so far."""
     caught = []
     with warnings.catch_warnings():
         warnings.showwarning = lambda message, category, *args, **kwargs: caught.append(
             (category, str(message)))
         result = run_cell(config, cell)
-    return result, caught
+    return result, caught, os.getpid(), time.process_time()
 
 
 def _cell_cost(cell: Cell) -> int:
@@ -233,10 +233,11 @@ def run_sweep(
         progress = Progress(len(plan), len(done), quiet)
         t0 = time.perf_counter()
         local = 1 if dask else min(jobs, max(len(pending), 1))
+        job_cpu = []
         if pending and dask:
             _run_dask(dask, config, pending, store, done, progress, workers, scheduler)
         elif local > 1:
-            _run_jobs(config, pending, store, done, progress, local)
+            job_cpu = _run_jobs(config, pending, store, done, progress, local)
         else:
             for cell, fp in pending:
                 done[cell.name] = run_cell(config, cell)
@@ -244,8 +245,9 @@ def run_sweep(
                 progress.update(cell.name)
         wall = time.perf_counter() - t0
         return _assemble(config, out, done, plan, wall, figures, log, jobs=local,
-                         computed=tuple(c.name for c, _ in pending), damaged=tuple(damaged),
-                         removed=tuple(removed), temporary=tuple(temporary))
+                         job_cpu=job_cpu, computed=tuple(c.name for c, _ in pending),
+                         damaged=tuple(damaged), removed=tuple(removed),
+                         temporary=tuple(temporary))
 
 
 def _check_sweep_folder(out: Path) -> None:
@@ -290,16 +292,17 @@ def _run_dask(dask, config, pending, store, done, progress, workers, scheduler) 
             cluster.close()
 
 
-def _run_jobs(config, pending, store, done, progress, jobs: int) -> None:
+def _run_jobs(config, pending, store, done, progress, jobs: int) -> list[float]:
     """The pending cells on ``jobs`` local processes, longest first; each cell stored as it
     finishes. On an error or an interrupt the jobs still running are stopped (the cells
-    already stored are kept)."""
+    already stored are kept). Returns the CPU seconds of each job process."""
     threads = torch.get_num_threads()
     # fork: the jobs start at once with torchconn imported; spawn (imports anew) elsewhere and
     # for jobs of several threads (OpenMP's thread pool does not survive a fork)
     method = "fork" if sys.platform.startswith("linux") and threads == 1 else "spawn"
     pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(method),
                                initializer=_start_job, initargs=(threads, os.getpid()))
+    cpu: dict[int, float] = {}
     try:
         running = {pool.submit(_job, config, cell): (cell, fp)
                    for cell, fp in sorted(pending, key=lambda p: -_cell_cost(p[0]))}
@@ -308,7 +311,7 @@ def _run_jobs(config, pending, store, done, progress, jobs: int) -> None:
             for fut in finished:
                 cell, fp = running.pop(fut)
                 try:
-                    result, caught = fut.result()
+                    result, caught, pid, cpu[pid] = fut.result()
                 except BrokenProcessPool:
                     raise RuntimeError(
                         f"a job process ended abruptly (killed, or out of memory?) with "
@@ -323,6 +326,7 @@ def _run_jobs(config, pending, store, done, progress, jobs: int) -> None:
         _stop_jobs(pool)
         raise
     pool.shutdown()
+    return sorted(cpu.values())
 
 
 def _stop_jobs(pool: ProcessPoolExecutor) -> None:
@@ -345,8 +349,8 @@ def _device_record(name: str) -> dict:
     return out
 
 
-def _assemble(config, out, done, plan, wall, figures, log, *, jobs, computed, damaged,
-              removed, temporary) -> SweepSummary:
+def _assemble(config, out, done, plan, wall, figures, log, *, jobs, job_cpu, computed,
+              damaged, removed, temporary) -> SweepSummary:
     previous = _previous_outputs(out)
     (out / "run.json").unlink(missing_ok=True)  # the completion record goes first, comes last
     per_experiment = {e.name: ExperimentResult() for e in config.experiments}
@@ -392,6 +396,10 @@ def _assemble(config, out, done, plan, wall, figures, log, *, jobs, computed, da
         "wall_time_s_this_run": wall,
         "torch_threads": torch.get_num_threads(),
         "jobs": jobs,
+        # this process's CPU time (start-up included, and the cells where it ran them) and
+        # each job process's: on an idle machine, with a core per job, the wall time is
+        # about this process's and the busiest job's together
+        "cpu_time_s": {"this_process": time.process_time(), "jobs": job_cpu},
         "device": _device_record(config.device),
     }
     write_sidecar(out / "run.json", sidecar)
