@@ -208,10 +208,19 @@ def test_a_job_process_that_dies_is_reported_and_finished_cells_are_kept(tmp_pat
     assert summary.reused + len(summary.computed) == 4
 
 
-def test_default_jobs_use_the_cores_given_the_threads(tmp_path, monkeypatch):
+def test_default_jobs_use_the_cores_given_the_threads_and_the_memory(tmp_path, monkeypatch):
+    from torchconn.sweep import runner
+
     config = load_config(_small_config(tmp_path))
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    monkeypatch.setattr(runner, "_available_memory", lambda: 1 << 40)
     assert [default_jobs(config, t) for t in (1, 2, 3, 8, 16)] == [8, 4, 2, 1, 1]
+    # room for three jobs of this config's largest cells, and for none of the default's
+    trial_samples = 2 * 8 * 64
+    need = runner._JOB_BASE_BYTES + runner._JOB_BYTES_PER_TRIAL_SAMPLE * trial_samples
+    monkeypatch.setattr(runner, "_available_memory", lambda: 3 * need + 1)
+    assert default_jobs(config, 1) == 3
+    assert default_jobs(load_config(None), 1) == 1
 
 
 def test_the_sweep_commands_process_keeps_freed_memory():

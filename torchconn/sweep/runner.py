@@ -109,17 +109,43 @@ def _in_worker(config: SweepConfig, cell: Cell, threads: int) -> ExperimentResul
     return run_cell(config, cell)
 
 
+#: the memory a job process is given room for: torch and torchconn, and per trial-sample of
+#: the largest cell (a 12-trial 9-link cell of 1,920 samples peaked at 0.7 GB, and a job keeps
+#: what its cells freed for reuse, :func:`~torchconn._cli.hold_freed_memory`)
+_JOB_BASE_BYTES = 512 << 20
+_JOB_BYTES_PER_TRIAL_SAMPLE = 60_000
+
+
 def default_jobs(config: SweepConfig, threads: int) -> int:
     """How many cells ``torchconn-sweep`` runs at once by default: one per ``threads`` CPU
-    cores this process may use (:func:`run_sweep` runs no more than there are cells to
-    compute); 1 when the cells run on a GPU."""
+    cores this process may use, as many as the available memory has room for (:func:`run_sweep`
+    runs no more than there are cells to compute); 1 when the cells run on a GPU."""
     if torch.device(config.device).type != "cpu":
         return 1
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         cores = os.cpu_count() or 1
-    return max(1, cores // max(threads, 1))
+    largest = max(min(config.block_trials, e.trials) * e.simulation.n_cycles
+                  * e.simulation.samples_per_cycle for e in config.experiments)
+    room = _available_memory() // (_JOB_BASE_BYTES + _JOB_BYTES_PER_TRIAL_SAMPLE * largest)
+    return max(1, min(cores // max(threads, 1), room))
+
+
+def _available_memory() -> int:
+    """Bytes of memory available to new processes (Linux: ``MemAvailable``; elsewhere the
+    free physical memory, or without a way to tell, no limit)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return 1 << 62
 
 
 #: Linux ``prctl`` option: the signal a process gets when its parent ends
