@@ -27,6 +27,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 import time
 import warnings
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -155,19 +156,25 @@ _PR_SET_PDEATHSIG = 1
 def _start_job(threads: int, parent: int) -> None:
     """A local job process: the parent's thread count, freed memory kept for reuse
     (:func:`~torchconn._cli.hold_freed_memory`); an interrupt is the parent's to handle (it
-    stops the jobs), not every job's. On Linux the job ends with its parent (process
-    ``parent``): a forked job holds the output folder's lock with it, and a parent killed
-    with ``kill -9`` must not leave it held."""
+    stops the jobs), not every job's. The job ends with its parent (process ``parent``): a
+    job left behind would wait for work forever, and a forked one holds the output folder's
+    lock, which a parent killed with ``kill -9`` must not leave held."""
     torch.set_num_threads(threads)
     hold_freed_memory()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if sys.platform.startswith("linux"):
-        try:
-            ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-        except (OSError, AttributeError):
-            pass
-        if os.getppid() != parent:  # the parent ended before that took effect
-            os._exit(1)
+    try:  # Linux: killed with the parent
+        ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError, TypeError):  # elsewhere: look once a second
+        threading.Thread(target=_end_with, args=(parent,), daemon=True).start()
+    if os.getppid() != parent:  # the parent ended already
+        os._exit(1)
+
+
+def _end_with(parent: int) -> None:
+    """End this process once ``parent`` is no longer its parent."""
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os._exit(1)
 
 
 def _job(config: SweepConfig, cell: Cell) -> tuple[ExperimentResult, list, int, float]:
