@@ -44,8 +44,9 @@ def _parser() -> argparse.ArgumentParser:
                    "and run.json records the device")
     p.add_argument("--jobs", type=int, metavar="N",
                    help="run N cells at once, each in a local process with --threads threads "
-                   "(default: one per usable CPU core, or 1 with --device cuda; 1: one after "
-                   "another in this process). The results are the same for any N")
+                   "(default: one per usable CPU core, as memory allows, or 1 with --device "
+                   "cuda; 1: one after another in this process). The results are the same for "
+                   "any N")
     p.add_argument("--workers", type=int, default=0,
                    help="run cells on a local Dask cluster with N workers")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler, tcp://HOST:PORT")

@@ -3,10 +3,10 @@
 The unit of work and storage is a cell (one noise level of one experiment, ``block_trials``
 trials; see :class:`~torchconn.sweep.experiment.Cell`), so a killed run loses only the cells
 in flight, and ``--jobs`` (local processes, by default one per core) and ``--workers`` (Dask)
-spread even a single experiment. Only one run writes a folder at
-a time (:class:`~torchconn._output.FolderLock`); stored cells are checked on load and
-damaged ones recomputed (:class:`~torchconn.sweep.store.ResultStore`). Per-experiment
-summaries (claims, figures) are computed from all cells once they are loaded.
+spread even a single experiment. Only one run writes a folder at a time
+(:class:`~torchconn._output.FolderLock`); stored cells are checked on load and damaged ones
+recomputed (:class:`~torchconn.sweep.store.ResultStore`). Per-experiment summaries (claims,
+figures) are computed from all cells once they are loaded.
 
 Outputs in ``OUT/``: ``results.csv`` (tidy: experiment, system, noise_kind, level, trial, model,
 component, metric, value), ``phase_errors.csv`` (error per phase bin), ``traces.csv``
@@ -50,6 +50,7 @@ from .experiment import (
     ExperimentResult,
     experiment_cells,
     experiment_seeds,
+    make_system,
     run_cell,
 )
 from .figures import make_figures
@@ -192,7 +193,7 @@ def _job(config: SweepConfig, cell: Cell) -> tuple[ExperimentResult, list, int, 
 def _cell_cost(cell: Cell) -> int:
     """A cell's relative cost, to start the longest first: samples times links."""
     sim = cell.experiment.simulation
-    links = int(cell.experiment.system.removesuffix("link"))
+    links = make_system(cell.experiment.system).n_links
     return (cell.stop - cell.start) * sim.n_cycles * sim.samples_per_cycle * links
 
 
