@@ -1,6 +1,7 @@
 """Sweep timing: serial vs Dask workers on the Fig. 4A config, per-cell cost, stages, scaling.
 
-Run by hand: ``python benchmarks/bench_sweep.py [--workers 2] [--block 20] [--stages]``.
+Run by hand: ``python benchmarks/bench_sweep.py [--workers 2] [--block 20] [--stages]``, or
+``python benchmarks/bench_sweep.py --default --skip-cells`` for the default sweep alone.
 
 1. **Cells** (the default part): runs ``configs/fig4a.toml`` (one experiment, 8 levels x 20
    trials) through :func:`run_sweep` serially and on a local Dask cluster with ``--workers``
@@ -18,6 +19,16 @@ Run by hand: ``python benchmarks/bench_sweep.py [--workers 2] [--block 20] [--st
    ``--repeat`` times after a warm-up, the best CPU time of this process per stage -- on a
    shared machine wall time mostly measures the other processes. Run it with two versions of
    the package, alternating, to compare them on one machine state.
+5. **The default sweep** (``--default``): ``torchconn-sweep`` with no arguments but ``--out``
+   (a temporary folder) and ``--quiet``, as a user runs it (its default ``--jobs``): its wall
+   time, its CPU time (its own and its job processes', user + system) and the jobs it ran;
+   the same command again into that folder, every cell stored (what the command does besides
+   its cells: start-up, reading the stored cells, tables, claims, figures); then the same cells
+   one after another in this process, with the stage clocks reading this process's CPU time:
+   the CPU seconds of each stage and of all cells. On a shared machine the wall time is the
+   other processes' too: the load average is printed, and the wall time on an idle machine
+   with a core per job is estimated from ``run.json``'s CPU times, the command's process's
+   (start-up, tables, figures) plus its busiest job's.
 
 The machine's load average is printed: on a shared machine compare ratios within one run.
 """
@@ -26,7 +37,11 @@ from __future__ import annotations
 
 import argparse
 import heapq
+import json
 import os
+import resource
+import subprocess
+import sys
 import tempfile
 import time
 import types
@@ -35,6 +50,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchconn import _cli
 from torchconn.sweep import experiment
 from torchconn.sweep.config import load_config
 from torchconn.sweep.experiment import experiment_cells, run_cell, run_experiment
@@ -175,6 +191,57 @@ def cell_part(spec: str, repeat: int) -> None:
           + ", ".join(f"{k} {v:.3f}" for k, v in best.items()) + f" ({load()})")
 
 
+def _children_cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _timed_command(out: str) -> tuple[float, float]:
+    """Wall and CPU time (user + system, its job processes included) of the default sweep
+    into ``out``."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    cpu0, t0 = _children_cpu(), time.perf_counter()
+    # (run from the output's folder: python -m puts the working folder first on the path)
+    subprocess.run([sys.executable, "-m", "torchconn.sweep", "--out", out, "--quiet"], env=env,
+                   check=True, cwd=Path(out).parent)
+    return time.perf_counter() - t0, _children_cpu() - cpu0
+
+
+def default_part() -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        wall, cpu = _timed_command(f"{tmp}/out")
+        run = json.loads(Path(f"{tmp}/out/run.json").read_text())
+        print(f"default sweep (torchconn-sweep): wall {wall:.1f} s, CPU {cpu:.1f} s (user + "
+              f"system, its jobs included), {run.get('jobs', 1)} jobs of {run['torch_threads']} "
+              f"thread(s) ({load()})")
+        if "cpu_time_s" in run:
+            own, jobs = run["cpu_time_s"]["this_process"], run["cpu_time_s"]["jobs"]
+            print(f"  CPU s of the command's process {own:.1f}, of its jobs "
+                  f"{[round(j, 1) for j in jobs]}: on an idle machine with a core per job "
+                  f"about {own + max(jobs, default=0.0):.1f} s wall")
+        wall, cpu = _timed_command(f"{tmp}/out")
+        print(f"  again, every cell stored (start-up, reading the cells, tables, claims, "
+              f"figures): wall {wall:.1f} s, CPU {cpu:.1f} s")
+    config = load_config(None)
+    getattr(_cli, "hold_freed_memory", lambda: None)()  # as the command's processes do
+    clock = experiment.time
+    experiment.time = types.SimpleNamespace(perf_counter=time.process_time)  # stage clocks: CPU
+    totals: dict[str, float] = {}
+    try:
+        for exp in config.experiments:
+            t0 = time.process_time()
+            timings = run_experiment(config, exp, config.block_trials).timings
+            timings["total"] = time.process_time() - t0
+            print(f"  {exp.name}: " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items())
+                  + " CPU s")
+            totals = {k: totals.get(k, 0.0) + v for k, v in timings.items()}
+    finally:
+        experiment.time = clock
+    cells = totals.pop("total")
+    print("  all cells, CPU s: " + ", ".join(f"{k} {v:.1f}" for k, v in totals.items())
+          + f"; total {cells:.1f} ({load()})")
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--workers", type=int, default=2)
@@ -185,6 +252,8 @@ def main() -> None:
     p.add_argument("--cell", action="append", default=[], metavar="NAME:LEVEL",
                    help="one cell by stage in CPU seconds, e.g. fig4a:3 (repeatable)")
     p.add_argument("--repeat", type=int, default=3, help="runs per --cell")
+    p.add_argument("--default", action="store_true",
+                   help="the default sweep: wall and CPU time of the command, CPU s by stage")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args()
     torch.set_num_threads(args.threads)
@@ -196,6 +265,8 @@ def main() -> None:
         scaling_part()
     for spec in args.cell:
         cell_part(spec, args.repeat)
+    if args.default:
+        default_part()
 
 
 if __name__ == "__main__":

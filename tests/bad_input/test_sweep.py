@@ -112,6 +112,9 @@ SWEEP_CASES = [
     ("workers-negative", GOOD_TOML, ["--workers", "-1"], ["--workers must be"]),
     ("workers-and-scheduler", GOOD_TOML, ["--workers", "2", "--scheduler", "tcp://x:1"],
      ["either --workers", "--scheduler"]),
+    ("jobs-zero", GOOD_TOML, ["--jobs", "0"], ["--jobs must be an integer >= 1", "0"]),
+    ("jobs-and-workers", GOOD_TOML, ["--jobs", "2", "--workers", "2"],
+     ["either --jobs", "--workers"]),
     # ---- added: values that were accepted, and names the message must give
     ("alpha-zero", _edit("n_cycles = 5", "n_cycles = 5\nalpha = 0.0"), [],
      ["[simulation]", "alpha must be > 0"]),
@@ -202,8 +205,9 @@ def test_sweep_reads_configs_with_a_byte_order_mark_and_windows_line_ends(tmp_pa
     for name, data in (("bom", b"\xef\xbb\xbf" + GOOD_TOML.encode()),
                        ("crlf", GOOD_TOML.replace("\n", "\r\n").encode())):
         config = write(tmp_path, f"{name}.toml", data)
+        # --jobs 1: the first cell runs in this process, where `seen` records it
         code = sweep_cli.main(["--config", str(config), "--out", str(tmp_path / name),
-                               "--quiet"])
+                               "--quiet", "--jobs", "1"])
         assert code == 1 and seen, capsys.readouterr().err  # read; the first cell was next
         seen.clear()
 

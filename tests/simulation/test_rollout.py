@@ -98,6 +98,18 @@ def test_power_on_sample_interval_constant_metric():
     torch.testing.assert_close(traj.truth.power, traj.power, rtol=0, atol=0, equal_nan=True)
 
 
+def test_a_rollout_without_power_is_the_same_trajectory():
+    system, gait = NLinkSwimmer(3), three_link_gait("extremal")
+    full = simulate(system, gait, eta=0.05, n_cycles=2, samples_per_cycle=16, seeds=[[5, 6]])
+    bare = simulate(system, gait, eta=0.05, n_cycles=2, samples_per_cycle=16, seeds=[[5, 6]],
+                    power=False)
+    assert bare.power is None and bare.truth.power is None and bare.meta["power"] is None
+    assert full.meta["power"] is not None and torch.isfinite(full.power[..., :-1]).all()
+    for name in ("phase", "pose", "r", "xi", "r_dot", "delta"):
+        assert torch.equal(getattr(bare.truth, name), getattr(full.truth, name)), name
+    assert torch.equal(bare.pose, full.pose) and torch.equal(bare.r, full.r)
+
+
 # ---------------------------------------------------------------------------- SDE statistics
 @pytest.fixture(scope="module")
 def ou_run():

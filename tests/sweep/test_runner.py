@@ -2,6 +2,10 @@
 
 import csv
 import json
+import os
+import subprocess
+import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -9,7 +13,7 @@ import pytest
 from torchconn.sweep import __main__ as cli
 from torchconn.sweep import experiment as experiment_module
 from torchconn.sweep.config import load_config
-from torchconn.sweep.runner import cell_fingerprint, run_sweep
+from torchconn.sweep.runner import cell_fingerprint, default_jobs, run_sweep
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = ["--cycles", "8", "--trials", "2", "--quiet"]
@@ -147,6 +151,98 @@ def test_dask_backends_match_the_serial_run(tmp_path):
     serial = (tmp_path / "serial" / "results.csv").read_text()
     assert (tmp_path / "local" / "results.csv").read_text() == serial
     assert (tmp_path / "remote" / "results.csv").read_text() == serial
+
+
+def test_local_jobs_match_the_serial_run(tmp_path):
+    config = load_config(_small_config(tmp_path))
+    run_sweep(config, tmp_path / "serial", quiet=True, figures=False)
+    summary = run_sweep(config, tmp_path / "jobs", jobs=3, quiet=True, figures=False)
+    assert len(summary.computed) == 4
+    for table in ("results.csv", "phase_errors.csv", "traces.csv", "claims.csv"):
+        assert (tmp_path / "jobs" / table).read_bytes() == (
+            tmp_path / "serial" / table).read_bytes()
+    run, serial = (json.loads((tmp_path / name / "run.json").read_text())
+                   for name in ("jobs", "serial"))
+    assert run["jobs"] == 3 and serial["jobs"] == 1
+    assert len(run["cpu_time_s"]["jobs"]) == 3 and min(run["cpu_time_s"]["jobs"]) > 0
+    assert serial["cpu_time_s"]["jobs"] == [] and serial["cpu_time_s"]["this_process"] > 0
+
+
+def test_a_jobs_warnings_reach_the_caller(tmp_path, monkeypatch):
+    config = load_config(_small_config(tmp_path))
+    real = experiment_module.run_cell
+
+    def warns(cfg, cell):  # in the job process (forked, or the test's own process)
+        warnings.warn(f"note from {cell.name}", UserWarning, stacklevel=1)
+        return real(cfg, cell)
+
+    monkeypatch.setattr("torchconn.sweep.runner.run_cell", warns)
+    with pytest.warns(UserWarning) as caught:
+        run_sweep(config, tmp_path / "out", jobs=2, quiet=True, figures=False)
+    assert sorted(str(w.message) for w in caught if "note from" in str(w.message)) == sorted(
+        f"note from {cell.name}" for cell in experiment_module.experiment_cells(
+            config.experiments[0], 4) + experiment_module.experiment_cells(
+            config.experiments[1], 4))
+
+
+def test_a_job_process_that_dies_is_reported_and_finished_cells_are_kept(tmp_path,
+                                                                         monkeypatch):
+    config = load_config(_small_config(tmp_path))
+    real = experiment_module.run_cell
+
+    def dies_on_observation(cfg, cell):
+        if cell.experiment.noise_kind == "observation":
+            os._exit(9)  # as if killed (out of memory)
+        return real(cfg, cell)
+
+    monkeypatch.setattr("torchconn.sweep.runner.run_cell", dies_on_observation)
+    with pytest.raises(RuntimeError, match="a job process ended abruptly .* cells unfinished; "
+                       "the cells finished are kept: run again, with fewer --jobs"):
+        run_sweep(config, tmp_path / "out", jobs=2, quiet=True, figures=False)
+    assert not (tmp_path / "out" / "results.csv").exists()
+    monkeypatch.undo()
+    summary = run_sweep(config, tmp_path / "out", jobs=2, quiet=True, figures=False)
+    assert set(summary.computed) <= {c.name for c in experiment_module.experiment_cells(
+        config.experiments[1], 4)} | {c.name for c in experiment_module.experiment_cells(
+            config.experiments[0], 4)}
+    assert summary.reused + len(summary.computed) == 4
+
+
+def test_default_jobs_use_the_cores_given_the_threads_and_the_memory(tmp_path, monkeypatch):
+    from torchconn.sweep import runner
+
+    config = load_config(_small_config(tmp_path))
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    monkeypatch.setattr(runner, "_available_memory", lambda: 1 << 40)
+    assert [default_jobs(config, t) for t in (1, 2, 3, 8, 16)] == [8, 4, 2, 1, 1]
+    # room for three jobs of this config's largest cells, and for none of the default's
+    trial_samples = 2 * 8 * 64
+    need = runner._JOB_BASE_BYTES + runner._JOB_BYTES_PER_TRIAL_SAMPLE * trial_samples
+    monkeypatch.setattr(runner, "_available_memory", lambda: 3 * need + 1)
+    assert default_jobs(config, 1) == 3
+    assert default_jobs(load_config(None), 1) == 1
+
+
+def test_the_sweep_commands_process_keeps_freed_memory():
+    if not sys.platform.startswith("linux"):
+        pytest.skip("glibc's allocator only")
+    # a 64 MB block allocated and freed 20 times: by default each time fresh pages from the
+    # system (one fault per 4 kB page), kept for reuse after hold_freed_memory
+    code = """
+import resource, sys, torch
+from torchconn._cli import hold_freed_memory
+if sys.argv[1] == "hold":
+    hold_freed_memory()
+torch.empty(8 << 20, dtype=torch.float64).fill_(1.0)
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(20):
+    torch.empty(8 << 20, dtype=torch.float64).fill_(1.0)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+    faults = {mode: int(subprocess.run([sys.executable, "-c", code, mode], capture_output=True,
+                                       text=True, check=True).stdout)
+              for mode in ("default", "hold")}
+    assert faults["default"] > 20 * 10_000 and faults["hold"] < faults["default"] / 10, faults
 
 
 def test_bad_config_is_reported(tmp_path, capsys):

@@ -191,6 +191,7 @@ def simulate(
     phase0=0.0,
     stationary_start: bool = True,
     drift: Drift | None = None,
+    power: bool = True,
 ) -> Trajectory:
     """Simulate noisy gait-following trials, batched over cells (noise levels × trials).
 
@@ -214,6 +215,8 @@ def simulate(
             ``t``, and that its ω component does not depend on the pose (ambient flow, body
             drift); it is then called once per block, vectorised, with poses ``(..., K, 3)``
             whose ``x, y`` are NaN and ``t`` a ``(K,)`` tensor, which is much faster.
+        power: record the power channel (:func:`interval_power`); False leaves ``power`` None,
+            for a caller that fits no metric (the same trajectory otherwise, bit for bit).
 
     Returns:
         A :class:`~torchconn.trajectory.Trajectory` with ``t (T,)``, ``pose (..., T, 3)``,
@@ -247,7 +250,7 @@ def simulate(
     )
 
     t = torch.arange(n_samples, dtype=torch.float64, device=device) * dt
-    power = interval_power(system, rec["r"], dt)
+    power = interval_power(system, rec["r"], dt) if power else None
     truth = GroundTruth(
         phase=rec["phase"], pose=rec["pose"], r=rec["r"], xi=rec["xi"], r_dot=rec["r_dot"],
         power=power, delta=rec["delta"],
@@ -255,13 +258,13 @@ def simulate(
     meta = _rollout_meta(system, gait, eta=eta, alpha=alpha, phase0=phase0, seeds=seeds,
                          batch=batch, n_cycles=n_cycles, samples_per_cycle=samples_per_cycle,
                          substeps=substeps, dt=dt, stationary_start=stationary_start,
-                         drift=drift)
+                         drift=drift, power=power is not None)
     return Trajectory(t=t, pose=rec["pose"], r=rec["r"], power=power, truth=truth,
                       meta=meta)
 
 
 def _rollout_meta(system, gait, *, eta, alpha, phase0, seeds, batch, n_cycles,
-                  samples_per_cycle, substeps, dt, stationary_start, drift) -> dict:
+                  samples_per_cycle, substeps, dt, stationary_start, drift, power) -> dict:
     """The metadata of a simulated recording: the system, gait and every setting of the run."""
     return {
         "source": "torchconn.simulation.rollout.simulate",
@@ -281,7 +284,7 @@ def _rollout_meta(system, gait, *, eta, alpha, phase0, seeds, batch, n_cycles,
         "stationary_start": bool(stationary_start),
         "drift": None if drift is None else repr(drift),
         "scheme": "Heun (Stratonovich), pose step exp(½(A(r_n)+A(r_n+1)) Δr) on SE(2)",
-        "power": POWER_DEFINITION,
+        "power": POWER_DEFINITION if power else None,
     }
 
 

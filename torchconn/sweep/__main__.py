@@ -11,10 +11,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from .._cli import InputError, resolve_device, run_command, set_threads
+from .._cli import InputError, hold_freed_memory, resolve_device, run_command, set_threads
 from ..cli.common import add_common
 from .config import load_config, sweep_config_names
-from .runner import run_sweep
+from .runner import default_jobs, run_sweep
 
 PROG = "torchconn-sweep"
 
@@ -42,6 +42,11 @@ def _parser() -> argparse.ArgumentParser:
                    "device=...; default: the config's device, cpu). CPU and CUDA draw different "
                    "random numbers from the same seeds: each device's results are reproducible, "
                    "and run.json records the device")
+    p.add_argument("--jobs", type=int, metavar="N",
+                   help="run N cells at once, each in a local process with --threads threads "
+                   "(default: one per usable CPU core, as memory allows, or 1 with --device "
+                   "cuda; 1: one after another in this process). The results are the same for "
+                   "any N")
     p.add_argument("--workers", type=int, default=0,
                    help="run cells on a local Dask cluster with N workers")
     p.add_argument("--scheduler", help="address of an existing Dask scheduler, tcp://HOST:PORT")
@@ -56,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def body() -> int:
         set_threads(args.threads)
+        hold_freed_memory()
         overrides = list(args.overrides)
         for flag, key in (("trials", "experiment.trials"), ("cycles", "simulation.n_cycles"),
                           ("block", "block_trials")):
@@ -67,9 +73,13 @@ def main(argv: list[str] | None = None) -> int:
         config = load_config(args.config, overrides)
         if args.workers < 0:
             raise InputError(f"--workers must be >= 0, got {args.workers}")
+        if args.jobs is not None and (args.workers or args.scheduler):
+            raise InputError("give either --jobs (local processes) or --workers/--scheduler "
+                             "(Dask), not both")
+        jobs = default_jobs(config, args.threads) if args.jobs is None else args.jobs
         summary = run_sweep(config, args.out or Path("runs") / config.name,
-                            workers=args.workers, scheduler=args.scheduler, quiet=args.quiet,
-                            figures=not args.no_figures, wait=args.wait)
+                            workers=args.workers, scheduler=args.scheduler, jobs=jobs,
+                            quiet=args.quiet, figures=not args.no_figures, wait=args.wait)
         if not args.quiet:
             print(f"results in {summary.out}")
         return 0

@@ -2,10 +2,11 @@
 
 The unit of work and storage is a cell (one noise level of one experiment, ``block_trials``
 trials; see :class:`~torchconn.sweep.experiment.Cell`), so a killed run loses only the cells
-in flight and ``--workers`` spreads even a single experiment. Only one run writes a folder at
-a time (:class:`~torchconn._output.FolderLock`); stored cells are checked on load and
-damaged ones recomputed (:class:`~torchconn.sweep.store.ResultStore`). Per-experiment
-summaries (claims, figures) are computed from all cells once they are loaded.
+in flight, and ``--jobs`` (local processes, by default one per core) and ``--workers`` (Dask)
+spread even a single experiment. Only one run writes a folder at a time
+(:class:`~torchconn._output.FolderLock`); stored cells are checked on load and damaged ones
+recomputed (:class:`~torchconn.sweep.store.ResultStore`). Per-experiment summaries (claims,
+figures) are computed from all cells once they are loaded.
 
 Outputs in ``OUT/``: ``results.csv`` (tidy: experiment, system, noise_kind, level, trial, model,
 component, metric, value), ``phase_errors.csv`` (error per phase bin), ``traces.csv``
@@ -19,17 +20,24 @@ A folder that is neither empty nor a sweep's (no ``cells/``) is refused.
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import json
+import multiprocessing
+import os
+import signal
 import sys
+import threading
 import time
 import warnings
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from .._cli import InputError, prepare_output
+from .._cli import InputError, hold_freed_memory, prepare_output
 from .._output import OS_LITTER, FolderLock, write_table
 from .._provenance import write_sidecar
 from .claims import check_claims
@@ -42,11 +50,12 @@ from .experiment import (
     ExperimentResult,
     experiment_cells,
     experiment_seeds,
+    make_system,
     run_cell,
 )
 from .store import ResultStore
 
-__all__ = ["run_sweep", "SweepSummary", "Progress", "cell_fingerprint"]
+__all__ = ["run_sweep", "SweepSummary", "Progress", "cell_fingerprint", "default_jobs"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -101,6 +110,92 @@ def _in_worker(config: SweepConfig, cell: Cell, threads: int) -> ExperimentResul
     return run_cell(config, cell)
 
 
+#: the memory a job process is given room for: torch and torchconn, and per trial-sample of
+#: the largest cell (a 12-trial 9-link cell of 1,920 samples peaked at 0.7 GB, and a job keeps
+#: what its cells freed for reuse, :func:`~torchconn._cli.hold_freed_memory`)
+_JOB_BASE_BYTES = 512 << 20
+_JOB_BYTES_PER_TRIAL_SAMPLE = 60_000
+
+
+def default_jobs(config: SweepConfig, threads: int) -> int:
+    """How many cells ``torchconn-sweep`` runs at once by default: one per ``threads`` CPU
+    cores this process may use, as many as the available memory has room for (:func:`run_sweep`
+    runs no more than there are cells to compute); 1 when the cells run on a GPU."""
+    if torch.device(config.device).type != "cpu":
+        return 1
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    largest = max(min(config.block_trials, e.trials) * e.simulation.n_cycles
+                  * e.simulation.samples_per_cycle for e in config.experiments)
+    room = _available_memory() // (_JOB_BASE_BYTES + _JOB_BYTES_PER_TRIAL_SAMPLE * largest)
+    return max(1, min(cores // max(threads, 1), room))
+
+
+def _available_memory() -> int:
+    """Bytes of memory available to new processes (Linux: ``MemAvailable``; elsewhere the
+    free physical memory, or without a way to tell, no limit)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return 1 << 62
+
+
+#: Linux ``prctl`` option: the signal a process gets when its parent ends
+_PR_SET_PDEATHSIG = 1
+
+
+def _start_job(threads: int, parent: int) -> None:
+    """A local job process: the parent's thread count, freed memory kept for reuse
+    (:func:`~torchconn._cli.hold_freed_memory`); an interrupt is the parent's to handle (it
+    stops the jobs), not every job's. The job ends with its parent (process ``parent``): a
+    job left behind would wait for work forever, and a forked one holds the output folder's
+    lock, which a parent killed with ``kill -9`` must not leave held."""
+    torch.set_num_threads(threads)
+    hold_freed_memory()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:  # Linux: killed with the parent
+        ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError, TypeError):  # elsewhere: look once a second
+        threading.Thread(target=_end_with, args=(parent,), daemon=True).start()
+    if os.getppid() != parent:  # the parent ended already
+        os._exit(1)
+
+
+def _end_with(parent: int) -> None:
+    """End this process once ``parent`` is no longer its parent."""
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os._exit(1)
+
+
+def _job(config: SweepConfig, cell: Cell) -> tuple[ExperimentResult, list, int, float]:
+    """One cell in a job process; the warnings it showed (those its filters, a fork of the
+    parent's, let through), as ``(category, message)`` for the parent to give again where the
+    command shows them; the process's id and the CPU seconds it has used so far."""
+    caught = []
+    with warnings.catch_warnings():
+        warnings.showwarning = lambda message, category, *args, **kwargs: caught.append(
+            (category, str(message)))
+        result = run_cell(config, cell)
+    return result, caught, os.getpid(), time.process_time()
+
+
+def _cell_cost(cell: Cell) -> int:
+    """A cell's relative cost, to start the longest first: samples times links."""
+    sim = cell.experiment.simulation
+    links = make_system(cell.experiment.system).n_links
+    return (cell.stop - cell.start) * sim.n_cycles * sim.samples_per_cycle * links
+
+
 def _dask():
     try:
         from distributed import Client, LocalCluster, as_completed
@@ -116,6 +211,7 @@ def run_sweep(
     *,
     workers: int = 0,
     scheduler: str | None = None,
+    jobs: int = 1,
     quiet: bool = False,
     figures: bool = True,
     wait: bool = False,
@@ -130,6 +226,9 @@ def run_sweep(
             ``prog: warning: ...``).
         workers: > 0 runs cells on a local Dask cluster with that many worker processes.
         scheduler: address of an existing Dask scheduler (``tcp://HOST:PORT``).
+        jobs: without Dask, how many cells run at once, each in a local process with this
+            process's torch thread count (1: one after another, in this process). The rows
+            are the same bit for bit for any ``jobs``; the longest cells start first.
         quiet: no progress bar or log lines (the warnings are still given).
         figures: write the PNG figures.
         wait: when another run holds ``out_dir``, wait for it instead of raising
@@ -139,6 +238,8 @@ def run_sweep(
         raise InputError(f"--workers must be an integer >= 0, got {workers!r}")
     if workers and scheduler:
         raise InputError("give either --workers (a local cluster) or --scheduler, not both")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise InputError(f"--jobs must be an integer >= 1, got {jobs!r}")
     dask = _dask() if (workers or scheduler) else None
     _check_sweep_folder(Path(out_dir))
     out = prepare_output(out_dir)
@@ -164,17 +265,22 @@ def run_sweep(
             f"{len(done)} already done in {out}")
         progress = Progress(len(plan), len(done), quiet)
         t0 = time.perf_counter()
+        local = 1 if dask else min(jobs, max(len(pending), 1))
+        job_cpu = []
         if pending and dask:
             _run_dask(dask, config, pending, store, done, progress, workers, scheduler)
+        elif local > 1:
+            job_cpu = _run_jobs(config, pending, store, done, progress, local)
         else:
             for cell, fp in pending:
                 done[cell.name] = run_cell(config, cell)
                 store.save(cell, fp, done[cell.name])
                 progress.update(cell.name)
         wall = time.perf_counter() - t0
-        return _assemble(config, out, done, plan, wall, figures, log,
-                         computed=tuple(c.name for c, _ in pending), damaged=tuple(damaged),
-                         removed=tuple(removed), temporary=tuple(temporary))
+        return _assemble(config, out, done, plan, wall, figures, log, jobs=local,
+                         job_cpu=job_cpu, computed=tuple(c.name for c, _ in pending),
+                         damaged=tuple(damaged), removed=tuple(removed),
+                         temporary=tuple(temporary))
 
 
 def _check_sweep_folder(out: Path) -> None:
@@ -219,6 +325,53 @@ def _run_dask(dask, config, pending, store, done, progress, workers, scheduler) 
             cluster.close()
 
 
+def _run_jobs(config, pending, store, done, progress, jobs: int) -> list[float]:
+    """The pending cells on ``jobs`` local processes, longest first; each cell stored as it
+    finishes. On an error or an interrupt the jobs still running are stopped (the cells
+    already stored are kept). Returns the CPU seconds of each job process."""
+    threads = torch.get_num_threads()
+    # fork: the jobs start at once with torchconn imported; spawn (imports anew) elsewhere and
+    # for jobs of several threads (OpenMP's thread pool does not survive a fork)
+    method = "fork" if sys.platform.startswith("linux") and threads == 1 else "spawn"
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(method),
+                               initializer=_start_job, initargs=(threads, os.getpid()))
+    cpu: dict[int, float] = {}
+    try:
+        running = {pool.submit(_job, config, cell): (cell, fp)
+                   for cell, fp in sorted(pending, key=lambda p: -_cell_cost(p[0]))}
+        while running:
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                cell, fp = running.pop(fut)
+                try:
+                    result, caught, pid, cpu[pid] = fut.result()
+                except BrokenProcessPool:
+                    raise RuntimeError(
+                        f"a job process ended abruptly (killed, or out of memory?) with "
+                        f"{len(running) + 1} cells unfinished; the cells finished are kept: run "
+                        "again, with fewer --jobs to use less memory") from None
+                for category, message in caught:
+                    warnings.warn(message, category, stacklevel=1)
+                done[cell.name] = result
+                store.save(cell, fp, result)
+                progress.update(cell.name)
+    except BaseException:
+        _stop_jobs(pool)
+        raise
+    pool.shutdown()
+    return sorted(cpu.values())
+
+
+def _stop_jobs(pool: ProcessPoolExecutor) -> None:
+    """Cancel the queued cells and end the job processes now (not after their cells)."""
+    # (the executor has no public way to end its processes before Python 3.14; shutdown
+    # forgets them)
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for process in processes:
+        process.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
 def _device_record(name: str) -> dict:
     """The device the cells ran on, for ``run.json`` (CPU and CUDA draw different numbers)."""
     device = torch.device(name)
@@ -229,8 +382,8 @@ def _device_record(name: str) -> dict:
     return out
 
 
-def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged, removed,
-              temporary) -> SweepSummary:
+def _assemble(config, out, done, plan, wall, figures, log, *, jobs, job_cpu, computed,
+              damaged, removed, temporary) -> SweepSummary:
     previous = _previous_outputs(out)
     (out / "run.json").unlink(missing_ok=True)  # the completion record goes first, comes last
     per_experiment = {e.name: ExperimentResult() for e in config.experiments}
@@ -278,6 +431,11 @@ def _assemble(config, out, done, plan, wall, figures, log, *, computed, damaged,
         "timings_s": timings,
         "wall_time_s_this_run": wall,
         "torch_threads": torch.get_num_threads(),
+        "jobs": jobs,
+        # this process's CPU time (start-up included, and the cells where it ran them) and
+        # each job process's: on an idle machine, with a core per job, the wall time is
+        # about this process's and the busiest job's together
+        "cpu_time_s": {"this_process": time.process_time(), "jobs": job_cpu},
         "device": _device_record(config.device),
     }
     write_sidecar(out / "run.json", sidecar)

@@ -503,3 +503,43 @@ def test_a_s_draw_parts_are_kept_beside_estimates_unchanged_bit_for_bit(clean30)
     assert float(new.bins.A_bias_allowance.abs().max()) > 0
     noisy = fit_pooled(noisy_circle_trials(0.005, clean=clean30)).model_
     assert noisy.bins.A_sampling_factor is not None and noisy.bins.A_bias_allowance is None
+
+
+def test_a_predictions_only_fit_predicts_the_same_bit_for_bit_without_the_tie(monkeypatch):
+    """Within predictions_only (the sweep's fits), unpooled and pooled: the model predicts
+    what the full fit's predicts, bit for bit, with the direct ∂Â/∂r as its dA, and nothing
+    that serves only the tie or the bands (the tie, the joint covariance, the cycles' shares
+    of Â's error) is computed."""
+    import torchconn.regression.noise_aware.bias as bias_module
+    import torchconn.regression.noise_aware.regression as na
+    from torchconn.regression import _wls
+
+    calls = []
+
+    def counting(module, name):
+        real = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, **k: calls.append(name) or real(*a, **k))
+
+    for module, name in ((na, "tie_connection_derivative"),
+                         (bias_module, "tie_connection_derivative"),
+                         (_wls, "sandwich_correlation"), (_wls, "cluster_scores")):
+        counting(module, name)
+    prep, _ = unpooled_trials([0.0, 0.01])
+    reg = NoiseAwareRegression()
+    for pool in (False, True):
+        cycle = ConnectionEstimator().cycle.fit(prep, pool=pool)
+        calls.clear()
+        full = reg.fit(prep, cycle, pool=pool)
+        assert "tie_connection_derivative" in calls
+        calls.clear()
+        with na.predictions_only():
+            quick = reg.fit(prep, cycle, pool=pool)
+        assert calls == [], pool
+        assert quick.meta["derivative"] == "direct (predictions only)"
+        assert quick.dA_fit is None and torch.equal(quick.dA.coeffs, full.dA_fit.coeffs)
+        s = prep.smoothed
+        assert torch.equal(quick.predict(prep.phase, s.r, s.r_dot),
+                           full.predict(prep.phase, s.r, s.r_dot)), pool
+    with na.predictions_only():
+        pass
+    assert reg.fit(prep, cycle, pool=True).dA_fit is not None  # the switch ends with the block

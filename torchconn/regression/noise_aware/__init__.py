@@ -16,9 +16,9 @@ regression's (:mod:`.shrink`). The stage itself is :class:`NoiseAwareRegression`
 
 from .bias import bin_bias_correction, derivative_bias_allowance, derivative_bias_correction
 from .eiv import eiv_correction, eiv_row_correction, noise_aware_regression
-from .regression import NoiseAwareRegression
+from .regression import NoiseAwareRegression, predictions_only
 from .shrink import blend_fits, offset_gain, offsets_at
 
-__all__ = ["NoiseAwareRegression", "noise_aware_regression", "eiv_correction",
+__all__ = ["NoiseAwareRegression", "predictions_only", "noise_aware_regression", "eiv_correction",
            "eiv_row_correction", "blend_fits", "offset_gain", "offsets_at",
            "bin_bias_correction", "derivative_bias_correction", "derivative_bias_allowance"]

@@ -4,8 +4,11 @@ velocity interval, filter and bin width.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
@@ -49,7 +52,30 @@ from .bias import (
 from .eiv import flagged_fit, noise_aware_regression, sampling_factor, scatter_fits, take_fit
 from .shrink import blend_fits, offset_gain, offsets_at, rescaled_covariance, shrink_series
 
-__all__ = ["NoiseAwareRegression"]
+__all__ = ["NoiseAwareRegression", "predictions_only"]
+
+
+_PREDICTIONS_ONLY = contextvars.ContextVar("predictions_only", default=False)
+
+
+@contextlib.contextmanager
+def predictions_only() -> Iterator[None]:
+    """Within: :class:`NoiseAwareRegression` fits only what its model's predictions use.
+
+    :meth:`~torchconn.regression.model.LocalConnectionModel.predict` uses ``ĉ, b̂, Â`` and the
+    regression's own ``δ̇⊗δ`` coefficient, so the work that serves only the estimate of
+    ``∂Â/∂r`` and the bands is skipped: the tie of ``∂Â/∂r`` (with the joint covariance of
+    ``b̂`` and the direct estimate it weighs them by) and, pooled, ``Â``'s sampling factor and
+    bias allowance. The model's ``dA`` is then the direct estimate (``dA_fit`` None,
+    ``meta["derivative"]`` says so) and its predictions are the same bit for bit. For callers
+    that score predictions alone (the sweep); a model fitted so is not one to read ``∂Â/∂r``
+    or bands from.
+    """
+    token = _PREDICTIONS_ONLY.set(True)
+    try:
+        yield
+    finally:
+        _PREDICTIONS_ONLY.reset(token)
 
 
 #: standard errors the joints' mean noise variance must stand above 0 for
@@ -229,7 +255,7 @@ class NoiseAwareRegression(TubeRegression):
                                               noise_var=var)
         # b̂ and ∂Â/∂r's joint covariance, for the tie: only for groups with detected noise
         # (elsewhere the tie takes the two as independent, and scatter_fits leaves it NaN)
-        joint = {"joint_covariance": True}
+        joint = {} if _PREDICTIONS_ONLY.get() else {"joint_covariance": True}
         batch = tuple(traj.batch_shape)
         n, m = math.prod(batch), n_bins
         flat = flatten_batch(traj)
@@ -432,13 +458,14 @@ class NoiseAwareRegression(TubeRegression):
         """The corrected fit, shrunk towards the smoothed one (:func:`blend_fits`), with
         ``∂Â/∂r`` tied (:meth:`_tied`) and, pooled, ``Â``'s sampling factor
         (``sampling_factor_A``) and, without detected noise, its bias allowance
-        (``bias_allowance_A``)."""
+        (``bias_allowance_A``); within :func:`predictions_only`, the blended fit alone."""
         fit, window, meta, chosen = self._corrected_fit(traj, pool, samples, gamma_m,
                                                         gamma_dot_m, opts, bins_for)
+        full = not _PREDICTIONS_ONLY.get()
         # (unpooled elements got their joint covariance with their fits)
         joint = chosen.view is not None and not chosen.noise_free
         rerun = None
-        if chosen.view is not None:
+        if chosen.view is not None and full:
             fit, rerun = self._rerun_chosen(fit, traj, chosen, gamma_m, gamma_dot_m, opts,
                                             joint)
         if pool:  # (unpooled elements got theirs with their fits)
@@ -448,6 +475,9 @@ class NoiseAwareRegression(TubeRegression):
         tube, _, _ = self._smoothed_fit(samples, gamma_m, gamma_dot_m, opts, bins_for)
         fit, weights = blend_fits(tube, fit)
         meta["corrected_weight"] = weights.tolist()
+        if not full:
+            meta["derivative"] = "direct (predictions only)"
+            return dataclasses.replace(fit, cov_b_dA=None), window, meta
         # the direct estimate stays the coefficient the model predicts with (dA_fit)
         tied, meta["derivative"] = self._tied(fit, traj, chosen, gamma_m, gamma_dot_m, opts)
         fit = dataclasses.replace(tied, dA_direct=fit.dA, cov_b_dA=None)
