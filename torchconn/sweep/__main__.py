@@ -23,7 +23,7 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Batched sweeps over system and observation noise (the paper's Sec. 5). "
-        "With no arguments, runs the packaged default sweep (about 80 s on 2 cores). "
+        "With no arguments, runs the packaged default sweep (about 30 s on 2 cores). "
         "Also runs as python -m torchconn.sweep.",
     )
     p.add_argument("--config", metavar="NAME|FILE",

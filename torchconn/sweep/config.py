@@ -52,7 +52,7 @@ PHASES = ("estimated", "true")
 TRIAL_TILE = 4
 
 #: the sweep ``torchconn-sweep`` runs with no ``--config`` (the packaged ``default.toml``,
-#: which documents every field; about 80 s on 2 cores)
+#: which documents every field; about 30 s on 2 cores)
 DEFAULT_TOML = configs().joinpath("default.toml").read_text(encoding="utf-8")
 
 _TOP = {"name": str, "seed": int, "phase": str, "error_bins": int, "block_trials": int,
