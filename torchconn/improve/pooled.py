@@ -27,6 +27,7 @@ from ..cycles import cycles_spanned
 from ..phase.fourier import FourierSeries, fit_fourier
 from ..phase.smoothing import RTSSmoother, Smoother
 from ..physics.gaits.gait import FourierGait
+from ..regression.gait_prediction import best_shift
 from ..regression.model import LocalConnectionModel
 from ..regression.online import CycleConfidence, OnlineConnection
 from ..trajectory import Trajectory, pool_batch
@@ -95,13 +96,7 @@ def aligned_recording(traj: Trajectory, centre: FourierSeries) -> GaitRecording:
     own = fit_fourier(psi, r, centre.order, value_ndim=1)
     n = 256
     grid = torch.arange(n, dtype=psi.dtype, device=psi.device) * (2 * math.pi / n)
-    ref = centre(grid)  # (n, d)
-    mine = own(grid)
-    # distance of own(ψ_j) from centre(ψ_j + φ₀) for every shift φ₀ = 2πk/n: (k, j)
-    steps = torch.arange(n, device=psi.device)
-    shift = (steps[:, None] + steps[None, :]) % n
-    cost = (mine - ref[shift]).square().sum(-1).mean(-1)
-    offset = float(grid[int(cost.argmin())])
+    offset = float(grid[best_shift(centre(grid), own(grid))])
     shifted = fit_fourier(grid, own(grid - offset), centre.order, value_ndim=1)
     cycles = int(round(float(cycles_spanned(traj.phase).sum())))
     return GaitRecording(gait=FourierGait(shifted.coeffs), phase=psi + offset, r=r,

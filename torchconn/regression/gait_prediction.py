@@ -49,7 +49,7 @@ if TYPE_CHECKING:
     from .model import LocalConnectionModel
 
 __all__ = ["GaitPrediction", "ExcursionWarning", "predict_gait", "predict_cycle", "sample_models",
-           "align_phase", "tube_radius", "normal_quantile"]
+           "align_phase", "best_shift", "tube_radius", "normal_quantile"]
 
 
 class ExcursionWarning(UserWarning):
@@ -116,14 +116,20 @@ def align_phase(model: "LocalConnectionModel", gait, n_grid: int = 512) -> float
     """
     gait = as_gait(gait)
     theta = torch.arange(n_grid, dtype=torch.float64, device=model.device) * (2 * math.pi / n_grid)
-    target = gait(theta)  # (G, d)
     cycle = model.gamma_at(theta.expand(model.batch_shape + (n_grid,)))  # (..., G, d)
     cycle = cycle.reshape(-1, n_grid, cycle.shape[-1]).mean(0)
-    # err[s] = Σ_θ |γ'(θ) − γ(θ + s)|²: a circular cross-correlation, by FFT
+    return float(theta[best_shift(cycle, gait(theta))])
+
+
+def best_shift(cycle: Tensor, target: Tensor) -> int:
+    """The shift ``s`` (in grid steps) that minimises ``Σ_j |target_j − cycle_(j+s mod G)|²`` for
+    two closed curves sampled at the same ``G`` equispaced phases, ``(G, d)`` each: ``target(θ)``
+    lies best on ``cycle(θ + 2πs/G)``."""
+    # a circular cross-correlation, by FFT (the squared norms do not depend on the shift)
     cross = torch.fft.irfft(
-        (torch.fft.rfft(cycle, dim=0) * torch.fft.rfft(target, dim=0).conj()).sum(-1), n=n_grid
-    )
-    return float(theta[int(torch.argmax(cross))])
+        (torch.fft.rfft(cycle, dim=0) * torch.fft.rfft(target, dim=0).conj()).sum(-1),
+        n=cycle.shape[0])
+    return int(torch.argmax(cross))
 
 
 def sample_models(
