@@ -320,11 +320,12 @@ def excitation_gait(model: LocalConnectionModel, gait: FourierGait, peak: float,
     return gait
 
 
-def _peak_shape(gait) -> float:
-    """``max_φ |r(φ)|`` of ``gait`` at 256 phases (rad)."""
+def _peak_shape(gait, base=None) -> float:
+    """``max_φ |r(φ)|`` of ``gait`` at 256 phases (rad); with ``base``, of ``r(φ) − base(φ)``."""
     phi = torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256)
     phi = phi.to(getattr(gait, "coeffs", phi).device)
-    return float(torch.linalg.vector_norm(gait(phi), dim=-1).amax())
+    r = gait(phi) if base is None else gait(phi) - base(phi)
+    return float(torch.linalg.vector_norm(r, dim=-1).amax())
 
 
 def improve(system: LocomotionSystem, start, settings: LoopSettings | None = None,
@@ -419,7 +420,7 @@ def improve(system: LocomotionSystem, start, settings: LoopSettings | None = Non
             peak = s.excitation * s.trust_region.scale * tube
             gait = excitation_gait(model, kept["gait"], peak, seed=k,
                                    shape_bound=s.trust_region.shape_bound)
-            excitation, kind = _peak_shape(_difference(gait, kept["gait"])), "excited"
+            excitation, kind = _peak_shape(gait, kept["gait"]), "excited"
         else:
             gait, kind, excitation = kept["gait"], "repeat", 0.0
     return LoopResult(tuple(rounds), true_score(system, start, s), s)
@@ -492,16 +493,6 @@ def _within_limits(gait: FourierGait, pool: PooledConnection, s: LoopSettings, z
     pred = model.evaluate_gait(gait, phase_offset=0.0, n_draws=32, seed=seed,
                                warn_excursion=math.inf, max_excursion=math.inf)
     return abs(float(pred.displacement[2])) - z * float(pred.displacement_se[2]) <= limit
-
-
-def _difference(a: FourierGait, b: FourierGait) -> FourierGait:
-    """The gait ``a − b`` (coefficients padded to the higher order)."""
-    n = max(a.coeffs.shape[0], b.coeffs.shape[0])
-
-    def padded(c):
-        return torch.cat([c, c.new_zeros(n - c.shape[0], c.shape[1])])
-
-    return FourierGait(padded(a.coeffs) - padded(b.coeffs))
 
 
 def _as_fourier(gait, order: int) -> FourierGait:
