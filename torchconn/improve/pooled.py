@@ -132,6 +132,7 @@ class PooledConnection:
         self.recordings: list[GaitRecording] = []
         self._online: OnlineConnection | None = None
         self._centre: FourierGait | None = None
+        self._model: LocalConnectionModel | None = None  # model() of the current sums
 
     def weight(self, recording: GaitRecording, gait: FourierGait) -> float:
         """The weight of ``recording`` in the model around ``gait``."""
@@ -143,6 +144,7 @@ class PooledConnection:
         """Keep ``recording``; when the model is centred on its gait already, add it to the
         sums online and return the recording's :class:`CycleConfidence` (None otherwise)."""
         self.recordings.append(recording)
+        self._model = None
         if self._online is None or self._centre is None:
             return None
         return self._update(self._online, recording, self.weight(recording, self._centre))
@@ -162,11 +164,12 @@ class PooledConnection:
                 w = self.weight(rec, gait)
                 if w >= _MIN_WEIGHT:
                     self._update(online, rec, w)
-            self._online, self._centre = online, gait
+            self._online, self._centre, self._model = online, gait, None
         return self._online
 
     def model(self, gait: FourierGait) -> LocalConnectionModel:
-        """The local model around ``gait`` from every recording (see :class:`PooledConnection`).
+        """The local model around ``gait`` from every recording (see :class:`PooledConnection`);
+        kept until a recording is added or the centre moves.
 
         The bins' standard errors assume independent samples, but a smoothed recording's
         residuals are correlated over several samples; they are scaled per body-velocity
@@ -178,15 +181,19 @@ class PooledConnection:
             ValueError: where a phase bin cannot be fitted yet (too few recordings near
                 ``gait``).
         """
-        model = self.online(gait).model()
+        online = self.online(gait)
+        if self._model is not None:  # nothing added since, same centre
+            return self._model
+        model = online.model()
         factor = self._se_inflation(model, gait)
         bins = model.bins
         k = factor.to(bins.c_se)
         scaled = dataclasses.replace(
             bins, c_se=bins.c_se * k, b_se=bins.b_se * k[:, None], A_se=bins.A_se * k[:, None],
             dA_se=bins.dA_se * k[:, None, None])
-        return dataclasses.replace(model, bins=scaled,
-                                   meta=model.meta | {"se_inflation": factor.tolist()})
+        self._model = dataclasses.replace(model, bins=scaled,
+                                          meta=model.meta | {"se_inflation": factor.tolist()})
+        return self._model
 
     def _se_inflation(self, model: LocalConnectionModel, gait: FourierGait) -> Tensor:
         """``(3,)`` the standard errors' factor for the residuals' autocorrelation."""
